@@ -1,0 +1,328 @@
+"""Recordings of Otbot runs in MCAP (the container ROS 2 bags and Foxglove use).
+
+One file holds one run: a metadata record ``otbot`` and, for every sample k, one
+JSON message on each recorded topic, all stamped with the same time t_k. The
+layout is specified in ``docs/recording-format.md``; in short:
+
+==================  ===============================================  ==========
+topic               payload (JSON)                                   required
+==================  ===============================================  ==========
+/otbot/command      t (s), torque [tau_r, tau_l, tau_p] (N m)        yes
+/otbot/joints       t, position [phi_r, phi_l, phi_p] (rad),         no
+                    velocity (rad/s)
+/otbot/imu          t, accel [x, y, z] (m/s^2), gyro [x, y, z]       no
+                    (rad/s), platform frame B''
+/otbot/truth        t, q (6), qd (6), force [f_x, f_y] (N, ground)   no (sim)
+==================  ===============================================  ==========
+
+Messages are written unchunked and uncompressed and flushed every few samples,
+so a file cut short (process killed mid-write) still loads every complete sample.
+Floats are written with Python's shortest round-trip repr: loading gives back the
+exact float64 values.
+"""
+from __future__ import annotations
+
+import json
+import math
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+FORMAT_NAME = "otbot-recording"
+FORMAT_VERSION = 1
+PROFILE = "otbot"
+
+TOPIC_COMMAND = "/otbot/command"
+TOPIC_JOINTS = "/otbot/joints"
+TOPIC_IMU = "/otbot/imu"
+TOPIC_TRUTH = "/otbot/truth"
+
+_VEC3 = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+_VEC6 = {"type": "array", "items": {"type": "number"}, "minItems": 6, "maxItems": 6}
+_VEC2 = {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}
+
+#: topic -> (schema name, JSON schema of the payload)
+TOPICS: dict[str, tuple[str, dict]] = {
+    TOPIC_COMMAND: ("otbot.Command", {
+        "type": "object", "required": ["t", "torque"],
+        "properties": {"t": {"type": "number", "description": "s since start"},
+                       "torque": {**_VEC3, "description": "tau_r, tau_l, tau_p in N m, held until next t"}}}),
+    TOPIC_JOINTS: ("otbot.Joints", {
+        "type": "object", "required": ["t", "position", "velocity"],
+        "properties": {"t": {"type": "number"},
+                       "position": {**_VEC3, "description": "phi_r, phi_l, phi_p in rad"},
+                       "velocity": {**_VEC3, "description": "rad/s"}}}),
+    TOPIC_IMU: ("otbot.Imu", {
+        "type": "object", "required": ["t", "accel", "gyro"],
+        "properties": {"t": {"type": "number"},
+                       "accel": {**_VEC3, "description": "specific force, m/s^2, platform frame B''"},
+                       "gyro": {**_VEC3, "description": "angular rate, rad/s, platform frame B''"}}}),
+    TOPIC_TRUTH: ("otbot.Truth", {
+        "type": "object", "required": ["t", "q", "qd"],
+        "properties": {"t": {"type": "number"},
+                       "q": {**_VEC6, "description": "x, y (m), alpha, phi_r, phi_l, phi_p (rad)"},
+                       "qd": {**_VEC6, "description": "time derivative of q"},
+                       "force": {**_VEC2, "description": "f_x, f_y at the pivot, N, ground frame"}}}),
+}
+
+UNITS = {
+    "t": "s", "torque": "N m", "position": "rad", "velocity": "rad/s", "accel": "m/s^2",
+    "gyro": "rad/s", "q": "m, m, rad, rad, rad, rad", "qd": "m/s, m/s, rad/s, rad/s, rad/s, rad/s",
+    "force": "N",
+}
+FRAMES = {
+    "ground": "B: inertial, z up; x, y of q are the pivot P in B",
+    "platform": "B'': origin at the pivot P, x along 1'', y along 2'', z up; rotated by alpha from B",
+    "imu": "accel and gyro are expressed in B''",
+    "joints": "phi_r, phi_l: wheel angles relative to the chassis, positive when the wheel drives the "
+              "robot forward along 1'; phi_p: platform angle relative to the chassis, counter-clockwise",
+}
+
+
+class RecordingError(ValueError):
+    """A recording is unreadable or inconsistent; the message says what and where."""
+
+
+@dataclass
+class Recording:
+    """A run as numpy arrays (N samples). Optional channels are None when not recorded.
+
+    t (N,) s; torque (N, 3) N m held on [t_k, t_k+1); joint_pos/joint_vel (N, 3)
+    rad, rad/s; imu_accel/imu_gyro (N, 3) m/s^2, rad/s in B''; truth_q/truth_qd
+    (N, 6) and truth_force (N, 2) N for simulated runs; metadata: see
+    ``docs/recording-format.md``.
+    """
+
+    t: np.ndarray
+    torque: np.ndarray
+    joint_pos: np.ndarray | None = None
+    joint_vel: np.ndarray | None = None
+    imu_accel: np.ndarray | None = None
+    imu_gyro: np.ndarray | None = None
+    truth_q: np.ndarray | None = None
+    truth_qd: np.ndarray | None = None
+    truth_force: np.ndarray | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+    truncated: bool = False
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def sample_period(self) -> float:
+        """Nominal sample period (s) from the metadata, else the median time step."""
+        if "sample_period" in self.metadata:
+            return float(self.metadata["sample_period"])
+        if len(self.t) < 2:
+            raise RecordingError("recording has fewer than 2 samples: no sample period")
+        return float(np.median(np.diff(self.t)))
+
+    def channels(self) -> list[str]:
+        """Topics present in this recording."""
+        out = [TOPIC_COMMAND]
+        if self.joint_pos is not None:
+            out.append(TOPIC_JOINTS)
+        if self.imu_accel is not None:
+            out.append(TOPIC_IMU)
+        if self.truth_q is not None:
+            out.append(TOPIC_TRUTH)
+        return out
+
+    def sample(self, k: int) -> dict[str, dict[str, Any]]:
+        """The messages of sample k, keyed by topic."""
+        msgs: dict[str, dict[str, Any]] = {TOPIC_COMMAND: {"t": float(self.t[k]), "torque": self.torque[k].tolist()}}
+        if self.joint_pos is not None:
+            msgs[TOPIC_JOINTS] = {"t": float(self.t[k]), "position": self.joint_pos[k].tolist(),
+                                  "velocity": self.joint_vel[k].tolist()}
+        if self.imu_accel is not None:
+            msgs[TOPIC_IMU] = {"t": float(self.t[k]), "accel": self.imu_accel[k].tolist(),
+                               "gyro": self.imu_gyro[k].tolist()}
+        if self.truth_q is not None:
+            m = {"t": float(self.t[k]), "q": self.truth_q[k].tolist(), "qd": self.truth_qd[k].tolist()}
+            if self.truth_force is not None:
+                m["force"] = self.truth_force[k].tolist()
+            msgs[TOPIC_TRUTH] = m
+        return msgs
+
+
+def _encode_metadata(meta: dict[str, Any]) -> dict[str, str]:
+    """MCAP metadata values are strings: each value is stored as JSON text."""
+    return {str(k): json.dumps(v, allow_nan=False) for k, v in meta.items()}
+
+
+class RecordingWriter:
+    """Streams samples into an MCAP file; usable as a context manager.
+
+    ``topics`` lists the optional topics the run will carry (command is always
+    there). Data are flushed to disk every ``flush_every`` samples, so a crash
+    loses at most that many samples.
+    """
+
+    def __init__(self, path: str | Path, metadata: dict[str, Any], topics: Iterable[str] = (),
+                 flush_every: int = 10):
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self._file = open(self.path, "wb")
+        self._writer = Writer(self._file, compression=CompressionType.NONE, use_chunking=False)
+        self._writer.start(profile=PROFILE, library=f"otbot-hw {FORMAT_NAME} v{FORMAT_VERSION}")
+        meta = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, "units": UNITS,
+                "frames": FRAMES, **metadata}
+        self._writer.add_metadata("otbot", _encode_metadata(meta))
+        self._channels: dict[str, int] = {}
+        for topic in [TOPIC_COMMAND, *[t for t in topics if t != TOPIC_COMMAND]]:
+            if topic not in TOPICS:
+                raise ValueError(f"unknown topic '{topic}' (known: {', '.join(TOPICS)})")
+            name, schema = TOPICS[topic]
+            sid = self._writer.register_schema(name=name, encoding="jsonschema",
+                                               data=json.dumps(schema).encode())
+            self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
+                                                                  schema_id=sid)
+        self._count = 0
+        self._flush_every = max(1, int(flush_every))
+        self._closed = False
+        self._writer.flush()
+
+    def write_sample(self, messages: dict[str, dict[str, Any]]) -> None:
+        """Write one sample: ``{topic: payload}`` for the command and every registered topic."""
+        missing = set(self._channels) - set(messages)
+        if missing:
+            raise ValueError(f"sample {self._count} lacks topic(s) {sorted(missing)}")
+        t = messages[TOPIC_COMMAND]["t"]
+        if not math.isfinite(t) or t < 0:
+            raise ValueError(f"sample {self._count}: time must be finite and >= 0, got {t}")
+        stamp = int(round(t * 1e9))
+        for topic, cid in self._channels.items():
+            data = json.dumps(messages[topic], allow_nan=True).encode()
+            self._writer.add_message(channel_id=cid, log_time=stamp, publish_time=stamp, data=data,
+                                     sequence=self._count)
+        self._count += 1
+        if self._count % self._flush_every == 0:
+            self.flush()
+
+    def flush(self) -> None:
+        """Push everything written so far to the operating system."""
+        self._writer.flush()
+
+    def close(self) -> None:
+        """Write the MCAP summary and footer and close the file."""
+        if not self._closed:
+            self._closed = True
+            self._writer.finish()
+            self._file.close()
+
+    def __enter__(self) -> "RecordingWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def write_recording(path: str | Path, rec: Recording) -> None:
+    """Write a whole ``Recording`` to ``path``."""
+    meta = dict(rec.metadata)
+    for key in ("format", "format_version", "units", "frames"):
+        meta.pop(key, None)
+    with RecordingWriter(path, meta, topics=rec.channels(), flush_every=1000) as w:
+        for k in range(len(rec)):
+            w.write_sample(rec.sample(k))
+
+
+def _records(path: Path) -> tuple[list, bool]:
+    """All readable MCAP records; ``truncated`` is True when the file ends early."""
+    from mcap.exceptions import McapError
+    from mcap.stream_reader import StreamReader
+
+    records = []
+    truncated = False
+    with open(path, "rb") as f:
+        reader = StreamReader(f, record_size_limit=64 * 2 ** 20)
+        try:
+            for rec in reader.records:
+                records.append(rec)
+        except (McapError, EOFError, ValueError, IndexError, struct.error) as exc:
+            if not records:
+                raise RecordingError(f"{path}: not an MCAP recording ({exc})") from None
+            truncated = True
+    return records, truncated
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Load a recording into numpy arrays; a truncated file yields its complete samples."""
+    from mcap.records import Channel, Footer, Message, Metadata
+
+    path = Path(path)
+    if not path.exists():
+        raise RecordingError(f"{path}: no such file")
+    records, truncated = _records(path)
+    if not any(isinstance(r, Footer) for r in records):
+        truncated = True
+    meta: dict[str, Any] = {}
+    channels: dict[int, str] = {}
+    data: dict[str, list[dict]] = {}
+    for r in records:
+        if isinstance(r, Metadata) and r.name == "otbot":
+            for k, v in r.metadata.items():
+                try:
+                    meta[k] = json.loads(v)
+                except json.JSONDecodeError:
+                    raise RecordingError(f"{path}: metadata '{k}' is not JSON text: {v[:60]!r}") from None
+        elif isinstance(r, Channel):
+            if r.topic in TOPICS:
+                if r.message_encoding != "json":
+                    raise RecordingError(f"{path}: topic {r.topic} has message encoding "
+                                         f"'{r.message_encoding}', expected 'json'")
+                channels[r.id] = r.topic
+        elif isinstance(r, Message) and r.channel_id in channels:
+            try:
+                msg = json.loads(r.data)
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                raise RecordingError(f"{path}: a message on {channels[r.channel_id]} at log time "
+                                     f"{r.log_time} ns is not JSON") from None
+            data.setdefault(channels[r.channel_id], []).append(msg)
+    if meta.get("format", FORMAT_NAME) != FORMAT_NAME:
+        raise RecordingError(f"{path}: metadata format is '{meta.get('format')}', expected '{FORMAT_NAME}'")
+    if TOPIC_COMMAND not in channels.values():
+        raise RecordingError(f"{path}: no {TOPIC_COMMAND} channel: not an Otbot recording")
+    present = sorted(set(channels.values()), key=list(TOPICS).index)
+    n = min(len(data.get(tp, [])) for tp in present)
+    if any(len(data.get(tp, [])) != n for tp in present):
+        truncated = True  # an incomplete last sample: keep complete samples only
+
+    def field_array(topic: str, key: str, width: int, required: bool = True) -> np.ndarray | None:
+        rows = data.get(topic, [])[:n]
+        if not required and rows and key not in rows[0]:
+            return None
+        try:
+            arr = np.array([m[key] for m in rows], dtype=float).reshape(n, width)
+        except (KeyError, TypeError, ValueError):
+            raise RecordingError(f"{path}: {topic} messages need '{key}' as {width} numbers") from None
+        return arr
+
+    t = np.array([m.get("t", np.nan) for m in data.get(TOPIC_COMMAND, [])[:n]], dtype=float)
+    for tp in present:
+        tt = np.array([m.get("t", np.nan) for m in data.get(tp, [])[:n]], dtype=float)
+        bad = np.nonzero(tt != t)[0]
+        if len(bad):
+            raise RecordingError(f"{path}: {tp} sample {bad[0]} has t = {tt[bad[0]]}, but "
+                                 f"{TOPIC_COMMAND} has t = {t[bad[0]]}: topics must share sample times")
+    if np.any(~np.isfinite(t)):
+        raise RecordingError(f"{path}: non-finite sample time at sample {int(np.argmax(~np.isfinite(t)))}")
+    if n > 1 and np.any(np.diff(t) <= 0):
+        k = int(np.argmax(np.diff(t) <= 0)) + 1
+        raise RecordingError(f"{path}: sample times must increase; sample {k} has t = {t[k]} after {t[k - 1]}")
+    rec = Recording(t=t, torque=field_array(TOPIC_COMMAND, "torque", 3), metadata=meta, truncated=truncated)
+    if TOPIC_JOINTS in present:
+        rec.joint_pos = field_array(TOPIC_JOINTS, "position", 3)
+        rec.joint_vel = field_array(TOPIC_JOINTS, "velocity", 3)
+    if TOPIC_IMU in present:
+        rec.imu_accel = field_array(TOPIC_IMU, "accel", 3)
+        rec.imu_gyro = field_array(TOPIC_IMU, "gyro", 3)
+    if TOPIC_TRUTH in present:
+        rec.truth_q = field_array(TOPIC_TRUTH, "q", 6)
+        rec.truth_qd = field_array(TOPIC_TRUTH, "qd", 6)
+        rec.truth_force = field_array(TOPIC_TRUTH, "force", 2, required=False)
+    return rec
