@@ -1,0 +1,395 @@
+"""Serial IMU driver: a VectorNav sensor speaking its ASCII protocol over pyserial.
+
+Frames: the sensor reports specific force (m/s^2) and angular rate (rad/s) in its own
+sensor frame S; the driver rotates both into the platform frame B'' with the mounting
+rotation ``R`` (3x3, sensor -> platform: ``v_B'' = R @ v_S``; its columns are the sensor
+axes written in B''). Times are host ``time.monotonic()`` seconds at reception.
+
+The protocol itself (framing, checksums, sentence layouts, register numbers) lives in
+:mod:`drivers.vectornav`, which cites the VectorNav documentation.
+"""
+from __future__ import annotations
+
+import dataclasses
+import select
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivers import vectornav as vn
+from otbot_hw.params import DEFAULT_CONFIG_DIR, ParameterError
+
+DEFAULT_ROBOT_FILE = DEFAULT_CONFIG_DIR / "robot.yaml"
+PROTOCOLS = ("vectornav-ascii",)
+IMU_OUTPUTS = ("VNIMU", "VNYMR")
+#: Bits on the wire per byte: 8N1 framing (start + 8 data + stop).
+BITS_PER_BYTE = 10
+#: Tolerance on |R R^T - I| and |det R - 1| for a mounting matrix from the config.
+ROTATION_TOL = 1e-4
+
+
+class ImuFault(RuntimeError):
+    """The IMU stopped delivering valid data, refused a command, or its port failed."""
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """One IMU measurement in the platform frame B''.
+
+    t: host monotonic time of reception (s); accel: specific force (3,) m/s^2;
+    gyro: angular rate (3,) rad/s.
+    """
+
+    t: float
+    accel: np.ndarray
+    gyro: np.ndarray
+
+
+def check_rotation(m, name: str = "mounting", tol: float = ROTATION_TOL) -> np.ndarray:
+    """``m`` as a proper rotation matrix (3x3, R R^T = I, det R = +1 within ``tol``),
+    re-orthonormalized to the nearest rotation; ValueError naming ``name`` otherwise."""
+    try:
+        r = np.asarray(m, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 3x3 matrix of numbers") from None
+    if r.shape != (3, 3):
+        raise ValueError(f"{name} must be a 3x3 matrix, got shape {r.shape}")
+    if not np.all(np.isfinite(r)):
+        raise ValueError(f"{name} has non-finite entries")
+    ortho = float(np.abs(r @ r.T - np.eye(3)).max())
+    if ortho > tol:
+        raise ValueError(f"{name} is not a rotation: |R R^T - I| = {ortho:.3g} > {tol:g}")
+    det = float(np.linalg.det(r))
+    if abs(det - 1.0) > tol:
+        raise ValueError(f"{name} is not a proper rotation: det R = {det:.6g} (a reflection has det -1)")
+    u, _, vt = np.linalg.svd(r)
+    return u @ vt
+
+
+def sentence_bytes(output: str) -> int:
+    """Length in bytes of one full-scale sentence of ``output`` as the device formats it."""
+    big = (-99.999, -99.999, -99.999)
+    body = vn.format_imu(output, big, (-9.999999,) * 3, (-9.9999,) * 3, -99.9, 9999.999, (-179.999,) * 3)
+    return len(vn.frame(body))
+
+
+def check_bandwidth(output: str, rate_hz: float, baudrate: int) -> None:
+    """ValueError when ``rate_hz`` sentences of ``output`` do not fit in ``baudrate`` (8N1)."""
+    need = sentence_bytes(output) * BITS_PER_BYTE * rate_hz
+    if need > baudrate:
+        raise ValueError(f"{output} at {rate_hz:g} Hz needs {need:.0f} bit/s, more than the "
+                         f"{baudrate} baud line carries (the device answers VNERR 12, insufficient baud rate)")
+
+
+def check_output(output: str, rate_hz: float) -> int:
+    """Validate an output type and rate; return the rate as the integer ADOF value (Hz)."""
+    if output not in IMU_OUTPUTS:
+        raise ValueError(f"output must be one of {', '.join(IMU_OUTPUTS)}, got {output!r}")
+    try:
+        rate = float(rate_hz)
+    except (TypeError, ValueError):
+        raise ValueError(f"rate_hz must be a number, got {rate_hz!r}") from None
+    if rate not in vn.ASYNC_RATES_HZ:
+        raise ValueError(f"rate_hz must be one of {', '.join(map(str, vn.ASYNC_RATES_HZ))} Hz "
+                         f"(the device's output frequencies), got {rate_hz!r}")
+    return int(rate)
+
+
+class VectorNavIMU:
+    """VectorNav IMU on a serial port (pyserial), ASCII asynchronous output.
+
+    ``open()`` the port, ``configure()`` the output, then ``read()`` the latest sample.
+    ``timeout`` (s) is the stream watchdog: no valid IMU sentence for that long is a fault.
+    """
+
+    def __init__(self, port: str, baudrate: int = 115200, mounting: np.ndarray | None = None,
+                 timeout: float = 0.5):
+        if not isinstance(baudrate, int) or baudrate not in vn.BAUD_RATES:
+            raise ValueError(f"baudrate must be one of {', '.join(map(str, vn.BAUD_RATES))}, got {baudrate!r}")
+        if not (isinstance(timeout, (int, float)) and np.isfinite(timeout) and timeout > 0):
+            raise ValueError(f"timeout must be a number of seconds > 0, got {timeout!r}")
+        self.port = str(port)
+        self.baudrate = baudrate
+        self.mounting = np.eye(3) if mounting is None else check_rotation(mounting)
+        self.timeout = float(timeout)
+        self.output: str | None = None
+        self.rate_hz: int | None = None
+        self.latest: ImuSample | None = None
+        self._serial = None
+        self._parser = vn.SentenceParser()
+        self._replies: list[vn.Sentence] = []
+        self._last_valid = 0.0
+
+    @classmethod
+    def from_config(cls, cfg: "ImuConfig", port: str | None = None) -> "VectorNavIMU":
+        """Driver for an :class:`ImuConfig` (``port`` overrides the configured one)."""
+        return cls(port or cfg.port, cfg.baudrate, cfg.mounting, cfg.timeout)
+
+    # -- port ---------------------------------------------------------------------------
+    def open(self) -> None:
+        """Open the serial port (8N1, no flow control). ImuFault when it cannot be opened."""
+        import serial
+
+        if self._serial is not None:
+            return
+        try:
+            self._serial = serial.Serial(self.port, self.baudrate, timeout=0, write_timeout=self.timeout,
+                                         exclusive=True)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise ImuFault(f"IMU port {self.port}: cannot open: {exc}") from None
+        self._parser = vn.SentenceParser()
+        self._replies.clear()
+        self._last_valid = time.monotonic()
+
+    def close(self) -> None:
+        """Close the port (safe to call twice)."""
+        if self._serial is not None:
+            try:
+                self._serial.close()
+            finally:
+                self._serial = None
+
+    def __enter__(self) -> "VectorNavIMU":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def is_open(self) -> bool:
+        return self._serial is not None
+
+    @property
+    def stats(self) -> vn.ParserStats:
+        """Snapshot of the parser's counts: good, bad_checksum, truncated, garbage_bytes, ..."""
+        return dataclasses.replace(self._parser.stats)
+
+    # -- I/O helpers --------------------------------------------------------------------
+    def _port(self):
+        if self._serial is None:
+            raise ImuFault(f"IMU port {self.port} is not open")
+        return self._serial
+
+    def _drain(self) -> ImuSample | None:
+        """Read everything the port holds (non-blocking); newest new sample or None."""
+        import serial
+
+        ser = self._port()
+        newest = None  # (reception time, record)
+        while True:
+            try:
+                data = ser.read(4096)
+            except (serial.SerialException, OSError) as exc:
+                self.close()
+                raise ImuFault(f"IMU port {self.port} failed (disconnected?): {exc}") from None
+            if not data:
+                break
+            now = time.monotonic()
+            for item in self._parser.feed(data):
+                if isinstance(item, vn.ImuRecord):
+                    newest = (now, item)
+                elif item.header in ("VNWRG", "VNRRG", "VNERR"):
+                    self._replies.append(item)
+        if newest is None:
+            return None
+        t, rec = newest
+        self._last_valid = t
+        self.latest = ImuSample(t, self.mounting @ np.array(rec.accel), self.mounting @ np.array(rec.gyro))
+        return self.latest
+
+    def _wait_readable(self, seconds: float) -> None:
+        ser = self._port()
+        fd = ser.fileno() if hasattr(ser, "fileno") else None
+        if fd is None:  # pragma: no cover - non-posix ports
+            time.sleep(min(seconds, 0.001))
+            return
+        try:
+            select.select([fd], [], [], max(seconds, 0.0))
+        except (OSError, ValueError) as exc:
+            self.close()
+            raise ImuFault(f"IMU port {self.port} failed: {exc}") from None
+
+    def _write(self, data: bytes) -> None:
+        import serial
+
+        try:
+            self._port().write(data)
+        except (serial.SerialException, serial.SerialTimeoutException, OSError) as exc:
+            self.close()
+            raise ImuFault(f"IMU port {self.port}: write failed: {exc}") from None
+
+    # -- measurements -------------------------------------------------------------------
+    def read(self, timeout: float | None = None) -> ImuSample | None:
+        """Latest complete sample received since the previous call, in B''.
+
+        Waits up to ``timeout`` s (None: the watchdog ``self.timeout``; 0: just poll) for a
+        new sample. Returns None when none arrived but the stream is still healthy; raises
+        :class:`ImuFault` once no valid IMU sentence has arrived for ``self.timeout`` s, and
+        when the port fails (e.g. the device is disconnected).
+        """
+        wait = self.timeout if timeout is None else float(timeout)
+        start = time.monotonic()
+        while True:
+            sample = self._drain()
+            if sample is not None:
+                return sample
+            now = time.monotonic()
+            fault_at = self._last_valid + self.timeout
+            if now >= fault_at:
+                s = self._parser.stats
+                raise ImuFault(f"IMU on {self.port}: no valid IMU sentence for {now - self._last_valid:.3f} s "
+                               f"(timeout {self.timeout:g} s; {s.bad_checksum} bad checksums, {s.truncated} "
+                               f"truncated, {s.garbage_bytes} garbage bytes so far)")
+            end = min(start + wait, fault_at)
+            if now >= end:
+                return None
+            self._wait_readable(end - now)
+
+    # -- registers ----------------------------------------------------------------------
+    def _command(self, command: bytes, header: str, register: int) -> vn.Sentence:
+        """Send a register command and wait (``self.timeout``) for its reply."""
+        self._drain()
+        self._replies.clear()
+        self._write(command)
+        text = command.decode("ascii").strip()
+        deadline = time.monotonic() + self.timeout
+        while True:
+            self._drain()
+            for reply in self._replies:
+                if reply.header == "VNERR":
+                    raise ImuFault(f"IMU rejected {text}: {vn.device_error_text(reply)}")
+                if reply.header == header and reply.fields and _int(reply.fields[0]) == register:
+                    self._replies.clear()
+                    return reply
+            now = time.monotonic()
+            if now >= deadline:
+                raise ImuFault(f"IMU on {self.port}: no reply to {text} within {self.timeout:g} s")
+            self._wait_readable(deadline - now)
+
+    def write_register(self, register: int, *values) -> tuple[str, ...]:
+        """``$VNWRG`` and verify the echoed values; returns them. ImuFault on mismatch/error."""
+        reply = self._command(vn.write_register_command(register, *values), "VNWRG", register)
+        sent = [str(v) for v in values]
+        if not _same_values(reply.fields[1:], sent):
+            raise ImuFault(f"IMU register {register}: wrote {','.join(sent)}, device echoed {','.join(reply.fields[1:])}")
+        return reply.fields[1:]
+
+    def read_register(self, register: int) -> tuple[str, ...]:
+        """``$VNRRG``: the register's values as text fields."""
+        return self._command(vn.read_register_command(register), "VNRRG", register).fields[1:]
+
+    def configure(self, output: str = "VNIMU", rate_hz: float = 100) -> None:
+        """Select the asynchronous output (register 6) and its frequency (register 7).
+
+        ``output``: VNIMU (uncompensated IMU + temperature, pressure) or VNYMR (attitude +
+        compensated IMU); ``rate_hz`` one of 1, 2, 4, 5, 10, 20, 25, 40, 50, 100, 200.
+        ValueError for values the device or the line cannot take; ImuFault when the device
+        does not confirm.
+        """
+        rate = check_output(output, rate_hz)
+        check_bandwidth(output, rate, self.baudrate)
+        self.write_register(vn.REG_ASYNC_TYPE, vn.ASYNC_OUTPUT_TYPES[output])
+        self.write_register(vn.REG_ASYNC_FREQ, rate)
+        self.output, self.rate_hz = output, rate
+        self._last_valid = time.monotonic()
+
+
+def _int(text: str) -> int | None:
+    try:
+        return int(text)
+    except ValueError:
+        return None
+
+
+def _same_values(got, sent) -> bool:
+    if len(got) != len(sent):
+        return False
+    for g, s in zip(got, sent):
+        try:
+            if float(g) != float(s):
+                return False
+        except ValueError:
+            if g.strip() != s.strip():
+                return False
+    return True
+
+
+# -- configuration ----------------------------------------------------------------------
+@dataclass(frozen=True)
+class ImuConfig:
+    """``imu`` section of ``config/robot.yaml``.
+
+    port: serial device path; baudrate (bit/s); protocol ``vectornav-ascii``; output
+    VNIMU/VNYMR; rate_hz output frequency (Hz); mounting 3x3 rotation sensor -> B'';
+    timeout: watchdog (s).
+    """
+
+    port: str
+    baudrate: int
+    protocol: str
+    output: str
+    rate_hz: int
+    mounting: np.ndarray
+    timeout: float
+
+
+def load_imu_config(path: str | Path | None = None) -> ImuConfig:
+    """Read and validate the ``imu`` section; :class:`ParameterError` names the bad key."""
+    import yaml
+
+    p = Path(path) if path is not None else DEFAULT_ROBOT_FILE
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as exc:
+        raise ParameterError(f"{p}: cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ParameterError(f"{p}: not valid YAML: {exc}") from None
+    sec = (data or {}).get("imu") if isinstance(data, dict) else None
+    if not isinstance(sec, dict):
+        raise ParameterError(f"{p}: missing section 'imu'")
+
+    def need(key):
+        if key not in sec:
+            raise ParameterError(f"{p}: missing key 'imu.{key}'")
+        return sec[key]
+
+    port = need("port")
+    if not isinstance(port, str) or not port:
+        raise ParameterError(f"{p}: 'imu.port' must be a device path, got {port!r}")
+    baud = need("baudrate")
+    if isinstance(baud, bool) or baud not in vn.BAUD_RATES:
+        raise ParameterError(f"{p}: 'imu.baudrate' must be one of {', '.join(map(str, vn.BAUD_RATES))}, got {baud!r}")
+    protocol = need("protocol")
+    if protocol not in PROTOCOLS:
+        raise ParameterError(f"{p}: 'imu.protocol' must be one of {', '.join(PROTOCOLS)}, got {protocol!r}")
+    output = need("output")
+    rate = need("rate_hz")
+    try:
+        rate = check_output(output, rate if not isinstance(rate, bool) else None)
+    except ValueError as exc:
+        key = "output" if output not in IMU_OUTPUTS else "rate_hz"
+        raise ParameterError(f"{p}: 'imu.{key}': {exc}") from None
+    try:
+        check_bandwidth(output, rate, baud)
+    except ValueError as exc:
+        raise ParameterError(f"{p}: 'imu.rate_hz' with 'imu.baudrate': {exc}") from None
+    timeout = sec.get("timeout", 0.5)
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not (np.isfinite(timeout) and timeout > 0):
+        raise ParameterError(f"{p}: 'imu.timeout' must be a number of seconds > 0, got {timeout!r}")
+    mounting = need("mounting")
+    if not isinstance(mounting, dict) or "matrix" not in mounting:
+        raise ParameterError(f"{p}: missing key 'imu.mounting.matrix' (3x3 rotation, sensor -> platform B'')")
+    rows = mounting["matrix"]
+    if (not isinstance(rows, list) or len(rows) != 3
+            or not all(isinstance(r, list) and len(r) == 3 for r in rows)
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for r in rows for v in r)):
+        raise ParameterError(f"{p}: 'imu.mounting.matrix' must be 3 rows of 3 numbers, got {rows!r}")
+    try:
+        rot = check_rotation(rows, name="'imu.mounting.matrix'")
+    except ValueError as exc:
+        raise ParameterError(f"{p}: {exc}") from None
+    return ImuConfig(port=port, baudrate=int(baud), protocol=protocol, output=output, rate_hz=rate,
+                     mounting=rot, timeout=float(timeout))
