@@ -216,13 +216,13 @@ def format_imu(kind: str, accel, gyro, mag=(0.0, 0.0, 0.0), temperature: float =
     Resolution as the device prints it: accel 1e-3 m/s^2, gyro 1e-6 rad/s, mag 1e-4 Gauss,
     temperature 0.1 deg C, pressure 1e-3 kPa, angles 1e-3 deg.
     """
-    a = ",".join(f"{float(x):+07.3f}" for x in accel)
-    g = ",".join(f"{float(x):+09.6f}" for x in gyro)
-    m = ",".join(f"{float(x):+07.4f}" for x in mag)
+    a = ",".join(f"{float(x) + 0.0:+07.3f}" for x in accel)  # + 0.0: no "-0.000"
+    g = ",".join(f"{float(x) + 0.0:+09.6f}" for x in gyro)
+    m = ",".join(f"{float(x) + 0.0:+07.4f}" for x in mag)
     if kind == "VNIMU":
         return f"VNIMU,{m},{a},{g},{temperature:+05.1f},{pressure:+08.3f}"
     if kind == "VNYMR":
-        y = ",".join(f"{float(x):+08.3f}" for x in ypr)
+        y = ",".join(f"{float(x) + 0.0:+08.3f}" for x in ypr)
         return f"VNYMR,{y},{m},{a},{g}"
     raise ValueError(f"output type must be one of {', '.join(FIELD_COUNTS)}, got {kind!r}")
 
