@@ -331,7 +331,7 @@ class SentenceParser:
             return None
         parts = text.split(",")
         header = parts[0]
-        if len(header) != 5 or not header.startswith("VN") or not header.isalpha():
+        if len(header) != 5 or not header.startswith("VN") or not (header.isalpha() and header.isupper()):
             self._reject("malformed", f"sentence at byte {offset}: header {header!r} is not VN + 3 letters")
             return None
         s = Sentence(header, tuple(parts[1:]), checked, offset)
