@@ -236,6 +236,20 @@ def test_configure_rejections(rig):
     assert sim.rate_hz == 40
 
 
+def test_configure_detects_a_wrong_echo(rig, monkeypatch):
+    sim, imu = rig()
+    # a device that answers register writes with some other value than the one written
+    monkeypatch.setattr(sim, "_write_register", lambda fields: sim._send(vn.frame(f"VNWRG,{fields[0]},1")))
+    with pytest.raises(ImuFault, match="echoed"):
+        imu.configure("VNIMU", 100)
+
+
+def test_port_cannot_be_opened_twice(rig):
+    sim, imu = rig()
+    with pytest.raises(ImuFault, match="cannot open"):
+        VectorNavIMU(sim.port).open()
+
+
 def test_configure_without_answer_is_a_fault(rig):
     sim, imu = rig(timeout=0.15)
     sim.silent = True
