@@ -11,6 +11,7 @@ The protocol itself (framing, checksums, sentence layouts, register numbers) liv
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import select
 import time
 from dataclasses import dataclass
@@ -102,16 +103,18 @@ class VectorNavIMU:
 
     ``open()`` the port, ``configure()`` the output, then ``read()`` the latest sample.
     ``timeout`` (s) is the stream watchdog: no valid IMU sentence for that long is a fault.
+    No background thread: bytes are read and parsed inside ``read()``/``configure()``;
+    use one instance from one thread. ``latest`` keeps the last sample returned.
     """
 
     def __init__(self, port: str, baudrate: int = 115200, mounting: np.ndarray | None = None,
                  timeout: float = 0.5):
-        if not isinstance(baudrate, int) or baudrate not in vn.BAUD_RATES:
+        if isinstance(baudrate, bool) or not isinstance(baudrate, numbers.Integral) or baudrate not in vn.BAUD_RATES:
             raise ValueError(f"baudrate must be one of {', '.join(map(str, vn.BAUD_RATES))}, got {baudrate!r}")
         if not (isinstance(timeout, (int, float)) and np.isfinite(timeout) and timeout > 0):
             raise ValueError(f"timeout must be a number of seconds > 0, got {timeout!r}")
         self.port = str(port)
-        self.baudrate = baudrate
+        self.baudrate = int(baudrate)
         self.mounting = np.eye(3) if mounting is None else check_rotation(mounting)
         self.timeout = float(timeout)
         self.output: str | None = None
