@@ -13,7 +13,8 @@ opens ``sim.port`` (the slave path) with pyserial exactly as it would open
   a closed port.
 
 Who decides *when* to publish is the caller (the plant publishes once per IMU period of
-``rate_hz``, in lockstep with its simulation). Values are sensor-frame: a plant with
+``rate_hz``, in lockstep with its simulation; :meth:`SimulatedIMU.publish_at` does the
+decimation). Values are sensor-frame: a plant with
 platform-frame values uses :meth:`publish_platform`, which applies ``R^T`` of the mounting.
 Noise is the caller's business too (``otbot_hw.sensors.measure`` adds it).
 """
@@ -61,6 +62,7 @@ class SimulatedIMU:
         self.sent = 0  # sentences published
         self.dropped = 0  # sentences dropped because nobody read the port
         self.commands: list[str] = []  # commands received (text, without '$' and checksum)
+        self._last_tick: int | None = None  # output period of the last publish_at()
         self._max_backlog = int(max_backlog)
         self._pending = bytearray()
         self._lock = threading.Lock()
@@ -129,6 +131,16 @@ class SimulatedIMU:
         """:meth:`publish` for platform-frame (B'') values: rotates them by ``R^T``."""
         r = self.mounting
         return self.publish(r.T @ np.asarray(accel_platform, float), r.T @ np.asarray(gyro_platform, float), **kw)
+
+    def publish_at(self, t: float, accel_platform, gyro_platform, **kw) -> bytes:
+        """Lockstep helper for a plant stepping faster than the output rate: publish
+        platform-frame values when simulated time ``t`` (s) enters a new output period
+        of ``rate_hz`` (t = 0, 1/rate, 2/rate, ...), otherwise write nothing."""
+        tick = int(np.floor(t * self.rate_hz + 1e-9))
+        if self._last_tick is not None and tick <= self._last_tick:
+            return b""
+        self._last_tick = tick
+        return self.publish_platform(accel_platform, gyro_platform, **kw)
 
     def write_garbage(self, data: bytes | int, seed: int = 0) -> bytes:
         """Write raw bytes onto the line: ``data`` itself, or that many random bytes that
