@@ -20,8 +20,10 @@ rev 2.22) and the VectorNav C library headers (``vndevice.h``):
   50, 100 or 200 Hz.
 * ``$VNYMR`` (register 27, UM001 §7.2.3): yaw, pitch, roll (deg), mag x,y,z (Gauss), accel
   x,y,z (m/s^2), gyro x,y,z (rad/s) -- compensated values.
-* ``$VNIMU`` (Calibrated Inertial Measurements): mag x,y,z (Gauss), accel x,y,z (m/s^2),
-  gyro x,y,z (rad/s) -- uncompensated, temperature (deg C), pressure (kPa).
+* ``$VNIMU`` (ADOR 19, "Calibrated Inertial Measurements"): mag x,y,z (Gauss), accel x,y,z
+  (m/s^2), gyro x,y,z (rad/s) -- uncompensated -- then temperature (deg C) and pressure (kPa);
+  the field order of ``VnUartPacket_parseVNIMU`` in VectorNav's programming library and of
+  the VNIMU table (MagX..GyroZ, Temp, Pressure) in VectorNav's register documentation.
 
 All vectors are in the sensor frame (the sensor's own x, y, z axes).
 
