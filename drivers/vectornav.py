@@ -277,8 +277,8 @@ class SentenceParser:
             if nl < 0:
                 if n - start > self._max:
                     self._reject("truncated", f"no line end within {self._max} bytes at byte {base + start}")
-                    pos = start + 1
-                    continue
+                    pos = n  # drop it (no '$' follows in the buffer); resync on the next '$'
+                    break
                 pos = start  # incomplete: keep for the next chunk
                 break
             end = nl - 1 if nl > start and buf[nl - 1] == 0x0D else nl

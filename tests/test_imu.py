@@ -125,9 +125,10 @@ def test_garbage_between_sentences_skipped_and_counted():
 def test_overlong_line_without_end_is_dropped_and_parser_resyncs():
     p = vn.SentenceParser()
     out = p.feed(b"$VNIMU," + b"1" * 400)
-    assert out == [] and p.stats.truncated == 1
-    out = p.feed(b"\r\n" + imu_sentence(3))
+    assert out == [] and p.stats.truncated == 1 and p.stats.garbage_bytes == 0
+    out = p.feed(b"222\r\n" + imu_sentence(3))
     assert [r.accel[0] for r in out] == [pytest.approx(0.3)]
+    assert p.stats.truncated == 1 and p.stats.garbage_bytes == 3
 
 
 def test_split_across_reads_gives_the_same_result():
