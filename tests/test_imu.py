@@ -398,6 +398,8 @@ def test_default_config_loads():
     assert cfg.protocol == "vectornav-ascii" and cfg.output in ("VNIMU", "VNYMR")
     assert cfg.rate_hz in vn.ASYNC_RATES_HZ
     np.testing.assert_allclose(cfg.mounting @ cfg.mounting.T, np.eye(3), atol=1e-12)
+    # an upright VectorNav (z down, reads -g at rest) gives +g on the platform's z (up)
+    np.testing.assert_allclose(cfg.mounting @ [0.0, 0.0, -9.80665], [0.0, 0.0, 9.80665], atol=1e-12)
 
 
 def _write_config(tmp_path, **changes) -> Path:
