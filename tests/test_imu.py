@@ -487,3 +487,45 @@ def test_cli_parse_text_and_bad_files(capsys, tmp_path):
     empty.write_bytes(b"")
     assert main(["imu", "parse", str(empty), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["record_count"] == 0
+
+
+def test_cli_read_simulated_imu_at_rest(capsys):
+    from otbot_hw.cli import main
+    from otbot_hw.sensors import GRAVITY
+
+    assert main(["imu", "read", "--sim", "--duration", "0.3", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["simulated"] and out["samples"] >= 10 and out["sentences"] >= out["samples"]
+    # config mounting diag(1,-1,-1): the wire carries z = -g, the driver reports +g in B''
+    assert out["accel_mean"] == pytest.approx([0.0, 0.0, GRAVITY], abs=0.015)
+    assert out["gyro_mean"] == pytest.approx([0.0, 0.0, 0.0], abs=0.015)
+    assert all(0.006 < s < 0.025 for s in out["accel_std"] + out["gyro_std"])  # paper sigma 13.7e-3
+    assert out["errors"] == {"bad_checksum": 0, "truncated": 0, "malformed": 0, "garbage_bytes": 0}
+
+
+def test_cli_read_bad_port_or_config(capsys, tmp_path):
+    from otbot_hw.cli import main
+
+    assert main(["imu", "read", "--port", str(tmp_path / "ttyNONE"), "--duration", "0.1"]) == 2
+    assert "cannot open" in capsys.readouterr().err
+    bad = _write_config(tmp_path, rate_hz=7)
+    assert main(["imu", "read", "--config", str(bad), "--sim", "--json"]) == 2
+    assert "imu.rate_hz" in capsys.readouterr().err
+
+
+def test_cli_read_silent_device_exits_1(capsys):
+    import os
+    import tty
+
+    from otbot_hw.cli import main
+
+    master, slave = os.openpty()  # a port with nothing behind it
+    tty.setraw(slave)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            main(["imu", "read", "--port", os.ttyname(slave), "--duration", "0.1"])
+        assert exc.value.code == 1
+        assert "no reply to $VNWRG,06,19" in capsys.readouterr().err
+    finally:
+        os.close(master)
+        os.close(slave)
