@@ -529,3 +529,30 @@ def test_cli_read_silent_device_exits_1(capsys):
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_simulator_answers_commands_like_the_device():
+    import serial
+
+    with SimulatedIMU(output="VNOFF") as sim:
+        port = serial.Serial(sim.port, 115200, timeout=0.5)
+        try:
+            def ask(cmd: bytes) -> bytes:
+                port.write(cmd)
+                return port.readline()
+
+            assert ask(b"$VNWRG,06,19*00\r\n") == b"$VNERR,03*72\r\n"  # wrong checksum
+            assert ask(b"$VNWRG,06,19*XX\r\n") == vn.frame("VNWRG,06,19")  # checksum bypass
+            assert ask(vn.write_register_command(7, 25)) == vn.frame("VNWRG,07,25")
+            assert ask(vn.read_register_command(7)) == vn.frame("VNRRG,07,25")
+            assert ask(b"$VNWRG,07*XX\r\n") == vn.frame("VNERR,05")  # not enough parameters
+            assert ask(b"$VNWRG,07,25,1,9*XX\r\n") == vn.frame("VNERR,06")  # too many
+            assert ask(b"$VNWRG,06,3*XX\r\n") == vn.frame("VNERR,07")  # an output the sim cannot make
+            assert ask(b"$VNRRG,99*XX\r\n") == vn.frame("VNERR,08")  # invalid register
+            assert ask(b"$VNXYZ,1*XX\r\n") == vn.frame("VNERR,04")  # invalid command
+            assert (sim.output, sim.rate_hz) == ("VNIMU", 25)
+            line = (sim.publish([0.0, 0.0, -9.8], [0.0, 0.0, 0.0]), port.readline())
+            assert line[0] == line[1] and vn.parse_bytes(line[1])[0][0].accel == (0.0, 0.0, -9.8)
+        finally:
+            port.close()
+    assert sim.closed and sim.publish([0, 0, 0], [0, 0, 0]) == b""
