@@ -98,6 +98,8 @@ class SimulatedIMU:
         a, g = np.asarray(accel_sensor, float), np.asarray(gyro_sensor, float)
         if a.shape != (3,) or g.shape != (3,):
             raise ValueError(f"accel and gyro must have shape (3,), got {a.shape} and {g.shape}")
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(g))):
+            raise ValueError(f"accel and gyro must be finite, got {a} and {g}")
         return vn.frame(vn.format_imu(kind, a, g, self.mag, self.temperature, self.pressure, ypr))
 
     def publish(self, accel_sensor, gyro_sensor, corrupt: str | None = None, ypr=(0.0, 0.0, 0.0)) -> bytes:
