@@ -275,6 +275,10 @@ def read_recording(path: str | Path) -> Recording:
                 if r.message_encoding != "json":
                     raise RecordingError(f"{path}: topic {r.topic} has message encoding "
                                          f"'{r.message_encoding}', expected 'json'")
+                other = [i for i, tp in channels.items() if tp == r.topic and i != r.id]
+                if other:
+                    raise RecordingError(f"{path}: topic {r.topic} is registered on two channels "
+                                         f"({other[0]} and {r.id}); one channel per topic")
                 channels[r.id] = r.topic
         elif isinstance(r, Message) and r.channel_id in channels:
             try:
@@ -285,12 +289,21 @@ def read_recording(path: str | Path) -> Recording:
             data.setdefault(channels[r.channel_id], []).append(msg)
     if meta.get("format", FORMAT_NAME) != FORMAT_NAME:
         raise RecordingError(f"{path}: metadata format is '{meta.get('format')}', expected '{FORMAT_NAME}'")
+    version = meta.get("format_version", FORMAT_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+        raise RecordingError(f"{path}: metadata format_version {version!r} is not supported "
+                             f"(this reader knows versions 1..{FORMAT_VERSION})")
     if TOPIC_COMMAND not in channels.values():
         raise RecordingError(f"{path}: no {TOPIC_COMMAND} channel: not an Otbot recording")
     present = sorted(set(channels.values()), key=list(TOPICS).index)
-    n = min(len(data.get(tp, [])) for tp in present)
-    if any(len(data.get(tp, [])) != n for tp in present):
-        truncated = True  # an incomplete last sample: keep complete samples only
+    counts = {tp: len(data.get(tp, [])) for tp in present}
+    n = min(counts.values())
+    if any(c != n for c in counts.values()):
+        if not truncated:  # a complete file must carry every topic in every sample
+            short = min(counts, key=counts.get)
+            raise RecordingError(f"{path}: {short} has {counts[short]} messages but {TOPIC_COMMAND} has "
+                                 f"{counts[TOPIC_COMMAND]}: every topic needs one message per sample")
+        # a file cut short: keep the complete samples only
 
     def field_array(topic: str, key: str, width: int, required: bool = True) -> np.ndarray | None:
         rows = data.get(topic, [])[:n]
@@ -302,15 +315,23 @@ def read_recording(path: str | Path) -> Recording:
             raise RecordingError(f"{path}: {topic} messages need '{key}' as {width} numbers") from None
         return arr
 
-    t = np.array([m.get("t", np.nan) for m in data.get(TOPIC_COMMAND, [])[:n]], dtype=float)
+    def times(topic: str) -> np.ndarray:
+        out = np.empty(n)
+        for k, m in enumerate(data.get(topic, [])[:n]):
+            v = m.get("t") if isinstance(m, dict) else None
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise RecordingError(f"{path}: {topic} sample {k}: 't' must be a finite number of "
+                                     f"seconds, got {v!r} (non-finite sample time)")
+            out[k] = v
+        return out
+
+    t = times(TOPIC_COMMAND)
     for tp in present:
-        tt = np.array([m.get("t", np.nan) for m in data.get(tp, [])[:n]], dtype=float)
+        tt = times(tp)
         bad = np.nonzero(tt != t)[0]
         if len(bad):
             raise RecordingError(f"{path}: {tp} sample {bad[0]} has t = {tt[bad[0]]}, but "
                                  f"{TOPIC_COMMAND} has t = {t[bad[0]]}: topics must share sample times")
-    if np.any(~np.isfinite(t)):
-        raise RecordingError(f"{path}: non-finite sample time at sample {int(np.argmax(~np.isfinite(t)))}")
     if n > 1 and np.any(np.diff(t) <= 0):
         k = int(np.argmax(np.diff(t) <= 0)) + 1
         raise RecordingError(f"{path}: sample times must increase; sample {k} has t = {t[k]} after {t[k - 1]}")
