@@ -1,7 +1,7 @@
 """``otbot demo``: the main job against the built-in simulated robot.
 
 Runs the paper's chassis experiment (tau = (6, -10, 6) N m for 3 s, 100 Hz
-zero-order hold, IMU noise sigma = 13.73e-3), writes its recording and plots.
+zero-order hold, IMU noise sigma = ND sqrt(SR) = 13.7e-3), writes its recording and plots.
 """
 from __future__ import annotations
 
