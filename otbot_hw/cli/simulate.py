@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,9 @@ def register(sub) -> None:
                     "Torques in N m (tau_r, tau_l, tau_p), duration in s, rate in Hz. The final "
                     "state q = (x, y [m], alpha, phi_r, phi_l, phi_p [rad]) and its rate are reported.",
     )
-    p.add_argument("--torques", default="6,-10,6", help="tau_r,tau_l,tau_p in N m (default: 6,-10,6)")
+    p.add_argument("--torques", default="6,-10,6",
+                   help="tau_r,tau_l,tau_p in N m, held constant (default: 6,-10,6); a leading minus "
+                        "is fine: --torques -6,10,6")
     p.add_argument("--duration", type=float, default=3.0, help="simulated time in s (default 3)")
     p.add_argument("--rate", type=positive_float("--rate"), default=100.0,
                    help="sample and command rate in Hz (default 100)")
@@ -31,6 +34,9 @@ def register(sub) -> None:
     p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write PNG plots into DIR")
     add_json_flag(p)
     p.set_defaults(func=run)
+    # argparse takes "-6,10,6" for an option; let values that start like a negative number be values
+    if hasattr(p, "_negative_number_matcher"):
+        p._negative_number_matcher = re.compile(r"^-\.?\d[0-9.eE+-]*(,.*)?$")
 
 
 def check_duration(duration: float, rate: float) -> int:
