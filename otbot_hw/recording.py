@@ -307,12 +307,16 @@ def read_recording(path: str | Path) -> Recording:
 
     def field_array(topic: str, key: str, width: int, required: bool = True) -> np.ndarray | None:
         rows = data.get(topic, [])[:n]
-        if not required and rows and key not in rows[0]:
+        if not required and rows and isinstance(rows[0], dict) and key not in rows[0]:
             return None
-        try:
-            arr = np.array([m[key] for m in rows], dtype=float).reshape(n, width)
-        except (KeyError, TypeError, ValueError):
-            raise RecordingError(f"{path}: {topic} messages need '{key}' as {width} numbers") from None
+        arr = np.empty((n, width))
+        for k, m in enumerate(rows):
+            v = m.get(key) if isinstance(m, dict) else None
+            if (not isinstance(v, list) or len(v) != width
+                    or not all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in v)):
+                raise RecordingError(f"{path}: {topic} messages need '{key}' as {width} numbers; "
+                                     f"sample {k} has {str(v)[:80]}")
+            arr[k] = v
         return arr
 
     def times(topic: str) -> np.ndarray:

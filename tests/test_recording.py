@@ -1,6 +1,7 @@
 """MCAP recordings: bit-exact round trips, truncation (killed writer), and rejected bad files."""
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -225,6 +226,9 @@ def joints(t):
     ("newer version", "format_version 2"),
     ("unequal counts", "/otbot/joints has 2 messages but /otbot/command has 3"),
     ("nan time", "non-finite sample time"),
+    ("string numbers", "/otbot/command messages need 'torque' as 3 numbers; sample 0 has ['6', '-10', '6']"),
+    ("boolean", "/otbot/joints messages need 'velocity' as 3 numbers"),
+    ("two channels", "registered on two channels"),
 ])
 def test_bad_recordings_are_rejected_with_clear_messages(tmp_path, case, match):
     path = tmp_path / "bad.mcap"
@@ -259,7 +263,18 @@ def test_bad_recordings_are_rejected_with_clear_messages(tmp_path, case, match):
         write_plain(path, good3[:-1])
     elif case == "nan time":
         write_plain(path, [cmd(0.0), (TOPIC_COMMAND, b'{"t": NaN, "torque": [0, 0, 0]}')])
-    with pytest.raises(RecordingError, match=match):
+    elif case == "string numbers":
+        write_plain(path, [(TOPIC_COMMAND, {"t": 0.0, "torque": ["6", "-10", "6"]})])
+    elif case == "boolean":
+        write_plain(path, [cmd(0.0), (TOPIC_JOINTS, {"t": 0.0, "position": [0, 0, 0], "velocity": [0, True, 0]})])
+    elif case == "two channels":
+        with open(path, "wb") as f:
+            w = Writer(f)
+            w.start(profile="otbot", library="test")
+            for _ in range(2):
+                w.register_channel(topic=TOPIC_COMMAND, message_encoding="json", schema_id=0)
+            w.finish()
+    with pytest.raises(RecordingError, match=re.escape(match) if case == "string numbers" else match):
         read_recording(path)
 
 
@@ -291,4 +306,52 @@ def test_writer_rejects_bad_samples(tmp_path, sample, match):
 def test_writer_rejects_unknown_topic(tmp_path):
     with pytest.raises(ValueError, match="unknown topic '/otbot/lidar'"):
         RecordingWriter(tmp_path / "w.mcap", {}, topics=["/otbot/lidar"])
+
+
+
+# --- the format document --------------------------------------------------------
+
+DOC = Path(__file__).resolve().parent.parent / "docs" / "recording-format.md"
+
+
+def doc_python_blocks() -> list[str]:
+    text = DOC.read_text()
+    section = text[text.index("## 8. Worked example"):]
+    return re.findall(r"```python\n(.*?)```", section, flags=re.S)
+
+
+def test_format_doc_example_loads(tmp_path, monkeypatch):
+    """The worked example of docs/recording-format.md (plain mcap Writer) writes a file the reader loads."""
+    monkeypatch.chdir(tmp_path)
+    write_block, read_block = doc_python_blocks()
+    assert "otbot_hw" not in write_block  # the writer side uses only json and mcap
+    ns: dict = {}
+    exec(compile(write_block, str(DOC), "exec"), ns)
+    rec = read_recording(tmp_path / "example.mcap")
+    samples = ns["samples"]
+    assert rec.truncated is False and len(rec) == len(samples)
+    assert np.array_equal(rec.t, [k * ns["dt"] for k in range(len(samples))])
+    for j, name in enumerate(("torque", "joint_pos", "joint_vel", "imu_accel", "imu_gyro")):
+        assert np.array_equal(getattr(rec, name), [s[j] for s in samples]), name
+    assert rec.truth_q is None
+    assert rec.metadata == ns["metadata"] and rec.sample_period == ns["dt"]
+    exec(compile(read_block, str(DOC), "exec"), {})
+
+
+def test_format_doc_sign_conventions_hold_in_the_model(params):
+    """§3 of the format document: wheel and torque signs as the model implements them."""
+    from otbot_hw.model import kinematics as kin
+    from sim.simulator import simulate
+
+    q = np.array([0.0, 0.0, 0.9, 0.0, 0.0, 0.4])  # theta = 0.5 rad
+    th = q[2] - q[5]
+    qd = kin.admissible_velocity(q, np.array([2.0, 2.0, 0.0]), params)  # both wheels forward
+    assert np.allclose(qd[:2], params.r * 2.0 * np.array([np.cos(th), np.sin(th)]))  # along +1'
+    assert qd[2] == 0.0
+    qd = kin.admissible_velocity(q, np.array([2.0, 1.0, 0.0]), params)  # right faster: CCW
+    assert qd[2] == pytest.approx(params.r * 1.0 / (2 * params.l2))
+    fwd = simulate(params, np.tile([1.0, 1.0, 0.0], (20, 1)), 0.01)
+    assert fwd.qd[-1, 3] > 0 and fwd.qd[-1, 4] > 0 and fwd.q[-1, 0] > 0  # theta = 0: forward is +x
+    turn = simulate(params, np.tile([0.0, 0.0, 1.0], (20, 1)), 0.01, fixture="locked")
+    assert turn.qd[-1, 5] > 0 and turn.q[-1, 2] > 0  # tau_p > 0 turns the platform CCW
 
