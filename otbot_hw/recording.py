@@ -182,6 +182,7 @@ class RecordingWriter:
             self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
                                                                   schema_id=sid)
         self._count = 0
+        self._last_t: float | None = None
         self._flush_every = max(1, int(flush_every))
         self._closed = False
         self._writer.flush()
@@ -194,6 +195,13 @@ class RecordingWriter:
         t = messages[TOPIC_COMMAND]["t"]
         if not math.isfinite(t) or t < 0:
             raise ValueError(f"sample {self._count}: time must be finite and >= 0, got {t}")
+        if self._last_t is not None and not t > self._last_t:
+            raise ValueError(f"sample {self._count}: time {t} s does not increase (previous {self._last_t} s)")
+        for topic in self._channels:
+            if messages[topic].get("t") != t:
+                raise ValueError(f"sample {self._count}: {topic} has t = {messages[topic].get('t')!r}, but "
+                                 f"{TOPIC_COMMAND} has t = {t}: all topics of a sample share its time")
+        self._last_t = t
         stamp = int(round(t * 1e9))
         for topic, cid in self._channels.items():
             data = json.dumps(messages[topic], allow_nan=True).encode()
@@ -221,8 +229,27 @@ class RecordingWriter:
         self.close()
 
 
+def _check_shapes(rec: Recording) -> None:
+    """ValueError naming the field when the arrays of ``rec`` do not fit together."""
+    n = len(rec.t)
+    widths = {"torque": 3, "joint_pos": 3, "joint_vel": 3, "imu_accel": 3, "imu_gyro": 3,
+              "truth_q": 6, "truth_qd": 6, "truth_force": 2}
+    if np.shape(rec.t) != (n,):
+        raise ValueError(f"recording: t must be a 1-D array, got shape {np.shape(rec.t)}")
+    for name, width in widths.items():
+        arr = getattr(rec, name)
+        if arr is not None and np.shape(arr) != (n, width):
+            raise ValueError(f"recording: {name} must have shape ({n}, {width}), got {np.shape(arr)}")
+    for a, b in (("joint_pos", "joint_vel"), ("imu_accel", "imu_gyro"), ("truth_q", "truth_qd")):
+        if (getattr(rec, a) is None) != (getattr(rec, b) is None):
+            raise ValueError(f"recording: {a} and {b} go together (one topic); got only one of them")
+    if rec.truth_force is not None and rec.truth_q is None:
+        raise ValueError("recording: truth_force needs truth_q and truth_qd")
+
+
 def write_recording(path: str | Path, rec: Recording) -> None:
-    """Write a whole ``Recording`` to ``path``."""
+    """Write a whole ``Recording`` to ``path`` (ValueError if its arrays do not fit together)."""
+    _check_shapes(rec)
     meta = dict(rec.metadata)
     for key in ("format", "format_version", "units", "frames"):
         meta.pop(key, None)

@@ -303,6 +303,33 @@ def test_writer_rejects_bad_samples(tmp_path, sample, match):
             w.write_sample(sample)
 
 
+def test_writer_rejects_times_that_disagree_or_do_not_increase(tmp_path):
+    def sample(t_cmd, t_imu):
+        return {TOPIC_COMMAND: {"t": t_cmd, "torque": [0, 0, 0]}, TOPIC_IMU: {"t": t_imu, "accel": [0] * 3, "gyro": [0] * 3}}
+
+    with RecordingWriter(tmp_path / "w.mcap", {}, topics=[TOPIC_IMU]) as w:
+        with pytest.raises(ValueError, match="/otbot/imu has t = 0.5, but /otbot/command has t = 0.0"):
+            w.write_sample(sample(0.0, 0.5))
+        w.write_sample(sample(0.0, 0.0))
+        with pytest.raises(ValueError, match="time 0.0 s does not increase"):
+            w.write_sample(sample(0.0, 0.0))
+        w.write_sample(sample(0.01, 0.01))
+    assert len(read_recording(tmp_path / "w.mcap")) == 2
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"torque": np.zeros((4, 2))}, r"torque must have shape \(4, 3\)"),
+    ({"imu_accel": np.zeros((4, 3))}, "imu_accel and imu_gyro go together"),
+    ({"truth_force": np.zeros((4, 2))}, "truth_force needs truth_q"),
+    ({"t": np.zeros((4, 1))}, "t must be a 1-D array"),
+])
+def test_write_recording_rejects_misshapen_arrays(tmp_path, change, match):
+    rec = Recording(**{"t": np.arange(4) * 0.1, "torque": np.zeros((4, 3)), **change})
+    with pytest.raises(ValueError, match=match):
+        write_recording(tmp_path / "x.mcap", rec)
+    assert not (tmp_path / "x.mcap").exists()  # nothing half-written
+
+
 def test_writer_rejects_unknown_topic(tmp_path):
     with pytest.raises(ValueError, match="unknown topic '/otbot/lidar'"):
         RecordingWriter(tmp_path / "w.mcap", {}, topics=["/otbot/lidar"])
