@@ -62,7 +62,11 @@ def test_json_with_fixture_rate_and_negative_first_torque(capsys):
     (["--rate", "-100"], "--rate must be a finite number > 0"),
     (["--rate", "nan"], "--rate must be a finite number > 0"),
     (["--fixture", "ceiling"], "invalid choice"),
-    (["--seed", "1.5"], "--seed"),
+    (["--seed", "1.5"], "--seed must be an integer >= 0"),
+    (["--seed", "-1"], "--seed must be an integer >= 0"),
+    (["--duration", "1e9"], "samples; at most"),
+    (["--out", "/nonexistent-folder/run.mcap"], "--out /nonexistent-folder/run.mcap: folder /nonexistent-folder does not exist"),
+    (["--params", "/nonexistent-folder/p.yaml"], "cannot read parameter file"),
 ])
 def test_bad_arguments_exit_2_with_a_message(capsys, args, message):
     rc, out, err = run_cli(["simulate", *args, "--json"], capsys)
@@ -98,6 +102,15 @@ def test_text_output_and_seeds(tmp_path, capsys):
     a, b, c = (read_recording(tmp_path / f"{n}.mcap") for n in "abc")
     assert np.array_equal(a.imu_accel, c.imu_accel) and not np.array_equal(a.imu_accel, b.imu_accel)
     assert np.array_equal(a.truth_q, b.truth_q)
+
+
+def test_unwritable_outputs_exit_2(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    rc, out, err = run_cli(["simulate", "--duration", "0.1", "--plot", str(blocker), "--json"], capsys)
+    assert rc == 2 and "cannot write output" in err and out == ""
+    rc, out, err = run_cli(["demo", "--out-dir", str(blocker / "sub"), "--json"], capsys)
+    assert rc == 2 and "--out-dir" in err and out == ""
 
 
 def test_help_explains_units(capsys):
