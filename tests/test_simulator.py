@@ -189,3 +189,31 @@ def test_simulate_rejects_bad_input(params, kwargs, match):
     args = {"torques": np.zeros((1, 3)), "dt": DT, **kwargs}
     with pytest.raises(ValueError, match=match):
         simulate(params, **args)
+
+
+# --- the compiled model's extra generalized force hook ----------------------------
+
+def test_compiled_extra_generalized_force_matches_augmented_system(params):
+    """compiled.accelerations with ``gen`` solves M q_dd + C q_d + J^T lambda = E u + E_f q_d + Q_p + gen."""
+    from otbot_hw.model import compiled
+    from otbot_hw.model.fixtures import fixture_code, held_chassis_accelerations
+
+    rng = np.random.default_rng(21)
+    for _ in range(20):
+        q = rng.uniform(-3, 3, 6)
+        qd = kin.admissible_velocity(q, rng.normal(scale=3.0, size=3), params)
+        u, f, gen = rng.normal(scale=5, size=3), rng.normal(scale=20, size=2), rng.normal(scale=5, size=6)
+        J = kin.constraint_jacobian(q, params)
+        A = np.zeros((9, 9))
+        A[:6, :6], A[:6, 6:], A[6:, :6] = dyn.mass_matrix(q, params), J.T, J
+        rhs = np.concatenate([
+            dyn.actuation_matrix() @ u + (dyn.friction_matrix(params) - dyn.coriolis_matrix(q, qd, params)) @ qd
+            + dyn.pivot_force_generalized(f) + gen,
+            -kin.constraint_jacobian_dot(q, qd, params) @ qd])
+        expect = np.linalg.solve(A, rhs)[:6]
+        x = np.concatenate([q, qd])
+        got = compiled.accelerations(x, u, f, gen, params.as_array())
+        assert np.abs(got - expect).max() < 1e-10
+        for fixture in ("stand", "locked"):
+            got = compiled.derivative(x, u, f, gen, params.as_array(), fixture_code(fixture))[6:]
+            assert np.abs(got - held_chassis_accelerations(qd, u, params, fixture, gen)).max() < 1e-12
