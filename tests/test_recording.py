@@ -382,3 +382,25 @@ def test_format_doc_sign_conventions_hold_in_the_model(params):
     turn = simulate(params, np.tile([0.0, 0.0, 1.0], (20, 1)), 0.01, fixture="locked")
     assert turn.qd[-1, 5] > 0 and turn.q[-1, 2] > 0  # tau_p > 0 turns the platform CCW
 
+
+
+@pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.LZ4, CompressionType.NONE])
+def test_chunked_compressed_files_load_and_truncate_by_chunk(tmp_path, compression):
+    """§1 of the format document: chunked files (zstd, lz4, none) are read; a cut loses the open chunk only."""
+    path = tmp_path / "chunked.mcap"
+    torques = np.random.default_rng(5).normal(size=(200, 3))
+    with open(path, "wb") as f:
+        w = Writer(f, compression=compression, chunk_size=2000)
+        w.start(profile="otbot", library="test")
+        cid = w.register_channel(topic=TOPIC_COMMAND, message_encoding="json", schema_id=0)
+        for k in range(200):
+            w.add_message(channel_id=cid, log_time=k * 10_000_000, publish_time=k * 10_000_000,
+                          data=json.dumps({"t": k * 0.01, "torque": torques[k].tolist()}).encode())
+        w.finish()
+    rec = read_recording(path)
+    assert len(rec) == 200 and not rec.truncated and np.array_equal(rec.torque, torques)
+    data = path.read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
+    part = read_recording(tmp_path / "cut.mcap")
+    assert part.truncated and 0 < len(part) < 200
+    assert np.array_equal(part.torque, torques[: len(part)])
