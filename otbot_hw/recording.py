@@ -182,6 +182,7 @@ class RecordingWriter:
             self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
                                                                   schema_id=sid)
         self._count = 0
+        self._last_t: float | None = None
         self._flush_every = max(1, int(flush_every))
         self._closed = False
         self._writer.flush()
@@ -194,6 +195,13 @@ class RecordingWriter:
         t = messages[TOPIC_COMMAND]["t"]
         if not math.isfinite(t) or t < 0:
             raise ValueError(f"sample {self._count}: time must be finite and >= 0, got {t}")
+        if self._last_t is not None and not t > self._last_t:
+            raise ValueError(f"sample {self._count}: time {t} s does not increase (previous {self._last_t} s)")
+        for topic in self._channels:
+            if messages[topic].get("t") != t:
+                raise ValueError(f"sample {self._count}: {topic} has t = {messages[topic].get('t')!r}, but "
+                                 f"{TOPIC_COMMAND} has t = {t}: all topics of a sample share its time")
+        self._last_t = t
         stamp = int(round(t * 1e9))
         for topic, cid in self._channels.items():
             data = json.dumps(messages[topic], allow_nan=True).encode()
@@ -221,8 +229,27 @@ class RecordingWriter:
         self.close()
 
 
+def _check_shapes(rec: Recording) -> None:
+    """ValueError naming the field when the arrays of ``rec`` do not fit together."""
+    n = len(rec.t)
+    widths = {"torque": 3, "joint_pos": 3, "joint_vel": 3, "imu_accel": 3, "imu_gyro": 3,
+              "truth_q": 6, "truth_qd": 6, "truth_force": 2}
+    if np.shape(rec.t) != (n,):
+        raise ValueError(f"recording: t must be a 1-D array, got shape {np.shape(rec.t)}")
+    for name, width in widths.items():
+        arr = getattr(rec, name)
+        if arr is not None and np.shape(arr) != (n, width):
+            raise ValueError(f"recording: {name} must have shape ({n}, {width}), got {np.shape(arr)}")
+    for a, b in (("joint_pos", "joint_vel"), ("imu_accel", "imu_gyro"), ("truth_q", "truth_qd")):
+        if (getattr(rec, a) is None) != (getattr(rec, b) is None):
+            raise ValueError(f"recording: {a} and {b} go together (one topic); got only one of them")
+    if rec.truth_force is not None and rec.truth_q is None:
+        raise ValueError("recording: truth_force needs truth_q and truth_qd")
+
+
 def write_recording(path: str | Path, rec: Recording) -> None:
-    """Write a whole ``Recording`` to ``path``."""
+    """Write a whole ``Recording`` to ``path`` (ValueError if its arrays do not fit together)."""
+    _check_shapes(rec)
     meta = dict(rec.metadata)
     for key in ("format", "format_version", "units", "frames"):
         meta.pop(key, None)
@@ -275,6 +302,10 @@ def read_recording(path: str | Path) -> Recording:
                 if r.message_encoding != "json":
                     raise RecordingError(f"{path}: topic {r.topic} has message encoding "
                                          f"'{r.message_encoding}', expected 'json'")
+                other = [i for i, tp in channels.items() if tp == r.topic and i != r.id]
+                if other:
+                    raise RecordingError(f"{path}: topic {r.topic} is registered on two channels "
+                                         f"({other[0]} and {r.id}); one channel per topic")
                 channels[r.id] = r.topic
         elif isinstance(r, Message) and r.channel_id in channels:
             try:
@@ -285,32 +316,53 @@ def read_recording(path: str | Path) -> Recording:
             data.setdefault(channels[r.channel_id], []).append(msg)
     if meta.get("format", FORMAT_NAME) != FORMAT_NAME:
         raise RecordingError(f"{path}: metadata format is '{meta.get('format')}', expected '{FORMAT_NAME}'")
+    version = meta.get("format_version", FORMAT_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+        raise RecordingError(f"{path}: metadata format_version {version!r} is not supported "
+                             f"(this reader knows versions 1..{FORMAT_VERSION})")
     if TOPIC_COMMAND not in channels.values():
         raise RecordingError(f"{path}: no {TOPIC_COMMAND} channel: not an Otbot recording")
     present = sorted(set(channels.values()), key=list(TOPICS).index)
-    n = min(len(data.get(tp, [])) for tp in present)
-    if any(len(data.get(tp, [])) != n for tp in present):
-        truncated = True  # an incomplete last sample: keep complete samples only
+    counts = {tp: len(data.get(tp, [])) for tp in present}
+    n = min(counts.values())
+    if any(c != n for c in counts.values()):
+        if not truncated:  # a complete file must carry every topic in every sample
+            short = min(counts, key=counts.get)
+            raise RecordingError(f"{path}: {short} has {counts[short]} messages but {TOPIC_COMMAND} has "
+                                 f"{counts[TOPIC_COMMAND]}: every topic needs one message per sample")
+        # a file cut short: keep the complete samples only
 
     def field_array(topic: str, key: str, width: int, required: bool = True) -> np.ndarray | None:
         rows = data.get(topic, [])[:n]
-        if not required and rows and key not in rows[0]:
+        if not required and rows and isinstance(rows[0], dict) and key not in rows[0]:
             return None
-        try:
-            arr = np.array([m[key] for m in rows], dtype=float).reshape(n, width)
-        except (KeyError, TypeError, ValueError):
-            raise RecordingError(f"{path}: {topic} messages need '{key}' as {width} numbers") from None
+        arr = np.empty((n, width))
+        for k, m in enumerate(rows):
+            v = m.get(key) if isinstance(m, dict) else None
+            if (not isinstance(v, list) or len(v) != width
+                    or not all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in v)):
+                raise RecordingError(f"{path}: {topic} messages need '{key}' as {width} numbers; "
+                                     f"sample {k} has {str(v)[:80]}")
+            arr[k] = v
         return arr
 
-    t = np.array([m.get("t", np.nan) for m in data.get(TOPIC_COMMAND, [])[:n]], dtype=float)
+    def times(topic: str) -> np.ndarray:
+        out = np.empty(n)
+        for k, m in enumerate(data.get(topic, [])[:n]):
+            v = m.get("t") if isinstance(m, dict) else None
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise RecordingError(f"{path}: {topic} sample {k}: 't' must be a finite number of "
+                                     f"seconds, got {v!r} (non-finite sample time)")
+            out[k] = v
+        return out
+
+    t = times(TOPIC_COMMAND)
     for tp in present:
-        tt = np.array([m.get("t", np.nan) for m in data.get(tp, [])[:n]], dtype=float)
+        tt = times(tp)
         bad = np.nonzero(tt != t)[0]
         if len(bad):
             raise RecordingError(f"{path}: {tp} sample {bad[0]} has t = {tt[bad[0]]}, but "
                                  f"{TOPIC_COMMAND} has t = {t[bad[0]]}: topics must share sample times")
-    if np.any(~np.isfinite(t)):
-        raise RecordingError(f"{path}: non-finite sample time at sample {int(np.argmax(~np.isfinite(t)))}")
     if n > 1 and np.any(np.diff(t) <= 0):
         k = int(np.argmax(np.diff(t) <= 0)) + 1
         raise RecordingError(f"{path}: sample times must increase; sample {k} has t = {t[k]} after {t[k - 1]}")

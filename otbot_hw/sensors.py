@@ -50,7 +50,8 @@ class NoiseModel:
 
     @classmethod
     def paper(cls) -> "NoiseModel":
-        """The paper's levels: IMU sigma = 13.73e-3 on every channel, encoder rate 0.01 rad/s."""
+        """The paper's levels: IMU sigma = ND sqrt(SR) = 13.7e-3 (printed 13.73e-3) on every
+        channel, encoder rate noise 0.01 rad/s."""
         s = imu_sigma()
         return cls(accel=s, gyro=s, enc_rate=0.01)
 

@@ -1,7 +1,7 @@
 """``otbot demo``: the main job against the built-in simulated robot.
 
 Runs the paper's chassis experiment (tau = (6, -10, 6) N m for 3 s, 100 Hz
-zero-order hold, IMU noise sigma = 13.73e-3), writes its recording and plots.
+zero-order hold, IMU noise sigma = ND sqrt(SR) = 13.7e-3), writes its recording and plots.
 """
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from otbot_hw.cli import add_json_flag, progress
+from otbot_hw.cli import CliError, add_json_flag, progress
+from otbot_hw.cli.simulate import seed_int
 
 
 def register(sub) -> None:
@@ -21,7 +22,7 @@ def register(sub) -> None:
                     "and write its MCAP recording and PNG plots into --out-dir.",
     )
     p.add_argument("--out-dir", type=Path, default=Path("otbot-demo"), help="output folder (default otbot-demo)")
-    p.add_argument("--seed", type=int, default=0, help="sensor noise seed (default 0)")
+    p.add_argument("--seed", type=seed_int, default=0, help="sensor noise seed, an integer >= 0 (default 0)")
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -34,15 +35,21 @@ def run(args: argparse.Namespace) -> dict:
     from sim.runs import simulated_recording
 
     out = args.out_dir
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"--out-dir {out}: cannot create folder: {exc.strerror}") from None
     params = nominal()
     quiet = args.json
     progress("[demo] chassis experiment: tau = (6, -10, 6) N m, 3 s, 100 Hz", not quiet)
     rec = simulated_recording(params, np.tile([6.0, -10.0, 6.0], (300, 1)), 0.01, NoiseModel.paper(),
                               seed=args.seed, extra_metadata={"experiment": "chassis (paper §4.3.2)"})
     path = out / "chassis.mcap"
-    write_recording(path, rec)
-    plots = write_plots(out / "chassis", rec, params, "Chassis experiment")
+    try:
+        write_recording(path, rec)
+        plots = write_plots(out / "chassis", rec, params, "Chassis experiment")
+    except OSError as exc:
+        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
     result = {"chassis_experiment": {"recording": str(path), "plots": plots,
                                      "final_q": rec.truth_q[-1].tolist(), "final_qd": rec.truth_qd[-1].tolist()}}
     if not quiet:

@@ -1,0 +1,143 @@
+"""``otbot simulate`` and ``otbot demo`` from the command line: JSON output, bad input, plots, recordings."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from otbot_hw.cli import main
+from otbot_hw.params import nominal
+from otbot_hw.recording import read_recording
+from sim.simulator import simulate
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def run_cli(argv, capsys):
+    """(exit code, stdout, stderr) of ``otbot argv`` run in-process; argparse errors exit via SystemExit."""
+    try:
+        rc = main(argv)
+    except SystemExit as exc:
+        rc = exc.code
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_json_reports_final_state_of_a_direct_simulation(capsys):
+    rc, out, err = run_cli(["simulate", "--torques", "6,-10,6", "--duration", "3", "--rate", "100", "--json"], capsys)
+    assert rc == 0
+    assert out.count("\n") == 1  # one JSON object, on one line
+    result = json.loads(out)
+    assert len(result["q"]) == 6 and len(result["qd"]) == 6
+    x = simulate(nominal(), np.tile([6.0, -10.0, 6.0], (300, 1)), 0.01).x[-1]
+    assert result["q"] == x[:6].tolist() and result["qd"] == x[6:].tolist()
+    assert result["t_final"] == pytest.approx(3.0) and result["samples"] == 301
+    assert result["max_constraint_residual"] < 1e-8 and result["max_holonomic_residual"] < 1e-8
+
+
+def test_json_with_fixture_rate_and_negative_first_torque(capsys):
+    rc, out, _ = run_cli(["simulate", "--torques", "-2,1.5,0.5", "--duration", "0.5", "--rate", "50",
+                          "--fixture", "stand", "--json"], capsys)
+    assert rc == 0
+    result = json.loads(out)
+    x = simulate(nominal(), np.tile([-2.0, 1.5, 0.5], (25, 1)), 0.02, fixture="stand").x[-1]
+    assert result["q"] == x[:6].tolist() and result["qd"] == x[6:].tolist()
+    assert result["q"][:2] == [0.0, 0.0]  # the chassis is held on the stand
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--torques", "6,x,6"], "--torques: 'x' is not a number"),
+    (["--torques", "6,-10"], "--torques needs 3 comma-separated numbers"),
+    (["--torques", "6,-10,6,1"], "--torques needs 3 comma-separated numbers"),
+    (["--torques", "nan,0,0"], "--torques: values must be finite"),
+    (["--torques", "1,inf,0"], "--torques: values must be finite"),
+    (["--torques", ""], "--torques needs 3"),
+    (["--duration", "-1"], "--duration must be a finite number of seconds > 0"),
+    (["--duration", "0"], "--duration must be a finite number of seconds > 0"),
+    (["--duration", "nan"], "--duration must be a finite number of seconds > 0"),
+    (["--duration", "three"], "--duration"),
+    (["--duration", "0.001", "--rate", "100"], "gives no sample interval"),
+    (["--rate", "-100"], "--rate must be a finite number > 0"),
+    (["--rate", "nan"], "--rate must be a finite number > 0"),
+    (["--fixture", "ceiling"], "invalid choice"),
+    (["--seed", "1.5"], "--seed must be an integer >= 0"),
+    (["--seed", "-1"], "--seed must be an integer >= 0"),
+    (["--duration", "1e9"], "samples; at most"),
+    (["--out", "/nonexistent-folder/run.mcap"], "--out /nonexistent-folder/run.mcap: folder /nonexistent-folder does not exist"),
+    (["--params", "/nonexistent-folder/p.yaml"], "cannot read parameter file"),
+])
+def test_bad_arguments_exit_2_with_a_message(capsys, args, message):
+    rc, out, err = run_cli(["simulate", *args, "--json"], capsys)
+    assert rc == 2
+    assert message in err, err
+    assert out == ""
+
+
+def test_out_and_plot_write_a_readable_recording_and_pngs(tmp_path, capsys):
+    rec_path, plot_dir = tmp_path / "run.mcap", tmp_path / "plots"
+    rc, out, _ = run_cli(["simulate", "--duration", "1", "--rate", "100", "--seed", "5",
+                          "--out", str(rec_path), "--plot", str(plot_dir), "--json"], capsys)
+    assert rc == 0
+    result = json.loads(out)
+    rec = read_recording(rec_path)
+    assert len(rec) == 101 and rec.truncated is False
+    assert rec.truth_q[-1].tolist() == result["q"] and rec.truth_qd[-1].tolist() == result["qd"]
+    assert rec.sample_period == 0.01 and rec.metadata["seed"] == 5
+    assert np.all(rec.torque == [6.0, -10.0, 6.0])
+    assert rec.imu_accel.std(axis=0)[2] > 5e-3  # paper noise on by default
+    names = {Path(p).name for p in result["plots"]}
+    assert {"xy_path.png", "states.png"} <= names
+    for p in result["plots"]:
+        data = Path(p).read_bytes()
+        assert data[:8] == PNG_MAGIC and len(data) > 10_000
+
+
+def test_text_output_and_seeds(tmp_path, capsys):
+    rc, out, _ = run_cli(["simulate", "--duration", "0.2", "--seed", "1", "--out", str(tmp_path / "a.mcap")], capsys)
+    assert rc == 0 and "final q" in out and "x, y m" in out
+    run_cli(["simulate", "--duration", "0.2", "--seed", "2", "--out", str(tmp_path / "b.mcap")], capsys)
+    run_cli(["simulate", "--duration", "0.2", "--seed", "1", "--out", str(tmp_path / "c.mcap")], capsys)
+    a, b, c = (read_recording(tmp_path / f"{n}.mcap") for n in "abc")
+    assert np.array_equal(a.imu_accel, c.imu_accel) and not np.array_equal(a.imu_accel, b.imu_accel)
+    assert np.array_equal(a.truth_q, b.truth_q)
+
+
+def test_unwritable_outputs_exit_2(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    rc, out, err = run_cli(["simulate", "--duration", "0.1", "--plot", str(blocker), "--json"], capsys)
+    assert rc == 2 and "cannot write output" in err and out == ""
+    rc, out, err = run_cli(["demo", "--out-dir", str(blocker / "sub"), "--json"], capsys)
+    assert rc == 2 and "--out-dir" in err and out == ""
+
+
+def test_help_explains_units(capsys):
+    rc, out, _ = run_cli(["simulate", "--help"], capsys)
+    assert rc == 0
+    for unit in ("N m", "in s", "Hz", "rad"):
+        assert unit in out, unit
+
+
+def test_demo_writes_recording_and_plots(tmp_path, capsys):
+    out_dir = tmp_path / "demo"
+    rc, out, err = run_cli(["demo", "--out-dir", str(out_dir), "--json"], capsys)
+    assert rc == 0
+    result = json.loads(out)["chassis_experiment"]
+    rec = read_recording(result["recording"])
+    assert len(rec) == 301 and np.all(rec.torque == [6.0, -10.0, 6.0])
+    assert rec.truth_q[-1].tolist() == result["final_q"]
+    for p in result["plots"]:
+        assert Path(p).read_bytes()[:8] == PNG_MAGIC
+    assert Path(result["recording"]).parent == out_dir
+
+
+def test_installed_entry_point_runs(tmp_path):
+    script = Path(sys.executable).parent / "otbot"
+    cmd = [str(script)] if script.exists() else [
+        sys.executable, "-c", "import sys; from otbot_hw.cli import main; sys.exit(main())"]
+    ok = subprocess.run([*cmd, "simulate", "--duration", "0.1", "--json"], capture_output=True, text=True)
+    assert ok.returncode == 0 and len(json.loads(ok.stdout)["q"]) == 6
+    bad = subprocess.run([*cmd, "simulate", "--torques", "1,2"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--torques needs 3" in bad.stderr
