@@ -25,7 +25,7 @@ def register(sub) -> None:
     p.add_argument("--obstacle", action="append", default=None, metavar="CX,CY,R",
                    help="circular obstacle, centre and radius in m (repeatable; default: the crowded corridor)")
     p.add_argument("--walls", default=None, metavar="YMIN,YMAX",
-                   help="corridor walls in m bounding the footprint (default -1.6,1.6 for the crowded corridor)")
+                   help="corridor walls in m bounding the footprint, e.g. --walls=-1.6,1.6 (the default, crowded corridor)")
     p.add_argument("--clearance", type=float, default=0.05, help="extra clearance in m (default 0.05)")
     p.add_argument("--duration", type=positive_float("--duration"), default=None,
                    help="fixed duration in s (default: minimum time)")

@@ -1,0 +1,116 @@
+"""Scenario acceptance (paper §5.4): corridor corners, smooth corridor, force rejection; CLI."""
+import json
+
+import numpy as np
+import pytest
+
+from otbot_hw.cli import main
+from otbot_hw.control.gains import gains_from_tstab
+from otbot_hw.control.metrics import Event, event_summary
+from otbot_hw.control.scenarios import FIGURE8_FORCES, corridor_spec, figure8_spec, track
+from otbot_hw.motors import MotorLimits, load_motor_limits
+from otbot_hw.params import nominal
+from sim.simulator import ForceSchedule
+
+T_STAB = 3.0
+
+
+def predicted_settle_after_velocity_step(t_stab: float, fraction: float = 0.02) -> float:
+    """Linear theory: after a velocity step the position error is Dv/(s1-s2) (e^s1t - e^s2t);
+    seconds until it stays below ``fraction`` of its peak (the velocity error settles sooner)."""
+    g = gains_from_tstab(t_stab)
+    s1, s2 = g.poles()[0]
+    t = np.arange(0, 3 * t_stab, 1e-4)
+    e = (np.exp(s1 * t) - np.exp(s2 * t)) / (s1 - s2)
+    above = np.flatnonzero(e > fraction * e.max())
+    return t[above[-1] + 1]
+
+
+@pytest.fixture(scope="module")
+def paper():
+    return nominal()
+
+
+def test_corridor_settles_after_each_corner_as_designed(paper):
+    """Unlimited torques: every corner is a velocity step and the errors settle exactly as the
+    designed poles predict (3.2 s: 2 % of the peak, measured from the corner)."""
+    spec = corridor_spec()
+    run = track(spec, paper, MotorLimits(np.array([1e4, 1e4, 1e4])), gains_from_tstab(T_STAB))
+    events = event_summary(run.t, run.e_p, run.e_v, spec.events)
+    assert [e["kind"] for e in events] == ["start", "corner", "corner", "corner", "corner", "stop"]
+    expected = predicted_settle_after_velocity_step(T_STAB)
+    assert 3.1 < expected < 3.3
+    for e in events:
+        assert e["settle_time_s"] == pytest.approx(expected, abs=0.01)
+        assert e["velocity_settle_s"] < 1.5
+    assert np.abs(run.e_p[:, 2]).max() < 1e-4  # alpha stays 0
+
+
+def test_corridor_with_motor_limits_saturates_visibly_and_still_settles(paper):
+    limits = load_motor_limits()
+    spec = corridor_spec()
+    run = track(spec, paper, limits, gains_from_tstab(T_STAB))
+    assert np.all(np.abs(run.u) <= limits.max_torque + 1e-12)
+    # the velocity steps ask for more than the motors give: reported, at each corner and the ends
+    starts = sorted({round(s["t_start"], 3) for s in run.saturation})
+    assert starts == [0.0, 5.0, 10.0, 15.0, 20.0, 25.0]
+    events = event_summary(run.t, run.e_p, run.e_v, spec.events)
+    for e in events:
+        assert e["settle_time_s"] is not None and e["settle_time_s"] < 1.1 * T_STAB
+    assert np.hypot(*run.e_p[-1, :2]) < 0.02 * max(e["peak_position_error_m"] for e in events)
+
+
+def test_smooth_corridor_tracks_without_overshoot(paper):
+    spec = corridor_spec(smooth=True)
+    run = track(spec, paper, load_motor_limits(), gains_from_tstab(T_STAB))
+    assert run.saturation == []
+    assert np.abs(run.e_p[:, :2]).max() < 1e-4 and np.abs(run.e_v[:, :2]).max() < 1e-3
+    assert run.x[:, 0].max() < 9.0 + 1e-4 and np.allclose(run.x[-1, :2], [9, 0], atol=1e-4)
+
+
+def test_force_on_pivot_is_rejected_within_tstab(paper):
+    spec = figure8_spec()
+    f = FIGURE8_FORCES[2]  # 350 N along -x at 11 s for 1 s
+    run = track(spec, paper, load_motor_limits(), gains_from_tstab(T_STAB), forces=ForceSchedule([f]))
+    ev, = event_summary(run.t, run.e_p, run.e_v, [Event(f.start, "force", f.start + f.duration)])
+    assert ev["peak_position_error_m"] > 0.05                       # the push is felt ...
+    assert ev["settle_time_s"] is not None and ev["settle_time_s"] < 1.1 * T_STAB   # ... and undone
+    before = run.t < f.start
+    assert np.abs(run.e_p[before, :2]).max() < 1e-3
+
+
+def test_cli_track_json(capsys):
+    assert main(["track", "corridor-smooth", "--sim", "--json", "--no-robustness", "--rate", "500"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out["max_abs_error"]) >= {"x", "y", "alpha"} and set(out["rms_error"]) >= {"x", "y", "alpha"}
+    assert set(out["peak_torque"]) == {"right_wheel", "left_wheel", "pivot"}
+    assert all("limit_Nm" in v and "peak_Nm" in v for v in out["peak_torque"].values())
+    assert all({"t", "kind", "settle_time_s"} <= set(e) for e in out["events"]) and len(out["events"]) == 6
+    assert out["feasibility"]["feasible"] is True
+
+
+def test_cli_track_bad_input(tmp_path, capsys):
+    assert main(["track", "corridor"]) == 2
+    assert "--sim" in capsys.readouterr().err
+    assert main(["track", "nowhere.csv", "--sim"]) == 2
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,x,y,alpha\n0,0,0,0\n1,nan,0,0\n")
+    assert main(["track", str(bad), "--sim", "--json"]) == 2
+    assert "line 3, column x" in capsys.readouterr().err
+    assert main(["track", "corridor", "--sim", "--tstab", "0"]) == 2
+    robot = tmp_path / "robot.yaml"
+    robot.write_text("motors:\n" + "".join(f"  {m}: {{max_torque: {{value: 2.0, unit: N m}}}}\n"
+                                           for m in ("right_wheel", "left_wheel", "pivot")))
+    assert main(["track", "corridor-smooth", "--sim", "--strict", "--robot", str(robot)]) == 2
+    err = capsys.readouterr().err
+    assert "infeasible trajectory" in err and "N m limit from t =" in err
+
+
+def test_cli_plan_writes_a_trackable_csv(tmp_path, capsys):
+    out = tmp_path / "traj.csv"
+    assert main(["plan", "--out", str(out), "--goal", "3,0,0", "--obstacle", "1.5,0.1,0.25",
+                 "--intervals", "20", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["status"] == "Solve_Succeeded" and out.exists()
+    assert main(["plan", "--out", str(out), "--obstacle", "1,1"]) == 2
+    assert main(["plan", "--out", str(out), "--walls=-0.2,0.2"]) == 2
