@@ -218,3 +218,11 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
         say(f"writing animation {animate} ...")
         result["animation"] = str(animate_run(Path(animate), spec, run, params))
     return result
+
+
+def demo_corridor(out_dir: Path, params: OtbotParams, limits: MotorLimits,
+                  progress: Callable[[str], None] | None = None) -> dict:
+    """The corridor scenario for ``otbot demo``: closed loop at 1 kHz, plots, no robustness reruns."""
+    res = run_scenario("corridor", params, limits, robustness=False, plot_dir=Path(out_dir), progress=progress)
+    keep = ("max_abs_error", "rms_error", "peak_torque", "events", "saturation", "plots", "wall_time_s")
+    return {k: res[k] for k in keep}
