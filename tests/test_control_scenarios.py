@@ -66,6 +66,8 @@ def test_smooth_corridor_tracks_without_overshoot(paper):
     assert run.saturation == []
     assert np.abs(run.e_p[:, :2]).max() < 1e-4 and np.abs(run.e_v[:, :2]).max() < 1e-3
     assert run.x[:, 0].max() < 9.0 + 1e-4 and np.allclose(run.x[-1, :2], [9, 0], atol=1e-4)
+    from otbot_hw.control.scenarios import goal_overshoot
+    assert goal_overshoot(spec.reference, run.x[:, :2]) < 1e-4
 
 
 def test_force_on_pivot_is_rejected_within_tstab(paper):
@@ -80,13 +82,20 @@ def test_force_on_pivot_is_rejected_within_tstab(paper):
 
 
 def test_cli_track_json(capsys):
-    assert main(["track", "corridor-smooth", "--sim", "--json", "--no-robustness", "--rate", "500"]) == 0
+    assert main(["track", "corridor", "--sim", "--json", "--no-robustness", "--rate", "500"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["max_abs_error"]) >= {"x", "y", "alpha"} and set(out["rms_error"]) >= {"x", "y", "alpha"}
     assert set(out["peak_torque"]) == {"right_wheel", "left_wheel", "pivot"}
     assert all("limit_Nm" in v and "peak_Nm" in v for v in out["peak_torque"].values())
     assert all({"t", "kind", "settle_time_s"} <= set(e) for e in out["events"]) and len(out["events"]) == 6
-    assert out["feasibility"]["feasible"] is True
+    # the corners are velocity steps: the feasibility check says where the wheels can saturate ...
+    assert [s["t"] for s in out["feasibility"]["velocity_steps"]] == pytest.approx([0, 5, 10, 15, 20, 25])
+    viol = out["feasibility"]["violations"]
+    assert {round(v["t_start"], 2) for v in viol} == {0.0, 5.0, 10.0, 15.0, 20.0, 25.0}
+    assert {v["motor"] for v in viol} >= {"right_wheel", "left_wheel"}
+    # ... and the limiter reports it when it happens
+    assert {round(s["t_start"], 2) for s in out["saturation"]} == {0.0, 5.0, 10.0, 15.0, 20.0, 25.0}
+    assert out["goal_overshoot_m"] > 0.01
 
 
 def test_cli_track_bad_input(tmp_path, capsys):

@@ -17,7 +17,9 @@ limits. Steps:
    paper holds M_bar and C_bar at their values on p_d; here their variation over the box
    is enclosed too, so the bound contains every torque the law can command while the
    errors stay inside the bounds.
-3. Where an enclosure leaves [-limit, limit] the limit *can* be exceeded: reported as
+3. Where the reference velocity jumps (a polyline corner), the velocity error jumps by the
+   step, so at that instant the enclosure is recomputed with |e_v| <= E_v + |step|.
+4. Where an enclosure leaves [-limit, limit] the limit *can* be exceeded: reported as
    episodes (motor, time span, largest bound).
 """
 from __future__ import annotations
@@ -71,6 +73,7 @@ class FeasibilityReport:
     bounds: ErrorBounds
     violations: list = field(default_factory=list)
     reference_state: np.ndarray | None = None   # (N, 12) state along p_d
+    velocity_steps: list = field(default_factory=list)  # reference velocity jumps: t, |step| per axis
 
     @property
     def feasible(self) -> bool:
@@ -81,7 +84,7 @@ class FeasibilityReport:
         return {"feasible": self.feasible, "error_bounds": self.bounds.to_dict(),
                 "peak_bound_Nm": dict(zip(MOTORS, peak.tolist())),
                 "limits_Nm": dict(zip(MOTORS, self.limits.tolist())),
-                "violations": self.violations}
+                "violations": self.violations, "velocity_steps": self.velocity_steps}
 
 
 def reference_states(reference: DesiredTrajectory, params: OtbotParams, t: np.ndarray,
@@ -199,6 +202,23 @@ def check_feasibility(reference: DesiredTrajectory, params: OtbotParams, gains: 
     X = reference_states(reference, params, t, heading0)
     _, _, PDD = reference.sample(t)
     lo, hi = torque_enclosure(X, PDD, params, gains, eb)
+    # velocity steps of the reference (e.g. polyline corners, a start at full speed): the velocity
+    # error jumps by the step. A step is a change of p_dot between samples that the trapezoid of
+    # p_dd does not explain, beyond 1 cm/s (rad/s) plus what an acceleration jump could cause.
+    tp = np.concatenate([[t[0] - dt], t])
+    _, PDp, PDDp = reference.sample(tp)
+    PDDp[0] = 0.0
+    dPDD = np.abs(np.diff(PDDp, axis=0))
+    step = np.diff(PDp, axis=0) - 0.5 * dt * (PDDp[1:] + PDDp[:-1])
+    jumps = np.flatnonzero(np.any(np.abs(step) > 0.01 + dt * dPDD, axis=1))
+    steps = []
+    for k in jumps:
+        dv = np.abs(step[k])
+        ebk = ErrorBounds(eb.position, tuple(np.asarray(eb.velocity) + dv), eb.pivot_angle)
+        l, h = torque_enclosure(X[k:k + 1], PDD[k:k + 1], params, gains, ebk)
+        lo[k] = np.minimum(lo[k], l[0])
+        hi[k] = np.maximum(hi[k], h[0])
+        steps.append({"t": float(t[k]), "velocity_step": dv.tolist()})
     lim = np.asarray(limits.max_torque, float)
     viol = []
     for i, motor in enumerate(MOTORS):
@@ -211,4 +231,5 @@ def check_feasibility(reference: DesiredTrajectory, params: OtbotParams, gains: 
             viol.append({"motor": motor, "t_start": float(t[a]), "t_end": float(t[b - 1]),
                          "bound_Nm": worst, "limit_Nm": float(lim[i])})
     viol.sort(key=lambda v: v["t_start"])
-    return FeasibilityReport(t=t, lo=lo, hi=hi, limits=lim, bounds=eb, violations=viol, reference_state=X)
+    return FeasibilityReport(t=t, lo=lo, hi=hi, limits=lim, bounds=eb, violations=viol, reference_state=X,
+                             velocity_steps=steps)

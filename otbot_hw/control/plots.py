@@ -17,6 +17,13 @@ def _xy_axes(ax, spec, run, params, open_loop=None, snapshots=6):
     if open_loop is not None:
         ax.plot(open_loop[1][:, 0], open_loop[1][:, 1], ":", color="tab:red", lw=1.5, label="open loop")
     ax.plot(run.x[:, 0], run.x[:, 1], color="tab:blue", lw=1, label="closed loop")
+    if spec.forces is not None:
+        for f in spec.forces.forces:
+            k = int(round(f.start * run.rate_hz))
+            if k < len(run.x):
+                mag = float(np.hypot(f.fx, f.fy)) or 1.0
+                ax.annotate(f"{mag:g} N", xy=run.x[k, :2], xytext=run.x[k, :2] - 0.6 * np.array([f.fx, f.fy]) / mag,
+                            arrowprops={"arrowstyle": "->", "color": "tab:purple"}, color="tab:purple", fontsize=8)
     for i in np.linspace(0, len(run.x) - 1, snapshots).astype(int):
         draw_robot(ax, run.x[i, :6], params, alpha=0.3 + 0.7 * i / max(1, len(run.x) - 1))
     ax.set_aspect("equal")
