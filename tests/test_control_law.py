@@ -109,3 +109,24 @@ def test_limiter_clamps_and_reports_every_episode():
     assert len(seen) == 3
     with pytest.raises(ValueError, match="non-finite"):
         lim.apply(np.array([np.nan, 0, 0]), 0.4)
+
+
+def test_loop_uses_any_feedback_source_and_tells_it_the_torques(params):
+    """The law only sees what the feedback source reports: a biased estimator biases the robot."""
+    applied = []
+
+    class Biased:
+        def __init__(self, stepper):
+            self.stepper = stepper
+
+        def read(self, t):
+            s = TaskState.from_state(self.stepper.x)
+            return TaskState(p=s.p + np.array([0.01, 0.0, 0.0]), p_dot=s.p_dot, phi_p=s.phi_p)
+
+        def command(self, u, t):
+            applied.append((t, u.copy()))
+
+    ref = SampledTrajectory(np.array([0.0, 3.0]), np.zeros((2, 3)))
+    run = run_closed_loop(ref, ComputedTorqueController(params), params, rate_hz=500.0, feedback=Biased)
+    assert len(applied) == len(run.t) - 1 and np.allclose(applied[7][1], run.u[7])
+    assert run.x[-1, 0] == pytest.approx(-0.01, abs=1e-3)  # settles where the estimate says x = 0

@@ -82,6 +82,8 @@ def run_closed_loop(reference: DesiredTrajectory, controller: ComputedTorqueCont
 
     ``plant`` are the true parameters of the simulated robot (they may differ from the
     controller's); ``x0`` defaults to rest at p_d(0) with the chassis heading 0.
+    ``feedback`` builds the feedback source from the plant's ``Stepper`` (default: ground truth;
+    an estimator would read simulated sensors from ``stepper.x`` and be told the torques).
     """
     if not rate_hz > 0:
         raise ValueError(f"control rate must be > 0 Hz, got {rate_hz}")
@@ -102,6 +104,7 @@ def run_closed_loop(reference: DesiredTrajectory, controller: ComputedTorqueCont
     Ut = np.empty((n, 3))
     Uc = np.empty((n, 3))
     F = np.zeros((n, 2)) if forces is None else forces.sample(t[:-1])
+    notify = getattr(source, "command", None)
     every = max(1, n // 10)
     start = time.perf_counter()
     for k in range(n):
@@ -112,6 +115,8 @@ def run_closed_loop(reference: DesiredTrajectory, controller: ComputedTorqueCont
         Uc[k] = out[2]
         u = out[0] if limiter is None else limiter.apply(out[0], t[k])[0]
         U[k] = u
+        if notify is not None:
+            notify(u, t[k])
         X[k + 1] = stepper.step(u, F[k])
         if progress is not None and k % every == 0 and k:
             progress(f"t = {t[k]:.1f} / {T:.1f} s")

@@ -38,7 +38,11 @@ class TaskState:
 
 
 class FeedbackSource(Protocol):
-    """Anything that can report the robot's task state at time t (s): ground truth, an EKF, ..."""
+    """Anything that can report the robot's task state at time t (s): ground truth, an EKF, ...
+
+    A source that needs the applied torques (an EKF's prediction step) may also define
+    ``command(u, t)``: the loop calls it with the torques (N m) actually applied from t on.
+    """
 
     def read(self, t: float) -> TaskState: ...
 
