@@ -123,3 +123,29 @@ def test_cli_plan_writes_a_trackable_csv(tmp_path, capsys):
     assert res["status"] == "Solve_Succeeded" and out.exists()
     assert main(["plan", "--out", str(out), "--obstacle", "1,1"]) == 2
     assert main(["plan", "--out", str(out), "--walls=-0.2,0.2"]) == 2
+
+
+def test_plots_and_animation_are_written(tmp_path, paper):
+    from otbot_hw.control.plots import animate_run, scenario_plots
+
+    spec = figure8_spec()
+    run = track(spec, paper, load_motor_limits(), gains_from_tstab(T_STAB), rate_hz=200.0)
+    files = scenario_plots(tmp_path, spec, run, paper, load_motor_limits())
+    assert [f.rsplit("_", 1)[1] for f in files] == ["xy.png", "errors.png", "torques.png"]
+    assert all((tmp_path / f.rsplit("/", 1)[1]).stat().st_size > 10_000 for f in files)
+    gif = animate_run(tmp_path / "a.gif", spec, run, paper, max_frames=4)
+    from PIL import Image
+
+    assert Image.open(gif).n_frames == 4
+
+
+def test_cli_controller_and_plant_parameters_may_differ(tmp_path, capsys, paper):
+    wrong = tmp_path / "ctrl.yaml"
+    paper.replace(m_p=0.8 * paper.m_p, I_p=0.8 * paper.I_p).save(wrong)
+    args = ["track", "corridor-smooth", "--sim", "--json", "--no-robustness", "--rate", "250"]
+    assert main(args) == 0
+    exact = json.loads(capsys.readouterr().out)["max_abs_error"]["x"]
+    from otbot_hw.params import DEFAULT_PARAMS_FILE
+    assert main(args + ["--params", str(wrong), "--plant-params", str(DEFAULT_PARAMS_FILE)]) == 0
+    off = json.loads(capsys.readouterr().out)["max_abs_error"]["x"]
+    assert off > 10 * exact

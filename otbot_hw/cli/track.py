@@ -24,6 +24,9 @@ def register(sub) -> None:
                    "plant available to this command)")
     p.add_argument("--params", type=Path, default=None,
                    help="parameter YAML for plant and controller (default config/otbot.yaml; an identified file works)")
+    p.add_argument("--plant-params", type=Path, default=None,
+                   help="parameter YAML of the simulated robot when it differs from the controller's --params "
+                        "(e.g. --params identified.yaml --plant-params config/otbot.yaml)")
     p.add_argument("--robot", type=Path, default=None, help="hardware YAML with motor limits (default config/robot.yaml)")
     p.add_argument("--tstab", default="3", help="stabilization time T_stab in s, one value or x,y,alpha (default 3)")
     p.add_argument("--rate", type=positive_float("--rate"), default=1000.0, help="control rate in Hz (default 1000)")
@@ -67,6 +70,7 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError(f"--animate writes a GIF: give a path ending in .gif, got {args.animate}")
     tstab = parse_tstab(args.tstab)
     params = OtbotParams.load(args.params)
+    plant = OtbotParams.load(args.plant_params) if args.plant_params is not None else None
     limits = load_motor_limits(args.robot)
     eb = None
     if args.error_bounds is not None:
@@ -86,7 +90,7 @@ def run(args: argparse.Namespace) -> dict:
                                f"({len(rep.violations)} violation(s))")
         result = run_scenario(args.scenario, params, limits, t_stab=tstab, rate_hz=args.rate,
                               robustness=not args.no_robustness, plot_dir=args.plot, animate=args.animate,
-                              progress=say, error_bounds=eb, spec=spec)
+                              progress=say, error_bounds=eb, spec=spec, plant=plant)
     except TrajectoryError as exc:
         raise CliError(str(exc)) from None
     if not args.json:

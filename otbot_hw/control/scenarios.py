@@ -104,8 +104,18 @@ def build_spec(name: str, params: OtbotParams, limits: MotorLimits,
     return csv_spec(name)
 
 
-def controller_params(params: OtbotParams, variant: str) -> tuple[OtbotParams, OtbotParams]:
-    """(plant, controller) parameters for a robustness variant: nominal, payload, friction."""
+def controller_params(params: OtbotParams, variant: str,
+                      plant: OtbotParams | None = None) -> tuple[OtbotParams, OtbotParams]:
+    """(plant, controller) parameters for a robustness variant: nominal, payload, friction.
+
+    ``params`` are the controller's belief; ``plant`` (default: the same) the simulated robot's.
+    """
+    if plant is not None and variant == "nominal":
+        return plant, params
+    if plant is not None:
+        base_plant, _ = controller_params(plant, variant)
+        _, ctrl = controller_params(params, variant)
+        return base_plant, ctrl
     if variant == "nominal":
         return params, params
     if variant == "payload":
@@ -118,8 +128,9 @@ def controller_params(params: OtbotParams, variant: str) -> tuple[OtbotParams, O
 
 def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: Gains,
           variant: str = "nominal", rate_hz: float = 1000.0, forces: ForceSchedule | None | str = "spec",
-          progress: Callable[[str], None] | None = None) -> ClosedLoopRun:
-    plant, ctrl = controller_params(params, variant)
+          progress: Callable[[str], None] | None = None, plant: OtbotParams | None = None) -> ClosedLoopRun:
+    """Closed-loop run of ``spec`` with the controller believing ``params`` (see ``controller_params``)."""
+    plant, ctrl = controller_params(params, variant, plant)
     lim = TorqueLimiter(limits, on_saturation=(lambda e: progress(
         f"saturation: {e.motor} at t = {e.t_start:.3f} s (requested {e.peak_request:.1f} N m, "
         f"limit {e.limit:g})")) if progress else None)
@@ -170,7 +181,7 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
                  rate_hz: float = 1000.0, robustness: bool = True, plot_dir: Path | None = None,
                  animate: Path | None = None, check_feasibility: bool = True,
                  error_bounds=None, progress: Callable[[str], None] | None = None,
-                 spec: ScenarioSpec | None = None) -> dict:
+                 spec: ScenarioSpec | None = None, plant: OtbotParams | None = None) -> dict:
     """Run scenario ``name`` (or a CSV path, or a prebuilt ``spec``); returns the JSON summary
     (see ``otbot track --help``)."""
     say = progress or (lambda m: None)
@@ -188,18 +199,19 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
             say(f"feasibility: {v['motor']} may exceed {v['limit_Nm']:g} N m on "
                 f"[{v['t_start']:.2f}, {v['t_end']:.2f}] s (bound {v['bound_Nm']:.1f} N m)")
     say(f"closed loop at {rate_hz:g} Hz, {spec.reference.duration:.1f} s ...")
-    run = track(spec, params, limits, gains, "nominal", rate_hz, progress=progress)
+    run = track(spec, params, limits, gains, "nominal", rate_hz, progress=progress, plant=plant)
     result.update(summarize(spec, run, limits, params))
     result["wall_time_s"] = run.wall_time_s
     if spec.name == "figure8":
         for ev, f in zip(result["events"], FIGURE8_FORCES):
-            iso = track(spec, params, limits, gains, "nominal", rate_hz, forces=ForceSchedule([f]))
+            iso = track(spec, params, limits, gains, "nominal", rate_hz, forces=ForceSchedule([f]), plant=plant)
             e = event_summary(iso.t, iso.e_p, iso.e_v, [Event(f.start, ev["kind"], f.start + f.duration)])[0]
             ev["settle_time_isolated_s"] = e["settle_time_s"]
     open_loop = None
     if spec.open_loop_torques is not None:
         say("open-loop replay of the planned torques ...")
-        t, X, _ = run_open_loop(spec.open_loop_torques, spec.open_loop_times, params, spec.x0,
+        t, X, _ = run_open_loop(spec.open_loop_torques, spec.open_loop_times, plant or params,
+                                spec.x0 if spec.x0 is not None else rest_state(spec.reference.sample(np.zeros(1))[0][0]),
                                 rate_hz=rate_hz, duration=spec.reference.duration)
         P, PD, _ = spec.reference.sample(t)
         open_loop = (t, X, P)
@@ -215,7 +227,7 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
         result["robustness"] = {}
         for variant in ("payload", "friction"):
             say(f"robustness variant: {variant} ...")
-            r = track(spec, params, limits, gains, variant, rate_hz)
+            r = track(spec, params, limits, gains, variant, rate_hz, plant=plant)
             s = summarize(spec, r, limits, params)
             result["robustness"][variant] = {k: s[k] for k in ("max_abs_error", "rms_error", "peak_torque", "events",
                                                                 "goal_overshoot_m") if k in s}
