@@ -149,3 +149,15 @@ def test_cli_controller_and_plant_parameters_may_differ(tmp_path, capsys, paper)
     assert main(args + ["--params", str(wrong), "--plant-params", str(DEFAULT_PARAMS_FILE)]) == 0
     off = json.loads(capsys.readouterr().out)["max_abs_error"]["x"]
     assert off > 10 * exact
+
+
+def test_planned_scenario_open_loop_collides_closed_loop_tracks(paper):
+    from otbot_hw.control.scenarios import run_scenario
+
+    r = run_scenario("planned", paper, load_motor_limits(), robustness=False)
+    assert r["planner"]["status"] == "Solve_Succeeded"
+    assert len(r["open_loop"]["collisions"]) >= 1 and r["open_loop"]["final_position_error_m"] > 0.1
+    assert r["collisions"] == [] and r["saturation"] == []
+    assert r["max_abs_error"]["x"] < 1e-3 and r["max_abs_error"]["y"] < 1e-3 and r["max_abs_error"]["alpha"] < 1e-3
+    fw = r["fraction_within"]
+    assert fw["velocity_below_1cm_per_s"] > 0.95 and fw["position_below_1mm"] == 1.0

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, positive_float, progress
 
-_TIMES = "settle times: seconds until the position and velocity errors stay below 2 % of the event's peak"
+_TIMES = "Settle times: seconds until the position and velocity errors stay below 2 % of the event's peak"
 
 
 def register(sub) -> None:

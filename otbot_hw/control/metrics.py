@@ -83,3 +83,12 @@ def event_summary(t: np.ndarray, e_p: np.ndarray, e_v: np.ndarray, events: list[
                     "window_s": float(t_to - e.settle_from), "position_settle_s": sp, "velocity_settle_s": sv,
                     "peak_position_error_m": pp, "peak_velocity_error_mps": pv})
     return out
+
+
+def fraction_within(e_p: np.ndarray, e_v: np.ndarray) -> dict:
+    """Share of samples with |(e_x, e_y)| < 1 mm, |(e_x_dot, e_y_dot)| < 1 cm/s, |e_alpha| < 1e-3 rad
+    and |e_alpha_dot| < 5e-3 rad/s (the paper's figures for the planned trajectory)."""
+    return {"position_below_1mm": float(np.mean(np.hypot(e_p[:, 0], e_p[:, 1]) < 1e-3)),
+            "velocity_below_1cm_per_s": float(np.mean(np.hypot(e_v[:, 0], e_v[:, 1]) < 1e-2)),
+            "alpha_below_1e-3rad": float(np.mean(np.abs(e_p[:, 2]) < 1e-3)),
+            "alpha_rate_below_5e-3rad_per_s": float(np.mean(np.abs(e_v[:, 2]) < 5e-3))}

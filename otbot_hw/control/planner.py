@@ -102,10 +102,11 @@ class PlanResult:
     min_clearance_m: float
     problem: PlanningProblem = field(repr=False)
 
-    def trajectory(self):
+    def trajectory(self, hold: float = 0.0):
+        """The planned states as a desired trajectory (cubic Hermite through positions and velocities)."""
         from otbot_hw.control.trajectories import SampledTrajectory
 
-        return SampledTrajectory(self.t, self.z[:, :3], self.z[:, 4:7], torques=self.u, source="planner")
+        return SampledTrajectory(self.t, self.z[:, :3], self.z[:, 4:7], torques=self.u, source="planner", hold=hold)
 
     def save_csv(self, path: str | Path) -> Path:
         from otbot_hw.control.trajectories import save_csv

@@ -29,13 +29,15 @@ from otbot_hw.control.closed_loop import ClosedLoopRun, rest_state, run_closed_l
 from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.gains import Gains, gains_from_tstab
 from otbot_hw.control.limiter import TorqueLimiter
-from otbot_hw.control.metrics import Event, error_summary, event_summary, peak_torques
+from otbot_hw.control.metrics import Event, error_summary, event_summary, fraction_within, peak_torques
 from otbot_hw.control.trajectories import DesiredTrajectory, PolylineTrajectory, corridor, figure_eight, load_csv
 from otbot_hw.motors import MOTORS, MotorLimits
 from otbot_hw.params import OtbotParams
 from sim.simulator import ForceSchedule, PivotForce
 
 SCENARIOS = ("corridor", "corridor-smooth", "figure8", "planned")
+PLANNED_HOLD_S = 2.0  # rest at the goal after a planned / CSV trajectory, s
+CSV_HOLD_S = 2.0
 #: Paper friction values used by the friction robustness variant when the parameters have none.
 PAPER_FRICTION = {"b_w": 0.18, "b_p": 0.24}
 FIGURE8_FORCES = (PivotForce(4.0, 1.0, 0.0, -150.0), PivotForce(8.0, 1.0, 200.0, 0.0),
@@ -74,7 +76,7 @@ def figure8_spec() -> ScenarioSpec:
 
 
 def csv_spec(path: str | Path) -> ScenarioSpec:
-    ref = load_csv(path)
+    ref = load_csv(path, hold=CSV_HOLD_S)
     spec = ScenarioSpec(Path(path).stem, ref, [])
     if ref.torques is not None:
         spec.open_loop_torques, spec.open_loop_times = ref.torques, ref.t_samples
@@ -97,7 +99,7 @@ def build_spec(name: str, params: OtbotParams, limits: MotorLimits,
         if progress:
             progress("planning the crowded corridor (CasADi + IPOPT) ...")
         res = plan(prob)
-        spec = ScenarioSpec("planned", res.trajectory(), [],
+        spec = ScenarioSpec("planned", res.trajectory(hold=PLANNED_HOLD_S), [],
                             x0=res.x[0].copy(), obstacles=prob.obstacles_with_radius(),
                             open_loop_torques=res.u, open_loop_times=res.t[:-1], info={"planner": res.summary()})
         return spec
@@ -166,6 +168,7 @@ def goal_overshoot(ref: PolylineTrajectory, xy: np.ndarray) -> float:
 def summarize(spec: ScenarioSpec, run: ClosedLoopRun, limits: MotorLimits, params: OtbotParams) -> dict:
     out = {"duration_s": float(run.t[-1]), "rate_hz": run.rate_hz}
     out.update(error_summary(run.e_p, run.e_v))
+    out["fraction_within"] = fraction_within(run.e_p, run.e_v)
     out["peak_torque"] = peak_torques(run.u, limits)
     out["peak_commanded_torque_Nm"] = dict(zip(MOTORS, np.max(np.abs(run.u_cmd), axis=0).tolist()))
     out["events"] = event_summary(run.t, run.e_p, run.e_v, spec.events)
@@ -209,10 +212,11 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
             ev["settle_time_isolated_s"] = e["settle_time_s"]
     open_loop = None
     if spec.open_loop_torques is not None:
+        # replayed for the length of the plan (its torques end there)
         say("open-loop replay of the planned torques ...")
         t, X, _ = run_open_loop(spec.open_loop_torques, spec.open_loop_times, plant or params,
                                 spec.x0 if spec.x0 is not None else rest_state(spec.reference.sample(np.zeros(1))[0][0]),
-                                rate_hz=rate_hz, duration=spec.reference.duration)
+                                rate_hz=rate_hz, duration=getattr(spec.reference, "end", spec.reference.duration))
         P, PD, _ = spec.reference.sample(t)
         open_loop = (t, X, P)
         ol = error_summary(X[:, :3] - P, X[:, 6:9] - PD)
@@ -229,8 +233,8 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
             say(f"robustness variant: {variant} ...")
             r = track(spec, params, limits, gains, variant, rate_hz, plant=plant)
             s = summarize(spec, r, limits, params)
-            result["robustness"][variant] = {k: s[k] for k in ("max_abs_error", "rms_error", "peak_torque", "events",
-                                                                "goal_overshoot_m") if k in s}
+            result["robustness"][variant] = {k: s[k] for k in ("max_abs_error", "rms_error", "fraction_within", "peak_torque",
+                                                                "events", "goal_overshoot_m") if k in s}
             if "collisions" in s:
                 result["robustness"][variant]["collisions"] = s["collisions"]
             result["robustness"][variant]["growth_vs_nominal"] = {

@@ -266,11 +266,12 @@ class SampledTrajectory(DesiredTrajectory):
 
     Without velocities: a C^2 cubic spline with zero end velocities ("clamped", rest-to-rest).
     With velocities: a cubic Hermite spline through (P, PD). Either way p_dot and p_dd are
-    the interpolant's exact derivatives. ``torques`` (N, 3) N m are kept for open-loop replay.
+    the interpolant's exact derivatives. ``torques`` (N, 3) N m are kept for open-loop replay;
+    ``hold`` (s) of rest at the last sample is added to ``duration``.
     """
 
     def __init__(self, t: np.ndarray, P: np.ndarray, PD: np.ndarray | None = None,
-                 torques: np.ndarray | None = None, source: str = "samples"):
+                 torques: np.ndarray | None = None, source: str = "samples", hold: float = 0.0):
         from scipy.interpolate import CubicHermiteSpline, CubicSpline
 
         t = np.asarray(t, dtype=float)
@@ -286,12 +287,13 @@ class SampledTrajectory(DesiredTrajectory):
             self._spline = CubicHermiteSpline(self.t_samples, P, self.PD_samples, axis=0)
         self._d1 = self._spline.derivative(1)
         self._d2 = self._spline.derivative(2)
-        self.duration = float(self.t_samples[-1])
+        self.end = float(self.t_samples[-1])
+        self.duration = self.end + max(0.0, float(hold))
 
     def sample(self, t):
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        tc = np.clip(t, 0.0, self.duration)
-        inside = ((t >= 0) & (t <= self.duration))[:, None]
+        tc = np.clip(t, 0.0, self.end)
+        inside = ((t >= 0) & (t <= self.end))[:, None]
         return self._spline(tc), np.where(inside, self._d1(tc), 0.0), np.where(inside, self._d2(tc), 0.0)
 
 
@@ -307,7 +309,7 @@ def _check_samples(t, P, PD, source):
                               f"(t = {t[i]:g} s after {t[i - 1]:g} s)")
 
 
-def load_csv(path: str | Path) -> SampledTrajectory:
+def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
     """Read a trajectory CSV (format in the module docstring); errors name the row and column."""
     path = Path(path)
     try:
@@ -354,7 +356,7 @@ def load_csv(path: str | Path) -> SampledTrajectory:
                               f"(t = {t[i]:g} s after {t[i - 1]:g} s)")
     PD = data[:, 4:7] if vel else None
     torques = data[:, 4 + len(vel):7 + len(vel)] if tq else None
-    return SampledTrajectory(t, data[:, 1:4], PD, torques=torques, source=str(path))
+    return SampledTrajectory(t, data[:, 1:4], PD, torques=torques, source=str(path), hold=hold)
 
 
 def save_csv(path: str | Path, t: np.ndarray, P: np.ndarray, PD: np.ndarray | None = None,
