@@ -64,3 +64,14 @@ def test_planner_rejects_impossible_warm_start(params):
         plan(prob)
     with pytest.raises(PlannerError):
         PlanningProblem(params, limits, (0, 0, 0), (1, 0, 0), intervals=2)
+
+
+def test_fixed_time_plan_takes_the_given_time_with_less_torque(tiny, params):
+    prob, res_min = tiny
+    from dataclasses import replace
+
+    fixed = plan(replace(prob, duration=2.0 * res_min.t[-1]))
+    assert fixed.status == "Solve_Succeeded" and fixed.t[-1] == pytest.approx(2.0 * res_min.t[-1])
+    assert np.abs(fixed.u).max() < np.abs(res_min.u).max()
+    (cx, cy, r), = prob.obstacles
+    assert np.hypot(fixed.z[:, 0] - cx, fixed.z[:, 1] - cy).min() >= r + params.radius + prob.clearance - 1e-6

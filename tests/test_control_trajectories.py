@@ -56,6 +56,17 @@ def test_figure_eight_closes_and_derivatives_agree():
     assert e2 < 2e-4  # trapezoid error at the line/arc acceleration jumps, dt * V^2 / R / 2 each
 
 
+def test_path_rejects_discontinuous_sections():
+    from otbot_hw.control.trajectories import Arc, Line, PathTrajectory
+
+    with pytest.raises(TrajectoryError, match="does not continue"):
+        PathTrajectory([Line((0, 0), (1, 0)), Line((1, 0), (1, 1))], duration=5.0)  # a corner
+    with pytest.raises(TrajectoryError, match="does not continue"):
+        PathTrajectory([Line((0, 0), (1, 0)), Line((1.1, 0), (2, 0))], duration=5.0)  # a gap
+    ok = PathTrajectory([Line((0, 0), (1, 0)), Arc((1, 1), 1.0, -np.pi / 2, np.pi / 2)], duration=5.0)
+    assert ok.length == pytest.approx(1 + np.pi / 2)
+
+
 def test_polyline_rejects_bad_definitions():
     with pytest.raises(TrajectoryError):
         PolylineTrajectory([(0, 0)], 1.0)

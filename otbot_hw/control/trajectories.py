@@ -192,6 +192,13 @@ class PathTrajectory(DesiredTrajectory):
         if not (duration > 2 * ramp and ramp > 0):
             raise TrajectoryError(f"duration {duration} s must exceed twice the ramp {ramp} s")
         self.sections = list(sections)
+        for i in range(len(self.sections) - 1):
+            a, b = self.sections[i], self.sections[i + 1]
+            pa, ta, _ = a.geometry(np.array([a.length]))
+            pb, tb, _ = b.geometry(np.array([0.0]))
+            if np.hypot(*(pa[0] - pb[0])) > 1e-9 or np.hypot(*(ta[0] - tb[0])) > 1e-6:
+                raise TrajectoryError(f"section {i + 1} does not continue section {i} "
+                                      "(position and direction must match)")
         self.lengths = np.array([s.length for s in self.sections])
         self.starts = np.concatenate([[0.0], np.cumsum(self.lengths)])
         self.length = float(self.starts[-1])
