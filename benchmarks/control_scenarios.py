@@ -57,7 +57,8 @@ def main() -> None:
     print(f"planned: {pl['planner']['duration_s']:.2f} s plan, IPOPT {pl['planner']['solve_time_s']:.2f} s; "
           f"open loop final error {pl['open_loop']['final_position_error_m']:.3f} m, "
           f"collisions {[(c['obstacle'], round(c['t_start'], 2)) for c in pl['open_loop'].get('collisions', [])]}; "
-          f"closed loop collisions {len(pl.get('collisions', []))}")
+          f"closed loop collisions {len(pl.get('collisions', []))}; share of samples within the paper's figures "
+          + ", ".join(f"{k} {v:.3f}" for k, v in pl["fraction_within"].items()))
     for name, r in results.items():
         fz = r["feasibility"]
         print(f"feasibility {name}: feasible={fz['feasible']}, peak bound "
