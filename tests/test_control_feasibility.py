@@ -98,3 +98,22 @@ def test_infeasible_trajectory_is_reported_with_time_and_motor(params):
     assert ok.feasible and ok.to_dict()["violations"] == []
     with pytest.raises(ValueError, match="position"):
         ErrorBounds((0.1, -1, 0), (0, 0, 0))
+
+
+def test_bound_covers_the_torque_at_velocity_steps(params):
+    """The corridor's corners: the check flags them, and the torque the law asks for right after
+    each step (robot still at the old velocity) lies inside the enclosure."""
+    from otbot_hw.control.trajectories import corridor
+
+    gains = gains_from_tstab(3.0)
+    ref = corridor(hold=1.0)
+    limits = MotorLimits(np.array([40.0, 40.0, 40.0]))
+    rep = check_feasibility(ref, params, gains, limits, ErrorBounds.default())
+    assert [s["t"] for s in rep.velocity_steps] == pytest.approx([0, 5, 10, 15, 20, 25])
+    run = run_closed_loop(ref, ComputedTorqueController(params, gains), params, rate_hz=1000.0)
+    for s in rep.velocity_steps:
+        i = int(round(s["t"] / 0.01))
+        k = int(round(s["t"] * 1000))
+        assert np.all(rep.lo[i] <= run.u_cmd[k]) and np.all(run.u_cmd[k] <= rep.hi[i])
+        assert np.abs(run.u_cmd[k, :2]).max() > 40.0   # and it is beyond the wheels' limit
+    assert {v["t_start"] for v in rep.violations} >= {0.0, 5.0, 10.0, 15.0, 20.0, 25.0}

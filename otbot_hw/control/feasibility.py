@@ -18,7 +18,8 @@ limits. Steps:
    is enclosed too, so the bound contains every torque the law can command while the
    errors stay inside the bounds.
 3. Where the reference velocity jumps (a polyline corner), the velocity error jumps by the
-   step, so at that instant the enclosure is recomputed with |e_v| <= E_v + |step|.
+   step: at that instant the robot still has the old velocity, so the enclosure there is
+   taken over e_v in -step + [-E_v, E_v] as well.
 4. Where an enclosure leaves [-limit, limit] the limit *can* be exceeded: reported as
    episodes (motor, time span, largest bound).
 """
@@ -140,9 +141,11 @@ def coriolis_matrix_any(q, qd, p: OtbotParams) -> np.ndarray:
     return out
 
 
-def _enclosure_on_box(X, PDD, params, gains, eb, dalpha, dphi):
+def _enclosure_on_box(X, PDD, params, gains, eb, dalpha, dphi, ev_center=None):
     """Natural interval extension of the law over one box: alpha in alpha_d + dalpha, phi_p in
-    phi_p,d + dphi (dalpha, dphi: (lo, hi) offsets), the rest from the error bounds."""
+    phi_p,d + dphi (dalpha, dphi: (lo, hi) offsets), e_v in ev_center + [-E_v, E_v], the rest
+    from the error bounds."""
+    evc = np.zeros((len(X), 3)) if ev_center is None else np.asarray(ev_center, float)
     def box(center, lo, hi):
         return Interval(center + lo, center + hi)
 
@@ -152,7 +155,7 @@ def _enclosure_on_box(X, PDD, params, gains, eb, dalpha, dphi):
     q[2] = box(X[:, 2], *dalpha)
     q[3], q[4] = Interval(X[:, 3]), Interval(X[:, 4])
     q[5] = box(X[:, 5], *dphi)
-    pd = as_box(X[:, 6:9], np.asarray(eb.velocity))
+    pd = as_box(X[:, 6:9] + evc, np.asarray(eb.velocity))
     L = lambda_matrix(q, params)
     qd = np.concatenate([pd, L[3:] @ pd])
     D = delta_matrix(q, params)
@@ -163,7 +166,7 @@ def _enclosure_on_box(X, PDD, params, gains, eb, dalpha, dphi):
     v = np.empty(3, dtype=object)
     for i in range(3):
         v[i] = Interval(PDD[:, i]) + (-gains.kp[i]) * Interval.around(0.0, eb.position[i]) \
-            + (-gains.kv[i]) * Interval.around(0.0, eb.velocity[i])
+            + (-gains.kv[i]) * Interval.around(evc[:, i], eb.velocity[i])
     u = Mbar @ v + Cbar @ pd
     lo, hi = bounds(u)
     n = len(X)
@@ -171,8 +174,10 @@ def _enclosure_on_box(X, PDD, params, gains, eb, dalpha, dphi):
 
 
 def torque_enclosure(X: np.ndarray, PDD: np.ndarray, params: OtbotParams, gains: Gains,
-                     eb: ErrorBounds, splits: tuple[int, int] = (2, 6)) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) (N, 3) N m enclosing the law's torque over the error box around states X (N, 12).
+                     eb: ErrorBounds, splits: tuple[int, int] = (2, 6),
+                     ev_center: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (N, 3) N m enclosing the law's torque over the error box around states X (N, 12);
+    the velocity-error box is centred on ``ev_center`` (N, 3) (default 0).
 
     The alpha and phi_p ranges are split into ``splits`` sub-intervals and the enclosures
     united: the model's angles appear many times, so the natural extension overestimates in
@@ -186,7 +191,7 @@ def torque_enclosure(X: np.ndarray, PDD: np.ndarray, params: OtbotParams, gains:
     hi = np.full((len(X), 3), -np.inf)
     for i in range(na):
         for j in range(nphi):
-            l, h = _enclosure_on_box(X, PDD, params, gains, eb, (ga[i], ga[i + 1]), (gp[j], gp[j + 1]))
+            l, h = _enclosure_on_box(X, PDD, params, gains, eb, (ga[i], ga[i + 1]), (gp[j], gp[j + 1]), ev_center)
             lo = np.minimum(lo, l)
             hi = np.maximum(hi, h)
     return lo, hi
@@ -213,12 +218,11 @@ def check_feasibility(reference: DesiredTrajectory, params: OtbotParams, gains: 
     jumps = np.flatnonzero(np.any(np.abs(step) > 0.01 + dt * dPDD, axis=1))
     steps = []
     for k in jumps:
-        dv = np.abs(step[k])
-        ebk = ErrorBounds(eb.position, tuple(np.asarray(eb.velocity) + dv), eb.pivot_angle)
-        l, h = torque_enclosure(X[k:k + 1], PDD[k:k + 1], params, gains, ebk)
+        # just after the step the robot still has the old velocity: e_v = -step (+- E_v)
+        l, h = torque_enclosure(X[k:k + 1], PDD[k:k + 1], params, gains, eb, ev_center=-step[k:k + 1])
         lo[k] = np.minimum(lo[k], l[0])
         hi[k] = np.maximum(hi[k], h[0])
-        steps.append({"t": float(t[k]), "velocity_step": dv.tolist()})
+        steps.append({"t": float(t[k]), "velocity_step": step[k].tolist()})
     lim = np.asarray(limits.max_torque, float)
     viol = []
     for i, motor in enumerate(MOTORS):
