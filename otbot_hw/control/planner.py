@@ -20,7 +20,6 @@ loop does not. The initial guess is a collision-free weave around the obstacles,
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
