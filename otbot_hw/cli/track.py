@@ -68,6 +68,8 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError(f"unknown scenario {args.scenario!r}: use {', '.join(SCENARIOS)} or an existing CSV file")
     if args.animate is not None and args.animate.suffix.lower() != ".gif":
         raise CliError(f"--animate writes a GIF: give a path ending in .gif, got {args.animate}")
+    if args.plot is not None and args.plot.exists() and not args.plot.is_dir():
+        raise CliError(f"--plot {args.plot} exists and is not a folder")
     tstab = parse_tstab(args.tstab)
     params = OtbotParams.load(args.params)
     plant = OtbotParams.load(args.plant_params) if args.plant_params is not None else None
