@@ -64,6 +64,10 @@ def test_planner_rejects_impossible_warm_start(params):
         plan(prob)
     with pytest.raises(PlannerError):
         PlanningProblem(params, limits, (0, 0, 0), (1, 0, 0), intervals=2)
+    with pytest.raises(PlannerError, match="goal .* obstacle 0"):
+        plan(PlanningProblem(params, limits, (0, 0, 0), (3, 0, 0), obstacles=[(3.2, 0.0, 0.2)], intervals=10))
+    with pytest.raises(PlannerError, match="outside the walls"):
+        plan(PlanningProblem(params, limits, (0, 0, 0), (3, 1.0, 0), walls=(-1.2, 1.2), intervals=10))
 
 
 def test_fixed_time_plan_takes_the_given_time_with_less_torque(tiny, params):

@@ -20,6 +20,7 @@ loop does not. The initial guess is a collision-free weave around the obstacles,
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -211,6 +212,14 @@ def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,
     """Solve the collocation problem with IPOPT; raises PlannerError when it does not converge."""
     import casadi as ca
 
+    for name, pt in (("start", prob.start), ("goal", prob.goal)):
+        for j, ((cx, cy, _), k) in enumerate(zip(prob.obstacles, prob.keep_out())):
+            if math.hypot(pt[0] - cx, pt[1] - cy) < k:
+                raise PlannerError(f"{name} ({pt[0]:g}, {pt[1]:g}) m is within {k:.2f} m of obstacle {j} at "
+                                   f"({cx:g}, {cy:g}) m: the platform footprint would overlap it")
+        if prob.walls is not None and not (prob.walls[0] + prob.params.radius <= pt[1]
+                                           <= prob.walls[1] - prob.params.radius):
+            raise PlannerError(f"{name} y = {pt[1]:g} m puts the footprint outside the walls {prob.walls}")
     N = prob.intervals
     f = _symbolic_model(prob.params)
     z_guess, T_guess = _guess(prob, N)
