@@ -121,6 +121,10 @@ def test_cli_plan_writes_a_trackable_csv(tmp_path, capsys):
                  "--intervals", "20", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["status"] == "Solve_Succeeded" and out.exists()
+    assert main(["track", str(out), "--sim", "--json", "--no-robustness", "--rate", "500"]) == 0
+    tr = json.loads(capsys.readouterr().out)
+    assert tr["collisions"] == [] and "collisions" in tr["open_loop"]     # obstacles travel in the CSV
+    assert tr["max_abs_error"]["x"] < 1e-3 and tr["max_abs_error"]["y"] < 1e-3
     assert main(["plan", "--out", str(out), "--obstacle", "1,1"]) == 2
     assert main(["plan", "--out", str(out), "--walls=-0.2,0.2"]) == 2
 

@@ -104,6 +104,7 @@ def test_csv_round_trip_gives_consistent_derivatives(tmp_path):
     ("t,x,y,alpha\n0,0,0,0\n", "at least 2"),
     ("t,x,y,alpha\n0,0,0,0\n1,1,0\n", "line 3 has 3 fields"),
     ("", "empty"),
+    ("# obstacle: 1, 2\nt,x,y,alpha\n0,0,0,0\n1,1,0,0\n", "line 1: obstacle comment"),
 ])
 def test_bad_csv_is_rejected_with_a_clear_message(tmp_path, text, match):
     p = tmp_path / "bad.csv"

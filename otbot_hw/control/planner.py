@@ -113,7 +113,7 @@ class PlanResult:
 
         return save_csv(path, self.t, self.z[:, :3], self.z[:, 4:7], self.u,
                         comment=f"otbot plan: T = {self.t[-1]:.4f} s, {len(self.t) - 1} collocation intervals, "
-                                f"status {self.status}")
+                                f"status {self.status}", obstacles=self.problem.obstacles_with_radius())
 
     def summary(self) -> dict:
         return {"status": self.status, "duration_s": float(self.t[-1]), "intervals": len(self.t) - 1,

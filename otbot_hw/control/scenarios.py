@@ -77,7 +77,7 @@ def figure8_spec() -> ScenarioSpec:
 
 def csv_spec(path: str | Path) -> ScenarioSpec:
     ref = load_csv(path, hold=CSV_HOLD_S)
-    spec = ScenarioSpec(Path(path).stem, ref, [])
+    spec = ScenarioSpec(Path(path).stem, ref, [], obstacles=list(ref.obstacles))
     if ref.torques is not None:
         spec.open_loop_torques, spec.open_loop_times = ref.torques, ref.t_samples
     return spec

@@ -21,6 +21,8 @@ Required columns ``t`` (s, strictly increasing), ``x``, ``y`` (m), ``alpha`` (ra
 Optional ``x_dot``, ``y_dot``, ``alpha_dot`` (m/s, rad/s; all three or none) and
 ``tau_r``, ``tau_l``, ``tau_p`` (N m; the planner's open-loop torques, held from each
 sample to the next). Other columns are ignored. Times are shifted so the first row is t = 0.
+Lines starting with ``#`` are comments; ``# obstacle: cx, cy, r`` (m) declares a circular
+obstacle (written by the planner) so tracking runs can report collisions.
 """
 from __future__ import annotations
 
@@ -288,6 +290,7 @@ class SampledTrajectory(DesiredTrajectory):
         self.P_samples = P
         self.PD_samples = None if PD is None else np.asarray(PD, dtype=float)
         self.torques = None if torques is None else np.asarray(torques, dtype=float)
+        self.obstacles: list[tuple[float, float, float]] = []
         if self.PD_samples is None:
             self._spline = CubicSpline(self.t_samples, P, axis=0, bc_type="clamped")
         else:
@@ -323,6 +326,17 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
         text = path.read_text()
     except OSError as exc:
         raise TrajectoryError(f"{path}: cannot read: {exc.strerror}") from None
+    obstacles = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        if line.startswith("# obstacle:"):
+            try:
+                vals = [float(v) for v in line.split(":", 1)[1].split(",")]
+            except ValueError:
+                vals = []
+            if len(vals) != 3 or not all(math.isfinite(v) for v in vals) or vals[2] <= 0:
+                raise TrajectoryError(f"{path}: line {n}: obstacle comment must be '# obstacle: cx, cy, r' "
+                                      f"(m, r > 0), got {line!r}")
+            obstacles.append(tuple(vals))
     rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
     if not rows:
         raise TrajectoryError(f"{path}: empty file (expected a header with columns {', '.join(REQUIRED_COLUMNS)})")
@@ -363,12 +377,15 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
                               f"(t = {t[i]:g} s after {t[i - 1]:g} s)")
     PD = data[:, 4:7] if vel else None
     torques = data[:, 4 + len(vel):7 + len(vel)] if tq else None
-    return SampledTrajectory(t, data[:, 1:4], PD, torques=torques, source=str(path), hold=hold)
+    traj = SampledTrajectory(t, data[:, 1:4], PD, torques=torques, source=str(path), hold=hold)
+    traj.obstacles = obstacles
+    return traj
 
 
 def save_csv(path: str | Path, t: np.ndarray, P: np.ndarray, PD: np.ndarray | None = None,
-             torques: np.ndarray | None = None, comment: str = "") -> Path:
-    """Write a trajectory CSV readable by ``load_csv``."""
+             torques: np.ndarray | None = None, comment: str = "",
+             obstacles: Sequence[tuple[float, float, float]] = ()) -> Path:
+    """Write a trajectory CSV readable by ``load_csv`` (obstacles as ``# obstacle:`` comments)."""
     path = Path(path)
     cols = list(REQUIRED_COLUMNS) + (list(VELOCITY_COLUMNS) if PD is not None else []) \
         + (list(TORQUE_COLUMNS) if torques is not None else [])
@@ -381,6 +398,8 @@ def save_csv(path: str | Path, t: np.ndarray, P: np.ndarray, PD: np.ndarray | No
     with path.open("w", newline="") as fh:
         for line in comment.splitlines():
             fh.write(f"# {line}\n")
+        for cx, cy, r in obstacles:
+            fh.write(f"# obstacle: {cx!r}, {cy!r}, {r!r}\n")
         w = csv.writer(fh)
         w.writerow(cols)
         for row in data:
