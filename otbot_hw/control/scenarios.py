@@ -38,6 +38,7 @@ from sim.simulator import ForceSchedule, PivotForce
 SCENARIOS = ("corridor", "corridor-smooth", "figure8", "planned")
 PLANNED_HOLD_S = 2.0  # rest at the goal after a planned / CSV trajectory, s
 CSV_HOLD_S = 2.0
+LONG_RUN_S = 60.0     # simulated seconds beyond which a run reports its progress
 #: Paper friction values used by the friction robustness variant when the parameters have none.
 PAPER_FRICTION = {"b_w": 0.18, "b_p": 0.24}
 FIGURE8_FORCES = (PivotForce(4.0, 1.0, 0.0, -150.0), PivotForce(8.0, 1.0, 200.0, 0.0),
@@ -138,8 +139,9 @@ def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: G
         f"limit {e.limit:g})")) if progress else None)
     fs = spec.forces if forces == "spec" else forces
     x0 = spec.x0 if spec.x0 is not None else rest_state(spec.reference.sample(np.zeros(1))[0][0])
+    long_run = progress is not None and spec.reference.duration > LONG_RUN_S
     return run_closed_loop(spec.reference, ComputedTorqueController(ctrl, gains), plant, limiter=lim,
-                           rate_hz=rate_hz, x0=x0, forces=fs)
+                           rate_hz=rate_hz, x0=x0, forces=fs, progress=progress if long_run else None)
 
 
 def collisions(q: np.ndarray, t: np.ndarray, obstacles, footprint: float) -> list[dict]:
