@@ -1,0 +1,88 @@
+"""Computed-torque tracking law on the task-space model (paper §5.1, Eq. full_CTC_brokendown):
+
+    u = M_bar (p_dd_d - K_p e_p - K_v e_v) + C_bar p_dot = u_traj + u_corr,
+    u_traj = M_bar p_dd_d + C_bar p_dot,   u_corr = M_bar (-K_p e_p - K_v e_v),
+
+with e_p = p - p_d, e_v = p_dot - p_dot_d, p = (x, y, alpha) (m, m, rad) in the ground
+frame and u = (tau_r, tau_l, tau_p) (N m). M_bar and C_bar are evaluated at the fed-back
+alpha, phi_p and p_dot (compiled closed form, ``task_model``).
+
+Feedback comes through ``TaskState`` — whatever produces it (ground truth in simulation
+now, the EKF later) implements ``FeedbackSource.read(t)``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from otbot_hw.control.gains import Gains, gains_from_tstab
+from otbot_hw.control.task_model import computed_torque
+from otbot_hw.params import OtbotParams
+
+
+@dataclass(frozen=True)
+class TaskState:
+    """What the law needs: p = (x, y, alpha) (m, rad), p_dot (m/s, rad/s), pivot angle phi_p (rad)."""
+
+    p: np.ndarray
+    p_dot: np.ndarray
+    phi_p: float
+
+    @classmethod
+    def from_state(cls, x: np.ndarray) -> "TaskState":
+        """From the simulator state x = (q, q_dot) (12,)."""
+        return cls(p=np.ascontiguousarray(x[0:3], dtype=float), p_dot=np.ascontiguousarray(x[6:9], dtype=float),
+                   phi_p=float(x[5]))
+
+
+class FeedbackSource(Protocol):
+    """Anything that can report the robot's task state at time t (s): ground truth, an EKF, ...
+
+    A source that needs the applied torques (an EKF's prediction step) may also define
+    ``command(u, t)``: the loop calls it with the torques (N m) actually applied from t on.
+    """
+
+    def read(self, t: float) -> TaskState: ...
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """One evaluation of the law: u = u_traj + u_corr (N m, (3,) each), errors e_p, e_v (3,)."""
+
+    u: np.ndarray
+    u_traj: np.ndarray
+    u_corr: np.ndarray
+    e_p: np.ndarray
+    e_v: np.ndarray
+
+
+class ComputedTorqueController:
+    """The law with fixed model parameters (the controller's belief) and gains."""
+
+    def __init__(self, params: OtbotParams, gains: Gains | None = None):
+        self.params = params
+        self.gains = gains or gains_from_tstab(3.0)
+        self._prm = params.as_array()
+        self._kp = np.ascontiguousarray(self.gains.kp)
+        self._kv = np.ascontiguousarray(self.gains.kv)
+        self._out = np.empty((3, 3))
+
+    def update_fast(self, p: np.ndarray, p_dot: np.ndarray, phi_p: float,
+                    p_d: np.ndarray, pd_d: np.ndarray, pdd_d: np.ndarray) -> np.ndarray:
+        """Hot path: returns the internal (3, 3) buffer with rows u, u_traj, u_corr (N m).
+
+        All vectors must be contiguous float64 (3,). The buffer is overwritten by the next call.
+        """
+        computed_torque(p, p_dot, phi_p, p_d, pd_d, pdd_d, self._kp, self._kv, self._prm, self._out)
+        return self._out
+
+    def update(self, state: TaskState, p_d: np.ndarray, pd_d: np.ndarray, pdd_d: np.ndarray) -> ControlOutput:
+        """Evaluate the law for feedback ``state`` and the desired (p_d, p_dot_d, p_dd_d)."""
+        f = np.ascontiguousarray
+        p_d, pd_d, pdd_d = f(p_d, dtype=float), f(pd_d, dtype=float), f(pdd_d, dtype=float)
+        out = self.update_fast(f(state.p, dtype=float), f(state.p_dot, dtype=float), float(state.phi_p),
+                               p_d, pd_d, pdd_d).copy()
+        return ControlOutput(u=out[0], u_traj=out[1], u_corr=out[2],
+                             e_p=state.p - p_d, e_v=state.p_dot - pd_d)

@@ -1,0 +1,262 @@
+"""The paper's test cases (§5.4) in closed-loop simulation, with summaries and plots.
+
+* ``corridor``        — five 3 m segments at 0.6 m/s with 90 deg turns, alpha = 0, from rest,
+  ending at (9, 0) m and held 5 s (velocity jumps at start, corners and stop).
+* ``corridor-smooth`` — the same corridor rest-to-rest with continuous velocity and
+  acceleration (corners rounded over 1 s), no overshoot at the goal.
+* ``figure8``         — 18 s figure-8 of straight and circular sections with pivot forces
+  of 150 N along -y at 4 s, 200 N along +x at 8 s, 350 N along -x at 11 s, 1 s each.
+* ``planned``         — a corridor crowded with circular obstacles planned by
+  ``otbot_hw.control.planner``; the planned torques are also replayed open loop (drift and
+  collisions reported) before tracking the planned states in closed loop.
+* a CSV trajectory file (``trajectories.load_csv``).
+
+Robustness variants rerun a scenario with (a) the controller's platform mass and inertia
+20 % below the plant's (an unknown payload) and (b) viscous friction in the plant that the
+controller does not model (the parameters' b_w, b_p, or the paper's 0.18 / 0.24 N m s/rad
+when those are zero). Baseline runs use the same parameters in plant and controller.
+``growth_vs_nominal`` gives the ratio of each maximum error to the baseline's.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from otbot_hw.control.closed_loop import ClosedLoopRun, rest_state, run_closed_loop, run_open_loop
+from otbot_hw.control.computed_torque import ComputedTorqueController
+from otbot_hw.control.gains import Gains, gains_from_tstab
+from otbot_hw.control.limiter import TorqueLimiter
+from otbot_hw.control.metrics import Event, error_summary, event_summary, fraction_within, peak_torques
+from otbot_hw.control.trajectories import DesiredTrajectory, PolylineTrajectory, corridor, figure_eight, load_csv
+from otbot_hw.motors import MOTORS, MotorLimits
+from otbot_hw.params import OtbotParams
+from sim.simulator import ForceSchedule, PivotForce
+
+SCENARIOS = ("corridor", "corridor-smooth", "figure8", "planned")
+PLANNED_HOLD_S = 2.0  # rest at the goal after a planned / CSV trajectory, s
+CSV_HOLD_S = 2.0
+LONG_RUN_S = 60.0     # simulated seconds beyond which a run reports its progress
+#: Paper friction values used by the friction robustness variant when the parameters have none.
+PAPER_FRICTION = {"b_w": 0.18, "b_p": 0.24}
+FIGURE8_FORCES = (PivotForce(4.0, 1.0, 0.0, -150.0), PivotForce(8.0, 1.0, 200.0, 0.0),
+                  PivotForce(11.0, 1.0, -350.0, 0.0))
+
+
+@dataclass
+class ScenarioSpec:
+    """What to track: the reference, external forces, events to score, start state, obstacles."""
+
+    name: str
+    reference: DesiredTrajectory
+    events: list[Event]
+    forces: ForceSchedule | None = None
+    x0: np.ndarray | None = None
+    obstacles: Sequence[tuple[float, float, float]] = ()
+    open_loop_torques: np.ndarray | None = None      # (K, 3) N m held from open_loop_times[k]
+    open_loop_times: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
+
+
+def corridor_spec(smooth: bool = False) -> ScenarioSpec:
+    ref = corridor(speed=0.6, hold=5.0, smoothing=1.0 if smooth else 0.0)
+    ct = ref.corner_times
+    kinds = ["start"] + ["corner"] * (len(ct) - 2) + ["stop"]
+    # with smoothing there are no velocity steps to recover from: nothing to settle
+    events = [] if smooth else [Event(float(t), k, float(t)) for t, k in zip(ct, kinds)]
+    return ScenarioSpec("corridor-smooth" if smooth else "corridor", ref, events)
+
+
+def figure8_spec() -> ScenarioSpec:
+    ref = figure_eight(duration=18.0)
+    fs = ForceSchedule(FIGURE8_FORCES)
+    events = [Event(f.start, f"force ({f.fx:g}, {f.fy:g}) N", f.start + f.duration) for f in FIGURE8_FORCES]
+    return ScenarioSpec("figure8", ref, events, forces=fs)
+
+
+def csv_spec(path: str | Path) -> ScenarioSpec:
+    ref = load_csv(path, hold=CSV_HOLD_S)
+    spec = ScenarioSpec(Path(path).stem, ref, [], obstacles=list(ref.obstacles))
+    if ref.torques is not None:
+        spec.open_loop_torques, spec.open_loop_times = ref.torques, ref.t_samples
+    return spec
+
+
+def build_spec(name: str, params: OtbotParams, limits: MotorLimits,
+               progress: Callable[[str], None] | None = None) -> ScenarioSpec:
+    """A scenario by name, or a CSV file path."""
+    if name == "corridor":
+        return corridor_spec(False)
+    if name == "corridor-smooth":
+        return corridor_spec(True)
+    if name == "figure8":
+        return figure8_spec()
+    if name == "planned":
+        from otbot_hw.control.planner import crowded_corridor_problem, plan
+
+        prob = crowded_corridor_problem(params, limits)
+        if progress:
+            progress("planning the crowded corridor (CasADi + IPOPT) ...")
+        res = plan(prob)
+        spec = ScenarioSpec("planned", res.trajectory(hold=PLANNED_HOLD_S), [],
+                            x0=res.x[0].copy(), obstacles=prob.obstacles_with_radius(),
+                            open_loop_torques=res.u, open_loop_times=res.t[:-1], info={"planner": res.summary()})
+        return spec
+    return csv_spec(name)
+
+
+def controller_params(params: OtbotParams, variant: str,
+                      plant: OtbotParams | None = None) -> tuple[OtbotParams, OtbotParams]:
+    """(plant, controller) parameters for a robustness variant: nominal, payload, friction.
+
+    ``params`` are the controller's belief; ``plant`` (default: the same) the simulated robot's.
+    """
+    if plant is not None and variant == "nominal":
+        return plant, params
+    if plant is not None:
+        base_plant, _ = controller_params(plant, variant)
+        _, ctrl = controller_params(params, variant)
+        return base_plant, ctrl
+    if variant == "nominal":
+        return params, params
+    if variant == "payload":
+        return params, params.replace(m_p=0.8 * params.m_p, I_p=0.8 * params.I_p)
+    if variant == "friction":
+        plant = params if (params.b_w > 0 or params.b_p > 0) else params.replace(**PAPER_FRICTION)
+        return plant, params.replace(b_w=0.0, b_p=0.0)
+    raise ValueError(f"unknown variant {variant!r} (nominal, payload, friction)")
+
+
+def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: Gains,
+          variant: str = "nominal", rate_hz: float = 1000.0, forces: ForceSchedule | None | str = "spec",
+          progress: Callable[[str], None] | None = None, plant: OtbotParams | None = None) -> ClosedLoopRun:
+    """Closed-loop run of ``spec`` with the controller believing ``params`` (see ``controller_params``)."""
+    plant, ctrl = controller_params(params, variant, plant)
+    lim = TorqueLimiter(limits, on_saturation=(lambda e: progress(
+        f"saturation: {e.motor} at t = {e.t_start:.3f} s (requested {e.peak_request:.1f} N m, "
+        f"limit {e.limit:g})")) if progress else None)
+    fs = spec.forces if forces == "spec" else forces
+    x0 = spec.x0 if spec.x0 is not None else rest_state(spec.reference.sample(np.zeros(1))[0][0])
+    long_run = progress is not None and spec.reference.duration > LONG_RUN_S
+    return run_closed_loop(spec.reference, ComputedTorqueController(ctrl, gains), plant, limiter=lim,
+                           rate_hz=rate_hz, x0=x0, forces=fs, progress=progress if long_run else None)
+
+
+def collisions(q: np.ndarray, t: np.ndarray, obstacles, footprint: float) -> list[dict]:
+    """Contacts of the platform footprint (radius, m) with circular obstacles (cx, cy, r) m:
+    one entry per contact episode with its start time and deepest penetration (m)."""
+    out = []
+    for j, (cx, cy, r) in enumerate(obstacles):
+        pen = footprint + r - np.hypot(q[:, 0] - cx, q[:, 1] - cy)
+        hit = pen > 0
+        if not hit.any():
+            continue
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], hit.astype(int), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            out.append({"obstacle": j, "center": [cx, cy], "radius": r, "t_start": float(t[a]),
+                        "t_end": float(t[b - 1]), "max_penetration_m": float(pen[a:b].max())})
+    return sorted(out, key=lambda c: c["t_start"])
+
+
+def goal_overshoot(ref: PolylineTrajectory, xy: np.ndarray) -> float:
+    """How far (m) the pivot ever got past the goal along the last segment's direction (0 if never)."""
+    d = ref.waypoints[-1] - ref.waypoints[-2]
+    d = d / np.linalg.norm(d)
+    return float(max(0.0, np.max((xy - ref.waypoints[-1]) @ d)))
+
+
+def summarize(spec: ScenarioSpec, run: ClosedLoopRun, limits: MotorLimits, params: OtbotParams) -> dict:
+    out = {"duration_s": float(run.t[-1]), "rate_hz": run.rate_hz}
+    out.update(error_summary(run.e_p, run.e_v))
+    out["fraction_within"] = fraction_within(run.e_p, run.e_v)
+    out["peak_torque"] = peak_torques(run.u, limits)
+    out["peak_commanded_torque_Nm"] = dict(zip(MOTORS, np.max(np.abs(run.u_cmd), axis=0).tolist()))
+    out["events"] = event_summary(run.t, run.e_p, run.e_v, spec.events)
+    if isinstance(spec.reference, PolylineTrajectory):
+        out["goal_overshoot_m"] = goal_overshoot(spec.reference, run.x[:, :2])
+    out["saturation"] = run.saturation
+    if spec.obstacles:
+        out["collisions"] = collisions(run.x[:, :3], run.t, spec.obstacles, params.radius)
+    return out
+
+
+def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: float | Sequence[float] = 3.0,
+                 rate_hz: float = 1000.0, robustness: bool = True, plot_dir: Path | None = None,
+                 animate: Path | None = None, check_feasibility: bool = True,
+                 error_bounds=None, progress: Callable[[str], None] | None = None,
+                 spec: ScenarioSpec | None = None, plant: OtbotParams | None = None) -> dict:
+    """Run scenario ``name`` (or a CSV path, or a prebuilt ``spec``); returns the JSON summary
+    (see ``otbot track --help``)."""
+    say = progress or (lambda m: None)
+    gains = gains_from_tstab(t_stab)
+    spec = spec or build_spec(name, params, limits, progress)
+    result: dict = {"scenario": spec.name, "gains": gains.to_dict(), **spec.info}
+    if check_feasibility:
+        from otbot_hw.control.feasibility import ErrorBounds, check_feasibility as feas
+
+        say("torque-feasibility check (interval bound) ...")
+        rep = feas(spec.reference, params, gains, limits, error_bounds or ErrorBounds.default(),
+                   heading0=0.0 if spec.x0 is None else float(spec.x0[2] - spec.x0[5]))
+        result["feasibility"] = rep.to_dict()
+        for v in rep.violations[:10]:
+            say(f"feasibility: {v['motor']} may exceed {v['limit_Nm']:g} N m on "
+                f"[{v['t_start']:.2f}, {v['t_end']:.2f}] s (bound {v['bound_Nm']:.1f} N m)")
+    say(f"closed loop at {rate_hz:g} Hz, {spec.reference.duration:.1f} s ...")
+    run = track(spec, params, limits, gains, "nominal", rate_hz, progress=progress, plant=plant)
+    result.update(summarize(spec, run, limits, params))
+    result["wall_time_s"] = run.wall_time_s
+    if spec.name == "figure8":
+        for ev, f in zip(result["events"], FIGURE8_FORCES):
+            iso = track(spec, params, limits, gains, "nominal", rate_hz, forces=ForceSchedule([f]), plant=plant)
+            e = event_summary(iso.t, iso.e_p, iso.e_v, [Event(f.start, ev["kind"], f.start + f.duration)])[0]
+            ev["settle_time_isolated_s"] = e["settle_time_s"]
+    open_loop = None
+    if spec.open_loop_torques is not None:
+        # replayed for the length of the plan (its torques end there)
+        say("open-loop replay of the planned torques ...")
+        t, X, _ = run_open_loop(spec.open_loop_torques, spec.open_loop_times, plant or params,
+                                spec.x0 if spec.x0 is not None else rest_state(spec.reference.sample(np.zeros(1))[0][0]),
+                                rate_hz=rate_hz, duration=getattr(spec.reference, "end", spec.reference.duration))
+        P, PD, _ = spec.reference.sample(t)
+        open_loop = (t, X, P)
+        ol = error_summary(X[:, :3] - P, X[:, 6:9] - PD)
+        if spec.obstacles:
+            ol["collisions"] = collisions(X[:, :3], t, spec.obstacles, params.radius)
+        ol["final_position_error_m"] = float(np.hypot(*(X[-1, :2] - P[-1, :2])))
+        result["open_loop"] = ol
+        for c in ol.get("collisions", []):
+            say(f"open loop collides with obstacle {c['obstacle']} at t = {c['t_start']:.2f} s "
+                f"(penetration {1000 * c['max_penetration_m']:.0f} mm)")
+    if robustness:
+        result["robustness"] = {}
+        for variant in ("payload", "friction"):
+            say(f"robustness variant: {variant} ...")
+            r = track(spec, params, limits, gains, variant, rate_hz, plant=plant)
+            s = summarize(spec, r, limits, params)
+            result["robustness"][variant] = {k: s[k] for k in ("max_abs_error", "rms_error", "fraction_within", "peak_torque",
+                                                                "events", "goal_overshoot_m") if k in s}
+            if "collisions" in s:
+                result["robustness"][variant]["collisions"] = s["collisions"]
+            result["robustness"][variant]["growth_vs_nominal"] = {
+                k: (s["max_abs_error"][k] / result["max_abs_error"][k]) if result["max_abs_error"][k] > 0 else None
+                for k in ("x", "y", "alpha", "x_dot", "y_dot", "alpha_dot")}
+    if plot_dir is not None:
+        from otbot_hw.control.plots import scenario_plots
+
+        result["plots"] = scenario_plots(Path(plot_dir), spec, run, params, limits, open_loop)
+    if animate is not None:
+        from otbot_hw.control.plots import animate_run
+
+        say(f"writing animation {animate} ...")
+        result["animation"] = str(animate_run(Path(animate), spec, run, params))
+    return result
+
+
+def demo_corridor(out_dir: Path, params: OtbotParams, limits: MotorLimits,
+                  progress: Callable[[str], None] | None = None) -> dict:
+    """The corridor scenario for ``otbot demo``: closed loop at 1 kHz, plots, no robustness reruns."""
+    res = run_scenario("corridor", params, limits, robustness=False, plot_dir=Path(out_dir), progress=progress)
+    keep = ("max_abs_error", "rms_error", "peak_torque", "events", "saturation", "plots", "wall_time_s")
+    return {k: res[k] for k in keep}
