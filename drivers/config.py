@@ -1,0 +1,309 @@
+"""Hardware configuration of the drivers (``config/robot.yaml``: bus, drives, pivot_encoder, imu).
+
+Every error is a ``ParameterError`` naming the file and the key (the CLI exits with code 2).
+Quantities with units are written ``{value: V, unit: U}`` as in the ``motors`` section.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from otbot_hw.motors import DEFAULT_ROBOT_FILE, MOTORS, MotorLimits, load_motor_limits
+from otbot_hw.params import ParameterError
+
+JOINTS = MOTORS  # ("right_wheel", "left_wheel", "pivot"): order of u and of the joint angles
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """python-can bus and the control cycle: interface, channel, bitrate (bit/s), control_rate (Hz),
+    tpdo_timeout and boot_timeout (s), options (extra ``can.Bus`` keyword arguments)."""
+
+    interface: str
+    channel: str
+    bitrate: int
+    control_rate: float
+    tpdo_timeout: float = 0.05
+    boot_timeout: float = 2.0
+    options: dict = field(default_factory=dict)
+
+    @property
+    def period(self) -> float:
+        """Control (SYNC) period, s."""
+        return 1.0 / self.control_rate
+
+    def can_kwargs(self) -> dict:
+        """Keyword arguments for ``can.Bus``."""
+        kw = {"interface": self.interface, "channel": self.channel, **self.options}
+        if self.interface != "virtual":
+            kw.setdefault("bitrate", self.bitrate)
+        return kw
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """One CiA 402 drive: node_id, EDS path, counts_per_rev (motor), gear_ratio, polarity (+1/-1),
+    rated_torque (N m, motor side, 0x6076), heartbeat producer/consumer times (s), SDO writes,
+    max_torque (N m, joint side, from ``motors``)."""
+
+    name: str
+    node_id: int
+    eds: Path
+    counts_per_rev: int
+    gear_ratio: float
+    polarity: int
+    rated_torque: float
+    heartbeat_producer: float
+    heartbeat_consumer: float
+    sdo_config: tuple = ()
+    max_torque: float = float("inf")
+
+    @property
+    def rad_per_count(self) -> float:
+        """Joint angle per motor encoder count, rad (sign excluded)."""
+        return 2 * np.pi / (self.counts_per_rev * self.gear_ratio)
+
+    @property
+    def joint_torque_per_permille(self) -> float:
+        """Joint torque of one per-mille of rated motor torque, N m (sign excluded)."""
+        return self.rated_torque * self.gear_ratio / 1000.0
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Where phi_p comes from: ``source`` "encoder" (CiA 406 device) or "drive" (pivot motor encoder).
+
+    offset (counts at phi_p = 0), direction (+1/-1), gear_ratio (encoder rev per pivot rev),
+    heartbeat producer/consumer (s); node_id and eds only for the encoder source.
+    """
+
+    source: str
+    node_id: int | None = None
+    eds: Path | None = None
+    offset: int = 0
+    direction: int = 1
+    gear_ratio: float = 1.0
+    heartbeat_producer: float = 0.05
+    heartbeat_consumer: float = 0.2
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """Serial IMU: port ("sim" = the simulated IMU), baudrate, protocol, output type, rate (Hz),
+    timeout (s), mounting (3, 3) rotation sensor frame -> platform frame B''."""
+
+    port: str
+    baudrate: int
+    protocol: str
+    output: str
+    rate: float
+    timeout: float
+    mounting: np.ndarray
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """The whole hardware configuration."""
+
+    bus: BusConfig
+    drives: tuple[DriveConfig, DriveConfig, DriveConfig]
+    pivot_encoder: EncoderConfig
+    imu: ImuConfig | None
+    limits: MotorLimits
+    path: Path
+
+    def replace_bus(self, **kw) -> "RobotConfig":
+        """A copy with some bus fields changed (e.g. control_rate from the command line)."""
+        from dataclasses import replace
+
+        return replace(self, bus=replace(self.bus, **kw))
+
+    def node_ids(self) -> list[int]:
+        ids = [d.node_id for d in self.drives]
+        if self.pivot_encoder.source == "encoder":
+            ids.append(self.pivot_encoder.node_id)
+        return ids
+
+
+class _Reader:
+    """Typed access to nested YAML mappings with errors naming ``file: 'a.b.c'``."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def err(self, key: str, msg: str) -> ParameterError:
+        return ParameterError(f"{self.path}: '{key}' {msg}")
+
+    def section(self, data: dict, key: str) -> dict:
+        v = data.get(key.split(".")[-1]) if isinstance(data, dict) else None
+        if not isinstance(v, dict):
+            raise ParameterError(f"{self.path}: missing section '{key}'")
+        return v
+
+    def raw(self, d: dict, key: str, name: str, default: Any = ...):
+        if key not in d:
+            if default is ...:
+                raise self.err(name, "is missing")
+            return default
+        return d[key]
+
+    def number(self, d: dict, key: str, name: str, unit: str | None, default: Any = ..., positive: bool = True,
+               integer: bool = False):
+        v = self.raw(d, key, name, default)
+        if v is default and default is not ...:
+            return default
+        if unit is not None:
+            if not isinstance(v, dict) or "value" not in v:
+                raise self.err(name, f"must be {{value: NUMBER, unit: {unit}}}, got {v!r}")
+            if v.get("unit") != unit:
+                raise self.err(name, f"unit must be '{unit}', got {v.get('unit')!r}")
+            v = v["value"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise self.err(name, f"must be a finite number, got {v!r}")
+        if integer and (not float(v).is_integer()):
+            raise self.err(name, f"must be a whole number, got {v!r}")
+        if positive and not v > 0:
+            raise self.err(name, f"must be > 0, got {v!r}")
+        return int(v) if integer else float(v)
+
+    def node_id(self, d: dict, name: str) -> int:
+        v = self.number(d, "node_id", f"{name}.node_id", None, integer=True)
+        if not 1 <= v <= 127:
+            raise self.err(f"{name}.node_id", f"must be a CANopen node ID 1..127, got {v}")
+        return v
+
+    def sign(self, d: dict, key: str, name: str) -> int:
+        v = self.raw(d, key, name, 1)
+        if v not in (1, -1) or isinstance(v, bool):
+            raise self.err(name, f"must be 1 or -1, got {v!r}")
+        return int(v)
+
+    def eds(self, d: dict, name: str) -> Path:
+        v = self.raw(d, "eds", name)
+        if not isinstance(v, str) or not v:
+            raise self.err(name, f"must be a file name, got {v!r}")
+        p = Path(v) if Path(v).is_absolute() else self.path.parent / v
+        if not p.is_file():
+            raise self.err(name, f"names {p}, which does not exist")
+        return p
+
+
+def load_robot_config(path: str | Path | None = None) -> RobotConfig:
+    """Read and validate bus, drives, pivot_encoder, imu and motors from ``path`` (default config/robot.yaml)."""
+    import yaml
+
+    p = Path(path) if path is not None else DEFAULT_ROBOT_FILE
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as exc:
+        raise ParameterError(f"{p}: cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ParameterError(f"{p}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ParameterError(f"{p}: expected a mapping of sections, got {type(data).__name__}")
+    r = _Reader(p)
+    limits = load_motor_limits(p)
+
+    b = r.section(data, "bus")
+    iface = r.raw(b, "interface", "bus.interface")
+    chan = r.raw(b, "channel", "bus.channel")
+    if not isinstance(iface, str) or not iface:
+        raise r.err("bus.interface", f"must be a python-can interface name, got {iface!r}")
+    if not isinstance(chan, (str, int)) or chan == "":
+        raise r.err("bus.channel", f"must be a channel name, got {chan!r}")
+    options = r.raw(b, "options", "bus.options", {}) or {}
+    if not isinstance(options, dict):
+        raise r.err("bus.options", f"must be a mapping, got {options!r}")
+    bus = BusConfig(interface=iface, channel=str(chan),
+                    bitrate=r.number(b, "bitrate", "bus.bitrate", "bit/s", integer=True),
+                    control_rate=r.number(b, "control_rate", "bus.control_rate", "Hz"),
+                    tpdo_timeout=r.number(b, "tpdo_timeout", "bus.tpdo_timeout", "s", default=0.05),
+                    boot_timeout=r.number(b, "boot_timeout", "bus.boot_timeout", "s", default=2.0),
+                    options=dict(options))
+
+    d = r.section(data, "drives")
+    eds = r.eds(d, "drives.eds")
+    cpr = r.number(d, "counts_per_rev", "drives.counts_per_rev", None, integer=True)
+    rated = r.number(d, "rated_torque", "drives.rated_torque", "N m")
+    hb_p = r.number(d, "heartbeat_producer", "drives.heartbeat_producer", "ms") / 1000
+    hb_c = r.number(d, "heartbeat_consumer", "drives.heartbeat_consumer", "ms") / 1000
+    if hb_c <= hb_p:
+        raise r.err("drives.heartbeat_consumer", f"({hb_c * 1000:g} ms) must exceed heartbeat_producer "
+                                                 f"({hb_p * 1000:g} ms)")
+    sdo = _sdo_list(r, d.get("sdo_config", []), "drives.sdo_config")
+    drives = []
+    for k, name in enumerate(JOINTS):
+        j = r.section(d, f"drives.{name}")
+        drives.append(DriveConfig(
+            name=name, node_id=r.node_id(j, f"drives.{name}"), eds=eds, counts_per_rev=cpr,
+            gear_ratio=r.number(j, "gear_ratio", f"drives.{name}.gear_ratio", None),
+            polarity=r.sign(j, "polarity", f"drives.{name}.polarity"), rated_torque=rated,
+            heartbeat_producer=hb_p, heartbeat_consumer=hb_c, sdo_config=sdo,
+            max_torque=float(limits.max_torque[k])))
+
+    e = r.section(data, "pivot_encoder")
+    source = r.raw(e, "source", "pivot_encoder.source")
+    if source not in ("encoder", "drive"):
+        raise r.err("pivot_encoder.source", f"must be 'encoder' or 'drive', got {source!r}")
+    if source == "encoder":
+        e_hb_p = r.number(e, "heartbeat_producer", "pivot_encoder.heartbeat_producer", "ms") / 1000
+        e_hb_c = r.number(e, "heartbeat_consumer", "pivot_encoder.heartbeat_consumer", "ms") / 1000
+        if e_hb_c <= e_hb_p:
+            raise r.err("pivot_encoder.heartbeat_consumer", "must exceed heartbeat_producer")
+        enc = EncoderConfig(source=source, node_id=r.node_id(e, "pivot_encoder"),
+                            eds=r.eds(e, "pivot_encoder.eds"),
+                            offset=r.number(e, "offset", "pivot_encoder.offset", "counts", positive=False,
+                                            integer=True),
+                            direction=r.sign(e, "direction", "pivot_encoder.direction"),
+                            gear_ratio=r.number(e, "gear_ratio", "pivot_encoder.gear_ratio", None, default=1.0),
+                            heartbeat_producer=e_hb_p, heartbeat_consumer=e_hb_c)
+    else:
+        enc = EncoderConfig(source="drive")
+
+    imu = None
+    if data.get("imu") is not None:
+        i = r.section(data, "imu")
+        port = r.raw(i, "port", "imu.port")
+        if not isinstance(port, str) or not port:
+            raise r.err("imu.port", f"must be a serial port path or 'sim', got {port!r}")
+        proto = r.raw(i, "protocol", "imu.protocol")
+        if proto != "vectornav-ascii":
+            raise r.err("imu.protocol", f"must be 'vectornav-ascii', got {proto!r}")
+        output = r.raw(i, "output", "imu.output", "VNIMU")
+        if output not in ("VNIMU", "VNYMR"):
+            raise r.err("imu.output", f"must be VNIMU or VNYMR, got {output!r}")
+        try:
+            mounting = np.array(r.raw(i, "mounting", "imu.mounting"), dtype=float)
+        except (TypeError, ValueError):
+            raise r.err("imu.mounting", "must be a 3x3 list of numbers") from None
+        if mounting.shape != (3, 3) or not np.all(np.isfinite(mounting)):
+            raise r.err("imu.mounting", f"must be a 3x3 rotation matrix, got shape {mounting.shape}")
+        if not (np.allclose(mounting @ mounting.T, np.eye(3), atol=1e-6) and np.linalg.det(mounting) > 0):
+            raise r.err("imu.mounting", "must be a rotation (orthonormal, determinant +1)")
+        imu = ImuConfig(port=port, baudrate=r.number(i, "baudrate", "imu.baudrate", None, integer=True),
+                        protocol=proto, output=output, rate=r.number(i, "rate", "imu.rate", "Hz"),
+                        timeout=r.number(i, "timeout", "imu.timeout", "s"), mounting=mounting)
+    ids = [dc.node_id for dc in drives] + ([enc.node_id] if enc.source == "encoder" else [])
+    if len(set(ids)) != len(ids):
+        raise ParameterError(f"{p}: node IDs must be distinct, got {ids} (drives.*.node_id, pivot_encoder.node_id)")
+    return RobotConfig(bus=bus, drives=tuple(drives), pivot_encoder=enc, imu=imu, limits=limits, path=p)
+
+
+def _sdo_list(r: _Reader, items, name: str) -> tuple:
+    if not isinstance(items, list):
+        raise r.err(name, f"must be a list of [index, subindex, value], got {items!r}")
+    out = []
+    for k, it in enumerate(items):
+        if (not isinstance(it, list) or len(it) != 3
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in it)):
+            raise r.err(f"{name}[{k}]", f"must be [index, subindex, value] integers, got {it!r}")
+        idx, sub, val = it
+        if not (0x1000 <= idx <= 0xFFFF and 0 <= sub <= 0xFF):
+            raise r.err(f"{name}[{k}]", f"index 0x{idx:X} / subindex {sub} out of range")
+        if 0x1400 <= idx <= 0x1BFF:
+            raise r.err(f"{name}[{k}]", f"0x{idx:04X} is a PDO object: the driver maps PDOs itself")
+        out.append((idx, sub, val))
+    return tuple(out)

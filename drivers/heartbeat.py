@@ -1,0 +1,118 @@
+"""Heartbeat consumer (CiA 301 §7.2.8.3.2.2): a node whose heartbeat stops for longer than its
+consumer time, or that reports an unexpected NMT state, is faulted.
+
+canopen's ``NmtMaster`` records heartbeats but never times out; this class does. It watches
+the heartbeat COB-IDs (0x700 + node ID) on a ``canopen.Network``; ``check()`` returns new
+faults, and ``start()`` runs the check in a background thread every consumer time / 10 so a
+silent node is reported even while no control cycle runs.
+"""
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from canopen.nmt import NMT_STATES
+
+from drivers.faults import Fault
+
+
+@dataclass
+class _Watch:
+    device: str
+    node: int
+    timeout: float
+    last: float | None = None
+    state: int | None = None
+    expected: int | None = None  # NMT state the node must report (None: any)
+    faulted: bool = False
+    malformed: int = 0
+
+
+class HeartbeatConsumer:
+    """Monitors heartbeats of several nodes; times in seconds (host monotonic clock)."""
+
+    def __init__(self, network, on_fault: Callable[[Fault], None] | None = None):
+        self.network = network
+        self.on_fault = on_fault
+        self._watch: dict[int, _Watch] = {}
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    def add(self, node_id: int, device: str, timeout: float) -> None:
+        """Watch node ``node_id``: fault when no heartbeat for ``timeout`` s once monitoring started."""
+        self._watch[node_id] = _Watch(device=device, node=node_id, timeout=timeout)
+        self.network.subscribe(0x700 + node_id, self._on_heartbeat)
+
+    def _on_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+        w = self._watch.get(can_id - 0x700)
+        if w is None:
+            return
+        if len(data) != 1:
+            w.malformed += 1
+            return
+        (state,) = struct.unpack("B", data)
+        with self._lock:
+            w.last = time.monotonic()
+            w.state = state & 0x7F
+
+    def expect_state(self, state: str | None) -> None:
+        """From now on every watched node must report NMT ``state`` (e.g. 'OPERATIONAL'); None: any."""
+        code = None if state is None else {v: k for k, v in NMT_STATES.items()}[state]
+        with self._lock:
+            now = time.monotonic()
+            for w in self._watch.values():
+                w.expected = code
+                w.faulted = False
+                if w.last is None:
+                    w.last = now  # the timeout counts from the start of monitoring
+
+    def check(self, now: float | None = None) -> list[Fault]:
+        """Faults that appeared since the last check (each node is reported once until it recovers)."""
+        now = time.monotonic() if now is None else now
+        out = []
+        with self._lock:
+            for w in self._watch.values():
+                if w.faulted or w.last is None:
+                    continue
+                if now - w.last > w.timeout:
+                    w.faulted = True
+                    out.append(Fault(w.device, w.node, "heartbeat", f"no heartbeat for {now - w.last:.3f} s "
+                                     f"(consumer time {w.timeout:.3f} s)", code=0x8130))
+                elif w.expected is not None and w.state is not None and w.state != w.expected:
+                    w.faulted = True
+                    out.append(Fault(w.device, w.node, "nmt", f"node reports NMT state "
+                                     f"{NMT_STATES.get(w.state, w.state)}, expected "
+                                     f"{NMT_STATES[w.expected]} (reset or power loss?)"))
+        if self.on_fault:
+            for f in out:
+                self.on_fault(f)
+        return out
+
+    def start(self) -> None:
+        """Check in a background thread every min(timeout) / 10 s."""
+        if self._thread is not None or not self._watch:
+            return
+        period = min(w.timeout for w in self._watch.values()) / 10
+        self._stop.clear()
+
+        def loop():
+            while not self._stop.wait(period):
+                self.check()
+
+        self._thread = threading.Thread(target=loop, name="heartbeat-consumer", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
+
+    def age(self, node_id: int) -> float | None:
+        """Seconds since the last heartbeat of ``node_id`` (None before the first)."""
+        w = self._watch[node_id]
+        return None if w.last is None else time.monotonic() - w.last

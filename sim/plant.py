@@ -1,0 +1,224 @@
+"""The simulated Otbot behind a CAN bus: the dynamic model in lockstep with the SYNC.
+
+``Plant`` puts three ``SimulatedDrive`` s and the ``SimulatedEncoder`` (CANopen slaves on
+canopen's ``LocalNode``) on a ``canopen.Network`` and subscribes to SYNC. On every SYNC:
+
+1. each slave applies the synchronous RPDOs received since the previous SYNC (controlword,
+   target torque) and runs its CiA 402 state machine;
+2. the joint torques u_k the drives now produce (zero unless OPERATION ENABLED) and the
+   external pivot force f_k are taken;
+3. the IMU sentence for the state x_k (with u_k, f_k) is published, noise from
+   ``otbot_hw.sensors`` added, rotated into the sensor frame by the inverse mounting rotation;
+4. the drives and the encoder sample x_k and send their TPDOs;
+5. the model advances one control period, x_k+1 = Stepper.step(u_k, f_k) (zero-order hold).
+
+The plant's clock starts (t = 0) at the first SYNC after all three drives reached OPERATION
+ENABLED; before that the robot stands still at x0. The run is deterministic: it depends on the
+SYNC count only, never on wall time, and runs as fast as the master sends SYNCs.
+
+Transports: ``VirtualPlant`` (python-can ``virtual`` interface, same process), ``serve``
+(a plant in its own process behind an slcan adapter emulated on a pseudo-terminal, or on a
+socketcan interface).
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+from dataclasses import dataclass, field
+
+import can
+import canopen
+import numpy as np
+
+from drivers.config import RobotConfig
+from otbot_hw.model import compiled
+from otbot_hw.model.fixtures import fixture_code
+from otbot_hw.params import OtbotParams, nominal
+from otbot_hw.sensors import NoiseModel, imu_ideal
+from sim.canopen_slaves import SimulatedDrive, SimulatedEncoder
+from sim.simulator import ForceSchedule, Stepper
+
+
+@dataclass
+class TruthLog:
+    """Ground truth of the plant per started SYNC: t (s), x (12,), u (3,) N m, f (2,) N."""
+
+    t: list = field(default_factory=list)
+    x: list = field(default_factory=list)
+    u: list = field(default_factory=list)
+    f: list = field(default_factory=list)
+
+
+class Plant:
+    """The simulated robot on ``network`` (a connected ``canopen.Network``).
+
+    ``imu``: an object with ``publish(accel_sensor (3,), gyro_sensor (3,))`` (``sim.imu.SimulatedIMU``)
+    or None; ``noise``: sensor noise (IMU accel/gyro sigma, joint-rate sigma added before the
+    drives quantize); ``position_offsets``: each drive's 0x6064 at phi = 0 (counts).
+    """
+
+    def __init__(self, network: canopen.Network, config: RobotConfig, params: OtbotParams | None = None,
+                 fixture: str = "floor", forces: ForceSchedule | None = None, x0: np.ndarray | None = None,
+                 noise: NoiseModel | None = None, seed: int | None = 0, imu=None,
+                 position_offsets=(0, 0, 0), supported_modes: int | None = None):
+        self.config = config
+        self.params = params or nominal()
+        self.period = config.bus.period
+        self.drives = [SimulatedDrive(network, dc, off, supported_modes)
+                       for dc, off in zip(config.drives, position_offsets)]
+        self.encoder = (SimulatedEncoder(network, config.pivot_encoder)
+                        if config.pivot_encoder.source == "encoder" else None)
+        self.nodes = [*self.drives, *([self.encoder] if self.encoder else [])]
+        self.stepper = Stepper(self.params, self.period, x0, fixture)
+        self.fixture = fixture
+        self.forces = forces
+        self.noise = noise or NoiseModel()
+        self.rng = np.random.default_rng(seed)
+        self.imu = imu
+        self.mounting = config.imu.mounting if config.imu is not None else np.eye(3)
+        self._prm = self.params.as_array()
+        self._code = fixture_code(fixture)
+        self._gen = np.zeros(6)
+        self.started = False
+        self.k = 0
+        self.syncs = 0
+        self.malformed_sync = 0
+        self.truth = TruthLog()
+        self.lock = threading.Lock()
+        self._warm_up()
+        network.subscribe(0x80, self._on_sync)
+
+    def _warm_up(self) -> None:
+        """Compile (or load from numba's cache) the model functions now, not inside the first SYNC."""
+        Stepper(self.params, self.period, self.stepper.x, self.fixture).step(np.zeros(3))
+        compiled.derivative(self.stepper.x, np.zeros(3), np.zeros(2), self._gen, self._prm, self._code)
+
+    @property
+    def t(self) -> float:
+        """Plant time, s (0 at the first SYNC with all drives enabled)."""
+        return self.k * self.period
+
+    def power_on(self) -> None:
+        """Boot every slave (boot-up message, PRE-OPERATIONAL, heartbeat)."""
+        for n in self.nodes:
+            n.boot()
+
+    def stop(self) -> None:
+        for n in self.nodes:
+            n.stop()
+
+    def imu_reading(self, x: np.ndarray, u: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """IMU specific force (3,) m/s^2 and rate (3,) rad/s in B'' with noise, at state x under u, f."""
+        qdd = compiled.derivative(x, u, f, self._gen, self._prm, self._code)[6:]
+        acc, gyro = imu_ideal(x[None, :], qdd[None, :])
+        acc = acc[0] + self.noise.accel * self.rng.standard_normal(3)
+        gyro = gyro[0] + self.noise.gyro * self.rng.standard_normal(3)
+        return acc, gyro
+
+    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if len(data) > 1:
+            self.malformed_sync += 1
+            return
+        with self.lock:
+            self.syncs += 1
+            for n in self.nodes:
+                n.latch()
+            u = np.array([d.joint_torque() for d in self.drives])
+            x = self.stepper.x.copy()
+            f = self.forces.at(self.t + 1e-9) if (self.forces is not None and self.started) else np.zeros(2)
+            if self.imu is not None:
+                acc, gyro = self.imu_reading(x, u, f)
+                self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)
+            rate_noise = self.noise.enc_rate * self.rng.standard_normal(3) if self.noise.enc_rate else np.zeros(3)
+            for j, d in enumerate(self.drives):
+                d.sample(x[3 + j], x[9 + j] + rate_noise[j])
+                d.send_tpdos()
+            if self.encoder is not None:
+                self.encoder.sample(x[5])
+                self.encoder.send_tpdos()
+            if self.started:
+                self.truth.t.append(self.t)
+                self.truth.x.append(x)
+                self.truth.u.append(u)
+                self.truth.f.append(f)
+                self.stepper.step(u, f)
+                self.k += 1
+            elif all(d.state == "OPERATION ENABLED" for d in self.drives):
+                self.started = True
+
+
+class VirtualPlant:
+    """A ``Plant`` on python-can's ``virtual`` interface (channel ``config.bus.channel``), in-process.
+
+    Use as a context manager; the master opens its own virtual bus on the same channel.
+    """
+
+    def __init__(self, config: RobotConfig, **plant_kwargs):
+        self.bus = can.Bus(interface="virtual", channel=config.bus.channel)
+        self.network = canopen.Network(self.bus)
+        self.network.connect()
+        self.plant = Plant(self.network, config, **plant_kwargs)
+        self.plant.power_on()
+
+    def close(self) -> None:
+        self.plant.stop()
+        self.network.disconnect()
+
+    def __enter__(self) -> Plant:
+        return self.plant
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_sim_imu(config: RobotConfig):
+    """(publisher, driver): the simulated IMU on a pseudo-terminal and the VectorNav driver on it."""
+    from drivers.robot import open_imu
+    from sim.imu import SimulatedIMU
+
+    pub = SimulatedIMU()
+    drv = open_imu(config.imu, port=pub.port, configure=False)
+    return pub, drv
+
+
+def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = None, with_imu: bool = True,
+          out=None, **plant_kwargs) -> None:
+    """Run a plant in this process until stdin closes: ``transport`` "slcan" (adapter emulated on a
+    new pseudo-terminal) or "socketcan" (``channel``, e.g. vcan0). Prints one JSON line with
+    ``can_interface``, ``can_channel`` and ``imu_port`` for the master."""
+    out = out or sys.stdout
+    if transport == "slcan":
+        from sim.slcan_adapter import SlcanAdapterBus
+
+        bus = SlcanAdapterBus()
+        info = {"can_interface": "slcan", "can_channel": bus.port}
+    elif transport == "socketcan":
+        bus = can.Bus(interface="socketcan", channel=channel or config.bus.channel)
+        info = {"can_interface": "socketcan", "can_channel": channel or config.bus.channel}
+    else:
+        raise ValueError(f"unknown transport {transport!r} (slcan, socketcan)")
+    imu = None
+    if with_imu and config.imu is not None:
+        from sim.imu import SimulatedIMU
+
+        imu = SimulatedIMU()
+    info["imu_port"] = imu.port if imu is not None else None
+    network = canopen.Network(bus)
+    network.connect()
+    plant = Plant(network, config, imu=imu, **plant_kwargs)
+    plant.power_on()
+    out.write(json.dumps(info) + "\n")
+    out.flush()
+    try:
+        sys.stdin.read()  # until the parent closes our stdin
+    except KeyboardInterrupt:
+        pass
+    finally:
+        plant.stop()
+        network.disconnect()
+        if imu is not None and hasattr(imu, "close"):
+            imu.close()
+
+
