@@ -1,4 +1,5 @@
-"""Hardware configuration of the drivers (``config/robot.yaml``: bus, drives, pivot_encoder, imu).
+"""Hardware configuration of the drivers (``config/robot.yaml``: bus, drives, pivot_encoder; the
+``imu`` section is read by ``drivers.imu.load_imu_config``).
 
 Every error is a ``ParameterError`` naming the file and the key (the CLI exits with code 2).
 Quantities with units are written ``{value: V, unit: U}`` as in the ``motors`` section.
@@ -91,27 +92,13 @@ class EncoderConfig:
 
 
 @dataclass(frozen=True)
-class ImuConfig:
-    """Serial IMU: port ("sim" = the simulated IMU), baudrate, protocol, output type, rate (Hz),
-    timeout (s), mounting (3, 3) rotation sensor frame -> platform frame B''."""
-
-    port: str
-    baudrate: int
-    protocol: str
-    output: str
-    rate: float
-    timeout: float
-    mounting: np.ndarray
-
-
-@dataclass(frozen=True)
 class RobotConfig:
     """The whole hardware configuration."""
 
     bus: BusConfig
     drives: tuple[DriveConfig, DriveConfig, DriveConfig]
     pivot_encoder: EncoderConfig
-    imu: ImuConfig | None
+    imu: "ImuConfig | None"  # drivers.imu.ImuConfig
     limits: MotorLimits
     path: Path
 
@@ -265,27 +252,9 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
 
     imu = None
     if data.get("imu") is not None:
-        i = r.section(data, "imu")
-        port = r.raw(i, "port", "imu.port")
-        if not isinstance(port, str) or not port:
-            raise r.err("imu.port", f"must be a serial port path or 'sim', got {port!r}")
-        proto = r.raw(i, "protocol", "imu.protocol")
-        if proto != "vectornav-ascii":
-            raise r.err("imu.protocol", f"must be 'vectornav-ascii', got {proto!r}")
-        output = r.raw(i, "output", "imu.output", "VNIMU")
-        if output not in ("VNIMU", "VNYMR"):
-            raise r.err("imu.output", f"must be VNIMU or VNYMR, got {output!r}")
-        try:
-            mounting = np.array(r.raw(i, "mounting", "imu.mounting"), dtype=float)
-        except (TypeError, ValueError):
-            raise r.err("imu.mounting", "must be a 3x3 list of numbers") from None
-        if mounting.shape != (3, 3) or not np.all(np.isfinite(mounting)):
-            raise r.err("imu.mounting", f"must be a 3x3 rotation matrix, got shape {mounting.shape}")
-        if not (np.allclose(mounting @ mounting.T, np.eye(3), atol=1e-6) and np.linalg.det(mounting) > 0):
-            raise r.err("imu.mounting", "must be a rotation (orthonormal, determinant +1)")
-        imu = ImuConfig(port=port, baudrate=r.number(i, "baudrate", "imu.baudrate", None, integer=True),
-                        protocol=proto, output=output, rate=r.number(i, "rate", "imu.rate", "Hz"),
-                        timeout=r.number(i, "timeout", "imu.timeout", "s"), mounting=mounting)
+        from drivers.imu import load_imu_config
+
+        imu = load_imu_config(p)
     ids = [dc.node_id for dc in drives] + ([enc.node_id] if enc.source == "encoder" else [])
     if len(set(ids)) != len(ids):
         raise ParameterError(f"{p}: node IDs must be distinct, got {ids} (drives.*.node_id, pivot_encoder.node_id)")

@@ -18,6 +18,7 @@ cycles run back to back (lockstep with a simulated plant, faster than real time)
 from __future__ import annotations
 
 import abc
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ import numpy as np
 
 from drivers.cia402 import CiA402Drive
 from drivers.cia406 import CiA406Encoder
-from drivers.config import ImuConfig, RobotConfig
+from drivers.config import RobotConfig
 from drivers.device import CycleTracker, wait_until
 from drivers.faults import DriverError, Fault, RobotFault
 from drivers.heartbeat import HeartbeatConsumer
@@ -65,6 +66,15 @@ class Command:
     requested: np.ndarray
     commanded: np.ndarray
     saturated: np.ndarray = field(default_factory=lambda: np.zeros(3, bool))
+
+
+def imu_due(sync_index: int, period: float, imu_rate: float) -> bool:
+    """Whether the IMU (``imu_rate`` Hz) outputs a sample at SYNC number ``sync_index`` (0-based)
+    of a bus with SYNC ``period`` s: when sync_index * period enters a new IMU period."""
+    if sync_index == 0:
+        return True
+    tick = math.floor(sync_index * period * imu_rate + 1e-9)
+    return tick > math.floor((sync_index - 1) * period * imu_rate + 1e-9)
 
 
 class Robot(abc.ABC):
@@ -113,14 +123,15 @@ class Robot(abc.ABC):
         self.close()
 
 
-def open_imu(cfg: ImuConfig, port: str | None = None, configure: bool = True):
-    """Open the serial IMU of ``cfg`` (``port`` overrides cfg.port) with the VectorNav driver."""
+def open_imu(cfg, port: str | None = None, configure: bool = True):
+    """Open the serial IMU of ``cfg`` (``drivers.imu.ImuConfig``; ``port`` overrides cfg.port)
+    and, with ``configure``, set its output type and rate with register writes."""
     from drivers.imu import VectorNavIMU
 
     imu = VectorNavIMU(port or cfg.port, baudrate=cfg.baudrate, mounting=cfg.mounting, timeout=cfg.timeout)
     imu.open()
     if configure:
-        imu.configure(output=cfg.output, rate_hz=cfg.rate)
+        imu.configure(output=cfg.output, rate_hz=cfg.rate_hz)
     return imu
 
 
@@ -140,6 +151,7 @@ class CanopenRobot(Robot):
         self.config = config
         self.period = config.bus.period
         self.network = canopen.Network(bus)
+        self.network.NOTIFIER_CYCLE = 0.1  # s; bounds the wait in disconnect()
         self.tracker = CycleTracker()
         self._lock = threading.RLock()
         self._faults: list[Fault] = []
@@ -157,6 +169,9 @@ class CanopenRobot(Robot):
         self.imu = imu
         self.imu_lockstep = imu_lockstep
         self.imu_timeout = config.imu.timeout if config.imu else 0.5
+        self.imu_rate = float(config.imu.rate_hz) if config.imu else 1.0 / self.period
+        self._syncs = 0  # SYNCs sent since open()
+        self._imu_last = None
         self.realtime = realtime
         self.enabled = False
         self._cycle = 0
@@ -262,8 +277,10 @@ class CanopenRobot(Robot):
         if self.encoder is not None:
             pos[2] = self.encoder.position
         acc = gyro = imu_t = None
+        sync_index = self._syncs
+        self._syncs += 1
         if self.imu is not None:
-            sample = self._read_imu(t_sync)
+            sample = self._read_imu(t_sync, sync_index)
             if sample is not None:
                 acc, gyro, imu_t = np.asarray(sample.accel, float), np.asarray(sample.gyro, float), sample.t
         snap = Snapshot(t=self._cycle * self.period, cycle=self._cycle, host_time=t_sync, joint_pos=pos,
@@ -273,21 +290,19 @@ class CanopenRobot(Robot):
         self._cycle += 1
         return snap
 
-    def _read_imu(self, t_sync: float):
-        deadline = time.monotonic() + self.imu_timeout
+    def _read_imu(self, t_sync: float, sync_index: int):
+        """Latest IMU sample; in lockstep, on SYNCs where the simulated IMU publishes, the one
+        published for this SYNC."""
+        wait_new = self.imu_lockstep and imu_due(sync_index, self.period, self.imu_rate)
         try:
-            while True:
-                sample = self.imu.read(timeout=self.imu_timeout)
-                if sample is not None and (not self.imu_lockstep or sample.t >= t_sync):
-                    return sample
-                if time.monotonic() > deadline:
-                    self._add_fault(Fault("imu", None, "imu", f"no IMU sample within {self.imu_timeout:g} s "
-                                                             "of SYNC"))
-                    return sample
-                time.sleep(0.0001)
-        except Exception as exc:  # the IMU driver's fault (timeout, disconnected port)
+            sample = self.imu.read(timeout=self.imu_timeout if wait_new else 0)
+            if sample is not None:
+                self._imu_last = sample
+            elif wait_new:
+                self._add_fault(Fault("imu", None, "imu", f"no IMU sample within {self.imu_timeout:g} s of SYNC"))
+        except Exception as exc:  # drivers.imu.ImuFault: timeout, disconnected port
             self._add_fault(Fault("imu", None, "imu", str(exc) or type(exc).__name__))
-            return None
+        return self._imu_last
 
     def write(self, torques) -> Command:
         u = np.asarray(torques, dtype=float).reshape(-1)

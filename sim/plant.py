@@ -26,6 +26,8 @@ import json
 import math
 import sys
 import threading
+import uuid
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import can
@@ -33,6 +35,7 @@ import canopen
 import numpy as np
 
 from drivers.config import RobotConfig
+from drivers.robot import imu_due
 from otbot_hw.model import compiled
 from otbot_hw.model.fixtures import fixture_code
 from otbot_hw.params import OtbotParams, nominal
@@ -78,6 +81,7 @@ class Plant:
         self.rng = np.random.default_rng(seed)
         self.imu = imu
         self.mounting = config.imu.mounting if config.imu is not None else np.eye(3)
+        self.imu_rate = float(config.imu.rate_hz) if config.imu is not None else 1.0 / self.period
         self._prm = self.params.as_array()
         self._code = fixture_code(fixture)
         self._gen = np.zeros(6)
@@ -122,13 +126,14 @@ class Plant:
             self.malformed_sync += 1
             return
         with self.lock:
+            sync_index = self.syncs
             self.syncs += 1
             for n in self.nodes:
                 n.latch()
             u = np.array([d.joint_torque() for d in self.drives])
             x = self.stepper.x.copy()
             f = self.forces.at(self.t + 1e-9) if (self.forces is not None and self.started) else np.zeros(2)
-            if self.imu is not None:
+            if self.imu is not None and imu_due(sync_index, self.period, self.imu_rate):
                 acc, gyro = self.imu_reading(x, u, f)
                 self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)
             rate_noise = self.noise.enc_rate * self.rng.standard_normal(3) if self.noise.enc_rate else np.zeros(3)
@@ -158,6 +163,7 @@ class VirtualPlant:
     def __init__(self, config: RobotConfig, **plant_kwargs):
         self.bus = can.Bus(interface="virtual", channel=config.bus.channel)
         self.network = canopen.Network(self.bus)
+        self.network.NOTIFIER_CYCLE = 0.1
         self.network.connect()
         self.plant = Plant(self.network, config, **plant_kwargs)
         self.plant.power_on()
@@ -174,13 +180,44 @@ class VirtualPlant:
 
 
 def open_sim_imu(config: RobotConfig):
-    """(publisher, driver): the simulated IMU on a pseudo-terminal and the VectorNav driver on it."""
+    """(publisher, driver): the simulated IMU on a pseudo-terminal and the VectorNav driver that
+    opens it by path and configures it with register writes, as it would a real sensor."""
     from drivers.robot import open_imu
     from sim.imu import SimulatedIMU
 
-    pub = SimulatedIMU()
-    drv = open_imu(config.imu, port=pub.port, configure=False)
+    pub = SimulatedIMU(output=config.imu.output, rate_hz=int(config.imu.rate_hz), mounting=config.imu.mounting)
+    try:
+        drv = open_imu(config.imu, port=pub.port, configure=True)
+    except Exception:
+        pub.close()
+        raise
     return pub, drv
+
+
+@contextmanager
+def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, **plant_kwargs):
+    """A ``CanopenRobot`` (opened: booted, configured, PDOs running) talking over python-can's
+    ``virtual`` bus to a ``Plant`` in this process, with the simulated IMU on a pseudo-terminal.
+
+    Yields (robot, plant). The virtual channel is made unique, so runs never hear each other.
+    """
+    from drivers.robot import CanopenRobot
+
+    config = config.replace_bus(interface="virtual", channel=f"otbot-sim-{uuid.uuid4().hex[:12]}")
+    pub = drv = None
+    if with_imu and config.imu is not None:
+        pub, drv = imu_pair if imu_pair is not None else open_sim_imu(config)
+    vp = VirtualPlant(config, imu=pub, **plant_kwargs)
+    robot = CanopenRobot(config, bus=can.Bus(interface="virtual", channel=config.bus.channel), imu=drv,
+                         imu_lockstep=True)
+    try:
+        robot.open()
+        yield robot, vp.plant
+    finally:
+        robot.close()
+        vp.close()
+        if pub is not None and hasattr(pub, "close"):
+            pub.close()
 
 
 def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = None, with_imu: bool = True,
@@ -203,9 +240,10 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
     if with_imu and config.imu is not None:
         from sim.imu import SimulatedIMU
 
-        imu = SimulatedIMU()
+        imu = SimulatedIMU(output=config.imu.output, rate_hz=int(config.imu.rate_hz), mounting=config.imu.mounting)
     info["imu_port"] = imu.port if imu is not None else None
     network = canopen.Network(bus)
+    network.NOTIFIER_CYCLE = 0.1
     network.connect()
     plant = Plant(network, config, imu=imu, **plant_kwargs)
     plant.power_on()

@@ -1,0 +1,146 @@
+"""``otbot run``: apply constant joint torques through the drivers and record what they report.
+
+``--bus sim`` runs the simulated robot in this process: CANopen slaves on canopen's LocalNode
+and the Otbot model in lockstep with the SYNC, on python-can's virtual bus, with the simulated
+VectorNav IMU on a pseudo-terminal. ``--bus config`` uses the bus and IMU port of the hardware
+configuration: the real robot (or an ``otbot plant`` process, with --interface/--channel/--imu-port).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from otbot_hw.cli import CliError, add_json_flag, parse_vector, positive_float, progress
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "run",
+        help="apply torques through the CANopen drivers (simulated or real robot) and record",
+        description="Enable the three CiA 402 drives, apply constant joint torques (N m) for --duration s "
+                    "at --rate Hz (one SYNC per period), record joint angles (rad) and rates (rad/s) from the "
+                    "drives and the pivot encoder and the IMU's specific force (m/s^2) and rate (rad/s) in the "
+                    "platform frame, then quick-stop. Exit code 1 if a drive, encoder or IMU fault stops the run.",
+    )
+    p.add_argument("--bus", choices=("sim", "config"), default="sim",
+                   help="sim: simulated robot in this process (virtual CAN); config: the bus of --config")
+    p.add_argument("--config", type=Path, default=None, help="hardware configuration (default config/robot.yaml)")
+    p.add_argument("--torques", default="6,-10,6", help="tau_r,tau_l,tau_p in N m (default 6,-10,6)")
+    p.add_argument("--duration", type=positive_float("--duration"), default=3.0, help="s (default 3)")
+    p.add_argument("--rate", type=positive_float("--rate"), default=None,
+                   help="control (SYNC) rate in Hz (default: bus.control_rate of the config)")
+    p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor",
+                   help="simulated bench fixture (--bus sim): floor, stand (wheels free), locked (wheels held)")
+    p.add_argument("--noise", choices=("paper", "none"), default="paper",
+                   help="simulated sensor noise (--bus sim): the paper's IMU/encoder-rate sigmas, or none")
+    p.add_argument("--seed", type=int, default=0, help="simulated noise seed (default 0)")
+    p.add_argument("--no-imu", action="store_true", help="run without the IMU")
+    p.add_argument("--interface", default=None, help="override bus.interface (python-can name), --bus config")
+    p.add_argument("--channel", default=None, help="override bus.channel, --bus config")
+    p.add_argument("--imu-port", default=None, help="override imu.port, --bus config")
+    p.add_argument("--out", type=Path, default=None, help="MCAP recording to write")
+    add_json_flag(p)
+    p.set_defaults(func=run)
+
+
+def _fail(result: dict, message: str, as_json: bool):
+    if as_json:
+        print(json.dumps(result, allow_nan=False))
+    print(f"otbot run: {message}", file=sys.stderr)
+    raise SystemExit(1)
+
+
+def run(args: argparse.Namespace) -> dict:
+    from drivers.busload import bus_load
+    from drivers.cia402 import interpolation_period
+    from drivers.config import load_robot_config
+    from drivers.faults import DriverError
+    from drivers.robot import CanopenRobot, open_imu
+    from drivers.runs import run_torques
+    from otbot_hw.sensors import NoiseModel
+
+    quiet = args.json
+    cfg = load_robot_config(args.config)
+    tau = parse_vector(args.torques, 3, "--torques")
+    if args.rate is not None:
+        cfg = cfg.replace_bus(control_rate=args.rate)
+    try:
+        interpolation_period(cfg.bus.period)
+    except ValueError as exc:
+        raise CliError(f"--rate: {exc}") from None
+    n = int(round(args.duration * cfg.bus.control_rate))
+    if n < 1:
+        raise CliError(f"--duration {args.duration} s is shorter than one control period ({cfg.bus.period:g} s)")
+    if args.bus == "config":
+        kw = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v is not None}
+        if kw:
+            cfg = cfg.replace_bus(**kw)
+    load = bus_load(cfg)
+    if load.warning():
+        progress(f"[run] warning: {load.warning()}", True)
+    torques = np.tile(tau, (n, 1))
+    meta = {"bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
+                    "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
+            "nodes": {d.name: d.node_id for d in cfg.drives}, "config": str(cfg.path),
+            "pivot_source": cfg.pivot_encoder.source}
+    with_imu = cfg.imu is not None and not args.no_imu
+    progress(f"[run] {args.bus} bus ({cfg.bus.interface}:{cfg.bus.channel}), tau = {tau} N m for "
+             f"{args.duration:g} s at {cfg.bus.control_rate:g} Hz", not quiet)
+    wall = time.perf_counter()
+    try:
+        if args.bus == "sim":
+            from sim.plant import simulated_robot
+
+            noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
+            meta.update(fixture=args.fixture, noise=noise.to_dict(), seed=args.seed, source="bus-simulation")
+            with simulated_robot(cfg, with_imu=with_imu, fixture=args.fixture, noise=noise,
+                                 seed=args.seed) as (robot, plant):
+                meta["params"] = plant.params.to_dict()
+                res = run_torques(robot, torques, cfg.bus.period, args.out, meta, truth=plant.truth,
+                                  progress=None if quiet else (lambda m: progress(f"[run] {m}")))
+        else:
+            imu = open_imu(cfg.imu, port=args.imu_port) if with_imu else None
+            robot = CanopenRobot(cfg, imu=imu, realtime=True)
+            with robot:
+                robot.open()
+                res = run_torques(robot, torques, cfg.bus.period, args.out, meta,
+                                  progress=None if quiet else (lambda m: progress(f"[run] {m}")))
+    except DriverError as exc:
+        _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
+              f"error: {exc}", args.json)
+    except Exception as exc:
+        if type(exc).__name__ == "ImuFault":
+            _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)
+        raise
+    wall = time.perf_counter() - wall
+    rec = res.recording
+    result = {
+        "completed": res.completed, "bus": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
+        "rate": cfg.bus.control_rate, "duration": args.duration, "samples": len(rec),
+        "t_final": float(rec.t[-1]) if len(rec) else None,
+        "phi": rec.joint_pos[-1].tolist() if len(rec) else None,
+        "phi_dot": rec.joint_vel[-1].tolist() if len(rec) else None,
+        "torque_commanded": rec.torque[-1].tolist() if len(rec) else None,
+        "saturated_samples": int(res.saturated.any(axis=1).sum()),
+        "imu": bool(rec.imu_accel is not None),
+        "recording": str(args.out) if args.out else None,
+        "faults": [f.to_dict() for f in res.faults],
+        "busload": {"bits_per_cycle": load.bits_per_cycle, "max_rate": load.max_rate, "load": load.load},
+        "wall_time": wall,
+    }
+    if args.bus == "sim" and rec.truth_q is not None and len(rec):
+        result["q_final"] = rec.truth_q[-1].tolist()
+    if not res.completed:
+        _fail(result, "stopped by fault: " + "; ".join(map(str, res.faults)), args.json)
+    if not quiet:
+        print(f"[run] {len(rec)} samples, final phi = " + ", ".join(f"{v:.4f}" for v in result["phi"]) + " rad")
+        if result["saturated_samples"]:
+            print(f"[run] torque limits cut the command in {result['saturated_samples']} samples")
+        if args.out:
+            print(f"[run] recording: {args.out}")
+    return result
