@@ -77,6 +77,11 @@ def imu_due(sync_index: int, period: float, imu_rate: float) -> bool:
     return tick > math.floor((sync_index - 1) * period * imu_rate + 1e-9)
 
 
+#: python-can filter passing only 11-bit-ID frames: CANopen (CiA 301) never uses extended IDs,
+#: and canopen's dispatcher would otherwise take an extended 0x181 for TPDO1 of node 1.
+STANDARD_FRAMES_ONLY = [{"can_id": 0, "can_mask": 0, "extended": False}]
+
+
 class Robot(abc.ABC):
     """A robot with three torque-controlled joints (right wheel, left wheel, pivot) and an IMU."""
 
@@ -185,6 +190,7 @@ class CanopenRobot(Robot):
             self.network.connect(**self.config.bus.can_kwargs())
         else:
             self.network.connect()
+        self.network.bus.set_filters(STANDARD_FRAMES_ONLY)
         self._open = True
         try:
             for dev in self.devices:

@@ -35,7 +35,7 @@ import canopen
 import numpy as np
 
 from drivers.config import RobotConfig
-from drivers.robot import imu_due
+from drivers.robot import STANDARD_FRAMES_ONLY, imu_due
 from otbot_hw.model import compiled
 from otbot_hw.model.fixtures import fixture_code
 from otbot_hw.params import OtbotParams, nominal
@@ -165,6 +165,7 @@ class VirtualPlant:
         self.network = canopen.Network(self.bus)
         self.network.NOTIFIER_CYCLE = 0.1
         self.network.connect()
+        self.bus.set_filters(STANDARD_FRAMES_ONLY)
         self.plant = Plant(self.network, config, **plant_kwargs)
         self.plant.power_on()
 
@@ -245,6 +246,7 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
     network = canopen.Network(bus)
     network.NOTIFIER_CYCLE = 0.1
     network.connect()
+    bus.set_filters(STANDARD_FRAMES_ONLY)
     plant = Plant(network, config, imu=imu, **plant_kwargs)
     plant.power_on()
     out.write(json.dumps(info) + "\n")

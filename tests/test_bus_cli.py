@@ -1,0 +1,59 @@
+"""``otbot run`` and the bus part of ``otbot demo``."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from otbot_hw.cli import main
+from otbot_hw.params import nominal
+from otbot_hw.recording import read_recording
+from otbot_hw.sensors import encoders_ideal
+from sim.simulator import simulate
+
+
+def test_otbot_run_sim_json_and_recording(tmp_path, capsys):
+    out = tmp_path / "run.mcap"
+    rc = main(["run", "--bus", "sim", "--fixture", "floor", "--torques", "6,-10,6", "--duration", "0.5",
+               "--rate", "100", "--out", str(out), "--json"])
+    assert rc == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["completed"] and res["samples"] == 51 and res["t_final"] == 0.5 and res["imu"]
+    traj = simulate(nominal(), np.tile([6.0, -10.0, 6.0], (50, 1)), 0.01)
+    wheels = encoders_ideal(traj.x[-1:], 40960)[0][0]
+    pivot = encoders_ideal(traj.x[-1:], 16384)[0][0]
+    np.testing.assert_allclose(res["phi"], [wheels[0], wheels[1], pivot[2]], atol=1e-9)
+    rec = read_recording(out)
+    assert len(rec) == 51 and rec.imu_accel is not None and rec.truth_q is not None
+    np.testing.assert_allclose(rec.joint_pos[-1], res["phi"])
+    assert rec.metadata["bus"]["interface"] == "virtual" and rec.metadata["fixture"] == "floor"
+
+
+def test_otbot_run_locked_fixture_and_1khz(capsys):
+    assert main(["run", "--fixture", "locked", "--torques", "0,0,3", "--duration", "0.05", "--rate", "1000",
+                 "--noise", "none", "--json"]) == 0
+    captured = capsys.readouterr()
+    res = json.loads(captured.out)
+    assert res["samples"] == 51 and res["q_final"][:3] == [0.0, 0.0, res["q_final"][2]]
+    assert res["phi"][0] == 0.0 and res["phi"][2] > 0  # wheels locked, pivot turning
+    assert "exceeds" in captured.err and res["busload"]["max_rate"] < 1000  # bus-load warning
+
+
+def test_otbot_run_config_bus_without_a_robot_fails_cleanly(tmp_path, capsys):
+    # The configured virtual bus has nobody on it: boot-up never comes, exit 1 with the reason.
+    cfg = tmp_path / "robot.yaml"
+    from drivers.config import load_robot_config
+
+    src = load_robot_config().path
+    cfg.write_text(src.read_text().replace("boot_timeout: {value: 2.0, unit: s}", "boot_timeout: {value: 0.2, unit: s}"))
+    for eds in src.parent.glob("*.eds"):
+        (tmp_path / eds.name).write_text(eds.read_text())
+    try:
+        main(["run", "--bus", "config", "--config", str(cfg), "--no-imu", "--duration", "0.1", "--json"])
+    except SystemExit as exc:
+        assert exc.code == 1
+    else:
+        raise AssertionError("expected exit 1")
+    captured = capsys.readouterr()
+    assert "no boot-up message" in captured.err
+    assert json.loads(captured.out)["completed"] is False

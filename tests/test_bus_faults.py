@@ -1,0 +1,164 @@
+"""Faults over the simulated bus: EMCY and statusword, heartbeat timeout, stale TPDOs,
+malformed frames, and configuration errors named by key."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from drivers.config import load_robot_config
+from drivers.faults import RobotFault, error_meaning
+from otbot_hw.params import ParameterError
+from sim.plant import simulated_robot
+
+CFG = load_robot_config()
+
+
+def test_drive_fault_and_emcy_surface_within_one_cycle_and_reset():
+    with simulated_robot(CFG, with_imu=False) as (robot, plant):
+        robot.enable()
+        for _ in range(3):
+            robot.write([2.0, 2.0, 2.0])
+            assert not robot.read().faults
+        plant.drives[1].inject_fault(0x2310)
+        robot.write([2.0, 2.0, 2.0])  # may race with the EMCY; the fault must show in this cycle's read
+        s = robot.read()
+        kinds = {(f.device, f.kind, f.code) for f in s.faults}
+        assert ("left_wheel", "emcy", 0x2310) in kinds
+        assert ("left_wheel", "statusword", 0x2310) in kinds
+        f = next(f for f in s.faults if f.kind == "emcy")
+        assert "over-current" in f.meaning and f.node == 2 and "0x2310" in str(f)
+        assert s.drive_states[1] == "FAULT"
+        with pytest.raises(RobotFault, match="left_wheel"):
+            robot.write([1.0, 1.0, 1.0])
+        robot.read()  # fault reaction applied at this SYNC: the other drives quick-stopped
+        assert [sd.state for sd in plant.drives] == ["QUICK STOP ACTIVE", "FAULT", "QUICK STOP ACTIVE"]
+        assert [sd.joint_torque() for sd in plant.drives] == [0.0, 0.0, 0.0]
+        assert plant.drives[1].od_value(0x1003, 1) == 0x2310  # error history on the drive
+        robot.fault_reset()
+        assert not robot.faults and plant.drives[1].state == "SWITCH ON DISABLED"
+        robot.enable()
+        robot.write([1.0, 1.0, 1.0])
+        assert not robot.read().faults
+
+
+def test_error_meanings():
+    assert error_meaning(0x3210) == "DC link over-voltage"
+    assert error_meaning(0x8611) == "following error"
+    assert "temperature" in error_meaning(0x4399)  # class fallback
+    assert "unknown" in error_meaning(0x0123)
+
+
+def test_silent_drive_trips_the_heartbeat_timeout_within_its_consumer_time():
+    consumer = CFG.drives[2].heartbeat_consumer
+    with simulated_robot(CFG, with_imu=False) as (robot, plant):
+        robot.enable()
+        assert not robot.faults
+        t0 = time.monotonic()
+        plant.drives[2].go_silent()
+        while not any(f.kind == "heartbeat" for f in robot.faults):
+            assert time.monotonic() - t0 < consumer + 1.0, "no heartbeat fault"
+            time.sleep(0.002)
+        elapsed = time.monotonic() - t0
+        f = next(f for f in robot.faults if f.kind == "heartbeat")
+        assert f.device == "pivot" and f.code == 0x8130
+        # Last heartbeat came at most one producer period before the silence; the watchdog checks
+        # every consumer/10 s.
+        assert consumer - CFG.drives[2].heartbeat_producer - 0.01 <= elapsed <= consumer + consumer / 10 + 0.05
+        with pytest.raises(RobotFault):
+            robot.write([0, 0, 0])
+
+
+def test_missing_tpdos_raise_a_stale_data_fault():
+    with simulated_robot(CFG, with_imu=False) as (robot, plant):
+        robot.enable()
+        robot.write([1.0, 1.0, 1.0])
+        assert not robot.read().faults
+        plant.encoder.drop_tpdos = True
+        robot.write([1.0, 1.0, 1.0])
+        t0 = time.monotonic()
+        s = robot.read()
+        assert time.monotonic() - t0 >= CFG.bus.tpdo_timeout * 0.9
+        stale = [f for f in s.faults if f.kind == "stale"]
+        assert [(f.device, f.node) for f in stale] == [("pivot_encoder", 4)]
+        assert "TPDO1" in stale[0].meaning
+
+
+def test_malformed_frames_are_ignored_without_crash():
+    n = 20
+    with simulated_robot(CFG, with_imu=False) as (robot, plant):
+        robot.enable()
+        intruder = can.Bus(interface="virtual", channel=robot.config.bus.channel)
+        bad = [can.Message(arbitration_id=0x181, data=b"\x01\x02\x03", is_extended_id=False),  # short TPDO1
+               can.Message(arbitration_id=0x082, data=b"\x10\x23", is_extended_id=False),  # short EMCY
+               can.Message(arbitration_id=0x701, data=b"", is_extended_id=False),  # empty heartbeat
+               can.Message(arbitration_id=0x202, data=b"\x0f", is_extended_id=False),  # short RPDO1
+               can.Message(arbitration_id=0x080, data=b"\x01\x02\x03\x04\x05", is_extended_id=False),  # SYNC
+               can.Message(arbitration_id=0x000, data=b"\x81", is_extended_id=False),  # short NMT
+               can.Message(arbitration_id=0x603, data=bytes(range(8)), is_extended_id=False),  # bad SDO
+               can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=True),  # extended ID
+               can.Message(arbitration_id=0x184, is_remote_frame=True, dlc=4, is_extended_id=False)]
+        try:
+            res = []
+            for k in range(n):
+                if k == 5:
+                    for m in bad:
+                        intruder.send(m)
+                    time.sleep(0.05)  # let both sides process them
+                    # CANopen uses 11-bit IDs: the extended-ID frame 0x181 must not count as TPDO1.
+                    assert robot.drives[0].node.state == "OPERATION ENABLED"
+                robot.write([3.0, -3.0, 2.0])
+                res.append(robot.read())
+        finally:
+            intruder.shutdown()
+        assert not robot.faults
+        assert robot.drives[0].malformed >= 1 and robot.drives[1].malformed >= 1
+        assert plant.drives[1].malformed >= 1 and plant.malformed_sync >= 1
+        assert all(sd.state == "OPERATION ENABLED" for sd in plant.drives)
+        # Readings stayed consistent with the plant: monotone wheel angle under constant torque.
+        right = np.array([s.joint_pos[0] for s in res])
+        assert np.all(np.diff(right) >= 0) and right[-1] > 0
+        truth = np.array(plant.truth.x)[len(plant.truth.x) - 1]
+        assert abs(res[-1].joint_pos[0] - truth[3]) < 2 * np.pi / 40960 + 1e-9
+
+
+def _write_config(tmp_path: Path, old: str, new: str) -> Path:
+    text = Path(CFG.path).read_text()
+    assert old in text, old
+    p = tmp_path / "robot.yaml"
+    p.write_text(text.replace(old, new))
+    for eds in Path(CFG.path).parent.glob("*.eds"):
+        (tmp_path / eds.name).write_text(eds.read_text())
+    return p
+
+
+@pytest.mark.parametrize("old,new,key", [
+    ("right_wheel: {node_id: 1,", "right_wheel: {node_id: 200,", "drives.right_wheel.node_id"),
+    ("left_wheel: {node_id: 2,", "left_wheel: {node_id: 1,", "node IDs must be distinct"),
+    ("polarity: -1}", "polarity: 2}", "drives.left_wheel.polarity"),
+    ("heartbeat_consumer: {value: 200, unit: ms}  # no", "heartbeat_consumer: {value: 20, unit: ms}  # no",
+     "drives.heartbeat_consumer"),
+    ("    - [0x6087, 0, 0]", "    - [0x1A00, 1, 0]", "drives.sdo_config[1]"),
+    ("eds: cia402_torque_drive.eds", "eds: nowhere.eds", "drives.eds"),
+    ("bitrate: {value: 1000000, unit: bit/s}", "bitrate: {value: 1000000, unit: kbit/s}", "bus.bitrate"),
+    ("control_rate: {value: 100, unit: Hz}", "control_rate: {value: -5, unit: Hz}", "bus.control_rate"),
+    ("source: encoder", "source: magic", "pivot_encoder.source"),
+    ("bus:\n", "bus_renamed:\n", "missing section 'bus'"),
+])
+def test_bad_config_is_rejected_naming_the_key(tmp_path, old, new, key):
+    with pytest.raises(ParameterError, match=key.replace("[", r"\[").replace("]", r"\]")):
+        load_robot_config(_write_config(tmp_path, old, new))
+
+
+def test_cli_exits_2_on_bad_config_and_arguments(tmp_path, capsys):
+    from otbot_hw.cli import main
+
+    bad = _write_config(tmp_path, "right_wheel: {node_id: 1,", "right_wheel: {node_id: 0,")
+    assert main(["run", "--config", str(bad), "--duration", "0.1"]) == 2
+    assert "drives.right_wheel.node_id" in capsys.readouterr().err
+    assert main(["run", "--torques", "1,2", "--duration", "0.1"]) == 2
+    assert main(["run", "--rate", "0.7", "--duration", "10"]) == 2
+    assert "0x60C2" in capsys.readouterr().err
