@@ -54,6 +54,8 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
     result = {"chassis_experiment": {"recording": str(path), "plots": plots,
                                      "final_q": rec.truth_q[-1].tolist(), "final_qd": rec.truth_qd[-1].tolist()}}
+    from otbot_hw.cli.run import bus_demo
+    result["bus_run"] = bus_demo(out, args.seed, quiet, reference=rec)
     if not quiet:
         print(f"[demo] recording: {path}")
         for p in plots:
