@@ -23,7 +23,7 @@ import canopen
 from canopen.profiles.p402 import BaseNode402, OperationMode, State402
 
 from drivers.config import DriveConfig
-from drivers.device import CanopenDevice, pdo_bytes
+from drivers.device import CanopenDevice, pdo_bytes, pdo_get, pdo_put
 from drivers.faults import DriverError, Fault, error_meaning
 
 CW_FAULT_RESET = 0x0080
@@ -38,7 +38,8 @@ class Node402(BaseNode402):
     def on_TPDOs_update_callback(self, mapobject):
         if len(mapobject.data) != pdo_bytes(mapobject):
             return
-        super().on_TPDOs_update_callback(mapobject)
+        for obj in mapobject:
+            self.tpdo_values[obj.index] = pdo_get(obj)
 
 
 def interpolation_period(period: float) -> tuple[int, int]:
@@ -205,6 +206,6 @@ class CiA402Drive(CanopenDevice):
     def transmit(self) -> None:
         """Send RPDO1 (controlword, target torque); the drive applies it at the next SYNC."""
         p = self.node.rpdo_pointers
-        p[0x6040].raw = self.controlword
-        p[0x6071].raw = self.target_permille
+        pdo_put(p[0x6040], self.controlword)
+        pdo_put(p[0x6071], self.target_permille)
         p[0x6040].pdo_parent.transmit()

@@ -13,7 +13,7 @@ import math
 import canopen
 
 from drivers.config import EncoderConfig
-from drivers.device import CanopenDevice
+from drivers.device import CanopenDevice, pdo_get
 from drivers.faults import DriverError
 
 TPDO_LAYOUT = {1: [0x6004]}
@@ -47,7 +47,7 @@ class CiA406Encoder(CanopenDevice):
         self._last = None
 
     def on_valid_tpdo(self, number: int, pdo_map) -> None:
-        raw = int(pdo_map[0x6004].raw)
+        raw = int(pdo_get(pdo_map[0x6004]))
         rng = self.total_range
         if self._last is None:
             d = (raw - self.cfg.offset) % rng

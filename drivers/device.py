@@ -50,6 +50,22 @@ class CycleTracker:
             return set(self._missing)
 
 
+def pdo_get(var):
+    """Value of a mapped variable from its PDO's last data (canopen's decoding, minus the
+    per-access debug strings ``Variable.raw`` builds)."""
+    return var.od.decode_raw(var.get_data())
+
+
+def pdo_put(var, value) -> None:
+    """Write ``value`` into the PDO's data at the variable's place (byte-aligned fast path)."""
+    if var.offset % 8 or var.length % 8:
+        var.raw = value
+        return
+    data = var.od.encode_raw(value)
+    off = var.offset // 8
+    var.pdo_parent.data[off:off + len(data)] = data
+
+
 def pdo_bytes(pdo_map) -> int:
     """Length in bytes of a mapped PDO."""
     return (pdo_map.length + 7) // 8

@@ -23,6 +23,7 @@ from canopen.profiles.p402 import OperationMode, State402
 from canopen.sdo import SdoAbortedError
 
 from drivers.config import DriveConfig, EncoderConfig
+from drivers.device import pdo_get, pdo_put
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +50,7 @@ class SimulatedNode:
         self.node = canopen.LocalNode(node_id, str(eds))
         network.add_node(self.node)
         self.values: dict[tuple[int, int], object] = {}
+        self._od_cache: dict[tuple[int, int], object] = {}  # stored (non-live) values; cleared on writes
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         network.subscribe(0, self._on_nmt)
@@ -75,6 +77,7 @@ class SimulatedNode:
         return self.values.get((index, subindex))
 
     def _on_write(self, index: int, subindex: int, od, data: bytes):
+        self._od_cache.clear()
         if 0x1400 <= index <= 0x1BFF:
             self._pdo_dirty = True
         key = (index, subindex)
@@ -88,6 +91,14 @@ class SimulatedNode:
 
     def od_value(self, index: int, subindex: int = 0):
         """Current value of any object (live, written, or the EDS default)."""
+        key = (index, subindex)
+        if key in self.values:
+            return self.values[key]
+        if key not in self._od_cache:
+            self._od_cache[key] = self._od_read(index, subindex)
+        return self._od_cache[key]
+
+    def _od_read(self, index: int, subindex: int):
         obj = self.node.object_dictionary[index]
         if not isinstance(obj, canopen.objectdictionary.ODVariable):
             obj = obj[subindex]
@@ -117,6 +128,7 @@ class SimulatedNode:
     def reset(self, application: bool) -> None:
         """Forget written communication objects (and application objects on a node reset)."""
         with self.lock:
+            self._od_cache.clear()
             for index in list(self.node.data_store):
                 if index < 0x2000 or application:
                     if index not in self.keep_on_reset():
@@ -172,7 +184,7 @@ class SimulatedNode:
 
     def _apply_rpdo(self, pdo_map, data: bytes) -> None:
         pdo_map.data = bytearray(data)
-        values = {(v.index, v.subindex): v.raw for v in pdo_map.map}
+        values = {(v.index, v.subindex): pdo_get(v) for v in pdo_map.map}
         for (index, sub), value in values.items():
             if (index, sub) in self.values:
                 self.on_sdo_write(index, sub, value)
@@ -209,7 +221,7 @@ class SimulatedNode:
                     continue
                 if tt == 0 or self._sync_count % tt == 0:
                     for v in m.map:
-                        v.raw = self.values.get((v.index, v.subindex), 0)
+                        pdo_put(v, self.values.get((v.index, v.subindex), 0))
                     if not self.drop_tpdos:
                         m.transmit()
                         self.tpdos_sent += 1
