@@ -28,6 +28,7 @@ class _Watch:
     state: int | None = None
     expected: int | None = None  # NMT state the node must report (None: any)
     faulted: bool = False
+    rebooted: bool = False  # a boot-up message arrived while monitoring
     malformed: int = 0
 
 
@@ -58,6 +59,8 @@ class HeartbeatConsumer:
         with self._lock:
             w.last = time.monotonic()
             w.state = state & 0x7F
+            if w.state == 0 and w.expected is not None:
+                w.rebooted = True
 
     def expect_state(self, state: str | None) -> None:
         """From now on every watched node must report NMT ``state`` (e.g. 'OPERATIONAL'); None: any."""
@@ -67,6 +70,7 @@ class HeartbeatConsumer:
             for w in self._watch.values():
                 w.expected = code
                 w.faulted = False
+                w.rebooted = False
                 if w.last is None:
                     w.last = now  # the timeout counts from the start of monitoring
 
@@ -82,11 +86,14 @@ class HeartbeatConsumer:
                     w.faulted = True
                     out.append(Fault(w.device, w.node, "heartbeat", f"no heartbeat for {now - w.last:.3f} s "
                                      f"(consumer time {w.timeout:.3f} s)", code=0x8130))
-                elif w.expected is not None and w.state is not None and w.state != w.expected:
+                elif w.rebooted or (w.expected is not None and w.state is not None and w.state != w.expected):
                     w.faulted = True
-                    out.append(Fault(w.device, w.node, "nmt", f"node reports NMT state "
-                                     f"{NMT_STATES.get(w.state, w.state)}, expected "
-                                     f"{NMT_STATES[w.expected]} (reset or power loss?)"))
+                    if w.rebooted:
+                        meaning = "boot-up message: the node rebooted (power loss or reset) and lost its setup"
+                    else:
+                        meaning = (f"node reports NMT state {NMT_STATES.get(w.state, w.state)}, expected "
+                                   f"{NMT_STATES[w.expected]} (reset or power loss?)")
+                    out.append(Fault(w.device, w.node, "nmt", meaning))
         if self.on_fault:
             for f in out:
                 self.on_fault(f)

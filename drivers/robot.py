@@ -178,7 +178,8 @@ class CanopenRobot(Robot):
         self._syncs = 0  # SYNCs sent since open()
         self._imu_last = None
         self.realtime = realtime
-        self.enabled = False
+        self.enabled = False  # drives in OPERATION ENABLED: write() allowed
+        self._powered = False  # enabled since the last disable (includes quick stop)
         self._cycle = 0
         self._next = None
         self._open = False
@@ -212,15 +213,16 @@ class CanopenRobot(Robot):
         return self
 
     def close(self) -> None:
+        """Disable the drives (if powered and not faulted), NMT PRE-OPERATIONAL, release bus and IMU."""
         if not self._open:
             return
-        self._open = False
         self.heartbeats.stop()
-        try:
-            if self.enabled and not self._faults:
+        if self._powered and not self._faults:
+            try:
                 self.disable()
-        except DriverError:
-            pass
+            except DriverError:
+                pass
+        self._open = False
         try:
             for dev in self.devices:
                 dev.node.nmt.state = "PRE-OPERATIONAL"
@@ -346,6 +348,7 @@ class CanopenRobot(Robot):
             states = ", ".join(f"{d.name}: {d.node.state}" for d in self.drives)
             raise DriverError(f"drives did not reach OPERATION ENABLED in {self.MAX_ENABLE_CYCLES} cycles ({states})")
         self.enabled = True
+        self._powered = True
         self._cycle = 0
 
     def _one_cycle(self, stage) -> None:
@@ -358,6 +361,7 @@ class CanopenRobot(Robot):
     def disable(self) -> None:
         self._one_cycle(lambda d: d.stage_disable())
         self.enabled = False
+        self._powered = False
 
     def quick_stop(self) -> None:
         self._one_cycle(lambda d: d.stage_quick_stop())

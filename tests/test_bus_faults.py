@@ -162,3 +162,21 @@ def test_cli_exits_2_on_bad_config_and_arguments(tmp_path, capsys):
     assert main(["run", "--torques", "1,2", "--duration", "0.1"]) == 2
     assert main(["run", "--rate", "0.7", "--duration", "10"]) == 2
     assert "0x60C2" in capsys.readouterr().err
+
+
+def test_encoder_emcy_and_a_rebooting_drive_are_faults():
+    with simulated_robot(CFG, with_imu=False) as (robot, plant):
+        robot.enable()
+        robot.write([0.0, 0.0, 0.0])
+        robot.read()
+        plant.encoder.inject_fault(0x7320)
+        plant.drives[0].reset(application=True)  # the right wheel drive loses power and reboots
+        plant.drives[0].boot()
+        t0 = time.monotonic()
+        while len({f.kind for f in robot.faults}) < 2:
+            assert time.monotonic() - t0 < 1.0, robot.faults
+            time.sleep(0.002)
+        got = {(f.device, f.kind, f.code) for f in robot.faults}
+        assert ("pivot_encoder", "emcy", 0x7320) in got
+        nmt = [f for f in robot.faults if f.kind == "nmt"]
+        assert nmt and nmt[0].device == "right_wheel" and "rebooted" in nmt[0].meaning
