@@ -270,3 +270,41 @@ def test_socketcan_transport_where_the_kernel_has_it():
     finally:
         proc.stdin.close()
         proc.wait(timeout=20)
+
+
+def test_slcan_adapter_protocol_and_bad_lines():
+    import os
+    import time
+
+    import serial
+
+    from sim.slcan_adapter import SlcanAdapterBus, format_frame, parse_frame
+
+    m = parse_frame("t1232ABCD")
+    assert (m.arbitration_id, bytes(m.data), m.is_extended_id) == (0x123, b"\xab\xcd", False)
+    assert parse_frame("T1ABCDEF08" + "00" * 8).arbitration_id == 0x1ABCDEF0
+    assert parse_frame("r7FF4").is_remote_frame
+    for bad in ("t12", "t1233AB", "t8002AABB", "t1239" + "00" * 9, "tXYZ0", "T123"):
+        assert parse_frame(bad) is None, bad
+    assert format_frame(m) == b"t1232ABCD\r"
+    adapter = SlcanAdapterBus()
+    host = serial.Serial(adapter.port, 115200, timeout=0.5)
+    try:
+        host.write(b"t1231AA\r")  # channel not open yet: dropped
+        assert adapter.recv(0.2) is None
+        host.write(b"S8\rO\r")
+        assert adapter.recv(0.2) is None and adapter.is_open and adapter.bitrate == 1_000_000
+        assert host.read(2) == b"\r\r"
+        host.write(b"garbage\rt12\rt7FF2BEEF\r")
+        msg = adapter.recv(1.0)
+        assert msg.arbitration_id == 0x7FF and bytes(msg.data) == b"\xbe\xef"
+        assert adapter.malformed == 2 and host.read(2) == b"\a\a"  # BEL for each bad line
+        adapter.send(parse_frame("t0810"))
+        deadline = time.monotonic() + 1
+        got = b""
+        while not got.endswith(b"\r") and time.monotonic() < deadline:
+            got += host.read(1)
+        assert got == b"t0810\r"
+    finally:
+        host.close()
+        adapter.shutdown()

@@ -57,3 +57,33 @@ def test_otbot_run_config_bus_without_a_robot_fails_cleanly(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "no boot-up message" in captured.err
     assert json.loads(captured.out)["completed"] is False
+
+
+def test_otbot_run_against_an_otbot_plant_process(tmp_path, capsys):
+    """Daemon and plant as two processes: `otbot plant` (slcan on a pty) and `otbot run --bus config`."""
+    import subprocess
+    import sys
+
+    from drivers.config import load_robot_config
+
+    src = load_robot_config().path
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text(src.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}"))
+    for eds in src.parent.glob("*.eds"):
+        (tmp_path / eds.name).write_text(eds.read_text())
+    code = "import sys; from otbot_hw.cli import main; sys.exit(main())"
+    proc = subprocess.Popen([sys.executable, "-c", code, "plant", "--noise", "none"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        info = json.loads(proc.stdout.readline())
+        assert main(["run", "--bus", "config", "--config", str(cfg), "--interface", "slcan",
+                     "--channel", info["can_channel"], "--imu-port", info["imu_port"], "--lockstep",
+                     "--torques", "6,-10,6", "--duration", "0.3", "--json"]) == 0
+    finally:
+        proc.stdin.close()
+        assert proc.wait(timeout=20) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["completed"] and res["interface"] == "slcan" and res["samples"] == 31 and res["imu"]
+    traj = simulate(nominal(), np.tile([6.0, -10.0, 6.0], (30, 1)), 0.01)
+    wheels = encoders_ideal(traj.x[-1:], 40960)[0][0]
+    np.testing.assert_allclose(res["phi"][:2], wheels[:2], atol=1e-9)

@@ -43,6 +43,9 @@ def register(sub) -> None:
     p.add_argument("--interface", default=None, help="override bus.interface (python-can name), --bus config")
     p.add_argument("--channel", default=None, help="override bus.channel, --bus config")
     p.add_argument("--imu-port", default=None, help="override imu.port, --bus config")
+    p.add_argument("--lockstep", action="store_true",
+                   help="--bus config talks to a simulated plant (otbot plant): send SYNCs back to back instead "
+                        "of every 1/rate s, and wait for the IMU sample of each SYNC")
     p.add_argument("--out", type=Path, default=None, help="MCAP recording to write")
     add_json_flag(p)
     p.set_defaults(func=run)
@@ -105,7 +108,7 @@ def run(args: argparse.Namespace) -> dict:
                                   progress=None if quiet else (lambda m: progress(f"[run] {m}")))
         else:
             imu = open_imu(cfg.imu, port=args.imu_port) if with_imu else None
-            robot = CanopenRobot(cfg, imu=imu, realtime=True)
+            robot = CanopenRobot(cfg, imu=imu, realtime=not args.lockstep, imu_lockstep=args.lockstep)
             with robot:
                 robot.open()
                 res = run_torques(robot, torques, cfg.bus.period, args.out, meta,
