@@ -197,8 +197,11 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     b = r.section(data, "bus")
     iface = r.raw(b, "interface", "bus.interface")
     chan = r.raw(b, "channel", "bus.channel")
-    if not isinstance(iface, str) or not iface:
-        raise r.err("bus.interface", f"must be a python-can interface name, got {iface!r}")
+    import can
+
+    if not isinstance(iface, str) or iface not in can.VALID_INTERFACES:
+        raise r.err("bus.interface", f"must be a python-can interface ({', '.join(sorted(can.VALID_INTERFACES))}), "
+                                     f"got {iface!r}")
     if not isinstance(chan, (str, int)) or chan == "":
         raise r.err("bus.channel", f"must be a channel name, got {chan!r}")
     options = r.raw(b, "options", "bus.options", {}) or {}

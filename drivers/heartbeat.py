@@ -119,6 +119,10 @@ class HeartbeatConsumer:
             self._thread.join(timeout=1.0)
             self._thread = None
 
+    def state(self, node_id: int) -> int | None:
+        """Last NMT state code ``node_id`` reported in a heartbeat (None before the first)."""
+        return self._watch[node_id].state
+
     def age(self, node_id: int) -> float | None:
         """Seconds since the last heartbeat of ``node_id`` (None before the first)."""
         w = self._watch[node_id]

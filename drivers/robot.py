@@ -23,6 +23,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import can
 import canopen
 import numpy as np
 
@@ -187,10 +188,14 @@ class CanopenRobot(Robot):
     # -- lifecycle ---------------------------------------------------------------------------------
     def open(self) -> "CanopenRobot":
         """Connect, boot and configure every node, start PDOs (NMT OPERATIONAL), watch heartbeats."""
-        if self.network.bus is None:
-            self.network.connect(**self.config.bus.can_kwargs())
-        else:
-            self.network.connect()
+        try:
+            if self.network.bus is None:
+                self.network.connect(**self.config.bus.can_kwargs())
+            else:
+                self.network.connect()
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            b = self.config.bus
+            raise DriverError(f"cannot open CAN bus {b.interface}:{b.channel} ({b.bitrate} bit/s): {exc}") from None
         self.network.bus.set_filters(STANDARD_FRAMES_ONLY)
         self._open = True
         try:
@@ -199,10 +204,10 @@ class CanopenRobot(Robot):
                 dev.configure()
             for dev in self.devices:
                 dev.start()
-            ok = wait_until(lambda: all(self.heartbeats._watch[d.node_id].state == 5 for d in self.devices),
+            ok = wait_until(lambda: all(self.heartbeats.state(d.node_id) == 5 for d in self.devices),
                             self.config.bus.boot_timeout)
             if not ok:
-                bad = [d.name for d in self.devices if self.heartbeats._watch[d.node_id].state != 5]
+                bad = [d.name for d in self.devices if self.heartbeats.state(d.node_id) != 5]
                 raise DriverError(f"no OPERATIONAL heartbeat from {', '.join(bad)} within "
                                   f"{self.config.bus.boot_timeout:g} s of NMT start")
             self.heartbeats.expect_state("OPERATIONAL")

@@ -80,6 +80,11 @@ def run(args: argparse.Namespace) -> dict:
     if n < 1:
         raise CliError(f"--duration {args.duration} s is shorter than one control period ({cfg.bus.period:g} s)")
     if args.bus == "config":
+        import can
+
+        if args.interface is not None and args.interface not in can.VALID_INTERFACES:
+            raise CliError(f"--interface must be a python-can interface ({', '.join(sorted(can.VALID_INTERFACES))}), "
+                           f"got {args.interface!r}")
         kw = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v is not None}
         if kw:
             cfg = cfg.replace_bus(**kw)
