@@ -15,7 +15,7 @@ from sim.simulator import simulate
 def test_otbot_run_sim_json_and_recording(tmp_path, capsys):
     out = tmp_path / "run.mcap"
     rc = main(["run", "--bus", "sim", "--fixture", "floor", "--torques", "6,-10,6", "--duration", "0.5",
-               "--rate", "100", "--out", str(out), "--json"])
+               "--rate", "100", "--out", str(out), "--plot", str(tmp_path / "plots"), "--json"])
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     assert res["completed"] and res["samples"] == 51 and res["t_final"] == 0.5 and res["imu"]
@@ -27,6 +27,7 @@ def test_otbot_run_sim_json_and_recording(tmp_path, capsys):
     assert len(rec) == 51 and rec.imu_accel is not None and rec.truth_q is not None
     np.testing.assert_allclose(rec.joint_pos[-1], res["phi"])
     assert rec.metadata["bus"]["interface"] == "virtual" and rec.metadata["fixture"] == "floor"
+    assert {p.split("/")[-1] for p in res["plots"]} == {"joints.png", "xy_path.png", "states.png", "imu.png"}
 
 
 def test_otbot_run_locked_fixture_and_1khz(capsys):

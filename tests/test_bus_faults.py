@@ -67,7 +67,7 @@ def test_silent_drive_trips_the_heartbeat_timeout_within_its_consumer_time():
         assert f.device == "pivot" and f.code == 0x8130
         # Last heartbeat came at most one producer period before the silence; the watchdog checks
         # every consumer/10 s.
-        assert consumer - CFG.drives[2].heartbeat_producer - 0.01 <= elapsed <= consumer + consumer / 10 + 0.05
+        assert consumer - CFG.drives[2].heartbeat_producer - 0.01 <= elapsed <= consumer + consumer / 10 + 0.1
         with pytest.raises(RobotFault):
             robot.write([0, 0, 0])
 

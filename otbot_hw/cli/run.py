@@ -47,6 +47,7 @@ def register(sub) -> None:
                    help="--bus config talks to a simulated plant (otbot plant): send SYNCs back to back instead "
                         "of every 1/rate s, and wait for the IMU sample of each SYNC")
     p.add_argument("--out", type=Path, default=None, help="MCAP recording to write")
+    p.add_argument("--plot", type=Path, default=None, help="folder for PNG plots of the run")
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -143,6 +144,8 @@ def run(args: argparse.Namespace) -> dict:
     }
     if args.bus == "sim" and rec.truth_q is not None and len(rec):
         result["q_final"] = rec.truth_q[-1].tolist()
+    if args.plot is not None and len(rec) > 1:
+        result["plots"] = write_run_plots(args.plot, rec)
     if not res.completed:
         _fail(result, "stopped by fault: " + "; ".join(map(str, res.faults)), args.json)
     if not quiet:
@@ -151,7 +154,31 @@ def run(args: argparse.Namespace) -> dict:
             print(f"[run] torque limits cut the command in {result['saturated_samples']} samples")
         if args.out:
             print(f"[run] recording: {args.out}")
+        for p in result.get("plots", []):
+            print(f"[run] plot: {p}")
     return result
+
+
+def write_run_plots(folder: Path, rec) -> list[str]:
+    """Joint angles/rates (and IMU) as the drivers reported them; path and states when simulated."""
+    from otbot_hw.cli.simulate import write_plots
+    from otbot_hw.params import OtbotParams, nominal
+    from otbot_hw.plots import plot_series
+
+    folder.mkdir(parents=True, exist_ok=True)
+    out = [str(plot_series(folder / "joints.png", rec.t, {
+        "phi_r": (rec.joint_pos[:, 0], "rad"), "phi_l": (rec.joint_pos[:, 1], "rad"),
+        "phi_p": (rec.joint_pos[:, 2], "rad"), "dphi_r": (rec.joint_vel[:, 0], "rad/s"),
+        "dphi_l": (rec.joint_vel[:, 1], "rad/s"), "dphi_p": (rec.joint_vel[:, 2], "rad/s")},
+        title="Joints as the drives and the pivot encoder reported them"))]
+    if rec.truth_q is not None:
+        params = OtbotParams.from_dict(rec.metadata["params"]) if "params" in rec.metadata else nominal()
+        out += [p for p in write_plots(folder, rec, params, "Bus run") if not p.endswith("joints.png")]
+    elif rec.imu_accel is not None:
+        out.append(str(plot_series(folder / "imu.png", rec.t, {
+            "a_x''": (rec.imu_accel[:, 0], "m/s^2"), "a_y''": (rec.imu_accel[:, 1], "m/s^2"),
+            "omega_z": (rec.imu_gyro[:, 2], "rad/s")}, title="IMU (platform frame)")))
+    return out
 
 
 def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) -> dict:
