@@ -206,6 +206,10 @@ class SimulatedNode:
                 data = self._rpdo_pending.pop(m.cob_id, None) if m.enabled else None
                 if data is not None:
                     self._apply_rpdo(m, data)
+            self.on_sync()
+
+    def on_sync(self) -> None:
+        """Hook: per-SYNC device dynamics (after the RPDOs are applied)."""
 
     def send_tpdos(self) -> None:
         """At SYNC (after ``latch`` and the plant's update of the values): transmit due TPDOs."""
@@ -257,6 +261,7 @@ class SimulatedDrive(SimulatedNode):
             self.set_od(0x6502, 0, supported_modes)
         self.state = "SWITCH ON DISABLED"
         self._last_cw = 0
+        self._actual_pm = 0
         self.values.update({(0x6040, 0): 0, (0x6041, 0): 0, (0x6060, 0): 0, (0x6061, 0): 0,
                             (0x6064, 0): 0, (0x606C, 0): 0, (0x6071, 0): 0, (0x6077, 0): 0,
                             (0x603F, 0): 0, (0x1001, 0): 0})
@@ -271,6 +276,7 @@ class SimulatedDrive(SimulatedNode):
             for key in ((0x6040, 0), (0x6060, 0), (0x6061, 0), (0x6071, 0), (0x6077, 0), (0x603F, 0), (0x1001, 0)):
                 self.values[key] = 0
             self._last_cw = 0
+            self._actual_pm = 0
         self._update_statusword()
 
     # -- state machine ---------------------------------------------------------------------------
@@ -328,6 +334,7 @@ class SimulatedDrive(SimulatedNode):
         with self.lock:
             reg = 0x01 | _ERROR_REGISTER_BITS.get(code >> 12, 0)
             self.state = "FAULT"
+            self._actual_pm = 0
             self.values[(0x603F, 0)] = code
             self.values[(0x1001, 0)] = reg
             n = min(self.od_value(0x1003, 0) + 1, 4)
@@ -340,12 +347,26 @@ class SimulatedDrive(SimulatedNode):
                 self.node.emcy.send(code, reg)
 
     # -- process values --------------------------------------------------------------------------
-    def applied_permille(self) -> int:
-        """Torque the power stage produces, per-mille of rated torque (0 unless OPERATION ENABLED)."""
-        if self.state != "OPERATION ENABLED" or self.values[(0x6061, 0)] not in TORQUE_MODES:
-            return 0
+    def on_sync(self) -> None:
+        """Torque the power stage produces until the next SYNC: the target torque limited by 0x6072
+        (CST), ramped at the torque slope 0x6087 per-mille/s in profile torque mode (slope 0: step);
+        zero unless OPERATION ENABLED."""
+        mode = self.values[(0x6061, 0)]
+        if self.state != "OPERATION ENABLED" or mode not in TORQUE_MODES:
+            self._actual_pm = 0
+            return
         limit = self.od_value(0x6072)
-        return int(max(-limit, min(limit, self.values[(0x6071, 0)])))
+        target = int(max(-limit, min(limit, self.values[(0x6071, 0)])))
+        slope = self.od_value(0x6087)
+        if mode == OperationMode.PROFILED_TORQUE and slope > 0:
+            period = self.od_value(0x60C2, 1) * 10.0 ** self.od_value(0x60C2, 2)
+            step = max(1, int(slope * period))
+            target = self._actual_pm + max(-step, min(step, target - self._actual_pm))
+        self._actual_pm = target
+
+    def applied_permille(self) -> int:
+        """Torque the power stage produces, per-mille of rated torque (set at each SYNC)."""
+        return self._actual_pm
 
     def joint_torque(self) -> float:
         """Torque at the joint, N m."""

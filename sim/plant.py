@@ -58,8 +58,8 @@ class Plant:
     """The simulated robot on ``network`` (a connected ``canopen.Network``).
 
     ``imu``: an object with ``publish(accel_sensor (3,), gyro_sensor (3,))`` (``sim.imu.SimulatedIMU``)
-    or None; ``noise``: sensor noise (IMU accel/gyro sigma, joint-rate sigma added before the
-    drives quantize); ``position_offsets``: each drive's 0x6064 at phi = 0 (counts).
+    or None; ``noise``: sensor noise (IMU accel/gyro sigma; joint angle and rate sigma added before
+    the drives and the encoder quantize); ``position_offsets``: each drive's 0x6064 at phi = 0 (counts).
     """
 
     def __init__(self, network: canopen.Network, config: RobotConfig, params: OtbotParams | None = None,
@@ -137,11 +137,12 @@ class Plant:
                 acc, gyro = self.imu_reading(x, u, f)
                 self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)
             rate_noise = self.noise.enc_rate * self.rng.standard_normal(3) if self.noise.enc_rate else np.zeros(3)
+            angle_noise = self.noise.enc_angle * self.rng.standard_normal(3) if self.noise.enc_angle else np.zeros(3)
             for j, d in enumerate(self.drives):
-                d.sample(x[3 + j], x[9 + j] + rate_noise[j])
+                d.sample(x[3 + j] + angle_noise[j], x[9 + j] + rate_noise[j])
                 d.send_tpdos()
             if self.encoder is not None:
-                self.encoder.sample(x[5])
+                self.encoder.sample(x[5] + angle_noise[2])
                 self.encoder.send_tpdos()
             if self.started:
                 self.truth.t.append(self.t)

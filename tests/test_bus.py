@@ -84,6 +84,19 @@ def test_profile_torque_used_where_cst_is_missing_and_no_torque_mode_is_an_error
         robot.write([1.0, 1.0, 1.0])
         robot.read()
         assert plant.drives[0].applied_permille() == 50
+    # Profile torque ramps at the torque slope 0x6087 (per-mille/s): 5000 per-mille/s = 50 per 10 ms.
+    cfg = CFG
+    with simulated_robot(cfg, with_imu=False, supported_modes=0x08) as (robot, plant):
+        for d in robot.drives:
+            d.sdo_write(0x6087, 0, 5000)
+        robot.enable()
+        got = []
+        for _ in range(5):
+            robot.write([4.0, 0.0, 0.0])  # 200 per-mille
+            s = robot.read()
+            got.append(plant.drives[0].applied_permille())
+        assert got == [50, 100, 150, 200, 200]
+        np.testing.assert_allclose(s.joint_torque[0], 4.0)  # 0x6077 torque actual
     with pytest.raises(DriverError, match="0x6502"):
         with simulated_robot(CFG, with_imu=False, supported_modes=0x01):
             pass
