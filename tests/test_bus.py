@@ -321,3 +321,28 @@ def test_slcan_adapter_protocol_and_bad_lines():
     finally:
         host.close()
         adapter.shutdown()
+
+
+def test_realtime_pacing_sends_one_sync_per_period():
+    """On a real bus ``read()`` paces SYNCs at the control rate (here against the simulated plant)."""
+    import time
+
+    import can
+
+    from sim.plant import VirtualPlant
+
+    cfg = CFG.replace_bus(channel="otbot-realtime-test")
+    with VirtualPlant(cfg) as plant:
+        robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), realtime=True)
+        with robot:
+            robot.open()
+            robot.enable()
+            t0 = time.monotonic()
+            stamps = []
+            for _ in range(11):
+                robot.write([0.0, 0.0, 0.0])
+                stamps.append(robot.read().host_time)
+            elapsed = time.monotonic() - t0
+        assert elapsed >= 10 * cfg.bus.period * 0.95
+        assert np.median(np.diff(stamps)) == pytest.approx(cfg.bus.period, abs=2e-3)
+        assert plant.k == 11 + 1  # the plant stepped once per SYNC (and once for disable on close)
