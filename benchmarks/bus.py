@@ -111,7 +111,7 @@ def main() -> None:
     if args.json:
         print(json.dumps({"rows": rows, "loadavg": load}))
         return
-    print(f"| setup | rate | wall p50 / p99 (ms) | CPU p50 / p99 (ms) | sim / wall |")
+    print("| setup | rate | wall p50 / p99 (ms) | CPU p50 / p99 (ms) | sim / wall |")
     print("|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['setup']} | {r['rate']:g} Hz | {r['wall_p50_ms']:.2f} / {r['wall_p99_ms']:.2f} | "

@@ -16,7 +16,6 @@ gear_ratio * per-mille / 1000 * rated torque (N m).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import canopen

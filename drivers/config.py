@@ -98,7 +98,7 @@ class RobotConfig:
     bus: BusConfig
     drives: tuple[DriveConfig, DriveConfig, DriveConfig]
     pivot_encoder: EncoderConfig
-    imu: "ImuConfig | None"  # drivers.imu.ImuConfig
+    imu: object | None  # drivers.imu.ImuConfig (the imu section), None without one
     limits: MotorLimits
     path: Path
 

@@ -19,7 +19,7 @@ import threading
 from pathlib import Path
 
 import canopen
-from canopen.profiles.p402 import OperationMode, State402
+from canopen.profiles.p402 import OperationMode
 from canopen.sdo import SdoAbortedError
 
 from drivers.config import DriveConfig, EncoderConfig

@@ -23,7 +23,6 @@ socketcan interface).
 from __future__ import annotations
 
 import json
-import math
 import sys
 import threading
 import uuid

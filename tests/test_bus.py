@@ -6,7 +6,6 @@ pseudo-terminal to a plant in another process) and real VectorNav sentences on a
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
 
@@ -286,7 +285,6 @@ def test_socketcan_transport_where_the_kernel_has_it():
 
 
 def test_slcan_adapter_protocol_and_bad_lines():
-    import os
     import time
 
     import serial
