@@ -35,7 +35,8 @@ def register(sub) -> None:
     p.add_argument("--rate", type=positive_float("--rate"), default=None,
                    help="control (SYNC) rate in Hz (default: bus.control_rate of the config)")
     p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor",
-                   help="simulated bench fixture (--bus sim): floor, stand (wheels free), locked (wheels held)")
+                   help="bench fixture: floor, stand (chassis held, wheels free), locked (chassis and wheels "
+                        "held); simulated with --bus sim, declared (recorded in the metadata) with --bus config")
     p.add_argument("--noise", choices=("paper", "none"), default="paper",
                    help="simulated sensor noise (--bus sim): the paper's IMU/encoder-rate sigmas, or none")
     p.add_argument("--seed", type=int, default=0, help="simulated noise seed (default 0)")
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> dict:
     meta = {"bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
             "nodes": {d.name: d.node_id for d in cfg.drives}, "config": str(cfg.path),
-            "pivot_source": cfg.pivot_encoder.source}
+            "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture}
     with_imu = cfg.imu is not None and not args.no_imu
     progress(f"[run] {args.bus} bus ({cfg.bus.interface}:{cfg.bus.channel}), tau = {tau} N m for "
              f"{args.duration:g} s at {cfg.bus.control_rate:g} Hz", not quiet)
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> dict:
             from sim.plant import simulated_robot
 
             noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
-            meta.update(fixture=args.fixture, noise=noise.to_dict(), seed=args.seed, source="bus-simulation")
+            meta.update(noise=noise.to_dict(), seed=args.seed, source="bus-simulation")
             with simulated_robot(cfg, with_imu=with_imu, fixture=args.fixture, noise=noise,
                                  seed=args.seed) as (robot, plant):
                 meta["params"] = plant.params.to_dict()
