@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> dict:
     meta = {"bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
             "nodes": {d.name: d.node_id for d in cfg.drives}, "config": str(cfg.path),
-            "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture}
+            "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture,
+            "source": "robot" if args.bus == "config" else "bus-simulation"}
     with_imu = cfg.imu is not None and not args.no_imu
     progress(f"[run] {args.bus} bus ({cfg.bus.interface}:{cfg.bus.channel}), tau = {tau} N m for "
              f"{args.duration:g} s at {cfg.bus.control_rate:g} Hz", not quiet)
@@ -107,7 +108,7 @@ def run(args: argparse.Namespace) -> dict:
             from sim.plant import simulated_robot
 
             noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
-            meta.update(noise=noise.to_dict(), seed=args.seed, source="bus-simulation")
+            meta.update(noise=noise.to_dict(), seed=args.seed)
             with simulated_robot(cfg, with_imu=with_imu, fixture=args.fixture, noise=noise,
                                  seed=args.seed) as (robot, plant):
                 meta["params"] = plant.params.to_dict()
