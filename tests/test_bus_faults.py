@@ -181,3 +181,27 @@ def test_encoder_emcy_and_a_rebooting_drive_are_faults():
         assert ("pivot_encoder", "emcy", 0x7320) in got
         nmt = [f for f in robot.faults if f.kind == "nmt"]
         assert nmt and nmt[0].device == "right_wheel" and "rebooted" in nmt[0].meaning
+
+
+def test_device_refusing_the_configuration_is_a_clear_boot_error(monkeypatch):
+    from dataclasses import replace
+
+    from drivers.faults import DriverError
+
+    # An SDO write the drive aborts (object not in its dictionary): named by index.
+    drives = tuple(replace(d, sdo_config=((0x2345, 0, 1),)) for d in CFG.drives)
+    with pytest.raises(DriverError, match=r"0x2345:00"):
+        with simulated_robot(replace(CFG, drives=drives), with_imu=False):
+            pass
+    # The drive's rated torque 0x6076 disagrees with the configuration.
+    from sim import plant as plant_mod
+
+    class WrongRated(plant_mod.SimulatedDrive):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            self.set_od(0x6076, 0, 1500)
+
+    monkeypatch.setattr(plant_mod, "SimulatedDrive", WrongRated)
+    with pytest.raises(DriverError, match=r"0x6076 = 1\.5 N m.*drives\.rated_torque"):
+        with simulated_robot(CFG, with_imu=False):
+            pass
