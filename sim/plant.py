@@ -224,7 +224,7 @@ def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, *
 def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = None, with_imu: bool = True,
           out=None, **plant_kwargs) -> None:
     """Run a plant in this process until stdin closes: ``transport`` "slcan" (adapter emulated on a
-    new pseudo-terminal) or "socketcan" (``channel``, e.g. vcan0). Prints one JSON line with
+    new pseudo-terminal) or "socketcan" (``channel``, default vcan0). Prints one JSON line with
     ``can_interface``, ``can_channel`` and ``imu_port`` for the master."""
     out = out or sys.stdout
     if transport == "slcan":
@@ -233,8 +233,8 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
         bus = SlcanAdapterBus()
         info = {"can_interface": "slcan", "can_channel": bus.port}
     elif transport == "socketcan":
-        bus = can.Bus(interface="socketcan", channel=channel or config.bus.channel)
-        info = {"can_interface": "socketcan", "can_channel": channel or config.bus.channel}
+        bus = can.Bus(interface="socketcan", channel=channel or "vcan0")
+        info = {"can_interface": "socketcan", "can_channel": channel or "vcan0"}
     else:
         raise ValueError(f"unknown transport {transport!r} (slcan, socketcan)")
     imu = None

@@ -50,7 +50,8 @@ def test_otbot_run_config_bus_without_a_robot_fails_cleanly(tmp_path, capsys):
     for eds in src.parent.glob("*.eds"):
         (tmp_path / eds.name).write_text(eds.read_text())
     try:
-        main(["run", "--bus", "config", "--config", str(cfg), "--no-imu", "--duration", "0.1", "--json"])
+        main(["run", "--bus", "config", "--config", str(cfg), "--interface", "virtual", "--channel", "nobody-here",
+              "--no-imu", "--duration", "0.1", "--json"])
     except SystemExit as exc:
         assert exc.code == 1
     else:

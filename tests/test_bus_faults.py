@@ -146,7 +146,7 @@ def _write_config(tmp_path: Path, old: str, new: str) -> Path:
     ("bitrate: {value: 1000000, unit: bit/s}", "bitrate: {value: 1000000, unit: kbit/s}", "bus.bitrate"),
     ("control_rate: {value: 100, unit: Hz}", "control_rate: {value: -5, unit: Hz}", "bus.control_rate"),
     ("source: encoder", "source: magic", "pivot_encoder.source"),
-    ("interface: virtual", "interface: carrier-pigeon", "bus.interface"),
+    ("interface: socketcan", "interface: carrier-pigeon", "bus.interface"),
     ("bus:\n", "bus_renamed:\n", "missing section 'bus'"),
 ])
 def test_bad_config_is_rejected_naming_the_key(tmp_path, old, new, key):

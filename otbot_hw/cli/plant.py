@@ -24,7 +24,7 @@ def register(sub) -> None:
                     "JSON line {can_interface, can_channel, imu_port}; stops when stdin closes. Units: SI.",
     )
     p.add_argument("--transport", choices=("slcan", "socketcan"), default="slcan")
-    p.add_argument("--channel", default=None, help="socketcan interface (default: bus.channel of the config)")
+    p.add_argument("--channel", default="vcan0", help="socketcan interface (default vcan0, a virtual CAN device)")
     p.add_argument("--config", type=Path, default=None, help="hardware configuration (default config/robot.yaml)")
     p.add_argument("--rate", type=positive_float("--rate"), default=None, help="control (SYNC) rate, Hz")
     p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor")

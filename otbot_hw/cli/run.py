@@ -81,7 +81,9 @@ def run(args: argparse.Namespace) -> dict:
     n = int(round(args.duration * cfg.bus.control_rate))
     if n < 1:
         raise CliError(f"--duration {args.duration} s is shorter than one control period ({cfg.bus.period:g} s)")
-    if args.bus == "config":
+    if args.bus == "sim":
+        cfg = cfg.replace_bus(interface="virtual", channel="otbot-sim")
+    else:
         import can
 
         if args.interface is not None and args.interface not in can.VALID_INTERFACES:
