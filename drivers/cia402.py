@@ -11,7 +11,8 @@ interpolation period (0x60C2) = control period, checks of 0x6076 (rated torque) 
 
 SI units at the API: joint angle phi = polarity * (counts - counts at zero) / (counts_per_rev *
 gear_ratio) * 2 pi rad, zeroed at the first TPDO after ``configure`` (the 32-bit counter is
-unwrapped, so wrap-around is invisible); joint rate in rad/s; joint torque tau = polarity *
+unwrapped, so wrap-around is invisible); joint rate in rad/s from 0x606C in the configured
+``drives.velocity_unit`` (counts/s or rpm variants, motor side); joint torque tau = polarity *
 gear_ratio * per-mille / 1000 * rated torque (N m).
 """
 from __future__ import annotations
@@ -151,7 +152,7 @@ class CiA402Drive(CanopenDevice):
         c = self.cfg
         sw = v.get(0x6041, 0)
         return DriveReading(position=c.polarity * self._pos_counts * c.rad_per_count,
-                            velocity=c.polarity * v.get(0x606C, 0) * c.rad_per_count,
+                            velocity=c.polarity * v.get(0x606C, 0) * c.rad_s_per_velocity_unit,
                             torque=self.permille_to_torque(v.get(0x6077, 0)), statusword=sw,
                             state=self.node.state, error_code=v.get(0x603F, 0), mode=v.get(0x6061, 0))
 

@@ -16,6 +16,7 @@ from otbot_hw.motors import DEFAULT_ROBOT_FILE, MOTORS, MotorLimits, load_motor_
 from otbot_hw.params import ParameterError
 
 JOINTS = MOTORS  # ("right_wheel", "left_wheel", "pivot"): order of u and of the joint angles
+VELOCITY_UNITS = ("counts/s", "rpm", "0.1 rpm", "0.001 rpm")  # of 0x606C, motor side
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,8 @@ class BusConfig:
 class DriveConfig:
     """One CiA 402 drive: node_id, EDS path, counts_per_rev (motor), gear_ratio, polarity (+1/-1),
     rated_torque (N m, motor side, 0x6076), heartbeat producer/consumer times (s), SDO writes,
-    max_torque (N m, joint side, from ``motors``)."""
+    max_torque (N m, joint side, from ``motors``), velocity_unit of 0x606C (motor side, one of
+    ``VELOCITY_UNITS``)."""
 
     name: str
     node_id: int
@@ -61,6 +63,14 @@ class DriveConfig:
     heartbeat_consumer: float
     sdo_config: tuple = ()
     max_torque: float = float("inf")
+    velocity_unit: str = "counts/s"
+
+    @property
+    def rad_s_per_velocity_unit(self) -> float:
+        """Joint rate (rad/s) of one unit of 0x606C (sign excluded)."""
+        motor = {"counts/s": 2 * np.pi / self.counts_per_rev, "rpm": 2 * np.pi / 60,
+                 "0.1 rpm": 2 * np.pi / 600, "0.001 rpm": 2 * np.pi / 60000}[self.velocity_unit]
+        return motor / self.gear_ratio
 
     @property
     def rad_per_count(self) -> float:
@@ -224,6 +234,9 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
         raise r.err("drives.heartbeat_consumer", f"({hb_c * 1000:g} ms) must exceed heartbeat_producer "
                                                  f"({hb_p * 1000:g} ms)")
     sdo = _sdo_list(r, d.get("sdo_config", []), "drives.sdo_config")
+    vunit = r.raw(d, "velocity_unit", "drives.velocity_unit", "counts/s")
+    if vunit not in VELOCITY_UNITS:
+        raise r.err("drives.velocity_unit", f"must be one of {', '.join(VELOCITY_UNITS)}, got {vunit!r}")
     drives = []
     for k, name in enumerate(JOINTS):
         j = r.section(d, f"drives.{name}")
@@ -232,7 +245,7 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
             gear_ratio=r.number(j, "gear_ratio", f"drives.{name}.gear_ratio", None),
             polarity=r.sign(j, "polarity", f"drives.{name}.polarity"), rated_torque=rated,
             heartbeat_producer=hb_p, heartbeat_consumer=hb_c, sdo_config=sdo,
-            max_torque=float(limits.max_torque[k])))
+            max_torque=float(limits.max_torque[k]), velocity_unit=vunit))
 
     e = r.section(data, "pivot_encoder")
     source = r.raw(e, "source", "pivot_encoder.source")

@@ -246,7 +246,8 @@ class SimulatedDrive(SimulatedNode):
 
     The plant reads ``joint_torque()`` (N m at the joint, after gear and polarity) and writes the
     joint angle and rate with ``sample(phi, phi_dot)``; 0x6064 is floor-quantized to motor counts
-    and wraps as an INTEGER32 (``position_offset`` counts at phi = 0), 0x606C is in counts/s.
+    and wraps as an INTEGER32 (``position_offset`` counts at phi = 0), 0x606C is rounded to the
+    configured velocity unit (counts/s by default).
     """
 
     def __init__(self, network: canopen.Network, cfg: DriveConfig, position_offset: int = 0,
@@ -377,7 +378,7 @@ class SimulatedDrive(SimulatedNode):
         per_rad = self.cfg.gear_ratio * self.cfg.counts_per_rev / (2 * math.pi)
         counts = math.floor(phi * per_rad + 1e-9)
         self.values[(0x6064, 0)] = wrap_int32(self.position_offset + self.cfg.polarity * counts)
-        self.values[(0x606C, 0)] = int(round(self.cfg.polarity * phi_dot * per_rad))
+        self.values[(0x606C, 0)] = int(round(self.cfg.polarity * phi_dot / self.cfg.rad_s_per_velocity_unit))
         self.values[(0x6077, 0)] = self.applied_permille()
         self._update_statusword()
 

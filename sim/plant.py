@@ -196,15 +196,28 @@ def open_sim_imu(config: RobotConfig):
 
 
 @contextmanager
-def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, **plant_kwargs):
+def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, tpdo_timeout: float | None = 1.0,
+                    heartbeat_consumer: float | None = 1.0, **plant_kwargs):
     """A ``CanopenRobot`` (opened: booted, configured, PDOs running) talking over python-can's
     ``virtual`` bus to a ``Plant`` in this process, with the simulated IMU on a pseudo-terminal.
 
     Yields (robot, plant). The virtual channel is made unique, so runs never hear each other.
+    ``tpdo_timeout`` and ``heartbeat_consumer`` (s) replace the configured ones: the run is in
+    lockstep, so nothing real-time is at stake and a busy machine must not trip the watchdogs;
+    None keeps the configuration's values (fault tests).
     """
+    from dataclasses import replace
+
     from drivers.robot import CanopenRobot
 
     config = config.replace_bus(interface="virtual", channel=f"otbot-sim-{uuid.uuid4().hex[:12]}")
+    if tpdo_timeout is not None:
+        config = config.replace_bus(tpdo_timeout=max(tpdo_timeout, config.bus.tpdo_timeout))
+    if heartbeat_consumer is not None:
+        config = replace(config, drives=tuple(replace(d, heartbeat_consumer=max(heartbeat_consumer, d.heartbeat_consumer))
+                                              for d in config.drives),
+                         pivot_encoder=replace(config.pivot_encoder, heartbeat_consumer=max(
+                             heartbeat_consumer, config.pivot_encoder.heartbeat_consumer)))
     pub = drv = None
     if with_imu and config.imu is not None:
         pub, drv = imu_pair if imu_pair is not None else open_sim_imu(config)

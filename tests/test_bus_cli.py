@@ -70,7 +70,10 @@ def test_otbot_run_against_an_otbot_plant_process(tmp_path, capsys):
 
     src = load_robot_config().path
     cfg = tmp_path / "robot.yaml"
-    cfg.write_text(src.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}"))
+    text = src.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}")
+    text = text.replace("tpdo_timeout: {value: 0.05, unit: s}", "tpdo_timeout: {value: 1.0, unit: s}")
+    text = text.replace("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}")
+    cfg.write_text(text)
     for eds in src.parent.glob("*.eds"):
         (tmp_path / eds.name).write_text(eds.read_text())
     code = "import sys; from otbot_hw.cli import main; sys.exit(main())"

@@ -54,7 +54,7 @@ def test_error_meanings():
 
 def test_silent_drive_trips_the_heartbeat_timeout_within_its_consumer_time():
     consumer = CFG.drives[2].heartbeat_consumer
-    with simulated_robot(CFG, with_imu=False) as (robot, plant):
+    with simulated_robot(CFG, with_imu=False, heartbeat_consumer=None) as (robot, plant):
         robot.enable()
         assert not robot.faults
         t0 = time.monotonic()
@@ -73,7 +73,7 @@ def test_silent_drive_trips_the_heartbeat_timeout_within_its_consumer_time():
 
 
 def test_missing_tpdos_raise_a_stale_data_fault():
-    with simulated_robot(CFG, with_imu=False) as (robot, plant):
+    with simulated_robot(CFG, with_imu=False, tpdo_timeout=None) as (robot, plant):
         robot.enable()
         robot.write([1.0, 1.0, 1.0])
         assert not robot.read().faults
