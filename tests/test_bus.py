@@ -368,7 +368,6 @@ def test_velocity_unit_of_the_drives_is_configurable():
     with simulated_robot(cfg, with_imu=False) as (robot, plant):
         res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (n, 1)), cfg.bus.period, truth=plant.truth)
         assert res.completed, res.faults
-        assert res.completed, res.faults
     qd = np.array(plant.truth.x)[:n + 1, 9:12]
     # 0.1 rpm at the motor = 2 pi / 600 / 10 rad/s at the joint: rounding error at most half of it.
     err = np.abs(res.recording.joint_vel - qd)
