@@ -147,13 +147,14 @@ class CanopenRobot(Robot):
     sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``).
 
     ``bus``: a python-can bus to use instead of opening ``config.bus``; ``imu_lockstep``: wait,
-    after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC).
+    after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC);
+    ``close_imu``: whether ``close()`` closes the IMU too.
     """
 
     MAX_ENABLE_CYCLES = 12
 
     def __init__(self, config: RobotConfig, bus=None, imu=None, imu_lockstep: bool = False,
-                 realtime: bool = False):
+                 realtime: bool = False, close_imu: bool = True):
         self.config = config
         self.period = config.bus.period
         self.network = canopen.Network(bus)
@@ -173,6 +174,7 @@ class CanopenRobot(Robot):
         if self.encoder:
             self.heartbeats.add(self.encoder.node_id, self.encoder.name, enc.heartbeat_consumer)
         self.imu = imu
+        self.close_imu = close_imu
         self.imu_lockstep = imu_lockstep
         self.imu_timeout = config.imu.timeout if config.imu else 0.5
         self.imu_rate = float(config.imu.rate_hz) if config.imu else 1.0 / self.period
@@ -233,7 +235,7 @@ class CanopenRobot(Robot):
                 dev.node.nmt.state = "PRE-OPERATIONAL"
         except Exception:  # bus already gone
             pass
-        if self.imu is not None and hasattr(self.imu, "close"):
+        if self.imu is not None and self.close_imu and hasattr(self.imu, "close"):
             self.imu.close()
         self.network.disconnect()
 

@@ -63,6 +63,7 @@ class SimulatedNode:
         self.drop_tpdos = False
         self.malformed = 0  # frames addressed to this node that were ignored (wrong length)
         self.tpdos_sent = 0
+        self.reset_listeners: list = []  # called with (node, application) after an NMT reset
 
     @property
     def node_id(self) -> int:
@@ -137,6 +138,8 @@ class SimulatedNode:
             self._sync_count = 0
             self._rpdo_pending.clear()
             self.on_reset(application)
+        for listener in self.reset_listeners:
+            listener(self, application)
 
     def keep_on_reset(self) -> set[int]:
         """Objects that model hardware (not configuration) and survive resets."""

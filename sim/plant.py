@@ -91,7 +91,15 @@ class Plant:
         self.truth = TruthLog()
         self.lock = threading.Lock()
         self._warm_up()
+        for n in self.nodes:
+            n.reset_listeners.append(self._on_node_reset)
         network.subscribe(0x80, self._on_sync)
+
+    def _on_node_reset(self, node, application: bool) -> None:
+        """A master (re)starting resets the nodes before its first SYNC: count SYNCs from there, so
+        the IMU's output ticks line up with the master's (``drivers.robot.imu_due``)."""
+        with self.lock:
+            self.syncs = 0
 
     def _warm_up(self) -> None:
         """Compile (or load from numba's cache) the model functions now, not inside the first SYNC."""

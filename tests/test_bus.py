@@ -372,3 +372,31 @@ def test_velocity_unit_of_the_drives_is_configurable():
     # 0.1 rpm at the motor = 2 pi / 600 / 10 rad/s at the joint: rounding error at most half of it.
     err = np.abs(res.recording.joint_vel - qd)
     assert err.max() <= 0.5 * 2 * np.pi / 6000 + 1e-12 and err.max() > 1e-5
+
+
+def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
+    """The plant keeps running between two masters; with the IMU at a tenth of the SYNC rate the
+    IMU ticks of the second master line up with the plant's because the node resets restart the count."""
+    import can
+
+    from drivers.robot import CanopenRobot
+    from sim.plant import VirtualPlant, open_sim_imu
+
+    cfg = lenient(CFG).replace_bus(channel="otbot-two-masters", control_rate=1000.0)
+    pub, drv = open_sim_imu(cfg)
+    try:
+        with VirtualPlant(cfg, imu=pub, noise=NoiseModel()) as plant:
+            for master in range(2):
+                robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), imu=drv,
+                                     imu_lockstep=True, close_imu=False)
+                robot.open()
+                robot.enable()
+                for _ in range(23 + 10 * master):
+                    robot.write([0.0, 0.0, 2.0])
+                    s = robot.read()
+                    assert not s.faults, s.faults
+                robot.close()
+            assert plant.k > 50
+    finally:
+        drv.close()
+        pub.close()
