@@ -23,7 +23,7 @@ checks Y pi against ``dynamics.inverse_dynamics``.
 
 ``estimate_body`` solves for one body's four parameters with everything else
 known, from the measured signals only: wheel and pivot encoder angles and rates
-(smoothed, Savitzky-Golay), IMU pivot acceleration (B'') for x_dd, y_dd, and the
+(smoothed, Savitzky-Golay), the smoothed IMU pivot acceleration (B'') for x_dd, y_dd, and the
 derivative of the smoothed encoder rates for the angular accelerations. Samples
 near a torque step are left out (the smoothing blurs the jump there).
 """
@@ -115,15 +115,20 @@ class MeasuredMotion:
     usable: np.ndarray
 
 
-def motion_from_sensors(rec, l1: float, l2: float, r: float, window: int = 15) -> MeasuredMotion:
-    """Reconstruct (q, q_d, q_dd) of a floor run from encoders and IMU (see the module docstring)."""
+def motion_from_sensors(rec, l1: float, l2: float, r: float, window: float = 0.5) -> MeasuredMotion:
+    """Reconstruct (q, q_d, q_dd) of a floor run from encoders and IMU (see the module docstring).
+
+    ``window``: Savitzky-Golay smoothing window in s (cubic; the noise in the
+    differentiated encoder rates biases the linear estimate, a wide window keeps it small).
+    """
     if rec.joint_pos is None or rec.joint_vel is None:
         raise IdentificationError("equation-error start needs the joint encoders (topic /otbot/joints)")
     if rec.imu_accel is None:
         raise IdentificationError("equation-error start needs the IMU (topic /otbot/imu)")
     n = len(rec.t)
     dt = float(np.median(np.diff(rec.t)))
-    w = min(window, n - (1 - n % 2))
+    w = int(round(window / dt)) | 1
+    w = min(w, n if n % 2 else n - 1)
     if w < 5:
         raise IdentificationError(f"equation-error start needs at least 5 samples, got {n}")
     phi = np.asarray(rec.joint_pos, dtype=float)
@@ -143,7 +148,7 @@ def motion_from_sensors(rec, l1: float, l2: float, r: float, window: int = 15) -
     qd[:, 2] = thd + phid[:, 2]
     qd[:, 3:] = phid
     qdd = np.zeros((n, 6))
-    a = np.asarray(rec.imu_accel, dtype=float)
+    a = savgol_filter(np.asarray(rec.imu_accel, dtype=float), w, 3, axis=0)
     ca, sa = np.cos(alpha), np.sin(alpha)
     qdd[:, 0] = ca * a[:, 0] - sa * a[:, 1]
     qdd[:, 1] = sa * a[:, 0] + ca * a[:, 1]

@@ -82,8 +82,8 @@ class Experiment:
     sigma_source: dict[str, str] = field(default_factory=dict)
     noise_floor: dict[str, float] = field(default_factory=dict)
     metadata: dict[str, Any] = field(default_factory=dict)
-    #: summary of the motion for diagnostics: pivot_rate (largest |phi_p_dot|, rad/s, 0 when
-    #: not measured) and moved (largest peak-to-peak of a fitted channel in units of 10 sigma)
+    #: summary of the motion for diagnostics: pivot_range (peak-to-peak of the pivot encoder
+    #: angle phi_p, rad, 0 when not measured) and moved (largest peak-to-peak of a fitted channel in units of 10 sigma)
     motion: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -207,10 +207,10 @@ class Experiment:
                 truth = OtbotParams.from_dict(meta["params"], source="recording metadata")
             except ParameterError:
                 truth = None
-        motion = {"pivot_rate": 0.0}
-        if rec.joint_vel is not None:
-            w = np.asarray(rec.joint_vel, dtype=float)[keep, 2]
-            motion["pivot_rate"] = float(np.nanmax(np.abs(w))) if np.isfinite(w).any() else 0.0
+        motion = {"pivot_range": 0.0}
+        if rec.joint_pos is not None:
+            phi = np.asarray(rec.joint_pos, dtype=float)[keep, 2]
+            motion["pivot_range"] = float(np.nanmax(phi) - np.nanmin(phi)) if np.isfinite(phi).any() else 0.0
         return cls(name=name, t=t - t[0], torque=torque, measured=measured, sigma=sig, x0=x0, fixture=fx,
                    truth_params=truth, sigma_source=src, noise_floor=floors, motion=motion,
                    metadata={k: meta[k] for k in ("experiment", "seed", "source") if k in meta})

@@ -67,7 +67,7 @@ def explain_unidentifiable(names: list[str], experiments: Sequence[Experiment]) 
     held = [e for e in experiments if e.fixture != "floor"]
     platform = {"m_p", "x_F", "y_F", "I_p"}
     chassis = {"m_c", "I_c", "x_B", "y_B"}
-    pivot_still = all(np.all(np.abs(e.torque[:, 2]) < 1e-9) and e.motion.get("pivot_rate", 0.0) < 1e-3
+    pivot_still = all(np.all(np.abs(e.torque[:, 2]) < 1e-9) and e.motion.get("pivot_range", 0.0) < 0.01
                       for e in experiments)
     if set(names) & {"x_F", "y_F", "I_p"} and pivot_still:
         return "the platform never rotated relative to the chassis (no pivot torque, no pivot motion)"
