@@ -197,7 +197,7 @@ def test_cli_pivot_reports_I_p0_and_guess_by_symbol(capsys):
     assert main(["identify", "pivot", "--sim", "--guess", "I_p0=1.5", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert set(d["parameters"]) == {"I_p0", "b_p"}
-    assert d["guess"]["I_p0"] == 1.5 or d["attempts"][0]["guess"]["I_p0"] == 1.5
+    assert d["start"]["I_p0"] == 1.5 and d["attempts"][0]["guess"]["I_p0"] == 1.5
 
 
 def test_cli_bad_input_exits_2(tmp_path, capsys, robot):

@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> dict:
     plots = write_plots(out / "chassis", rec, params, "Chassis experiment")
     result = {"chassis_experiment": {"recording": str(path), "plots": plots,
                                      "final_q": rec.truth_q[-1].tolist(), "final_qd": rec.truth_qd[-1].tolist()}}
+    progress("[demo] identification: chassis parameters (step 2) from the recording", not quiet)
+    from otbot_hw.identification.steps import demo_stage
+    result["identification"] = demo_stage(rec, params, out, quiet)
     if not quiet:
         print(f"[demo] recording: {path}")
         for p in plots:

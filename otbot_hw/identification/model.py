@@ -29,6 +29,8 @@ phi_p
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from numba import njit
 
@@ -41,7 +43,7 @@ CHANNEL_UNITS: dict[str, str] = {"a_x": "m/s^2", "a_y": "m/s^2", "omega_z": "rad
                                  "w_l": "rad/s", "w_p": "rad/s", "phi_r": "rad", "phi_l": "rad", "phi_p": "rad"}
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def outputs_from_states(X, U, F, prm, fixture):
     """Sensor outputs (n, 9) in ``CHANNELS`` order for states X (n, 12) under held U (n, 3), F (n, 2)."""
     n = X.shape[0]
@@ -60,7 +62,7 @@ def outputs_from_states(X, U, F, prm, fixture):
     return Y
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def predict_batch(x0, U, F, dt, substeps, P, fixture):
     """Outputs (m, n, 9) for each parameter row of P (m, 14); U (n, 3), F (n, 2) held per sample.
 
@@ -76,6 +78,27 @@ def predict_batch(x0, U, F, dt, substeps, P, fixture):
     return out
 
 
+_THREADS = [min(2, os.cpu_count() or 1)]
+_POOL: list = [None]
+
+
+def set_prediction_threads(n: int) -> None:
+    """Threads that simulate the rows of a batch side by side (default min(2, CPUs)).
+
+    The compiled kernel releases the GIL, so a batch (the Jacobian columns) is split
+    over plain threads. Set 1 inside worker processes that already fill the CPUs.
+    """
+    _THREADS[0] = max(1, int(n))
+
+
+def _pool(n: int):
+    from concurrent.futures import ThreadPoolExecutor
+
+    if _POOL[0] is None or _POOL[0]._max_workers != n:
+        _POOL[0] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="otbot-predict")
+    return _POOL[0]
+
+
 class OtbotModel:
     """The paper's rigid-body model (parameters ``PARAM_NAMES``), fast compiled prediction."""
 
@@ -85,5 +108,11 @@ class OtbotModel:
     def predict(self, thetas: np.ndarray, experiment) -> np.ndarray:
         """Predicted outputs (m, n_samples, 9) for parameter rows ``thetas`` (m, 14)."""
         P = np.ascontiguousarray(np.atleast_2d(thetas), dtype=float)
-        return predict_batch(experiment.x0, experiment.torque, experiment.forces, experiment.dt,
-                             experiment.substeps, P, experiment.fixture_code)
+        args = (experiment.x0, experiment.torque, experiment.forces, experiment.dt, experiment.substeps)
+        code = experiment.fixture_code
+        n = min(_THREADS[0], len(P))
+        if n <= 1:
+            return predict_batch(*args, P, code)
+        parts = np.array_split(np.arange(len(P)), n)
+        futs = [_pool(n).submit(predict_batch, *args, np.ascontiguousarray(P[idx]), code) for idx in parts]
+        return np.concatenate([f.result() for f in futs], axis=0)

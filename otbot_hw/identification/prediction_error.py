@@ -236,7 +236,8 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
                    scale: Mapping[str, float] | None = None, noise: str = "residuals",
                    jacobian: str = "forward", max_nfev: int = 200, residual_tolerance: float | None = 1.5,
                    explain: Callable[[list[str], Sequence], str | None] | None = None,
-                   check_identifiability: bool = True, tol: float = 1e-10) -> FitResult:
+                   check_identifiability: bool = True, tol: float = 1e-10,
+                   covariance_jacobian: str = "forward") -> FitResult:
     """Estimate ``free`` parameters of ``model`` from ``experiments`` by prediction-error minimization.
 
     model: has ``names``, ``channels``, ``predict(thetas, experiment)``;
@@ -245,8 +246,8 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
     guess: start for the free parameters (default: base values); bounds/scale per name
     (defaults ``DEFAULT_BOUNDS`` / ``TYPICAL_SCALE``; names the defaults do not know need both);
     noise: "residuals" (estimate each channel's noise variance from its residuals) or "given";
-    jacobian: "forward" or "central" finite differences during the iterations (the reported
-    covariance always uses central differences); residual_tolerance: largest residual RMS /
+    jacobian: "forward" or "central" finite differences during the iterations, and
+    covariance_jacobian for the reported covariance at the estimate; residual_tolerance: largest residual RMS /
     sigma accepted as converged (None: do not test); explain(names, experiments) -> why those
     parameters cannot be identified (for the error message).
     """
@@ -300,16 +301,24 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
         raise IdentificationError(f"{n_res} measured values cannot determine {len(free)} parameters: "
                                   "recording too short or too few channels")
     prob = ResidualProblem(model, experiments, free, theta_base, sc, lower, upper, jacobian)
-    if check_identifiability:
-        groups = rank_check(prob.jac(z0, "central"), free)
-        if groups:
-            msg, involved = _unidentifiable_message(groups, experiments, explain)
-            raise NotIdentifiableError(msg, involved)
-    sol = least_squares(prob.residuals, z0, jac=prob.jac, bounds=(lower, upper), x_scale=sc, method="trf",
+    first = [True]
+
+    def jac(z: np.ndarray) -> np.ndarray:
+        J = prob.jac(z)
+        if first[0] and check_identifiability:
+            # structural identifiability, checked on the first Jacobian (at the guess)
+            first[0] = False
+            groups = rank_check(J, free)
+            if groups:
+                msg, involved = _unidentifiable_message(groups, experiments, explain)
+                raise NotIdentifiableError(msg, involved)
+        return J
+
+    sol = least_squares(prob.residuals, z0, jac=jac, bounds=(lower, upper), x_scale=sc, method="trf",
                         max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol)
     z = sol.x
     r = prob.residuals(z)
-    J = prob.jac(z, "central")
+    J = prob.jac(z, covariance_jacobian)
     groups = rank_check(J, free) if check_identifiability else []
     # per-channel residual statistics and noise estimates
     preds = prob.predictions(z)

@@ -24,7 +24,8 @@ def step_to_dict(res, crb: dict[str, float] | None = None) -> dict[str, Any]:
     """JSON-ready result of a ``StepResult``.
 
     Keys: step, converged, parameters ({symbol: {value, std}}, null unless converged),
-    fit_percent ({experiment/channel: %}), correlation, guess, reasons, attempts,
+    fit_percent ({experiment/channel: %}), correlation, start (of the reported fit), reasons,
+    attempts (every start tried),
     and with a known truth: truth, error, error_sigma (and cramer_rao_std when given).
     """
     fit = res.fit
@@ -40,7 +41,7 @@ def step_to_dict(res, crb: dict[str, float] | None = None) -> dict[str, Any]:
         "residual_ratio": {k: _num(v) for k, v in fit.residual_ratio.items()},
         "correlation": {"names": [sym(n) for n in fit.names],
                         "matrix": [[_num(v) for v in row] for row in fit.correlation]},
-        "guess": {sym(n): fit.guess[n] for n in fit.names},
+        "start": {sym(n): fit.guess[n] for n in fit.names},
         "units": {sym(n): UNITS[n] for n in fit.names},
         "reasons": list(res.reasons) + ([] if res.converged else list(fit.reasons)),
         "attempts": [_clean_attempt(a, sym) for a in res.attempts],
@@ -75,7 +76,7 @@ def step_table(res, crb: dict[str, float] | None = None) -> str:
     sym = res.symbol
     lines = [f"step {res.step} ({res.spec.description}): "
              + ("converged" if res.converged else "NOT CONVERGED")]
-    head = f"{'param':<6} {'estimate':>12} {'std':>10} {'guess':>11}"
+    head = f"{'param':<6} {'estimate':>12} {'std':>10} {'start':>11}"
     if res.truth is not None:
         head += f" {'truth':>11} {'error':>11} {'err/std':>8}"
     if crb is not None:

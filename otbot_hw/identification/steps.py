@@ -213,3 +213,24 @@ def identify_simulated(step: str, truth: OtbotParams, base: OtbotParams | None =
 
     rec = simulate_experiment(step, truth, seed=seed, noise=noise)
     return identify_step(step, [rec], base or truth, guess=guess, global_start=global_start, truth=truth, **kw)
+
+
+def demo_stage(recording, params: OtbotParams, out_dir, quiet: bool = False) -> dict[str, Any]:
+    """``otbot demo``'s identification stage: step 2 (chassis) on the demo recording.
+
+    Runs the step's pipeline (equation-error start, then the paper's guess 54.57 kg,
+    0.65 kg m^2, -0.07 m, 0.25 m if needed), writes the fitting plot and returns the
+    JSON summary (estimates, std, truth, fit percent).
+    """
+    from pathlib import Path
+
+    from otbot_hw.identification.report import plot_fit, step_table, step_to_dict
+
+    res = identify_step("chassis", [recording], params, truth=params)
+    out = step_to_dict(res)
+    out["plots"] = plot_fit(Path(out_dir) / "identification", res)
+    if not quiet:
+        print(step_table(res))
+        for p in out["plots"]:
+            print(f"[demo] plot: {p}")
+    return out

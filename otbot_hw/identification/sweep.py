@@ -24,8 +24,10 @@ def sweep_task(task: dict[str, Any]) -> list[dict[str, Any]]:
     """Identify step 3 from every deviation of ``task`` on one simulated experiment (runs on a worker)."""
     from otbot_hw.identification.errors import IdentificationError
     from otbot_hw.identification.experiments import deviation_guess, simulate_experiment
+    from otbot_hw.identification.model import set_prediction_threads
     from otbot_hw.identification.steps import identify_step
 
+    set_prediction_threads(task.get("threads", 1))
     truth = OtbotParams.from_dict(task["truth"], source="sweep truth")
     base = OtbotParams.from_dict(task["base"], source="sweep base")
     rec = simulate_experiment("platform", truth, seed=task["seed"])
