@@ -250,3 +250,25 @@ def test_sweep_gives_the_same_points_on_every_executor(robot):
             dask = run_sweep(truth, devs, seeds, ex, block=1)
             assert "dask" in ex.describe()
     assert _strip(local["points"]) == _strip(serial["points"]) == _strip(dask["points"])
+
+
+@pytest.mark.parametrize("step", ["wheel", "chassis"])
+def test_recording_with_only_what_a_real_robot_logs(step, robot):
+    """No truth, no noise metadata: sigma comes from the data's noise floor, x0 from the encoders."""
+    rec = simulate_experiment(step, robot, seed=21)
+    for k in ("noise", "source", "params", "seed", "initial_state"):
+        rec.metadata.pop(k, None)
+    rec.truth_q = rec.truth_qd = rec.truth_force = None
+    res = identify_step(step, [rec], robot)
+    assert res.converged and res.truth is None
+    assert all(s.startswith("noise floor") for s in res.experiments[0].sigma_source.values())
+    for n in res.fit.names:
+        assert abs(res.fit.estimate[n] - getattr(robot, n)) <= 4 * res.fit.std[n]
+
+
+def test_noise_floor_measures_white_noise_on_a_smooth_signal(rng):
+    from otbot_hw.identification.experiment import noise_floor
+
+    t = np.linspace(0, 3, 301)
+    y = 1.5 * np.sin(2.1 * t) + 0.3 * t ** 2 + 0.02 * rng.standard_normal(len(t))
+    assert noise_floor(y) == pytest.approx(0.02, rel=0.2)

@@ -17,7 +17,7 @@ Initial state x0 (12,) = (q, q_dot):
 
 Noise per channel (sigma, same unit as the channel), used as residual weights:
 given explicitly > the recording's ``noise`` metadata > the data-driven noise
-floor 1.4826 MAD(second differences) / sqrt(6), which measures white sensor noise
+floor 1.4826 MAD(fourth differences) / sqrt(70), which measures white sensor noise
 on any smooth signal sampled fast enough.
 """
 from __future__ import annotations
@@ -52,12 +52,17 @@ MAX_JITTER = 0.01  # largest allowed relative deviation of a sample interval fro
 
 
 def noise_floor(y: np.ndarray) -> float:
-    """White-noise sigma of a smooth signal from its second differences (robust MAD estimate)."""
-    d2 = np.diff(np.asarray(y, dtype=float), 2)
-    if len(d2) < 3:
+    """White-noise sigma of a smooth signal from its fourth differences (robust MAD estimate).
+
+    The fourth difference of white noise has variance 70 sigma^2, while that of a
+    signal sampled well above its bandwidth is nearly zero; the median absolute
+    deviation ignores the few samples next to steps.
+    """
+    d4 = np.diff(np.asarray(y, dtype=float), 4)
+    if len(d4) < 5:
         return float("nan")
-    mad = np.median(np.abs(d2 - np.median(d2)))
-    return float(1.4826 * mad / math.sqrt(6.0))
+    mad = np.median(np.abs(d4 - np.median(d4)))
+    return float(1.4826 * mad / math.sqrt(70.0))
 
 
 @dataclass

@@ -14,7 +14,8 @@ Reported like MATLAB's nlgreyest/getpvec/compare:
   taken as given (``noise="given"``);
 * correlation matrix; fit percent per channel, 100 (1 - ||y - y^| / ||y - mean y||);
 * convergence: the optimizer's status, no estimate stopped on a bound, and every
-  channel's residual RMS within ``residual_tolerance`` times its noise sigma (a
+  channel's residual RMS within ``residual_tolerance`` times its noise sigma (widened
+  by 1 + 2.5/sqrt(n) when sigma is the data's own noise-floor estimate) (a
   local minimum that does not explain the data to the noise floor is reported as
   not converged, never as an answer);
 * identifiability: the Jacobian is checked for rank at the start and at the end;
@@ -365,10 +366,15 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
         if upper[i] - z[i] <= tol_b[i] and upper[i] < np.inf:
             reasons.append(f"{n} stopped at its upper bound {upper[i]:g}")
     if residual_tolerance is not None:
-        for key, v in ratio.items():
-            if not v <= residual_tolerance:
-                reasons.append(f"{key}: residual RMS is {v:.2f} x the noise sigma {sig_used[key]:.3g} "
-                               f"(limit {residual_tolerance:g}): a local minimum or a model that misses physics")
+        for e in experiments:
+            for c in e.channels:
+                key = f"{e.name}/{c}"
+                lim = residual_tolerance
+                if e.sigma_source.get(c, "").startswith("noise floor"):
+                    lim *= 1.0 + 2.5 / math.sqrt(len(e))  # the floor itself is an estimate
+                if not ratio[key] <= lim:
+                    reasons.append(f"{key}: residual RMS is {ratio[key]:.2f} x the noise sigma {sig_used[key]:.3g} "
+                                   f"(limit {lim:.2f}): a local minimum or a model that misses physics")
     if check_identifiability and not groups:
         typical = np.array([max(abs(z[i]), TYPICAL_SCALE.get(n, 0.0)) for i, n in enumerate(free)])
         loose = [n for i, n in enumerate(free) if not std[i] <= PRACTICAL_STD * typical[i]]
