@@ -82,7 +82,8 @@ class Experiment:
     x0: np.ndarray
     fixture: str = "floor"
     forces: np.ndarray | None = None
-    substeps: int = 0
+    substeps: int = 0  # RK4 steps per interval; 0: chosen by the fitter from the noise level
+    auto_substeps: bool = False
     truth_params: OtbotParams | None = None
     sigma_source: dict[str, str] = field(default_factory=dict)
     noise_floor: dict[str, float] = field(default_factory=dict)
@@ -104,7 +105,10 @@ class Experiment:
         if self.fixture not in FIXTURES:
             raise IdentificationError(f"{self.name}: unknown fixture '{self.fixture}' (known: {', '.join(FIXTURES)})")
         if not self.substeps:
+            # RK4 steps per sample interval: the simulator's safe default until the fitter
+            # tunes it to the noise (``prediction_error.tune_substeps``)
             self.substeps = default_substeps(self.dt, self.fixture)
+            self.auto_substeps = True
         for c in self.measured:
             if c not in CHANNELS:
                 raise IdentificationError(f"{self.name}: unknown channel '{c}' (known: {', '.join(CHANNELS)})")

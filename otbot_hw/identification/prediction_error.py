@@ -47,6 +47,7 @@ TYPICAL_SCALE: dict[str, float] = {
     "m_p": 10.0, "I_p": 0.1, "x_F": 0.05, "y_F": 0.05, "I_a": 1e-3, "b_w": 0.01, "b_p": 0.01,
 }
 
+INTEGRATION_TOL = 1e-3  # largest integration error allowed in any output, in units of its noise sigma
 RANK_TOL = 1e-5  # smallest singular value of the column-normalized Jacobian, relative
 PRACTICAL_STD = 10.0  # std above this many times max(|value|, typical scale): not identifiable in practice
 
@@ -202,6 +203,35 @@ class ResidualProblem:
         return np.concatenate(cols, axis=1).T
 
 
+def integration_error(model, e, theta: np.ndarray, substeps: int) -> float:
+    """Largest |y(substeps) - y(2 substeps)| / sigma over the fitted channels of experiment e."""
+    cols = np.array([list(model.channels).index(c) for c in e.channels], dtype=int)
+    sig = np.array([e.sigma[c] for c in e.channels])
+    old = e.substeps
+    try:
+        e.substeps = substeps
+        y1 = model.predict(theta[None, :], e)[0][:, cols]
+        e.substeps = 2 * substeps
+        y2 = model.predict(theta[None, :], e)[0][:, cols]
+    finally:
+        e.substeps = old
+    err = np.abs(y1 - y2) / sig
+    return float(np.max(err)) if np.all(np.isfinite(err)) else float("inf")
+
+
+def tune_substeps(model, e, theta: np.ndarray, tol: float = INTEGRATION_TOL, max_substeps: int = 256) -> int:
+    """Fewest RK4 steps per sample interval whose integration error stays below ``tol`` sigma.
+
+    The error of RK4 with s steps is estimated by comparing with 2 s steps (it is
+    16/15 of that difference); s doubles from ``e.substeps // 8`` (at least 1).
+    """
+    s = max(1, e.substeps // 8) if e.auto_substeps else e.substeps
+    while s < max_substeps and integration_error(model, e, theta, s) > tol:
+        s *= 2
+    e.substeps = s
+    return s
+
+
 def rank_check(J: np.ndarray, names: Sequence[str], tol: float = RANK_TOL) -> list[list[str]]:
     """Groups of parameters whose Jacobian columns are zero or linearly dependent (empty: full rank)."""
     norms = np.linalg.norm(J, axis=0)
@@ -238,7 +268,8 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
                    jacobian: str = "forward", max_nfev: int = 200, residual_tolerance: float | None = 1.5,
                    explain: Callable[[list[str], Sequence], str | None] | None = None,
                    check_identifiability: bool = True, tol: float = 1e-10,
-                   covariance_jacobian: str = "forward") -> FitResult:
+                   covariance_jacobian: str = "forward",
+                   integration_tol: float | None = INTEGRATION_TOL) -> FitResult:
     """Estimate ``free`` parameters of ``model`` from ``experiments`` by prediction-error minimization.
 
     model: has ``names``, ``channels``, ``predict(thetas, experiment)``;
@@ -249,7 +280,10 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
     noise: "residuals" (estimate each channel's noise variance from its residuals) or "given";
     jacobian: "forward" or "central" finite differences during the iterations, and
     covariance_jacobian for the reported covariance at the estimate; residual_tolerance: largest residual RMS /
-    sigma accepted as converged (None: do not test); explain(names, experiments) -> why those
+    sigma accepted as converged (None: do not test); integration_tol: for experiments whose
+    ``substeps`` is automatic, the RK4 step is the longest whose integration error stays
+    below this many noise sigmas in every output (checked at the guess and at the estimate;
+    None keeps the simulator's default step); explain(names, experiments) -> why those
     parameters cannot be identified (for the error message).
     """
     t0 = time.perf_counter()
@@ -301,6 +335,12 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
     if n_res <= len(free):
         raise IdentificationError(f"{n_res} measured values cannot determine {len(free)} parameters: "
                                   "recording too short or too few channels")
+    if integration_tol is not None:
+        th0 = theta_base.copy()
+        th0[[list(model.names).index(n) for n in free]] = z0
+        for e in experiments:
+            if e.auto_substeps:
+                tune_substeps(model, e, th0, integration_tol)
     prob = ResidualProblem(model, experiments, free, theta_base, sc, lower, upper, jacobian)
     first = [True]
 
@@ -318,6 +358,17 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
     sol = least_squares(prob.residuals, z0, jac=jac, bounds=(lower, upper), x_scale=sc, method="trf",
                         max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol)
     z = sol.x
+    if integration_tol is not None:
+        # the step tuned at the guess must also be fine at the estimate; if not, refine and refit
+        th = prob.theta(z)
+        finer = [e for e in experiments if e.auto_substeps and integration_error(model, e, th, e.substeps) > integration_tol]
+        if finer:
+            for e in finer:
+                tune_substeps(model, e, th, integration_tol)
+            prob._cache_z = None
+            sol = least_squares(prob.residuals, z, jac=jac, bounds=(lower, upper), x_scale=sc, method="trf",
+                                max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol)
+            z = sol.x
     r = prob.residuals(z)
     J = prob.jac(z, covariance_jacobian)
     groups = rank_check(J, free) if check_identifiability else []
