@@ -12,7 +12,8 @@ Run: ``.venv/bin/python benchmarks/identification_accuracy.py [--seeds 30] [--sw
    0.45 m), unloaded truth and large off-centre true load, our pipeline and, for
    comparison, a single TRF fit from the guess: converged fraction and, among the
    converged points, the fraction within 4 sigma of the truth (a convergence claim
-   that is wrong would show there).
+   that is wrong would show there). The guessed load is moved at 45 degrees (like the
+   paper) or, in the last rows, in a direction spread over 360 degrees across seeds.
 
 Prints markdown tables (used in docs/identification.md).
 """
@@ -124,11 +125,15 @@ def main() -> None:
         print("| true platform | method | fits | converged | converged and within 4 sigma | wall time |")
         print("|---|---|---|---|---|---|")
         for label, truth in (("unloaded", robot), ("300 kg at (0.3, -0.2) m", heavy)):
-            for method, gs, nseeds in (("pipeline", True, args.sweep_seeds), ("single TRF fit", False, args.plain_seeds)):
+            for method, gs, nseeds, spread in (("pipeline", True, args.sweep_seeds, False),
+                                               ("single TRF fit", False, args.plain_seeds, False),
+                                               ("single TRF fit, guess directions over 360 deg", False,
+                                                args.plain_seeds, True)):
                 if nseeds <= 0:
                     continue
                 t0 = time.perf_counter()
-                res = run_sweep(truth, devs, range(nseeds), ex, base=robot, global_start=gs)
+                res = run_sweep(truth, devs, range(nseeds), ex, base=robot, global_start=gs,
+                                spread_directions=spread)
                 wall = time.perf_counter() - t0
                 pts = res["points"]
                 conv = [p for p in pts if p["converged"]]
@@ -139,7 +144,8 @@ def main() -> None:
                 out["sweeps"][key] = {"summary": res["summary"], "wall_time": wall,
                                       "within_4_sigma_of_converged": len(good) / max(1, len(conv))}
                 if args.plot:
-                    slug = ("unloaded" if truth is robot else "loaded") + ("" if gs else "_single_fit")
+                    slug = (("unloaded" if truth is robot else "loaded") + ("" if gs else "_single_fit")
+                            + ("_spread" if spread else ""))
                     out["sweeps"][key]["plots"] = plot_sweep(args.plot / slug, res)
     print(f"\ntotal {time.perf_counter() - t_start:.0f} s", file=sys.stderr)
     if args.json:

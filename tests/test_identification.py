@@ -272,3 +272,14 @@ def test_noise_floor_measures_white_noise_on_a_smooth_signal(rng):
     t = np.linspace(0, 3, 301)
     y = 1.5 * np.sin(2.1 * t) + 0.3 * t ** 2 + 0.02 * rng.standard_normal(len(t))
     assert noise_floor(y) == pytest.approx(0.02, rel=0.2)
+
+
+def test_cli_sweep_json(capsys, tmp_path):
+    from otbot_hw.cli import main
+
+    assert main(["sweep", "--points", "2", "--seeds", "1", "--workers", "1", "--json", "--plot", str(tmp_path)]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["fits"] == 2 and d["summary"]["converged_fraction"] == 1.0
+    assert {p["deviation"] for p in d["points"]} == {0.5, 1.0}
+    assert len(d["plots"]) == 2
+    assert main(["sweep", "--points", "0"]) == 2

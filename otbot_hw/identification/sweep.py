@@ -35,7 +35,7 @@ def sweep_task(task: dict[str, Any]) -> list[dict[str, Any]]:
     for d in task["deviations"]:
         t0 = time.perf_counter()
         guess = deviation_guess("platform", truth, d, angle=task.get("angle", math.pi / 4))
-        point: dict[str, Any] = {"deviation": d, "seed": task["seed"], "guess": guess}
+        point: dict[str, Any] = {"deviation": d, "seed": task["seed"], "angle": task.get("angle"), "guess": guess}
         try:
             res = identify_step("platform", [rec], base, guess=guess, global_start=task["global_start"],
                                 truth=truth)
@@ -62,20 +62,25 @@ def deviation_grid(max_deviation: float = 1.0, points: int = 40) -> list[float]:
 
 def run_sweep(truth: OtbotParams, deviations: Sequence[float], seeds: Sequence[int],
               executor: Executor | None = None, base: OtbotParams | None = None, global_start: bool = True,
-              block: int = 10, progress=None, angle: float = math.pi / 4) -> dict[str, Any]:
+              block: int = 10, progress=None, angle: float = math.pi / 4,
+              spread_directions: bool = False) -> dict[str, Any]:
     """Run the sweep; returns JSON-ready ``{points, summary, wall_time, executor, ...}``.
 
     truth: the simulated robot (e.g. ``nominal().with_load(...)``); base: known
-    parameters for the fit (default ``truth``); block: deviations per work item.
+    parameters for the fit (default ``truth``); block: deviations per work item; angle:
+    direction (rad, platform frame) in which the guessed load is moved, or, with
+    ``spread_directions``, seed i of n uses 2 pi i / n.
     """
     executor = executor or SerialExecutor()
     base = base or truth
     devs = [float(d) for d in deviations]
     tasks = []
-    for s in seeds:
+    seeds = list(seeds)
+    for j, s in enumerate(seeds):
+        a = 2 * math.pi * j / len(seeds) if spread_directions else angle
         for i in range(0, len(devs), block):
             tasks.append({"truth": truth.to_dict(), "base": base.to_dict(), "seed": int(s),
-                          "deviations": devs[i:i + block], "global_start": global_start, "angle": angle})
+                          "deviations": devs[i:i + block], "global_start": global_start, "angle": a})
     t0 = time.perf_counter()
     chunks = executor.map(sweep_task, tasks, progress=progress)
     wall = time.perf_counter() - t0
