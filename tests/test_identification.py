@@ -283,3 +283,21 @@ def test_cli_sweep_json(capsys, tmp_path):
     assert {p["deviation"] for p in d["points"]} == {0.5, 1.0}
     assert len(d["plots"]) == 2
     assert main(["sweep", "--points", "0"]) == 2
+
+
+def test_cli_non_convergence_exits_1_and_writes_nothing(tmp_path, capsys, robot):
+    from otbot_hw.cli import main
+    from otbot_hw.recording import write_recording
+
+    rec_path = tmp_path / "platform.mcap"
+    write_recording(rec_path, simulate_experiment("platform", robot, seed=3))
+    wrong = tmp_path / "wrong.yaml"
+    robot.replace(m_c=80.0).save(wrong)
+    out = tmp_path / "out.yaml"
+    with pytest.raises(SystemExit) as exc:
+        main(["identify", "platform", "--recording", str(rec_path), "--params", str(wrong), "--json",
+              "--out", str(out)])
+    assert exc.value.code == 1
+    d = json.loads(capsys.readouterr().out)
+    assert d["converged"] is False and d["parameters"] is None and d["reasons"]
+    assert not out.exists()
