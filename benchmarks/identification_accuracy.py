@@ -91,7 +91,6 @@ def random_starts(out: dict, n_truths: int, n_guesses: int) -> None:
         exps = experiments_from_recordings("platform", [rec], robot)
         prob = ResidualProblem(model, exps, free, full_vector(model, robot), np.ones(4), lo, hi)
         ref = identify_step("platform", [rec], robot, guess=deviation_guess("platform", truth, 0.0))
-        zt = np.array([ref.fit.estimate[n] for n in free])
         sd = np.array([ref.fit.std[n] for n in free])
         for _ in range(n_guesses):
             g = deviation_guess("platform", truth, rng.uniform(0.25, 1.0), angle=rng.uniform(0, 2 * np.pi))

@@ -91,6 +91,13 @@ def set_prediction_threads(n: int) -> None:
     _THREADS[0] = max(1, int(n))
 
 
+def _forget_pool() -> None:
+    _POOL[0] = None  # a forked child has none of the parent's threads
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
 def _pool(n: int):
     from concurrent.futures import ThreadPoolExecutor
 

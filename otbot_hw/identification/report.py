@@ -10,7 +10,6 @@ import math
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from otbot_hw.identification.model import CHANNEL_UNITS
 from otbot_hw.params import UNITS

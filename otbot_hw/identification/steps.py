@@ -23,7 +23,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from otbot_hw.identification.errors import IdentificationError, NotIdentifiableError
+from otbot_hw.identification.errors import IdentificationError
 from otbot_hw.identification.experiment import Experiment
 from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, STEPS, ExperimentSpec, paper_guess
 from otbot_hw.identification.model import OtbotModel
