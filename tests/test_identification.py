@@ -301,3 +301,13 @@ def test_cli_non_convergence_exits_1_and_writes_nothing(tmp_path, capsys, robot)
     d = json.loads(capsys.readouterr().out)
     assert d["converged"] is False and d["parameters"] is None and d["reasons"]
     assert not out.exists()
+
+
+def test_given_noise_sets_the_reported_sigma(robot):
+    e = Experiment.from_recording(simulate_experiment("pivot", robot, seed=2), ["w_p"])
+    a = fit_parameters(OtbotModel(), [e], ["I_p", "b_p"], robot, sigma={"w_p": 0.01}, noise="given")
+    b = fit_parameters(OtbotModel(), [e], ["I_p", "b_p"], robot, sigma={"w_p": 0.02}, noise="given")
+    assert b.std["I_p"] == pytest.approx(2 * a.std["I_p"], rel=1e-3)
+    assert a.estimate["I_p"] == pytest.approx(b.estimate["I_p"], rel=1e-6)
+    with pytest.raises(IdentificationError, match="sigma of channel w_p"):
+        fit_parameters(OtbotModel(), [e], ["I_p"], robot, sigma={"w_p": -1.0})

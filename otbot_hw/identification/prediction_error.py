@@ -269,7 +269,8 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
                    explain: Callable[[list[str], Sequence], str | None] | None = None,
                    check_identifiability: bool = True, tol: float = 1e-10,
                    covariance_jacobian: str = "forward",
-                   integration_tol: float | None = INTEGRATION_TOL) -> FitResult:
+                   integration_tol: float | None = INTEGRATION_TOL,
+                   sigma: Mapping[str, float] | None = None) -> FitResult:
     """Estimate ``free`` parameters of ``model`` from ``experiments`` by prediction-error minimization.
 
     model: has ``names``, ``channels``, ``predict(thetas, experiment)``;
@@ -283,13 +284,24 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
     sigma accepted as converged (None: do not test); integration_tol: for experiments whose
     ``substeps`` is automatic, the RK4 step is the longest whose integration error stays
     below this many noise sigmas in every output (checked at the guess and at the estimate;
-    None keeps the simulator's default step); explain(names, experiments) -> why those
+    None keeps the simulator's default step); sigma: per-channel noise sigma overriding the
+    experiments' own (the residual weights, and the noise for ``noise="given"``); explain(names, experiments) -> why those
     parameters cannot be identified (for the error message).
     """
     t0 = time.perf_counter()
     experiments = list(experiments)
     if not experiments:
         raise IdentificationError("no experiment to fit")
+    if sigma:
+        import copy
+
+        for c, v in sigma.items():
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise IdentificationError(f"sigma of channel {c} must be a finite number > 0, got {v!r}")
+        experiments = [copy.copy(e) for e in experiments]
+        for e in experiments:
+            e.sigma = {c: float(sigma.get(c, e.sigma[c])) for c in e.channels}
+            e.sigma_source = {c: "given" if c in sigma else e.sigma_source.get(c, "") for c in e.channels}
     free = list(free)
     if not free:
         raise IdentificationError("no free parameter to estimate")
