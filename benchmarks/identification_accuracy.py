@@ -69,6 +69,8 @@ def crb_for(step: str, truth: OtbotParams) -> dict[str, float]:
 
 def random_starts(out: dict, n_truths: int, n_guesses: int) -> None:
     """Section 3: plain scipy TRF vs our pipeline from random guesses on random loads."""
+    if n_truths <= 0 or n_guesses <= 0:
+        return
     from scipy.optimize import least_squares
 
     from otbot_hw.identification.experiments import deviation_guess, simulate_experiment
