@@ -311,3 +311,18 @@ def test_given_noise_sets_the_reported_sigma(robot):
     assert a.estimate["I_p"] == pytest.approx(b.estimate["I_p"], rel=1e-6)
     with pytest.raises(IdentificationError, match="sigma of channel w_p"):
         fit_parameters(OtbotModel(), [e], ["I_p"], robot, sigma={"w_p": -1.0})
+
+
+def test_more_bad_input(robot):
+    rec = simulate_experiment("chassis", robot, seed=0)
+    rec.t = rec.t.copy()
+    rec.t[50:] += 0.004  # a 40 % longer interval
+    with pytest.raises(IdentificationError, match="sample intervals vary"):
+        identify_step("chassis", [rec], robot)
+    rec = simulate_experiment("chassis", robot, seed=0)
+    rec.imu_accel = rec.imu_gyro = None
+    with pytest.raises(IdentificationError, match="needs topic /otbot/imu"):
+        identify_step("chassis", [rec], robot)
+    left = simulated_recording(robot, np.tile([0.0, 6.0, 0.0], (50, 1)), 0.01, NoiseModel.paper(), fixture="stand")
+    with pytest.raises(NotIdentifiableError, match="right wheel, whose encoder is fitted, was never driven"):
+        identify_step("wheel", [left], robot)

@@ -75,8 +75,14 @@ def explain_unidentifiable(names: list[str], experiments: Sequence[Experiment]) 
         fx = held[0].fixture
         return (f"on the '{fx}' fixture the chassis is held, so only the platform's inertia about the pivot "
                 "I_p + m_p (x_F^2 + y_F^2) and b_p act on the outputs")
-    if set(names) & {"I_a", "b_w"} and all(np.all(np.abs(e.torque[:, :2]) < 1e-9) for e in experiments):
-        return "the wheels were never driven (tau_r = tau_l = 0)"
+    if set(names) & {"I_a", "b_w"}:
+        wheels = {"w_r": (0, "right", "tau_r"), "w_l": (1, "left", "tau_l")}
+        idle = [wheels[c] for e in experiments for c in e.channels if c in wheels
+                and np.all(np.abs(e.torque[:, wheels[c][0]]) < 1e-9)]
+        fitted = [c for e in experiments for c in e.channels if c in wheels]
+        if fitted and len(idle) == len(fitted):
+            side, tau = idle[0][1], idle[0][2]
+            return f"the {side} wheel, whose encoder is fitted, was never driven ({tau} = 0)"
     if all(e.motion.get("moved", 1.0) < 1e-6 for e in experiments):
         return "the measured outputs never changed: the robot did not move"
     return None
