@@ -326,3 +326,20 @@ def test_more_bad_input(robot):
     left = simulated_recording(robot, np.tile([0.0, 6.0, 0.0], (50, 1)), 0.01, NoiseModel.paper(), fixture="stand")
     with pytest.raises(NotIdentifiableError, match="right wheel, whose encoder is fitted, was never driven"):
         identify_step("wheel", [left], robot)
+
+
+def test_run_that_does_not_start_at_rest(robot):
+    """x0 from the first encoder samples: a chassis run recorded from t = 1 s is still identified."""
+    from otbot_hw.identification.experiment import initial_state
+
+    full = simulate_experiment("chassis", robot, seed=6)
+    k = 100
+    cut = type(full)(t=full.t[k:] - full.t[k], torque=full.torque[k:], joint_pos=full.joint_pos[k:],
+                     joint_vel=full.joint_vel[k:], imu_accel=full.imu_accel[k:], imu_gyro=full.imu_gyro[k:],
+                     metadata={"fixture": "floor", "noise": full.metadata["noise"]})
+    x0 = initial_state(cut, "floor", geometry=robot)
+    assert np.allclose(x0[9:], full.truth_qd[k, 3:], atol=0.025)  # 3 x (2/3 of the 0.01 rad/s noise)
+    res = identify_step("chassis", [cut], robot, t_max=None)
+    assert res.converged
+    for n in res.fit.names:
+        assert abs(res.fit.estimate[n] - getattr(robot, n)) <= 4 * res.fit.std[n]
