@@ -338,7 +338,7 @@ def test_run_that_does_not_start_at_rest(robot):
                      joint_vel=full.joint_vel[k:], imu_accel=full.imu_accel[k:], imu_gyro=full.imu_gyro[k:],
                      metadata={"fixture": "floor", "noise": full.metadata["noise"]})
     x0 = initial_state(cut, "floor", geometry=robot)
-    assert np.allclose(x0[9:], full.truth_qd[k, 3:], atol=0.025)  # 3 x (2/3 of the 0.01 rad/s noise)
+    assert np.allclose(x0[9:], full.truth_qd[k, 3:], atol=0.04)  # encoder noise 0.01 rad/s
     res = identify_step("chassis", [cut], robot, t_max=None)
     assert res.converged
     for n in res.fit.names:

@@ -10,14 +10,13 @@ Initial state x0 (12,) = (q, q_dot):
     sample (zeros without encoders). The outputs do not depend on where the pivot
     is or which way the platform points (the dynamics are invariant to planar
     rigid motions and the IMU reads in B''), so x = y = alpha = 0 loses nothing.
-  * q_dot0: at rest (zeros) when the encoder rates at t_0 are all below
+  * q_dot0: at rest (zeros) when the first sample's encoder rates are all below
     ``rest_threshold`` (default 0.05 rad/s, five times the paper's encoder noise)
     or when there are no encoders; otherwise those rates mapped through the
-    kinematics of the fixture (floor: q_dot = Delta(q) phi_dot). The rates at t_0
-    come from a quadratic fitted to the first 20 samples (up to the first torque
-    change), which brings the encoder noise down to about 2/3. The velocity is not
-    refined by the fit: a run that starts moving is fitted with that small error in
-    x0 (starting recordings at rest avoids it).
+    kinematics of the fixture (floor: q_dot = Delta(q) phi_dot). The velocity is
+    not refined by the fit (smoothing over the first samples would be biased by the
+    fast start of a free wheel): a run that starts moving is fitted with the encoder
+    noise of one sample in x0; recordings that start at rest avoid it.
 
 Noise per channel (sigma, same unit as the channel), used as residual weights:
 given explicitly > the recording's ``noise`` metadata > the data-driven noise
@@ -229,22 +228,6 @@ class Experiment:
                    metadata={k: meta[k] for k in ("experiment", "seed", "source") if k in meta})
 
 
-def first_rates(t: np.ndarray, rates: np.ndarray, torque: np.ndarray, window: int = 20) -> np.ndarray:
-    """Joint rates (3,) at t_0: a quadratic fitted to the first ``window`` samples, shortened
-    to the samples before the first torque change (noise about 2/3 of one sample's)."""
-    n = min(window, len(t))
-    U = np.asarray(torque, dtype=float)[:n]
-    changes = np.nonzero(np.any(np.abs(np.diff(U, axis=0)) > 1e-9, axis=1))[0]
-    if len(changes):
-        n = max(1, int(changes[0]) + 1)
-    if n < 4 or not np.all(np.isfinite(rates[:n])):
-        return rates[0].copy()
-    tt = t[:n] - t[0]
-    A = np.vander(tt, 3)
-    coef, *_ = np.linalg.lstsq(A, rates[:n], rcond=None)
-    return coef[-1].copy()
-
-
 def initial_state(rec, fixture: str, rest_threshold: float = REST_THRESHOLD,
                   geometry: OtbotParams | None = None) -> np.ndarray:
     """x0 (12,) from the first sample's encoders, as described in the module docstring."""
@@ -256,7 +239,7 @@ def initial_state(rec, fixture: str, rest_threshold: float = REST_THRESHOLD,
         x0[3:6] = rec.joint_pos[0]
     if rec.joint_vel is None or not np.all(np.isfinite(rec.joint_vel[0])):
         return x0
-    w = first_rates(np.asarray(rec.t, dtype=float), np.asarray(rec.joint_vel, dtype=float), rec.torque)
+    w = np.asarray(rec.joint_vel[0], dtype=float)
     if np.all(np.abs(w) < rest_threshold):
         return x0
     if fixture == "floor":
