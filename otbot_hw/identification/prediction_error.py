@@ -273,20 +273,24 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
                    sigma: Mapping[str, float] | None = None) -> FitResult:
     """Estimate ``free`` parameters of ``model`` from ``experiments`` by prediction-error minimization.
 
-    model: has ``names``, ``channels``, ``predict(thetas, experiment)``;
-    experiments: ``Experiment`` objects (measured channels, sigma weights, x0, torques);
-    base: full parameter set (mapping / ``OtbotParams`` / vector) giving the fixed values;
-    guess: start for the free parameters (default: base values); bounds/scale per name
-    (defaults ``DEFAULT_BOUNDS`` / ``TYPICAL_SCALE``; names the defaults do not know need both);
-    noise: "residuals" (estimate each channel's noise variance from its residuals) or "given";
-    jacobian: "forward" or "central" finite differences during the iterations, and
-    covariance_jacobian for the reported covariance at the estimate; residual_tolerance: largest residual RMS /
-    sigma accepted as converged (None: do not test); integration_tol: for experiments whose
-    ``substeps`` is automatic, the RK4 step is the longest whose integration error stays
-    below this many noise sigmas in every output (checked at the guess and at the estimate;
-    None keeps the simulator's default step); sigma: per-channel noise sigma overriding the
-    experiments' own (the residual weights, and the noise for ``noise="given"``); explain(names, experiments) -> why those
-    parameters cannot be identified (for the error message).
+    model: has ``names``, ``channels``, ``predict(thetas, experiment)``.
+    experiments: ``Experiment`` objects (measured channels, sigma weights, x0, torques).
+    base: full parameter set (mapping / ``OtbotParams`` / vector) giving the fixed values.
+    guess: start of the free parameters (default: their base values).
+    bounds, scale: per name (defaults ``DEFAULT_BOUNDS`` / ``TYPICAL_SCALE``; names the
+        defaults do not know need both).
+    noise: "residuals" (each channel's noise variance estimated from its residuals) or
+        "given" (the experiments' sigma, or ``sigma``).
+    jacobian: "forward" or "central" differences during the iterations;
+        covariance_jacobian: the same for the reported covariance.
+    residual_tolerance: largest residual RMS / sigma accepted as converged (None: no test).
+    integration_tol: for experiments with automatic ``substeps``, the RK4 step is the
+        longest whose integration error stays below this many sigmas in every output
+        (checked at the guess and at the estimate; None: the simulator's default step).
+    sigma: per-channel noise sigma overriding the experiments' own.
+    explain(names, experiments) -> why those parameters cannot be identified (message).
+    Raises ``IdentificationError`` for bad input, ``NotIdentifiableError`` for a
+    rank-deficient Jacobian (at the guess, or at a fit that explains the data).
     """
     t0 = time.perf_counter()
     experiments = list(experiments)
