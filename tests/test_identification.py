@@ -135,6 +135,7 @@ def test_generic_fitter_takes_extra_effect_parameters(robot):
     assert abs(f.estimate["m_c"] - robot.m_c) < 4 * f.std["m_c"]
     nominal_only = fit_parameters(OtbotModel(), [e], ["m_c"], robot, guess={"m_c": 80.0})
     assert not nominal_only.converged  # the bias leaves residuals above the noise
+    assert f.aic < nominal_only.aic - 10 and f.bic < nominal_only.bic - 10
 
 
 # --- bad input -----------------------------------------------------------------------------

@@ -80,7 +80,26 @@ class FitResult:
     simulations: int
     wall_time: float
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    samples: dict[str, int] = field(default_factory=dict)  # samples per experiment/channel
     predicted: list[dict[str, np.ndarray]] = field(default_factory=list, repr=False)
+
+    @property
+    def log_likelihood(self) -> float:
+        """Gaussian log-likelihood with each channel's noise variance at its ML value (RMS^2)."""
+        return sum(-0.5 * self.samples[k] * (math.log(2 * math.pi * max(rms, 1e-300) ** 2) + 1.0)
+                   for k, rms in self.residual_rms.items())
+
+    @property
+    def aic(self) -> float:
+        """Akaike information criterion 2k - 2 log L (k = free parameters + one variance per channel)."""
+        k = len(self.names) + len(self.residual_rms)
+        return 2 * k - 2 * self.log_likelihood
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion k ln(n) - 2 log L."""
+        k = len(self.names) + len(self.residual_rms)
+        return k * math.log(self.n_residuals) - 2 * self.log_likelihood
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (no arrays of samples)."""
@@ -92,6 +111,7 @@ class FitResult:
             "residual_rms": dict(self.residual_rms),
             "residual_ratio": dict(self.residual_ratio),
             "cost": self.cost, "n_residuals": self.n_residuals, "chi2_pvalue": self.chi2_pvalue,
+            "aic": self.aic, "bic": self.bic,
             "converged": self.converged, "message": self.message, "reasons": list(self.reasons),
             "nfev": self.nfev, "njev": self.njev, "simulations": self.simulations, "wall_time": self.wall_time,
         }
@@ -460,7 +480,8 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
         sigma_estimated=sig_est, residual_ratio=ratio, cost=float(0.5 * chi2), n_residuals=n_res,
         chi2_pvalue=pval, converged=not reasons, optimizer_status=int(sol.status), message=str(sol.message),
         reasons=reasons, nfev=int(sol.nfev), njev=int(sol.njev or 0), simulations=prob.simulations,
-        wall_time=time.perf_counter() - t0, bounds=bnd, predicted=predicted)
+        wall_time=time.perf_counter() - t0, bounds=bnd, predicted=predicted,
+        samples={f"{e.name}/{c}": len(e) for e in experiments for c in e.channels})
 
 
 def cramer_rao_std(model, experiments: Sequence, free: Sequence[str], theta: Any,
