@@ -344,3 +344,28 @@ def test_run_that_does_not_start_at_rest(robot):
     assert res.converged
     for n in res.fit.names:
         assert abs(res.fit.estimate[n] - getattr(robot, n)) <= 4 * res.fit.std[n]
+
+
+def test_initial_rates_fitted_with_the_parameters(robot):
+    """InitialRates wraps the model so a run that starts moving also gets its x0 velocity fitted."""
+    from otbot_hw.identification.initial_state import InitialRates
+
+    full = simulate_experiment("chassis", robot, seed=6)
+    k = 100
+    cut = type(full)(t=full.t[k:] - full.t[k], torque=full.torque[k:], joint_pos=full.joint_pos[k:],
+                     joint_vel=full.joint_vel[k:], imu_accel=full.imu_accel[k:], imu_gyro=full.imu_gyro[k:],
+                     metadata={"fixture": "floor", "noise": full.metadata["noise"]})
+    e = Experiment.from_recording(cut, ["a_x", "a_y", "omega_z", "w_r", "w_l", "w_p"], name="run", geometry=robot)
+    e.x0[9:12] += 0.3  # a start 0.3 rad/s off on every joint
+    model = InitialRates(OtbotModel(), [e])
+    bounds, scale = model.bounds_and_scale()
+    free = ["m_c", "I_c", "x_B", "y_B", *model.rate_names]
+    f = fit_parameters(model, [e], free, {**robot.values(), **model.initial_values([e])}, bounds=bounds,
+                       scale=scale, guess={"m_c": 90.0})
+    assert f.converged
+    for j, name in enumerate(model.rate_names):
+        assert abs(f.estimate[name] - full.truth_qd[k, 3 + j]) <= 4 * f.std[name]
+    for n in ("m_c", "I_c", "x_B", "y_B"):
+        assert abs(f.estimate[n] - getattr(robot, n)) <= 4 * f.std[n]
+    plain = fit_parameters(OtbotModel(), [e], ["m_c", "I_c", "x_B", "y_B"], robot, guess={"m_c": 90.0})
+    assert not plain.converged  # the wrong start leaves residuals above the noise
