@@ -54,13 +54,16 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
     result = {"chassis_experiment": {"recording": str(path), "plots": plots,
                                      "final_q": rec.truth_q[-1].tolist(), "final_qd": rec.truth_qd[-1].tolist()}}
-    from otbot_hw.cli.run import bus_demo
-    result["bus_run"] = bus_demo(out, args.seed, quiet, reference=rec)
     if not quiet:
         print(f"[demo] recording: {path}")
         for p in plots:
             print(f"[demo] plot: {p}")
         print("[demo] final q = " + ", ".join(f"{v:.4f}" for v in rec.truth_q[-1]))
+    progress("[demo] identification: chassis parameters (step 2) from the recording", not quiet)
+    from otbot_hw.identification.steps import demo_stage
+    result["identification"] = demo_stage(rec, params, out, quiet)
+    from otbot_hw.cli.run import bus_demo
+    result["bus_run"] = bus_demo(out, args.seed, quiet, reference=rec)
     result["corridor"] = _corridor(out, params, quiet)
     return result
 

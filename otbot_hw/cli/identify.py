@@ -1,0 +1,147 @@
+"""``otbot identify``: one step of the paper's three-step grey-box identification (§4)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
+
+STEP_HELP = ("wheel: I_a, b_w (robot on a stand, right wheel driven); pivot: I_p0, b_p (wheels locked, "
+             "platform driven); chassis: m_c, I_c, x_B, y_B (unloaded robot on the floor); platform: "
+             "m_p, I_p, x_F, y_F (loaded robot on the floor, steps 1-2 known)")
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "identify",
+        help="identify dynamic parameters (one step of the paper's three) from a recording or a simulation",
+        description="Prediction-error identification of Otbot's parameters (paper §4). Units: kg, m, "
+                    "kg m^2, N m s/rad. Reports each estimate with its standard deviation, the correlation "
+                    "matrix and the fit percent per channel; with --sim also the truth, the error and the "
+                    "error in sigmas. Steps: " + STEP_HELP + ". Exit code 1 when the fit does not converge "
+                    "(nothing is written), 2 on bad input.",
+    )
+    p.add_argument("step", choices=["wheel", "pivot", "chassis", "platform"], help="identification step")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--recording", type=Path, action="append", metavar="FILE",
+                     help="MCAP recording of the step's experiment (repeat to fit several)")
+    src.add_argument("--sim", action="store_true",
+                     help="simulate the paper's experiment for the step (noise at the paper's levels)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed of the simulation (default 0)")
+    p.add_argument("--load", default=None, metavar="KG@X,Y[,I]",
+                   help="with --sim: a load of KG kg at (X, Y) m in the platform frame (own inertia I kg m^2)")
+    p.add_argument("--guess", action="append", default=[], metavar="NAME=VALUE",
+                   help="initial guess of a parameter (paper symbol, SI units); repeatable")
+    p.add_argument("--deviation", type=float, default=None, metavar="PCT",
+                   help="initial guess PCT %% away from the truth (--sim) or from --params: step 3 guesses a "
+                        "load of PCT %% of 500 kg at PCT %% of 0.45 m; other steps scale by (1 - PCT/100)")
+    p.add_argument("--params", type=Path, default=None,
+                   help="known parameters (YAML; default config/otbot.yaml), the robot simulated by --sim")
+    p.add_argument("--local-only", action="store_true",
+                   help="a single fit from the guess (the paper's method); default also tries the "
+                        "equation-error start and spread starts")
+    p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write fitting plots (PNG) into DIR")
+    p.add_argument("--out", type=Path, default=None, metavar="PARAMS.YAML",
+                   help="write the full parameter set with the identified values and their std")
+    add_json_flag(p)
+    p.set_defaults(func=run)
+
+
+def parse_load(text: str | None):
+    """'KG@X,Y[,I]' -> (mass, x, y, inertia) or None."""
+    if not text:
+        return None
+    if "@" not in text:
+        raise CliError(f"--load must look like KG@X,Y or KG@X,Y,I, got {text!r}")
+    kg, pos = text.split("@", 1)
+    mass = parse_vector(kg, 1, "--load mass")[0]
+    parts = pos.split(",")
+    vals = parse_vector(pos, len(parts), "--load position") if len(parts) in (2, 3) else None
+    if vals is None:
+        raise CliError(f"--load position needs X,Y or X,Y,I, got {pos!r}")
+    if mass < 0:
+        raise CliError(f"--load mass must be >= 0 kg, got {mass}")
+    inertia = vals[2] if len(vals) == 3 else 0.0
+    return mass, vals[0], vals[1], inertia
+
+
+def parse_guesses(items: list[str], step: str) -> dict[str, float]:
+    from otbot_hw.identification.experiments import PAPER_EXPERIMENTS
+
+    spec = PAPER_EXPERIMENTS[step]
+    by_symbol = {spec.symbol(n): n for n in spec.free}
+    out = {}
+    for it in items:
+        if "=" not in it:
+            raise CliError(f"--guess must be NAME=VALUE, got {it!r}")
+        name, val = it.split("=", 1)
+        name = name.strip()
+        if name not in by_symbol:
+            raise CliError(f"--guess {name}: step {step} estimates {', '.join(by_symbol)}")
+        out[by_symbol[name]] = parse_vector(val, 1, f"--guess {name}")[0]
+    return out
+
+
+def run(args: argparse.Namespace) -> dict:
+    from otbot_hw.identification.errors import IdentificationError
+    from otbot_hw.identification.experiments import deviation_guess, simulate_experiment
+    from otbot_hw.identification.model import OtbotModel
+    from otbot_hw.identification.prediction_error import cramer_rao_std
+    from otbot_hw.identification.report import plot_fit, step_table, step_to_dict
+    from otbot_hw.identification.steps import identify_step
+    from otbot_hw.params import OtbotParams, ParameterError
+    from otbot_hw.recording import read_recording
+
+    quiet = args.json
+    base = OtbotParams.load(args.params)
+    guess = parse_guesses(args.guess, args.step)
+    load = parse_load(args.load)
+    if load and not args.sim:
+        raise CliError("--load places a load on the simulated robot: use it with --sim")
+    if args.deviation is not None and not (0 <= args.deviation <= 1000):
+        raise CliError(f"--deviation must be a percentage in [0, 1000], got {args.deviation}")
+    truth = None
+    if args.sim:
+        try:
+            truth = base.with_load(*load) if load else base
+        except ParameterError as exc:
+            raise CliError(f"--load: {exc}") from None
+        progress(f"[identify] simulating the {args.step} experiment (seed {args.seed})", not quiet)
+        recs = [simulate_experiment(args.step, truth, seed=args.seed)]
+    else:
+        recs = [read_recording(p) for p in args.recording]
+    if args.deviation is not None:
+        dev = deviation_guess(args.step, truth or base, args.deviation / 100.0)
+        guess = {**dev, **guess}
+    progress(f"[identify] fitting step {args.step}", not quiet)
+    try:
+        res = identify_step(args.step, recs, base, guess=guess or None, global_start=not args.local_only,
+                            truth=truth)
+    except IdentificationError as exc:
+        raise CliError(str(exc)) from None
+    crb = None
+    true_params = truth or next((e.truth_params for e in res.experiments if e.truth_params is not None), None)
+    if true_params is not None:
+        crb = cramer_rao_std(OtbotModel(), res.experiments, res.fit.names, true_params)
+    out = step_to_dict(res, crb)
+    out["source"] = "simulation" if args.sim else [str(p) for p in args.recording]
+    if args.plot:
+        out["plots"] = plot_fit(args.plot, res)
+    if res.converged and args.out:
+        res.params.save(args.out, header=f"Identified by `otbot identify {args.step}` (step {args.step}); "
+                                         "std = one standard deviation from the Jacobian")
+        out["params_file"] = str(args.out)
+    if not quiet:
+        print(step_table(res, crb))
+        for p in out.get("plots", []):
+            print(f"plot: {p}")
+        if "params_file" in out:
+            print(f"parameters written to {out['params_file']}")
+    if not res.converged:
+        if quiet:
+            print(json.dumps(out, allow_nan=False))
+        print(f"otbot identify: the fit did not converge: {'; '.join(out['reasons'])}", file=sys.stderr)
+        raise SystemExit(1)
+    return out
