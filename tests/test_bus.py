@@ -175,10 +175,9 @@ def test_pivot_angle_from_the_pivot_drive_when_configured():
 def test_bus_recording_matches_the_pure_simulation_recording(tmp_path):
     """The paper's chassis experiment over the bus, IMU on a pty, streamed to MCAP, read back:
     sample by sample equal to ``simulated_recording`` up to encoder quantization, IMU noise
-    (sigma from the paper) and the VectorNav ASCII format's resolution.
-
-    TODO(lead, identification): once the ``ident`` package is merged, fit the chassis
-    parameters from this recording and assert the same recovery as from the pure-simulation one.
+    (sigma from the paper) and the VectorNav ASCII format's resolution. Then the chassis
+    identification (paper step 2) on the bus recording recovers the parameters as well as on a
+    pure-simulation recording with the same noise level.
     """
     n, dt = 300, 0.01
     u = np.tile([6.0, -10.0, 6.0], (n, 1))
@@ -204,6 +203,19 @@ def test_bus_recording_matches_the_pure_simulation_recording(tmp_path):
         assert np.all(np.abs(r.mean(axis=0)) < 4 * sigma / np.sqrt(len(r)) + 1e-3)
         assert np.all(np.abs(r.std(axis=0) / sigma - 1) < 0.15)
     assert bus.metadata["experiment"] == "chassis" and bus.metadata["source"] == "bus"
+    # Chassis identification end-to-end over the bus, against the same fit on a pure simulation.
+    from otbot_hw.identification.steps import identify_step
+
+    truth = nominal()
+    noisy = simulated_recording(truth, u, dt, NoiseModel.paper(), seed=3)
+    fits = {name: identify_step("chassis", [rec], truth) for name, rec in (("bus", bus), ("pure", noisy))}
+    for name, res in fits.items():
+        assert res.converged, (name, res.reasons)
+        for p in ("m_c", "I_c", "x_B", "y_B"):
+            err = res.fit.estimate[p] - getattr(truth, p)
+            assert abs(err) < 4 * res.fit.std[p], (name, p, err, res.fit.std[p])
+    for p in ("m_c", "I_c", "x_B", "y_B"):  # equally informative: same reported uncertainty
+        assert fits["bus"].fit.std[p] == pytest.approx(fits["pure"].fit.std[p], rel=0.25), p
 
 
 def test_torque_limits_clamp_and_report():
