@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from otbot_hw.motors import DEFAULT_ROBOT_FILE, MOTORS, MotorLimits, load_motor_limits
-from otbot_hw.params import ParameterError
+from otbot_hw.params import ParameterError, read_yaml
 
 JOINTS = MOTORS  # ("right_wheel", "left_wheel", "pivot"): order of u and of the joint angles
 VELOCITY_UNITS = ("counts/s", "rpm", "0.1 rpm", "0.001 rpm")  # of 0x606C, motor side
@@ -190,15 +190,8 @@ class _Reader:
 
 def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     """Read and validate bus, drives, pivot_encoder, imu and motors from ``path`` (default config/robot.yaml)."""
-    import yaml
-
     p = Path(path) if path is not None else DEFAULT_ROBOT_FILE
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise ParameterError(f"{p}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ParameterError(f"{p}: not valid YAML: {exc}") from None
+    data = read_yaml(p)
     if not isinstance(data, dict):
         raise ParameterError(f"{p}: expected a mapping of sections, got {type(data).__name__}")
     r = _Reader(p)

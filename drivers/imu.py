@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers import vectornav as vn
-from otbot_hw.params import DEFAULT_CONFIG_DIR, ParameterError
+from otbot_hw.params import DEFAULT_CONFIG_DIR, ParameterError, read_yaml
 
 DEFAULT_ROBOT_FILE = DEFAULT_CONFIG_DIR / "robot.yaml"
 PROTOCOLS = ("vectornav-ascii",)
@@ -341,15 +341,8 @@ class ImuConfig:
 
 def load_imu_config(path: str | Path | None = None) -> ImuConfig:
     """Read and validate the ``imu`` section; :class:`ParameterError` names the bad key."""
-    import yaml
-
     p = Path(path) if path is not None else DEFAULT_ROBOT_FILE
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise ParameterError(f"{p}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ParameterError(f"{p}: not valid YAML: {exc}") from None
+    data = read_yaml(p)
     sec = (data or {}).get("imu") if isinstance(data, dict) else None
     if not isinstance(sec, dict):
         raise ParameterError(f"{p}: missing section 'imu'")

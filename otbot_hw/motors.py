@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from otbot_hw.params import DEFAULT_CONFIG_DIR, ParameterError
+from otbot_hw.params import DEFAULT_CONFIG_DIR, ParameterError, read_yaml
 
 DEFAULT_ROBOT_FILE = DEFAULT_CONFIG_DIR / "robot.yaml"
 MOTORS = ("right_wheel", "left_wheel", "pivot")  # order of u = (tau_r, tau_l, tau_p)
@@ -27,15 +27,8 @@ class MotorLimits:
 
 def load_motor_limits(path: str | Path | None = None) -> MotorLimits:
     """Read ``motors.<name>.max_torque`` for the three motors; errors name the key."""
-    import yaml
-
     p = Path(path) if path is not None else DEFAULT_ROBOT_FILE
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise ParameterError(f"{p}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ParameterError(f"{p}: not valid YAML: {exc}") from None
+    data = read_yaml(p)
     motors = (data or {}).get("motors")
     if not isinstance(motors, dict):
         raise ParameterError(f"{p}: missing section 'motors'")

@@ -55,6 +55,19 @@ class ParameterError(ValueError):
     """A parameter file or value breaks a rule; the message names the key and the rule."""
 
 
+def read_yaml(path: str | Path, what: str = "configuration file") -> Any:
+    """Parse a YAML file; unreadable or malformed files raise ``ParameterError`` naming ``what``."""
+    import yaml
+
+    p = Path(path)
+    try:
+        return yaml.safe_load(p.read_text())
+    except OSError as exc:
+        raise ParameterError(f"{p}: cannot read {what}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ParameterError(f"{p}: {what} is not valid YAML: {exc}") from None
+
+
 def check_value(name: str, value: Any) -> float:
     """Return ``value`` as float if it satisfies the rule of parameter ``name``."""
     if name not in _RULES:
@@ -200,17 +213,8 @@ class OtbotParams:
     @classmethod
     def load(cls, path: str | Path | None = None) -> "OtbotParams":
         """Load and validate a parameter YAML file (default: ``config/otbot.yaml``)."""
-        import yaml
-
         p = Path(path) if path is not None else DEFAULT_PARAMS_FILE
-        try:
-            text = p.read_text()
-        except OSError as exc:
-            raise ParameterError(f"{p}: cannot read parameter file: {exc.strerror}") from None
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ParameterError(f"{p}: not valid YAML: {exc}") from None
+        data = read_yaml(p, "parameter file")
         return cls.from_dict(data, source=str(p))
 
     def save(self, path: str | Path, header: str = "") -> None:

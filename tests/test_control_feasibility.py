@@ -5,7 +5,7 @@ import pytest
 from otbot_hw.control.closed_loop import rest_state, run_closed_loop
 from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.feasibility import (
-    ErrorBounds, check_feasibility, coriolis_matrix_any, reference_states,
+    ErrorBounds, check_feasibility, reference_states,
 )
 from otbot_hw.control.gains import gains_from_tstab
 from otbot_hw.control.interval import Interval
@@ -28,10 +28,27 @@ def test_interval_sine_encloses_samples(rng):
     assert (float(prod.lo), float(prod.hi)) == (-6.0, 3.0)
 
 
-def test_interval_coriolis_equals_model_on_points(params, rng):
-    for _ in range(5):
-        q, qd = rng.normal(size=6), rng.normal(size=6)
-        assert np.allclose(coriolis_matrix_any(q, qd, params).astype(float), coriolis_matrix(q, qd, params))
+def test_interval_task_space_model_encloses_point_values(params, rng):
+    """The model's pure functions evaluated on intervals enclose their values at points inside."""
+    from otbot_hw.model.task_space import task_space_model
+
+    q0, qd0 = rng.normal(size=6), rng.normal(size=6)
+    w = 0.05
+    qi = np.empty(6, dtype=object)
+    qi[:] = [Interval(v - w, v + w) for v in q0]
+    qdi = np.empty(6, dtype=object)
+    qdi[:] = [Interval(v - w, v + w) for v in qd0]
+    Mi, Ci = task_space_model(qi, qdi, params)
+    for _ in range(20):
+        q = q0 + rng.uniform(-w, w, 6)
+        qd = qd0 + rng.uniform(-w, w, 6)
+        assert coriolis_matrix(q, qd, params).dtype == float
+        for I, P in zip((Mi, Ci), task_space_model(q, qd, params)):
+            for i in range(3):
+                for j in range(3):
+                    e = I[i, j]
+                    lo, hi = (e.lo, e.hi) if isinstance(e, Interval) else (e, e)
+                    assert np.all(lo - 1e-12 <= P[i, j]) and np.all(P[i, j] <= hi + 1e-12)
 
 
 def test_reference_states_follow_the_rolling_constraints(params):

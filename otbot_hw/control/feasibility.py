@@ -32,8 +32,8 @@ import numpy as np
 from otbot_hw.control.gains import Gains
 from otbot_hw.control.interval import Interval, as_box, bounds
 from otbot_hw.control.trajectories import DesiredTrajectory
-from otbot_hw.model.dynamics import friction_matrix, mass_matrix
-from otbot_hw.model.task_space import delta_matrix, lambda_matrix, lambda_matrix_dot
+from otbot_hw.model.kinematics import inverse_kinematics_matrix
+from otbot_hw.model.task_space import task_space_model
 from otbot_hw.motors import MOTORS, MotorLimits
 from otbot_hw.params import OtbotParams
 
@@ -123,24 +123,6 @@ def reference_states(reference: DesiredTrajectory, params: OtbotParams, t: np.nd
     return X
 
 
-def coriolis_matrix_any(q, qd, p: OtbotParams) -> np.ndarray:
-    """C(q, q_dot) (6x6) as an object array, valid for interval entries
-    (same expressions as ``otbot_hw.model.dynamics.coriolis_matrix``, tested equal on points)."""
-    a, th = q[2], q[2] - q[5]
-    ad, thd = qd[2], qd[2] - qd[5]
-    sa, ca, st, ct = np.sin(a), np.cos(a), np.sin(th), np.cos(th)
-    mc, mp = p.m_c, p.m_p
-    xb, yb, xf, yf = p.x_B, p.y_B, p.x_F, p.y_F
-    cb1 = thd * mc * (xb * ct - yb * st)
-    cf1 = ad * mp * (xf * ca - yf * sa)
-    cb2 = thd * mc * (yb * ct + xb * st)
-    cf2 = ad * mp * (yf * ca + xf * sa)
-    out = np.zeros((6, 6), dtype=object)
-    out[0, 2], out[0, 5] = -cb1 - cf1, cb1
-    out[1, 2], out[1, 5] = -cb2 - cf2, cb2
-    return out
-
-
 def _enclosure_on_box(X, PDD, params, gains, eb, dalpha, dphi, ev_center=None):
     """Natural interval extension of the law over one box: alpha in alpha_d + dalpha, phi_p in
     phi_p,d + dphi (dalpha, dphi: (lo, hi) offsets), e_v in ev_center + [-E_v, E_v], the rest
@@ -156,13 +138,8 @@ def _enclosure_on_box(X, PDD, params, gains, eb, dalpha, dphi, ev_center=None):
     q[3], q[4] = Interval(X[:, 3]), Interval(X[:, 4])
     q[5] = box(X[:, 5], *dphi)
     pd = as_box(X[:, 6:9] + evc, np.asarray(eb.velocity))
-    L = lambda_matrix(q, params)
-    qd = np.concatenate([pd, L[3:] @ pd])
-    D = delta_matrix(q, params)
-    M = mass_matrix(q, params)
-    Mbar = D.T @ M @ L
-    Cbar = D.T @ (M @ lambda_matrix_dot(q, qd, params) + (coriolis_matrix_any(q, qd, params)
-                                                          - friction_matrix(params)) @ L)
+    qd = np.concatenate([pd, inverse_kinematics_matrix(q, params) @ pd])
+    Mbar, Cbar = task_space_model(q, qd, params)
     v = np.empty(3, dtype=object)
     for i in range(3):
         v[i] = Interval(PDD[:, i]) + (-gains.kp[i]) * Interval.around(0.0, eb.position[i]) \

@@ -131,9 +131,8 @@ def _symbolic_model(params: OtbotParams):
         ca.GlobalOptions.setNumpyMode(-1)
     except AttributeError:
         pass
-    from otbot_hw.control.feasibility import coriolis_matrix_any
-    from otbot_hw.model.dynamics import friction_matrix, mass_matrix
-    from otbot_hw.model.task_space import delta_matrix, lambda_matrix, lambda_matrix_dot
+    from otbot_hw.model.kinematics import inverse_kinematics_matrix
+    from otbot_hw.model.task_space import task_space_model
 
     z = ca.SX.sym("z", 7)
     u = ca.SX.sym("u", 3)
@@ -141,13 +140,8 @@ def _symbolic_model(params: OtbotParams):
     q[:] = [z[0], z[1], z[2], 0.0, 0.0, z[3]]
     pd = np.empty(3, dtype=object)
     pd[:] = [z[4], z[5], z[6]]
-    L = lambda_matrix(q, params)
-    qd = np.concatenate([pd, L[3:] @ pd])
-    D = delta_matrix(q, params)
-    M = mass_matrix(q, params)
-    Mbar = D.T @ M @ L
-    Cbar = D.T @ (M @ lambda_matrix_dot(q, qd, params) + (coriolis_matrix_any(q, qd, params)
-                                                          - friction_matrix(params)) @ L)
+    qd = np.concatenate([pd, inverse_kinematics_matrix(q, params) @ pd])
+    Mbar, Cbar = task_space_model(q, qd, params)
 
     def sx(A):
         return ca.vertcat(*[ca.horzcat(*[A[i, j] for j in range(A.shape[1])]) for i in range(A.shape[0])])

@@ -65,7 +65,10 @@ def mass_matrix(q: np.ndarray, p: OtbotParams) -> np.ndarray:
 
 
 def coriolis_matrix(q: np.ndarray, qd: np.ndarray, p: OtbotParams) -> np.ndarray:
-    """C(q, q_dot) (6x6), paper Fig. cormatrixexpr (Christoffel construction)."""
+    """C(q, q_dot) (6x6), paper Fig. cormatrixexpr (Christoffel construction).
+
+    Like ``mass_matrix`` it also accepts object arrays (CasADi symbols, intervals).
+    """
     a, th = q[2], q[2] - q[5]
     ad, thd = qd[2], qd[2] - qd[5]
     sa, ca, st, ct = np.sin(a), np.cos(a), np.sin(th), np.cos(th)
@@ -75,7 +78,8 @@ def coriolis_matrix(q: np.ndarray, qd: np.ndarray, p: OtbotParams) -> np.ndarray
     cf1 = ad * mp * (xf * ca - yf * sa)
     cb2 = thd * mc * (yb * ct + xb * st)
     cf2 = ad * mp * (yf * ca + xf * sa)
-    out = np.zeros((6, 6))
+    numeric = all(isinstance(v, (float, int, np.floating)) for v in (cb1, cf1, cb2, cf2))
+    out = np.zeros((6, 6), dtype=float if numeric else object)  # object: symbolic or interval entries
     out[0, 2], out[0, 5] = -cb1 - cf1, cb1
     out[1, 2], out[1, 5] = -cb2 - cf2, cb2
     return out
