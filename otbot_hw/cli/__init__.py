@@ -14,7 +14,7 @@ import sys
 from typing import Sequence
 
 #: Subcommand modules under otbot_hw.cli, in --help order.
-SUBCOMMANDS = ("demo", "simulate")
+SUBCOMMANDS = ("demo", "simulate", "diagnose")
 
 
 class CliError(Exception):

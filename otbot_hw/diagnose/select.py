@@ -33,6 +33,7 @@ ACCEPT_DBIC = 10.0
 AMBIGUOUS_DBIC = 10.0
 MAX_CANDIDATES = 3
 SHORTLIST_FRACTION = 0.1
+LATER_ROUND_FACTOR = 5.0
 MAX_EFFECTS = 2
 
 FLOOR_NOMINAL = ("m_c", "I_c", "x_B", "y_B", "I_p", "b_w", "b_p")
@@ -84,7 +85,7 @@ def _variants(recordings: list[DiagnosisData], effects: list[cat.Effect]) -> lis
     for e in effects:
         step = dict(e.magnitudes[0])
         if e.name == "torque_saturation":
-            for frac in (0.95, 0.85, 0.75, 0.65):
+            for frac in (0.9, 0.75, 0.6):
                 out.append(Variant(e.name, {}, (), {"u_max": frac * umax}))
         elif e.grids:
             (gname, grid), = e.grids.items()
@@ -280,7 +281,10 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
     for _round in range(MAX_EFFECTS):
         sc = screen(recordings, current.model, nominal_free, effects, exclude=used)
         screenings.append(sc)
-        ranked = sorted((d, e) for e, d in sc.single.items() if d < -SCREEN_DBIC)
+        # after the first effect, residuals are smaller and relatively more correlated: later rounds
+        # need LATER_ROUND_FACTOR times the screening evidence before a nested fit is tried
+        bar = SCREEN_DBIC * (1 if _round == 0 else LATER_ROUND_FACTOR)
+        ranked = sorted((d, e) for e, d in sc.single.items() if d < -bar)
         if not ranked:
             progress("[diagnose] screening: no effect explains the equation residuals")
             break

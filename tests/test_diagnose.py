@@ -1,0 +1,131 @@
+"""otbot diagnose on concealed effects: finds, names and sizes the hidden effect; adds nothing when there is none;
+rejects bad input. Short recordings (5 s multisine + 2 s stand fitting, 5 s tracking held out) keep this fast."""
+import json
+
+import numpy as np
+import pytest
+
+from otbot_hw.cli import main
+from otbot_hw.diagnose.data import DiagnosisInputError, from_recording
+from otbot_hw.diagnose.diagnosis import diagnose
+from otbot_hw.params import nominal
+from otbot_hw.recording import write_recording
+from sim.concealed import concealed_recording
+
+P = nominal()
+
+
+def _sets(values, seed=7, stand=False):
+    fit = [from_recording(concealed_recording(P, values, "multisine", 6.0, seed=seed), "multisine")]
+    if stand:
+        fit.append(from_recording(concealed_recording(P, values, "stand", 2.0, seed=seed + 1), "stand"))
+    held = [from_recording(concealed_recording(P, values, "tracking", 6.0, seed=seed + 2), "tracking")]
+    return fit, held
+
+
+def _check_found(result, name, truth):
+    assert [e["name"] for e in result["effects"]] == [name], result["verdict"]
+    got = result["effects"][0]["parameters"]
+    for k, v in truth.items():
+        assert got[k]["value"] == pytest.approx(v, rel=0.2), (k, got[k])
+        assert got[k]["std"] is not None and got[k]["std"] < 0.2 * abs(v)
+    before = result["fit_before"]["heldout"]
+    after = result["fit_after"]["heldout"]
+    gain = [after[c]["fit_percent"] - before[c]["fit_percent"] for c in before]
+    assert max(gain) > 2.0 and min(gain) > -1.0, (before, after)
+    assert result["ambiguous"] == []
+    assert name in result["verdict"] or result["effects"][0]["title"] in result["verdict"]
+
+
+def test_coulomb_wheel_friction_absorbed_in_b_w_is_found():
+    truth = {"c_w": 0.3}
+    fit, held = _sets(truth, stand=True)
+    r = diagnose(fit, P, held)
+    # concealed: the nominal fit inflated b_w to absorb it, and still fits the fitting data plausibly
+    assert r["nominal_shift"]["b_w"]["before"] > 1.2 * P.b_w
+    assert min(v["fit_percent"] for v in r["fit_before"]["fitting"].values()) > 60
+    _check_found(r, "coulomb_wheels", truth)
+    assert r["nominal_shift"]["b_w"]["after"] == pytest.approx(P.b_w, rel=0.1)
+    assert any(w["kind"] == "torque" for w in r["located"])
+
+
+@pytest.mark.parametrize("name,truth", [
+    ("imu_bias", {"b_ax": 0.06, "b_ay": 0.04, "b_gz": -0.01}),
+    ("gain_right", {"k_r": -0.1}),
+    ("floor_slope", {"g_x": 0.1, "g_y": 0.05}),
+])
+def test_concealed_effect_is_found_named_and_sized(name, truth):
+    fit, held = _sets(truth, seed=11)
+    r = diagnose(fit, P, held)
+    _check_found(r, name, truth)
+
+
+def test_negative_control_adds_nothing():
+    fit, held = _sets({}, seed=5)
+    r = diagnose(fit, P, held)
+    assert r["effects"] == [] and r["ambiguous"] == []
+    assert r["verdict"].startswith("No missing physics found")
+    for ch, v in r["fit_after"]["fitting"].items():
+        assert v["fit_percent"] == r["fit_before"]["fitting"][ch]["fit_percent"]
+
+
+def _rec(tmp_path, **changes):
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    for k, v in changes.items():
+        setattr(rec, k, v)
+    path = tmp_path / "bad.mcap"
+    write_recording(path, rec)
+    return rec, path
+
+
+def test_bad_input_is_rejected_with_a_clear_message(tmp_path, capsys):
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    t = rec.t.copy()
+    t[40:] += 0.05
+    rec_gap = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    rec_gap.t = t
+    rec_gap.metadata.pop("sample_period")
+    with pytest.raises(DiagnosisInputError, match="gap or uneven sampling at sample 40"):
+        from_recording(rec_gap, "gap")
+    u = rec.torque.copy()
+    u[10, 1] = np.nan
+    rec.torque = u
+    with pytest.raises(DiagnosisInputError, match="torque is NaN or inf at sample 10"):
+        from_recording(rec, "nan")
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    rec.metadata["sample_period"] = 0.02
+    with pytest.raises(DiagnosisInputError, match="disagrees with the median time step"):
+        from_recording(rec, "meta")
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    rec.metadata["fixture"] = "ceiling"
+    with pytest.raises(DiagnosisInputError, match="fixture 'ceiling' is unknown"):
+        from_recording(rec, "fixture")
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    rec.joint_pos = rec.joint_vel = None
+    rec.truth_q = None
+    with pytest.raises(DiagnosisInputError, match="no /otbot/joints"):
+        from_recording(rec, "nojoints")
+    # a NaN in one IMU channel: the channel is dropped with the reason, the rest is used
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    a = rec.imu_accel.copy()
+    a[5, 1] = np.nan
+    rec.imu_accel = a
+    d = from_recording(rec, "imu")
+    assert "a_y" in d.unusable and "NaN" in d.unusable["a_y"]
+    assert "a_y" not in d.channels() and "a_x" in d.channels()
+    # the CLI: exit 2 with the reason, nothing on stdout
+    _, path = _rec(tmp_path, torque=np.where(np.arange(101)[:, None] == 3, np.nan, rec.torque))
+    assert main(["diagnose", str(path), "--json"]) == 2
+    err = capsys.readouterr()
+    assert "torque is NaN" in err.err and err.out == ""
+    assert main(["diagnose", str(tmp_path / "missing.mcap")]) == 2
+    assert main(["diagnose"]) == 2
+    assert main(["diagnose", "--demo", "--demo-effect", "gremlins"]) == 2
+
+
+def test_truth_is_never_read(tmp_path):
+    """The diagnosis keeps only commands, encoders, IMU, sample period and fixture."""
+    rec = concealed_recording(P, {"c_w": 0.3}, "multisine", 1.0, seed=1, effect_name="coulomb_wheels")
+    d = from_recording(rec, "x")
+    assert not any("truth" in k for k in vars(d))
+    assert "coulomb" not in json.dumps({k: str(v) for k, v in vars(d).items()})
