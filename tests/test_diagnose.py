@@ -52,7 +52,7 @@ def test_coulomb_wheel_friction_absorbed_in_b_w_is_found():
 @pytest.mark.parametrize("name,truth", [
     ("imu_bias", {"b_ax": 0.06, "b_ay": 0.04, "b_gz": -0.01}),
     ("gain_right", {"k_r": -0.1}),
-    ("floor_slope", {"g_x": 0.1, "g_y": 0.05}),
+    ("floor_slope", {"g_x": 0.04, "g_y": 0.03}),
 ])
 def test_concealed_effect_is_found_named_and_sized(name, truth):
     fit, held = _sets(truth, seed=11)
@@ -129,3 +129,18 @@ def test_truth_is_never_read(tmp_path):
     d = from_recording(rec, "x")
     assert not any("truth" in k for k in vars(d))
     assert "coulomb" not in json.dumps({k: str(v) for k, v in vars(d).items()})
+
+
+def test_look_alikes_on_floor_data_are_reported_ambiguous_with_the_separating_experiment():
+    """Floor-only data cannot tell motor Coulomb friction from rolling resistance (same torque
+    signature): the tool says so instead of guessing, and names the stand experiment."""
+    fit, held = _sets({"c_w": 0.3}, seed=3)
+    r = diagnose(fit, P, held)
+    assert r["effects"] == []
+    assert len(r["ambiguous"]) == 1
+    names = {c["name"] for c in r["ambiguous"][0]["candidates"]}
+    assert {"coulomb_wheels", "rolling_resistance"} <= names
+    assert "stand" in r["ambiguous"][0]["experiment"]
+    cw = next(c for c in r["ambiguous"][0]["candidates"] if c["name"] == "coulomb_wheels")
+    assert cw["parameters"]["c_w"]["value"] == pytest.approx(0.3, rel=0.2)
+    assert "cannot tell apart" in r["verdict"]

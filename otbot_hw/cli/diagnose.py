@@ -34,6 +34,9 @@ def register(sub) -> None:
                    help="held-out recordings: used only to judge prediction")
     p.add_argument("--report", type=Path, default=None, metavar="DIR",
                    help="write residual plots (PNG) and diagnosis.json into DIR")
+    p.add_argument("--each", action="store_true",
+                   help="diagnose every RECORDING on its own, in parallel worker processes (a fleet's runs)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes for --each (default 2)")
     p.add_argument("--demo", action="store_true",
                    help="simulate recordings with a hidden effect and diagnose them")
     p.add_argument("--demo-effect", default="coulomb_wheels",
@@ -98,6 +101,16 @@ def run(args: argparse.Namespace) -> dict:
     if overlap:
         raise CliError(f"recording(s) both fitting and held-out: {sorted(overlap)}")
     params = OtbotParams.load(args.params) if args.params else nominal()
+    if args.each:
+        from otbot_hw.diagnose.fleet import diagnose_each
+
+        if args.workers < 1:
+            raise CliError(f"--workers must be >= 1, got {args.workers}")
+        runs = diagnose_each(list(fitting), args.params, list(held), args.workers, say)
+        if not quiet:
+            for r in runs:
+                print(f"{r['recording']}: {r.get('verdict', 'error: ' + str(r.get('error')))}")
+        return {"runs": runs}
     recs = load(fitting)
     hold = load(held)
     for d in recs + hold:
