@@ -122,3 +122,13 @@ def test_imu_sensor_effects(params):
 def test_effect_vector_rejects_unknown_names():
     with pytest.raises(ValueError, match="unknown effect parameter"):
         fx.effect_vector({"friction": 1.0})
+
+
+def test_runs_test_flags_structured_residuals_only():
+    from otbot_hw.diagnose.locate import runs_test
+
+    rng = np.random.default_rng(0)
+    white = rng.standard_normal(400)
+    assert runs_test(white)[1] > 0.01
+    drift = np.sin(np.linspace(0, 6, 400)) + 0.1 * rng.standard_normal(400)
+    assert runs_test(drift)[1] < 1e-6

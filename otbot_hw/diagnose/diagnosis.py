@@ -26,6 +26,21 @@ from otbot_hw.model.effects import ExtendedModel, parameter_unit
 from otbot_hw.params import OtbotParams
 
 
+def _json_safe(obj):
+    """Non-finite floats -> None, numpy scalars -> Python numbers (the JSON is strict: allow_nan=False)."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
 def _finite(v):
     return None if v is None or not np.isfinite(v) else float(v)
 
@@ -112,4 +127,4 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
                                         windows, f"{Path(d.name).name} ({tag})"))
         result["plots"] = plots
     result["elapsed_s"] = time.perf_counter() - t_start
-    return result
+    return _json_safe(result)

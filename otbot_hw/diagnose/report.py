@@ -98,8 +98,12 @@ def verdict(result: dict) -> str:
         parts.append("No missing physics found: no catalog effect improves the model by the evidence threshold.")
     key = "heldout" if result["fit_before"].get("heldout") else "fitting"
     before, after = result["fit_before"].get(key, {}), result["fit_after"].get(key, {})
-    if (result["effects"] or result["ambiguous"]) and before:
-        ch = max(before, key=lambda c: after[c]["fit_percent"] - before[c]["fit_percent"])
+    def ok(v):
+        return v is not None and np.isfinite(v)
+
+    usable = [c for c in before if ok(before[c]["fit_percent"]) and ok(after[c]["fit_percent"])]
+    if (result["effects"] or result["ambiguous"]) and usable:
+        ch = max(usable, key=lambda c: after[c]["fit_percent"] - before[c]["fit_percent"])
         label = "Held-out" if key == "heldout" else "Fitting"
         parts.append(f"{label} fit of {ch}: {before[ch]['fit_percent']:.0f} % -> {after[ch]['fit_percent']:.0f} %.")
     return " ".join(parts)
