@@ -113,6 +113,13 @@ def test_bad_input_is_rejected_with_a_clear_message(tmp_path, capsys):
     d = from_recording(rec, "imu")
     assert "a_y" in d.unusable and "NaN" in d.unusable["a_y"]
     assert "a_y" not in d.channels() and "a_x" in d.channels()
+    from otbot_hw.diagnose.residuals import imu_residual, simulation_residual, torque_residual
+    from otbot_hw.model.effects import ExtendedModel
+    m = ExtendedModel.paper(P)
+    ir = imu_residual(d, m)
+    assert np.all(np.isnan(ir[:, 1])) and np.all(np.isfinite(ir[:, [0, 2]]))
+    assert np.all(np.isfinite(torque_residual(d, m)))
+    assert set(simulation_residual(d, m)) == set(d.channels())
     # the CLI: exit 2 with the reason, nothing on stdout
     _, path = _rec(tmp_path, torque=np.where(np.arange(101)[:, None] == 3, np.nan, rec.torque))
     assert main(["diagnose", str(path), "--json"]) == 2

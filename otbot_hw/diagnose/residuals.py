@@ -219,6 +219,7 @@ def imu_residual(data: DiagnosisData, model: ExtendedModel, motion: Motion | Non
     pred = np.column_stack([acc[:, 0], acc[:, 1], gyro[:, 2]])
     pred = fx.delay(data.t, pred, eff[fx.D_IMU])
     meas = np.column_stack([data.imu_acc[:, 0], data.imu_acc[:, 1], data.imu_gyro[:, 2]])
+    meas = np.where(np.isfinite(meas), meas, 0.0)  # unusable columns are blanked below
     meas_f = np.column_stack([integral_rate(data, meas[:, :2]), data.smooth(meas[:, 2:])])
     out = meas_f - pred
     for j, ch in enumerate(("a_x", "a_y", "g_z")):
