@@ -151,3 +151,45 @@ def test_look_alikes_on_floor_data_are_reported_ambiguous_with_the_separating_ex
     cw = next(c for c in r["ambiguous"][0]["candidates"] if c["name"] == "coulomb_wheels")
     assert cw["parameters"]["c_w"]["value"] == pytest.approx(0.3, rel=0.2)
     assert "cannot tell apart" in r["verdict"]
+
+
+def test_refit_seam_recovers_known_parameters_with_honest_std():
+    """The seam alone: wheel inertia and friction from a stand run, started 30 % off."""
+    from otbot_hw.diagnose.refit import refit
+    from otbot_hw.model.effects import ExtendedModel
+
+    d = from_recording(concealed_recording(P, {}, "stand", 3.0, seed=4), "stand")
+    start = ExtendedModel.paper(P.replace(I_a=P.I_a * 1.3, b_w=P.b_w * 0.7))
+    fit = refit([d], start, ["I_a", "b_w"])
+    for n in ("I_a", "b_w"):
+        true = getattr(P, n)
+        assert abs(fit.values[n] - true) < 4 * fit.std[n] + 1e-3 * true, (n, fit.values[n], fit.std[n])
+        assert fit.std[n] < 0.05 * true
+
+
+def test_regime_tags_come_from_the_measured_signals():
+    from otbot_hw.diagnose.locate import regimes
+    from otbot_hw.diagnose.residuals import joint_rates
+
+    d = from_recording(concealed_recording(P, {}, "steps", 3.0, seed=2), "steps")
+    vel, _ = joint_rates(d)
+    speed = np.full(len(d), 1.0)
+    turn = np.zeros(len(d))
+    assert "torque step" in regimes(d, 45, 60, speed, turn, vel)  # a step every 0.5 s (sample 50)
+    assert "torque step" not in regimes(d, 55, 95, speed, turn, vel)
+    still = np.zeros_like(vel)
+    assert "standstill" in regimes(d, 55, 95, speed, turn, still)
+    assert "high turn rate" in regimes(d, 55, 95, speed, np.full(len(d), 1.0), vel)
+
+
+def test_cli_writes_report_and_strict_json(tmp_path, capsys):
+    path = tmp_path / "run.mcap"
+    write_recording(path, concealed_recording(P, {}, "multisine", 3.0, seed=9))
+    rc = main(["diagnose", str(path), "--report", str(tmp_path / "rep"), "--json"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    r = json.loads(out)
+    assert r["effects"] == [] and "No missing physics" in r["verdict"]
+    assert (tmp_path / "rep" / "diagnosis.json").exists()
+    assert all(p.endswith(".png") and (tmp_path / "rep" / p.split("/")[-1]).exists() for p in r["plots"])
+    assert set(r["fit_before"]["fitting"]) == {"w_r", "w_l", "w_p", "a_x", "a_y", "g_z"}
