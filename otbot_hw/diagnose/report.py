@@ -94,6 +94,16 @@ def verdict(result: dict) -> str:
         names = " / ".join(c["title"] for c in grp["candidates"])
         parts.append(f"The data cannot tell apart {names} (BIC within {grp['bic_margin']:.0f}); "
                      f"to separate them: {grp['experiment']}.")
+    if parts:
+        # relative shift of parameters that are not near zero (a centre-of-mass offset of 1 mm moving
+        # to 0 is no evidence)
+        moved = [(abs(v["shift"]) / max(abs(v["before"]), abs(v["after"])), n, v)
+                 for n, v in result.get("nominal_shift", {}).items()
+                 if v["shift"] is not None and max(abs(v["before"]), abs(v["after"])) > 0.01]
+        moved = [m for m in moved if m[0] > 0.05]
+        if moved:
+            _, n, v = max(moved, key=lambda m: m[0])
+            parts.append(f"The nominal fit had absorbed it: {n} {v['before']:.4g} -> {v['after']:.4g} {v['unit']}.")
     if not parts:
         parts.append("No missing physics found: no catalog effect improves the model by the evidence threshold.")
     key = "heldout" if result["fit_before"].get("heldout") else "fitting"
