@@ -51,7 +51,7 @@ def main() -> int:
         rows.append((label, min(times), max(times), verdict))
     cpu = f"{os.cpu_count()} CPU(s), {platform.processor() or platform.machine()}, Python {platform.python_version()}"
     load = os.getloadavg()[0]
-    lines = ["## Diagnose", "", "Reproduce: `.venv/bin/python benchmarks/diagnose.py --repeats 2` (rewrites this section).", "",
+    lines = ["## Diagnose", "", "Reproduce: `.venv/bin/python benchmarks/diagnose.py --repeats 3` (rewrites this section).", "",
              "`benchmarks/diagnose.py`: `diagnose()` on one 10 s, 100 Hz floor recording (1001 samples, multisine "
              "torques) with one 10 s held-out recording; nominal fit, locate, screening, nested fits, refit and "
              f"before/after statistics, no plots. Machine: {cpu}; load average {load:.1f} at the end (other jobs "

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-def run_case(effect_name: str, magnitude_index: int, seed: int) -> dict:
+def run_case(effect_name: str, magnitude_index: int, seed: int, scale: float = 1.0) -> dict:
     from otbot_hw.diagnose import catalog as cat
     from otbot_hw.diagnose.data import from_recording
     from otbot_hw.diagnose.diagnosis import diagnose
@@ -34,6 +34,10 @@ def run_case(effect_name: str, magnitude_index: int, seed: int) -> dict:
 
     params = nominal()
     values = {} if effect_name == "none" else dict(cat.effect(effect_name).magnitudes[magnitude_index])
+    # scale the effect's size (not the Stribeck speed, which is a shape parameter)
+    values = {k: (v if k == "v_s" else (v if k == "u_max" else v * scale)) for k, v in values.items()}
+    if "u_max" in values and scale != 1.0:
+        values["u_max"] = 4.0 - (4.0 - values["u_max"]) * scale  # clip less of the 4 N m peaks
     fit = [from_recording(concealed_recording(params, values, "multisine", 10.0, seed=100 * seed + 1), "multisine"),
            from_recording(concealed_recording(params, values, "stand", 4.0, seed=100 * seed + 2), "stand")]
     held = [from_recording(concealed_recording(params, values, "tracking", 10.0, seed=100 * seed + 3), "tracking")]
@@ -77,11 +81,14 @@ def label(case: dict) -> str:
     return "none"
 
 
-def write_doc(cases: list[dict], path: Path, seconds: float, workers: int) -> None:
+def write_doc(cases: list[dict], path: Path, seconds: float, workers: int, scale: float = 1.0) -> None:
     from otbot_hw.diagnose.catalog import CATALOG
 
     names = [e.name for e in CATALOG] + ["none"]
-    lines = ["<!-- STUDY:BEGIN (written by benchmarks/diagnose_confusion.py) -->", "",
+    tag = "STUDY" if scale == 1.0 else f"STUDY_x{scale:g}"
+    lines = [f"<!-- {tag}:BEGIN (written by benchmarks/diagnose_confusion.py) -->", "",
+             *([f"**Detection limit: every effect at {scale:g} x its catalog magnitudes** "
+                f"(saturation: {scale:g} x the clipped part of the 4 N m wheel peaks).", ""] if scale != 1.0 else []),
              f"{len(cases)} cases, {seconds / 60:.1f} min on {workers} worker process(es). Fitting set: 10 s multisine "
              "on the floor + 4 s stand run; held-out: 10 s tracking-like run; 100 Hz, paper noise (IMU 13.7e-3, "
              "encoder rates 0.01 rad/s). Magnitudes: the two `magnitudes` of each catalog entry; seeds "
@@ -120,15 +127,15 @@ def write_doc(cases: list[dict], path: Path, seconds: float, workers: int) -> No
         ha = np.median([c["heldout_after"][w] for c, w in zip(cs, worst)])
         tm = np.median([c["elapsed_s"] for c in cs])
         lines.append(f"| {n} | {conc:.1f} | {hb:.1f} -> {ha:.1f} | {tm:.0f} |")
-    lines += ["", "<!-- STUDY:END -->"]
+    lines += ["", f"<!-- {tag}:END -->"]
     block = "\n".join(lines)
     text = path.read_text() if path.exists() else ""
-    if "<!-- STUDY:BEGIN" in text:
-        a = text.index("<!-- STUDY:BEGIN")
-        b = text.index("<!-- STUDY:END -->") + len("<!-- STUDY:END -->")
+    if f"<!-- {tag}:BEGIN" in text:
+        a = text.index(f"<!-- {tag}:BEGIN")
+        b = text.index(f"<!-- {tag}:END -->") + len(f"<!-- {tag}:END -->")
         text = text[:a] + block + text[b:]
     else:
-        text = text + "\n## Confusion study\n\n" + block + "\n"
+        text = text.rstrip("\n") + "\n\n" + block + "\n"
     path.write_text(text)
 
 
@@ -141,18 +148,22 @@ def main() -> int:
     ap.add_argument("--doc", type=Path, default=ROOT / "docs" / "diagnose.md")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "diagnose_confusion.json")
     ap.add_argument("--effects", default="", help="comma-separated subset of catalog effects")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="multiply every effect size by this (e.g. 0.33 to probe detection limits); "
+                         "written to its own section")
+    ap.add_argument("--magnitudes", default="0,1", help="which catalog magnitudes (indices) to run")
     args = ap.parse_args()
     from otbot_hw.diagnose.catalog import CATALOG
 
     effects = [e.name for e in CATALOG if not args.effects or e.name in args.effects.split(",")]
-    mags = (0,) if args.quick else (0, 1)
+    mags = (0,) if args.quick else tuple(int(m) for m in args.magnitudes.split(","))
     seeds = range(1 if args.quick else args.seeds)
     jobs = [(e, m, s) for e in effects for m in mags for s in seeds]
     jobs += [("none", 0, 50 + s) for s in range(1 if args.quick else args.negatives)]
     t0 = time.perf_counter()
     cases = []
     with ProcessPoolExecutor(args.workers) as pool:
-        futs = {pool.submit(run_case, *j): j for j in jobs}
+        futs = {pool.submit(run_case, *j, args.scale): j for j in jobs}
         for i, f in enumerate(as_completed(futs), 1):
             c = f.result()
             cases.append(c)
@@ -161,7 +172,7 @@ def main() -> int:
                   file=sys.stderr, flush=True)
     cases.sort(key=lambda c: (c["true"], c["magnitude"], c["seed"]))
     args.out.write_text(json.dumps(cases, indent=1, default=float))
-    write_doc(cases, args.doc, time.perf_counter() - t0, args.workers)
+    write_doc(cases, args.doc, time.perf_counter() - t0, args.workers, args.scale)
     print(json.dumps({"cases": len(cases), "seconds": time.perf_counter() - t0}))
     return 0
 
