@@ -106,7 +106,10 @@ def main() -> int:
     for label, truth, named, est, err, _, _ in rows:
         e = ", ".join(f"{k} = {est[k]:.4g}" for k in truth if k in est) or "-"
         lines.append(f"| {label} | {truth or '-'} | {named} | {e} | {'-' if err is None else f'{100 * err:.1f} %'} |")
-    lines += ["", "<!-- INDEPENDENT:END -->"]
+    lines += ["", "Floor-only data cannot separate motor Coulomb friction from rolling resistance, so the tool "
+              "reports them as ambiguous (with the stand experiment) instead of guessing. The gyro bias b_gz is "
+              "the hardest parameter: over a short run a constant rate offset is partly confounded with a slow "
+              "heading-rate drift of the refitted chassis parameters.", "", "<!-- INDEPENDENT:END -->"]
     block = "\n".join(lines)
     doc = ROOT / "docs" / "diagnose.md"
     text = doc.read_text()
