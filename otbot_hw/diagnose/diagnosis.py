@@ -73,6 +73,7 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
         effects.append({"name": e.name, "title": e.title, "category": e.category,
                         "parameters": _params_json(final, e.parameters),
                         "evidence": {"delta_bic": c.dbic, "delta_aic": c.daic, "screening_delta_bic": c.screen_dbic,
+                                     "simulation_screening_delta_bic": c.sim_screen_dbic,
                                      "heldout_delta_cost": _finite(c.dholdout),
                                      "lookalikes_tried": [t.effect for t in sel.tried if t.effect != c.effect]}})
     ambiguous = []
@@ -106,8 +107,10 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
         "fit_before": fit_before,
         "fit_after": fit_after,
         "nominal_shift": shift,
-        "screening": [{"delta_bic": dict(sorted(s.single.items(), key=lambda kv: kv[1])),
-                       "greedy_selection": s.selected} for s in sel.screenings],
+        "screening": [{"equation_residual_delta_bic": dict(sorted(s.single.items(), key=lambda kv: kv[1])),
+                       "greedy_selection": s.selected,
+                       "simulation_score_delta_bic": dict(sorted(ss.items(), key=lambda kv: kv[1]))}
+                      for s, ss in zip(sel.screenings, sel.sim_screenings + [{}] * len(sel.screenings))],
         "candidates": [{"name": c.effect, "delta_bic": c.dbic, "delta_aic": c.daic,
                         "heldout_delta_cost": _finite(c.dholdout),
                         "parameters": _params_json(c.fit, cat.effect(c.effect).parameters)} for c in sel.tried],

@@ -212,6 +212,82 @@ def screen(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: 
     return Screening(single=single, guesses=guesses, selected=selected, channel_rms=rms.tolist())
 
 
+def screen_simulation(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: list[str],
+                      effects: list[cat.Effect], exclude: set[str] = frozenset()) -> dict[str, tuple[float, dict]]:
+    """Score-test screening on the simulation residuals (the objective of the nested fits).
+
+    One linearised Gauss-Newton step per effect: the simulation output change for the
+    effect's catalog step (finite differences through the extended simulator), with the free
+    nominal parameters' sensitivities projected out. Returns {effect: (Delta BIC of that step
+    with per-channel concentrated likelihoods, parameter guess)}. Integration accumulates small
+    force effects into large velocity residuals, so this catches effects whose per-sample torque
+    signature is below the equation-residual noise.
+    """
+    from otbot_hw.diagnose.refit import channel_sigmas
+
+    sig = channel_sigmas(recordings)
+    base = weighted_residuals(recordings, model, sig)
+    keys = list(base)
+    r0 = np.concatenate([base[k] for k in keys])
+    sl, i = {}, 0
+    for k in keys:
+        sl[k] = slice(i, i + len(base[k]))
+        i += len(base[k])
+
+    def vec(m):
+        res = weighted_residuals(recordings, m, sig)
+        return np.concatenate([res[k] for k in keys])
+
+    cols = []
+    for n in nominal_free:
+        h = 1e-4 * max(abs(model.get(n)), 1e-2)
+        cols.append(vec(model.with_values({n: model.get(n) + h})) - r0)
+    Qn = np.zeros((len(r0), 0))
+    if cols:
+        Qn, Rn = np.linalg.qr(np.column_stack(cols))
+        Qn = Qn[:, np.abs(np.diag(Rn)) > 1e-8 * np.max(np.abs(np.diag(Rn)))]
+    z0 = r0 - Qn @ (Qn.T @ r0)
+    n_tot = len(r0)
+
+    def bic(res, k):
+        return sum(len(base[key]) * np.log(max(res[sl[key]] @ res[sl[key]], 1e-300) / len(base[key]))
+                   for key in keys) + k * np.log(n_tot)
+
+    b0 = bic(z0, 0)
+    out: dict[str, tuple[float, dict]] = {}
+    for v in _variants(recordings, effects):
+        if v.effect in exclude:
+            continue
+        A = []
+        names = list(v.linear) if v.linear else [None]
+        for p in names:
+            vals = dict(v.fixed)
+            if p is not None:
+                vals[p] = v.values[p]
+            try:
+                d = vec(model.with_values(vals)) - r0
+            except ValueError:
+                continue
+            A.append(d - Qn @ (Qn.T @ d))
+        if not A:
+            continue
+        A = np.column_stack(A)
+        coef, *_ = np.linalg.lstsq(A, z0, rcond=None)
+        # the simulated output changes by A coef; the residual by -A coef
+        dres = z0 - A @ coef
+        d_bic = float(bic(dres, A.shape[1]) - b0)
+        # residual at the base ~ minus the residual change of the true effect: theta = -coef * step
+        guess = dict(v.fixed)
+        for c, p in zip(coef, v.linear):
+            guess[p] = float(-c * v.values[p])
+        if not v.linear and v.effect in ("current_lag", "imu_latency"):
+            (k, val), = v.fixed.items()
+            guess[k] = float(val * np.clip(-coef[0], 0.05, 2.0))
+        if d_bic < out.get(v.effect, (np.inf, {}))[0]:
+            out[v.effect] = (d_bic, guess)
+    return out
+
+
 # --- nested fits -------------------------------------------------------------
 
 def information_criteria(fit_rss: dict, n_samples: dict, k: int) -> tuple[float, float]:
@@ -241,6 +317,7 @@ class Candidate:
     daic: float
     dholdout: float
     screen_dbic: float
+    sim_screen_dbic: float = float("nan")
 
 
 @dataclass
@@ -253,10 +330,13 @@ class Selection:
     screenings: list[Screening]
     base_fit: FitResult
     final_fit: FitResult
+    sim_screenings: list[dict[str, float]] = field(default_factory=list)
 
 
-def _effect_guess(e: cat.Effect, screening: Screening) -> dict[str, float]:
+def _effect_guess(e: cat.Effect, screening: Screening, sim_guess: dict | None = None) -> dict[str, float]:
+    """Start values: the simulation screening's step when it has one, else the equation screening's."""
     g = dict(screening.guesses.get(e.name, {}))
+    g.update(sim_guess or {})
     out = {}
     for p in e.parameters:
         lo, hi = parameter_bounds(p)
@@ -277,35 +357,58 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
     ambiguous: list[list[Candidate]] = []
     tried: list[Candidate] = []
     screenings: list[Screening] = []
+    sim_screens: list[dict[str, float]] = []
     used: set[str] = set()
     for _round in range(MAX_EFFECTS):
         sc = screen(recordings, current.model, nominal_free, effects, exclude=used)
         screenings.append(sc)
+        ss = screen_simulation(recordings, current.model, nominal_free, effects, exclude=used)
+        sim_screens.append({e: d for e, (d, _) in ss.items()})
         # after the first effect, residuals are smaller and relatively more correlated: later rounds
         # need LATER_ROUND_FACTOR times the screening evidence before a nested fit is tried
         bar = SCREEN_DBIC * (1 if _round == 0 else LATER_ROUND_FACTOR)
-        ranked = sorted((d, e) for e, d in sc.single.items() if d < -bar)
-        if not ranked:
-            progress("[diagnose] screening: no effect explains the equation residuals")
+        shortlist = []
+        for gains in ({e: d for e, d in sc.single.items()}, {e: d for e, (d, _) in ss.items()}):
+            ranked = sorted((d, e) for e, d in gains.items() if d < -bar)
+            # candidates explaining at least SHORTLIST_FRACTION of the best one's gain
+            shortlist += [e for d, e in ranked[:MAX_CANDIDATES] if d <= SHORTLIST_FRACTION * ranked[0][0]
+                          and e not in shortlist]
+        if not shortlist:
+            progress("[diagnose] screening: no effect explains the equation or simulation residuals")
             break
-        # candidates explaining at least SHORTLIST_FRACTION of the best one's screening gain
-        shortlist = [e for d, e in ranked[:MAX_CANDIDATES] if d <= SHORTLIST_FRACTION * ranked[0][0]]
         progress(f"[diagnose] screening shortlist: {', '.join(shortlist)}")
         aic0, bic0 = information_criteria(current.rss, current.n_samples, current.n_params)
         ho0 = holdout_cost(holdout, current.model)
         cands = []
         for name in shortlist:
             e = cat.effect(name)
-            guess = _effect_guess(e, sc)
+            guess = _effect_guess(e, sc, ss.get(name, (0.0, {}))[1])
             progress(f"[diagnose] nested fit: + {name} (start {guess})")
             fit = refit(recordings, current.model, current_names + list(e.parameters), guess=guess)
             aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
             cand = Candidate(name, fit, bic - bic0, aic - aic0, holdout_cost(holdout, fit.model) - ho0,
-                             sc.single[name])
+                             sc.single.get(name, float("nan")), ss.get(name, (float("nan"), {}))[0])
             progress(f"[diagnose]   {name}: dBIC {cand.dbic:.1f}, held-out d(cost) {cand.dholdout:.1f}")
             cands.append(cand)
             tried.append(cand)
         good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0)]
+        if good:
+            # guard against an under-converged base fit: refit the base model from the best candidate's
+            # nominal values; the gain must survive against this polished base
+            best0 = min(good, key=lambda c: c.dbic)
+            start = current.model.with_values({n: best0.fit.values[n] for n in current_names})
+            polished = refit(recordings, start, current_names)
+            aic_p, bic_p = information_criteria(polished.rss, polished.n_samples, polished.n_params)
+            if bic_p < bic0 - 0.1:
+                progress(f"[diagnose] base refit from the candidate's nominal values gains {bic0 - bic_p:.1f} BIC")
+                ho_p = holdout_cost(holdout, polished.model)
+                for c in cands:
+                    c.dbic += bic0 - bic_p
+                    c.daic += aic0 - aic_p
+                    if np.isfinite(ho0) and np.isfinite(ho_p):
+                        c.dholdout += ho0 - ho_p
+                current, bic0, aic0, ho0 = polished, bic_p, aic_p, ho_p
+                good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0)]
         if not good:
             break
         good.sort(key=lambda c: c.dbic)
@@ -319,4 +422,4 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
         used.add(best.effect)
         current = best.fit
         current_names = list(best.fit.names)
-    return Selection(accepted, ambiguous, tried, screenings, base_fit, current)
+    return Selection(accepted, ambiguous, tried, screenings, base_fit, current, sim_screens)
