@@ -10,6 +10,8 @@
    per-channel concentrated likelihoods and an effective sample count N / L (L = the
    Savitzky-Golay window, over which filtered residuals are correlated). Nonlinear
    parameters (Stribeck speed, saturation level, lag, latency) are profiled on a grid.
+   A second screen, ``screen_simulation``, is a score test on the simulation residuals
+   (one linearised Gauss-Newton step per effect); the shortlist is the union of both.
 2. **Nested fits**: the best screened candidates are re-identified jointly with the free
    nominal parameters by simulation output error through ``refit.refit``. An effect is
    accepted when its BIC beats the nominal model by ``ACCEPT_DBIC`` and, with held-out
