@@ -94,14 +94,15 @@ def write_doc(cases: list[dict], path: Path, seconds: float, workers: int, scale
              "encoder rates 0.01 rad/s). Magnitudes: the two `magnitudes` of each catalog entry; seeds "
              f"{sorted({c['seed'] for c in cases})}.", "",
              "### Confusion table (true effect -> what the diagnosis reported)", "",
-             "| true effect | cases | named correctly | in an ambiguous group | named other | nothing found | "
-             "error | magnitude within 20 % | reported (count) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| true effect | cases | named correctly | ... plus an extra effect | in an ambiguous group | named other | "
+             "nothing found | error | magnitude within 20 % | reported (count) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for n in names:
         cs = [c for c in cases if c["true"] == n]
         if not cs:
             continue
         ok = sum(1 for c in cs if "error" not in c and n in c["named"])
+        extra = sum(1 for c in cs if "error" not in c and n in c["named"] and len(c["named"]) > 1)
         amb = sum(1 for c in cs if "error" not in c and n not in c["named"] and any(n in g for g in c["ambiguous"]))
         err = sum(1 for c in cs if "error" in c)
         none = sum(1 for c in cs if "error" not in c and not c["named"] and not c["ambiguous"])
@@ -112,7 +113,8 @@ def write_doc(cases: list[dict], path: Path, seconds: float, workers: int, scale
             counts[label(c)] = counts.get(label(c), 0) + 1
         rep = ", ".join(f"{k} ({v})" for k, v in sorted(counts.items(), key=lambda kv: -kv[1]))
         mag_txt = "n/a" if n == "none" else f"{mag}/{len(cs)}"
-        lines.append(f"| {n} | {len(cs)} | {ok if n != 'none' else '-'} | {amb} | {other} | {none} | {err} | "
+        lines.append(f"| {n} | {len(cs)} | {ok if n != 'none' else '-'} | {extra if n != 'none' else '-'} | "
+                     f"{amb} | {other} | {none} | {err} | "
                      f"{mag_txt} | {rep} |")
     lines += ["", "### Concealment and held-out improvement (medians over cases)", "",
               "| true effect | nominal fit % on fitting data (min over channels) | held-out fit % before -> after "
@@ -152,9 +154,16 @@ def main() -> int:
                     help="multiply every effect size by this (e.g. 0.33 to probe detection limits); "
                          "written to its own section")
     ap.add_argument("--magnitudes", default="0,1", help="which catalog magnitudes (indices) to run")
+    ap.add_argument("--from-json", type=Path, default=None,
+                    help="rewrite the doc section from a saved case file instead of running")
+    ap.add_argument("--seconds", type=float, default=0.0, help="with --from-json: the run's duration to report")
     args = ap.parse_args()
     from otbot_hw.diagnose.catalog import CATALOG
 
+    if args.from_json:
+        cases = json.loads(args.from_json.read_text())
+        write_doc(cases, args.doc, args.seconds, args.workers, args.scale)
+        return 0
     effects = [e.name for e in CATALOG if not args.effects or e.name in args.effects.split(",")]
     mags = (0,) if args.quick else tuple(int(m) for m in args.magnitudes.split(","))
     seeds = range(1 if args.quick else args.seeds)
