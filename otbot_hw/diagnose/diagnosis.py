@@ -74,6 +74,7 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
                         "parameters": _params_json(final, e.parameters),
                         "evidence": {"delta_bic": c.dbic, "delta_aic": c.daic, "screening_delta_bic": c.screen_dbic,
                                      "simulation_screening_delta_bic": c.sim_screen_dbic,
+                                     "max_fit_gain_percent": c.fit_gain,
                                      "heldout_delta_cost": _finite(c.dholdout),
                                      "lookalikes_tried": [t.effect for t in sel.tried if t.effect != c.effect]}})
     ambiguous = []
@@ -111,7 +112,7 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
                        "greedy_selection": s.selected,
                        "simulation_score_delta_bic": dict(sorted(ss.items(), key=lambda kv: kv[1]))}
                       for s, ss in zip(sel.screenings, sel.sim_screenings + [{}] * len(sel.screenings))],
-        "candidates": [{"name": c.effect, "delta_bic": c.dbic, "delta_aic": c.daic,
+        "candidates": [{"name": c.effect, "delta_bic": c.dbic, "delta_aic": c.daic, "max_fit_gain_percent": c.fit_gain,
                         "heldout_delta_cost": _finite(c.dholdout),
                         "parameters": _params_json(c.fit, cat.effect(c.effect).parameters)} for c in sel.tried],
         "unusable_channels": unusable,

@@ -14,8 +14,9 @@
    (one linearised Gauss-Newton step per effect); the shortlist is the union of both.
 2. **Nested fits**: the best screened candidates are re-identified jointly with the free
    nominal parameters by simulation output error through ``refit.refit``. An effect is
-   accepted when its BIC beats the nominal model by ``ACCEPT_DBIC`` and, with held-out
-   recordings, when it predicts them better. Candidates within ``AMBIGUOUS_DBIC`` of the
+   accepted when its BIC beats the nominal model by ``ACCEPT_DBIC``, with held-out
+   recordings when it predicts them better, and when it matters: some channel's fit (fitting
+   or held-out) improves by at least ``MIN_FIT_GAIN`` percentage points. Candidates within ``AMBIGUOUS_DBIC`` of the
    best one are reported as ambiguous with the experiment that separates them.
 """
 from __future__ import annotations
@@ -36,6 +37,21 @@ AMBIGUOUS_DBIC = 10.0
 MAX_CANDIDATES = 3
 SHORTLIST_FRACTION = 0.1
 LATER_ROUND_FACTOR = 5.0
+MIN_FIT_GAIN = 0.5  # percentage points: an accepted effect must visibly improve some channel's fit
+
+
+def _fit_percent(recordings: list[DiagnosisData], model: ExtendedModel) -> np.ndarray:
+    """Fit % (NRMSE) of every (recording, channel) in a fixed order."""
+    from otbot_hw.diagnose.residuals import simulate_outputs
+
+    out = []
+    for d in recordings:
+        sim = simulate_outputs(d, model)
+        for ch in d.channels():
+            y = d.measured(ch)
+            den = np.linalg.norm(y - y.mean())
+            out.append(100.0 * (1.0 - np.linalg.norm(y - sim[ch]) / den) if den > 0 else 0.0)
+    return np.array(out)
 MAX_EFFECTS = 2
 
 FLOOR_NOMINAL = ("m_c", "I_c", "x_B", "y_B", "I_p", "b_w", "b_p")
@@ -320,6 +336,7 @@ class Candidate:
     dholdout: float
     screen_dbic: float
     sim_screen_dbic: float = float("nan")
+    fit_gain: float = float("nan")  # largest fit-% gain of any channel (fitting or held-out), percentage points
 
 
 @dataclass
@@ -390,10 +407,13 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
             cand = Candidate(name, fit, bic - bic0, aic - aic0, holdout_cost(holdout, fit.model) - ho0,
                              sc.single.get(name, float("nan")), ss.get(name, (float("nan"), {}))[0])
-            progress(f"[diagnose]   {name}: dBIC {cand.dbic:.1f}, held-out d(cost) {cand.dholdout:.1f}")
+            progress(f"[diagnose]   {name}: dBIC {cand.dbic:.1f}, held-out d(cost) {cand.dholdout:.1f}")  # noqa
             cands.append(cand)
             tried.append(cand)
-        good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0)]
+        base_fit_pct = _fit_percent(recordings + holdout, current.model)
+        for c in cands:
+            c.fit_gain = max(np.subtract(_fit_percent(recordings + holdout, c.fit.model), base_fit_pct))
+        good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0) and c.fit_gain >= MIN_FIT_GAIN]
         if good:
             # guard against an under-converged base fit: refit the base model from the best candidate's
             # nominal values; the gain must survive against this polished base
@@ -410,7 +430,8 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
                     if np.isfinite(ho0) and np.isfinite(ho_p):
                         c.dholdout += ho0 - ho_p
                 current, bic0, aic0, ho0 = polished, bic_p, aic_p, ho_p
-                good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0)]
+                good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0)
+                        and c.fit_gain >= MIN_FIT_GAIN]
         if not good:
             break
         good.sort(key=lambda c: c.dbic)
