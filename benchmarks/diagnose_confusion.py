@@ -91,7 +91,7 @@ def write_doc(cases: list[dict], path: Path, seconds: float, workers: int, scale
                 f"(saturation: {scale:g} x the clipped part of the 4 N m wheel peaks).", ""] if scale != 1.0 else []),
              f"{len(cases)} cases, {seconds / 60:.1f} min on {workers} worker process(es). Fitting set: 10 s multisine "
              "on the floor + 4 s stand run; held-out: 10 s tracking-like run; 100 Hz, paper noise (IMU 13.7e-3, "
-             "encoder rates 0.01 rad/s). Magnitudes: the two `magnitudes` of each catalog entry; seeds "
+             "encoder rates 0.01 rad/s). Magnitudes: the catalog `magnitudes` run (x the scale above); seeds "
              f"{sorted({c['seed'] for c in cases})}.", "",
              "### Confusion table (true effect -> what the diagnosis reported)", "",
              "| true effect | cases | named correctly | ... plus an extra effect | in an ambiguous group | named other | "
