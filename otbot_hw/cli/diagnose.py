@@ -1,0 +1,149 @@
+"""``otbot diagnose``: find the physics a model leaves out, from recordings.
+
+Compares recordings with the identified model, locates where they part ways, names
+the missing effect from the catalog (``otbot_hw.diagnose.catalog``), re-identifies the
+model with it and shows the fit before/after. ``--demo`` runs the whole thing on
+simulated recordings with a hidden effect (Coulomb friction at the wheel motors by
+default, ``--demo-effect`` to choose another catalog effect or ``none``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from otbot_hw.cli import CliError, add_json_flag, progress
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "diagnose",
+        help="find the physics the model leaves out (locate, name, refit, before/after)",
+        description=(
+            "Diagnose recordings (MCAP, docs/recording-format.md) against the identified model: refit the "
+            "nominal parameters, flag the time windows and channels where simulation and recording part ways "
+            "(simulation residuals of encoder rates w_* in rad/s, IMU a_x, a_y in m/s^2 and g_z in rad/s; "
+            "inverse-dynamics torque residuals in N m), choose missing effects from the catalog by BIC and "
+            "held-out prediction, refit them with the nominal parameters (values with one-sigma std, SI units) "
+            "and report the fit before/after. Only commands, encoders and IMU are used; /otbot/truth is ignored."),
+    )
+    p.add_argument("recordings", nargs="*", type=Path, metavar="RECORDING", help="fitting recordings (.mcap)")
+    p.add_argument("--params", type=Path, default=None,
+                   help="identified parameter file (default config/otbot.yaml)")
+    p.add_argument("--holdout", nargs="+", type=Path, default=[], metavar="RECORDING",
+                   help="held-out recordings: used only to judge prediction")
+    p.add_argument("--report", type=Path, default=None, metavar="DIR",
+                   help="write residual plots (PNG) and diagnosis.json into DIR")
+    p.add_argument("--each", action="store_true",
+                   help="diagnose every RECORDING on its own, in parallel worker processes (a fleet's runs)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes for --each (default 2)")
+    p.add_argument("--demo", action="store_true",
+                   help="simulate recordings with a hidden effect and diagnose them")
+    p.add_argument("--demo-effect", default="coulomb_wheels",
+                   help="catalog effect hidden in the demo ('none' for a negative control)")
+    p.add_argument("--demo-dir", type=Path, default=Path("otbot-diagnose-demo"),
+                   help="folder for the demo recordings (default otbot-diagnose-demo)")
+    add_json_flag(p)
+    p.set_defaults(func=run)
+
+
+def _catalog_names() -> list[str]:
+    from otbot_hw.diagnose.catalog import CATALOG
+
+    return [e.name for e in CATALOG]
+
+
+def demo_recordings(effect_name: str, out_dir: Path, seed: int = 0) -> tuple[list[Path], list[Path], dict]:
+    """Write the demo's fitting and held-out recordings; returns their paths and the hidden truth."""
+    from otbot_hw.diagnose.catalog import effect
+    from otbot_hw.params import nominal
+    from otbot_hw.recording import write_recording
+    from sim.concealed import concealed_recording
+
+    values = {} if effect_name == "none" else dict(effect(effect_name).magnitudes[0])
+    params = nominal()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fit_kinds = ["multisine", "stand"] if effect_name in ("coulomb_wheels", "stribeck_wheels") else ["multisine"]
+    fitting, held = [], []
+    for i, kind in enumerate(fit_kinds):
+        path = out_dir / f"fit_{i}_{kind}.mcap"
+        write_recording(path, concealed_recording(params, values, kind, duration=10.0 if kind != "stand" else 4.0,
+                                                  seed=seed + i, effect_name=effect_name))
+        fitting.append(path)
+    path = out_dir / "heldout_tracking.mcap"
+    write_recording(path, concealed_recording(params, values, "tracking", duration=10.0, seed=seed + 50,
+                                              effect_name=effect_name))
+    held.append(path)
+    return fitting, held, {"effect": effect_name, "parameters": values}
+
+
+def run(args: argparse.Namespace) -> dict:
+    from otbot_hw.diagnose.data import load
+    from otbot_hw.diagnose.diagnosis import diagnose
+    from otbot_hw.params import OtbotParams, nominal
+
+    quiet = args.json
+    say = (lambda m: progress(m, True))
+    truth = None
+    if args.demo:
+        if args.recordings:
+            raise CliError("--demo simulates its own recordings; give no RECORDING")
+        if args.demo_effect not in _catalog_names() + ["none"]:
+            raise CliError(f"--demo-effect {args.demo_effect!r} is not in the catalog "
+                           f"(known: {', '.join(_catalog_names())}, none)")
+        say(f"[diagnose] demo: simulating recordings with hidden effect '{args.demo_effect}'")
+        fitting, held, truth = demo_recordings(args.demo_effect, args.demo_dir)
+    else:
+        if not args.recordings:
+            raise CliError("give at least one RECORDING (or --demo)")
+        fitting, held = args.recordings, args.holdout
+    overlap = {str(p) for p in fitting} & {str(p) for p in held}
+    if overlap:
+        raise CliError(f"recording(s) both fitting and held-out: {sorted(overlap)}")
+    params = OtbotParams.load(args.params) if args.params else nominal()
+    if args.each:
+        from otbot_hw.diagnose.fleet import diagnose_each
+
+        if args.workers < 1:
+            raise CliError(f"--workers must be >= 1, got {args.workers}")
+        runs = diagnose_each(list(fitting), args.params, list(held), args.workers, say)
+        if not quiet:
+            for r in runs:
+                print(f"{r['recording']}: {r.get('verdict', 'error: ' + str(r.get('error')))}")
+        return {"runs": runs}
+    recs = load(fitting)
+    hold = load(held)
+    for d in recs + hold:
+        for ch, why in d.unusable.items():
+            say(f"[diagnose] {d.name}: channel {ch} not used: {why}")
+    result = diagnose(recs, params, hold, report_dir=args.report, progress=say)
+    if truth is not None:
+        result["demo_truth"] = truth
+    if args.report:
+        import json
+
+        args.report.mkdir(parents=True, exist_ok=True)
+        (args.report / "diagnosis.json").write_text(json.dumps(result, indent=1, allow_nan=False))
+    if not quiet:
+        _print_summary(result)
+    return result
+
+
+def _print_summary(r: dict) -> None:
+    out = sys.stdout
+    print(r["verdict"], file=out)
+    for key in ("fitting", "heldout"):
+        b, a = r["fit_before"].get(key) or {}, r["fit_after"].get(key) or {}
+        if not b:
+            continue
+        print(f"{key} fit %:  " + "  ".join(f"{ch} {b[ch]['fit_percent']:.1f} -> {a[ch]['fit_percent']:.1f}"
+                                          for ch in b), file=out)
+    moved = {n: v for n, v in r["nominal_shift"].items() if v["shift"] != 0}
+    if r["effects"] or r["ambiguous"]:
+        print("nominal parameters moved: " + ", ".join(f"{n} {v['before']:.4g} -> {v['after']:.4g} {v['unit']}"
+                                                     for n, v in moved.items()), file=out)
+    print(f"located windows: {len(r['located'])} ({r['located_summary']['per_channel']})", file=out)
+    for p in r.get("plots", []):
+        print(f"plot: {p}", file=out)
+    if "demo_truth" in r:
+        print(f"demo truth (hidden from the diagnosis): {r['demo_truth']}", file=out)

@@ -1,0 +1,168 @@
+"""Before/after evidence of a diagnosis: per-channel statistics, residual plots, verdict, JSON.
+
+Per channel (over all recordings of a set, fitting or held-out):
+
+* ``fit_percent`` = 100 (1 - ||y - y_sim|| / ||y - mean(y)||) (NRMSE fit, simulation);
+* ``rms``: residual RMS in the channel's unit;
+* ``aic``/``bic``: N ln(RSS/N) + 2k / k ln N, k = free parameters of the model;
+* ``ljung_box_q``/``ljung_box_p``: whiteness of the residual (Q over ``LB_LAGS`` lags,
+  chi-square p-value; small p = not white);
+* ``max_input_xcorr`` and ``xcorr_bound``: largest |normalised cross-correlation| between the
+  residual and any commanded torque over lags 0..``LB_LAGS``, and the 95 % bound 1.96/sqrt(N).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from otbot_hw.diagnose.data import CHANNEL_UNITS, CHANNELS, DiagnosisData
+from otbot_hw.diagnose.residuals import simulate_outputs, torque_residual
+from otbot_hw.model.effects import ExtendedModel
+
+LB_LAGS = 20
+
+
+def _acf(r: np.ndarray, lags: int) -> np.ndarray:
+    r = r - r.mean()
+    d = r @ r
+    if d <= 0:
+        return np.zeros(lags)
+    return np.array([(r[h:] @ r[:-h]) / d for h in range(1, lags + 1)])
+
+
+def _xcorr(r: np.ndarray, u: np.ndarray, lags: int) -> float:
+    r = r - r.mean()
+    best = 0.0
+    for j in range(u.shape[1]):
+        x = u[:, j] - u[:, j].mean()
+        den = np.sqrt((r @ r) * (x @ x))
+        if den <= 0:
+            continue
+        for h in range(0, lags + 1):
+            best = max(best, abs(r[h:] @ x[:len(x) - h]) / den)
+    return float(best)
+
+
+def channel_stats(recordings: list[DiagnosisData], model: ExtendedModel, k: int) -> dict[str, dict]:
+    """Statistics per channel (see module doc) of ``model`` on ``recordings``; {} for an empty set."""
+    if not recordings:
+        return {}
+    sims = [simulate_outputs(d, model) for d in recordings]
+    out = {}
+    for ch in CHANNELS:
+        ys, rs, us = [], [], []
+        for d, s in zip(recordings, sims):
+            y = d.measured(ch)
+            if y is None:
+                continue
+            ys.append(y - y.mean())
+            rs.append(y - s[ch])
+            us.append(d.u)
+        if not ys:
+            continue
+        y, r = np.concatenate(ys), np.concatenate(rs)
+        n = len(r)
+        rss = float(r @ r)
+        acf = sum(len(x) * _acf(x, LB_LAGS) for x in rs) / n
+        q = float(n * (n + 2) * np.sum(acf ** 2 / (n - np.arange(1, LB_LAGS + 1))))
+        xc = max(_xcorr(x, u, LB_LAGS) for x, u in zip(rs, us))
+        norm_y = float(np.linalg.norm(y))
+        out[ch] = {
+            "unit": CHANNEL_UNITS[ch],
+            "fit_percent": float(100.0 * (1.0 - np.sqrt(rss) / norm_y)) if norm_y > 0 else float("nan"),
+            "rms": float(np.sqrt(rss / n)),
+            "aic": float(n * np.log(max(rss, 1e-300) / n) + 2 * k),
+            "bic": float(n * np.log(max(rss, 1e-300) / n) + k * np.log(n)),
+            "ljung_box_q": q,
+            "ljung_box_p": float(max(stats.chi2.sf(q, LB_LAGS), 1e-300)),
+            "max_input_xcorr": xc,
+            "xcorr_bound": float(1.96 / np.sqrt(n)),
+            "samples": n,
+        }
+    return out
+
+
+def verdict(result: dict) -> str:
+    """One plain-language paragraph from the diagnosis JSON."""
+    parts = []
+    for e in result["effects"]:
+        ps = ", ".join(f"{n} = {_fmt(v['value'], v['std'])} {v['unit']}" for n, v in e["parameters"].items())
+        parts.append(f"Left out: {e['title']}, {ps}.")
+    for grp in result["ambiguous"]:
+        names = " / ".join(c["title"] for c in grp["candidates"])
+        parts.append(f"The data cannot tell apart {names} (BIC within {grp['bic_margin']:.0f}); "
+                     f"to separate them: {grp['experiment']}.")
+    if parts:
+        # relative shift of parameters that are not near zero (a centre-of-mass offset of 1 mm moving
+        # to 0 is no evidence)
+        moved = [(abs(v["shift"]) / max(abs(v["before"]), abs(v["after"])), n, v)
+                 for n, v in result.get("nominal_shift", {}).items()
+                 if v["shift"] is not None and max(abs(v["before"]), abs(v["after"])) > 0.01]
+        moved = [m for m in moved if m[0] > 0.05]
+        if moved:
+            _, n, v = max(moved, key=lambda m: m[0])
+            parts.append(f"The nominal fit had absorbed it: {n} {v['before']:.4g} -> {v['after']:.4g} {v['unit']}.")
+    if not parts:
+        parts.append("No missing physics found: no catalog effect improves the model by the evidence threshold.")
+    key = "heldout" if result["fit_before"].get("heldout") else "fitting"
+    before, after = result["fit_before"].get(key, {}), result["fit_after"].get(key, {})
+    def ok(v):
+        return v is not None and np.isfinite(v)
+
+    usable = [c for c in before if ok(before[c]["fit_percent"]) and ok(after[c]["fit_percent"])]
+    if (result["effects"] or result["ambiguous"]) and usable:
+        ch = max(usable, key=lambda c: after[c]["fit_percent"] - before[c]["fit_percent"])
+        label = "Held-out" if key == "heldout" else "Fitting"
+        parts.append(f"{label} fit of {ch}: {before[ch]['fit_percent']:.0f} % -> {after[ch]['fit_percent']:.0f} %.")
+    return " ".join(parts)
+
+
+def _fmt(v: float, s: float) -> str:
+    if s is None or not np.isfinite(s):
+        return f"{v:.4g} (std not identifiable)"
+    digits = max(0, -int(np.floor(np.log10(abs(s)))) + 1) if s > 0 else 4
+    return f"{v:.{digits}f} ± {s:.{digits}f}"
+
+
+def plot_residuals(path: Path, data: DiagnosisData, before: ExtendedModel, after: ExtendedModel,
+                   windows: list, title: str) -> str:
+    """PNG: simulation residual per channel and torque residual per joint, before (grey) and after
+    (blue), with the windows located against the nominal model shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sb, sa = simulate_outputs(data, before), simulate_outputs(data, after)
+    tb, ta = torque_residual(data, before), torque_residual(data, after)
+    chans = data.channels()
+    rows = len(chans) + 3
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 1.6 * rows), sharex=True)
+    mine = [w for w in windows if w.recording == data.name]
+    for ax, ch in zip(axes, chans):
+        y = data.measured(ch)
+        ax.plot(data.t, y - sb[ch], color="0.6", lw=0.8, label="before")
+        ax.plot(data.t, y - sa[ch], color="tab:blue", lw=0.8, label="after")
+        ax.set_ylabel(f"{ch}\n[{CHANNEL_UNITS[ch]}]", fontsize=8)
+        for w in mine:
+            if w.kind == "simulation" and w.channel == ch:
+                ax.axvspan(w.t_start, w.t_end, color="tab:red", alpha=0.12, lw=0)
+    L = data.window
+    for j, name in enumerate(("tau_r", "tau_l", "tau_p")):
+        ax = axes[len(chans) + j]
+        ax.plot(data.t[L:-L], tb[L:-L, j], color="0.6", lw=0.8)
+        ax.plot(data.t[L:-L], ta[L:-L, j], color="tab:blue", lw=0.8)
+        ax.set_ylabel(f"{name} res.\n[N m]", fontsize=8)
+        for w in mine:
+            if w.kind == "torque" and w.channel == name:
+                ax.axvspan(w.t_start, w.t_end, color="tab:red", alpha=0.12, lw=0)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_title(title + " (shaded: windows flagged against the nominal model)", fontsize=9)
+    axes[-1].set_xlabel("t [s]")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return str(path)

@@ -1,0 +1,448 @@
+"""Choosing effects by evidence: sparse regression screening, then nested fits.
+
+1. **Screening** (fast, linear): the equation residuals (torque per joint, IMU vs
+   encoders; ``residuals.py``) of the nominal fit are regressed on the catalog's
+   regressors -- the change of those residuals when one effect parameter is switched on
+   (finite differences through the extended model, so the regressors are exactly the
+   model's) -- after projecting out the regressors of the free nominal parameters (what a
+   refit could absorb). Group orthogonal matching pursuit (numpy only) adds one effect
+   (all its parameters) at a time while BIC drops by more than ``SCREEN_DBIC``; BIC uses
+   per-channel concentrated likelihoods and an effective sample count N / L (L = the
+   Savitzky-Golay window, over which filtered residuals are correlated). Nonlinear
+   parameters (Stribeck speed, saturation level, lag, latency) are profiled on a grid.
+   A second screen, ``screen_simulation``, is a score test on the simulation residuals
+   (one linearised Gauss-Newton step per effect); the shortlist is the union of both.
+2. **Nested fits**: the best screened candidates are re-identified jointly with the free
+   nominal parameters by simulation output error through ``refit.refit``. An effect is
+   accepted when its BIC beats the nominal model by ``ACCEPT_DBIC``, with held-out
+   recordings when it predicts them better, and when it matters: some channel's fit (fitting
+   or held-out) improves by at least ``MIN_FIT_GAIN`` percentage points. Candidates within ``AMBIGUOUS_DBIC`` of the
+   best one are reported as ambiguous with the experiment that separates them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from otbot_hw.diagnose import catalog as cat
+from otbot_hw.diagnose.data import DiagnosisData
+from otbot_hw.diagnose.refit import FitResult, refit, weighted_residuals
+from otbot_hw.diagnose.residuals import estimate_motion, imu_residual, torque_residual
+from otbot_hw.model.effects import ExtendedModel, parameter_bounds
+
+SCREEN_DBIC = 10.0
+ACCEPT_DBIC = 10.0
+AMBIGUOUS_DBIC = 10.0
+MAX_CANDIDATES = 3
+SHORTLIST_FRACTION = 0.1
+LATER_ROUND_FACTOR = 5.0
+MIN_FIT_GAIN = 0.5  # percentage points: an accepted effect must visibly improve some channel's fit
+
+
+def _fit_percent(recordings: list[DiagnosisData], model: ExtendedModel) -> np.ndarray:
+    """Fit % (NRMSE) of every (recording, channel) in a fixed order."""
+    from otbot_hw.diagnose.residuals import simulate_outputs
+
+    out = []
+    for d in recordings:
+        sim = simulate_outputs(d, model)
+        for ch in d.channels():
+            y = d.measured(ch)
+            den = np.linalg.norm(y - y.mean())
+            out.append(100.0 * (1.0 - np.linalg.norm(y - sim[ch]) / den) if den > 0 else 0.0)
+    return np.array(out)
+MAX_EFFECTS = 2
+
+FLOOR_NOMINAL = ("m_c", "I_c", "x_B", "y_B", "I_p", "b_w", "b_p")
+STAND_NOMINAL = ("I_a", "b_w", "I_p", "b_p")
+LOCKED_NOMINAL = ("I_p", "b_p")
+
+
+def free_nominal(recordings: list[DiagnosisData]) -> list[str]:
+    """Nominal parameters the data can identify (paper §4.2 steps): bench runs free the wheel
+    inertia and frictions, floor runs the chassis; platform mass and centre are taken as known."""
+    out: list[str] = []
+    for d in recordings:
+        names = {"floor": FLOOR_NOMINAL, "stand": STAND_NOMINAL, "locked": LOCKED_NOMINAL}[d.fixture]
+        out += [n for n in names if n not in out]
+    return out
+
+
+# --- screening ---------------------------------------------------------------
+
+def _stack(recordings, model, trim):
+    """Equation residuals of every recording: list of (N_k, 6) arrays (torque r, l, p; a_x, a_y, g_z)."""
+    out = []
+    for d in recordings:
+        m = estimate_motion(d, model)
+        tr = torque_residual(d, model, m)
+        ir = imu_residual(d, model, m)
+        if ir is None:
+            ir = np.full((len(d), 3), np.nan)
+        z = np.column_stack([tr, ir])[trim:len(d) - trim]
+        if d.fixture == "locked":
+            z[:, :2] = np.nan
+        out.append(z)
+    return out
+
+
+@dataclass
+class Variant:
+    """One screening column group: an effect with its linear step values (and grid values)."""
+
+    effect: str
+    values: dict[str, float]  # parameter values of the unit step (coefficient 1 = these values)
+    linear: tuple[str, ...]  # parameters whose columns are separate
+    fixed: dict[str, float] = field(default_factory=dict)  # profiled nonlinear parameters
+
+
+def _variants(recordings: list[DiagnosisData], effects: list[cat.Effect]) -> list[Variant]:
+    umax = max(float(np.max(np.abs(d.u))) for d in recordings)
+    out = []
+    for e in effects:
+        step = dict(e.magnitudes[0])
+        if e.name == "torque_saturation":
+            for frac in (0.9, 0.75, 0.6):
+                out.append(Variant(e.name, {}, (), {"u_max": frac * umax}))
+        elif e.grids:
+            (gname, grid), = e.grids.items()
+            lin = tuple(p for p in e.parameters if p != gname)
+            for g in grid:
+                if lin:
+                    out.append(Variant(e.name, {p: step[p] for p in lin}, lin, {gname: g}))
+                else:
+                    out.append(Variant(e.name, {}, (), {gname: g}))
+        else:
+            out.append(Variant(e.name, {p: step[p] for p in e.parameters}, tuple(e.parameters)))
+    return out
+
+
+@dataclass
+class Screening:
+    """Screening outcome: single-effect BIC gains, the greedy selection and coefficient estimates."""
+
+    single: dict[str, float]  # effect -> best Delta BIC alone (negative = evidence)
+    guesses: dict[str, dict[str, float]]  # effect -> parameter guess from the regression
+    selected: list[str]
+    channel_rms: list[float]
+
+
+def screen(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: list[str],
+           effects: list[cat.Effect], exclude: set[str] = frozenset()) -> Screening:
+    """Rank catalog effects by how much of the equation residuals they explain (see module doc)."""
+    trim = max(d.window for d in recordings)
+    base = _stack(recordings, model, trim)
+    z = np.concatenate(base)  # (N, 6)
+    valid = np.all(np.isfinite(z), axis=0) | (np.mean(np.isfinite(z), axis=0) > 0.5)
+    ok = np.isfinite(z)
+    rms = np.array([np.sqrt(np.nanmean(z[:, j] ** 2)) if valid[j] and np.any(ok[:, j]) else 1.0
+                    for j in range(6)])
+    rms = np.maximum(rms, 1e-9)
+
+    def vec(stacks):  # whitened, channel-major, NaN -> 0 (masked rows stay 0 in both z and columns)
+        a = np.concatenate(stacks)
+        a = np.where(ok, a, 0.0) / rms
+        return a.T.reshape(-1)
+
+    zv = vec(base)
+    n_ch = z.shape[0]
+    L = max(d.window for d in recordings)
+    # nominal columns
+    nom_cols = []
+    for n in nominal_free:
+        h = 1e-4 * max(abs(model.get(n)), 1e-2)
+        st = _stack(recordings, model.with_values({n: model.get(n) + h}), trim)
+        nom_cols.append((vec(st) - zv) / h)
+    Y = np.column_stack(nom_cols) if nom_cols else np.zeros((len(zv), 0))
+    if Y.shape[1]:
+        Qn, Rn = np.linalg.qr(Y)
+        keep = np.abs(np.diag(Rn)) > 1e-8 * np.max(np.abs(np.diag(Rn)))
+        Qn = Qn[:, keep]
+    else:
+        Qn = np.zeros((len(zv), 0))
+
+    def proj(a):
+        return a - Qn @ (Qn.T @ a)
+
+    z0 = proj(zv)
+    chans = [slice(j * n_ch, (j + 1) * n_ch) for j in range(6)]
+    active = [j for j in range(6) if valid[j] and np.any(ok[:, j])]
+    n_eff = n_ch / L
+
+    def bic(res, k):
+        return sum(n_eff * np.log(max(res[c] @ res[c], 1e-300) / n_ch) for c in (chans[j] for j in active)) \
+            + k * np.log(n_eff * len(active))
+
+    variants = [v for v in _variants(recordings, effects) if v.effect not in exclude]
+    cols = {}
+    for i, v in enumerate(variants):
+        cs = []
+        if v.linear:
+            for p in v.linear:
+                st = _stack(recordings, model.with_values({**v.fixed, p: v.values[p]}), trim)
+                cs.append(proj(vec(st) - zv))
+        else:
+            st = _stack(recordings, model.with_values(v.fixed), trim)
+            cs.append(proj(vec(st) - zv))
+        cols[i] = np.column_stack(cs)
+    bic0 = bic(z0, 0)
+    single: dict[str, float] = {}
+    guesses: dict[str, dict[str, float]] = {}
+    best_var: dict[str, int] = {}
+    for i, v in enumerate(variants):
+        A = cols[i]
+        if not np.any(A):
+            continue
+        coef, *_ = np.linalg.lstsq(A, z0, rcond=None)
+        d = bic(z0 - A @ coef, A.shape[1]) - bic0
+        if d < single.get(v.effect, np.inf):
+            single[v.effect] = float(d)
+            best_var[v.effect] = i
+            g = dict(v.fixed)
+            # the model change that cancels the residual is -coef (columns = change of the residual)
+            for c, p in zip(coef, v.linear):
+                g[p] = float(-c * v.values[p])
+            if not v.linear and v.effect in ("current_lag", "imu_latency"):
+                (k, val), = v.fixed.items()
+                g[k] = float(val * np.clip(-coef[0], 0.05, 2.0))
+            guesses[v.effect] = g
+    # greedy group selection
+    selected: list[str] = []
+    A_sel = np.zeros((len(z0), 0))
+    cur = bic0
+    res = z0
+    for _ in range(MAX_EFFECTS + 1):
+        best = None
+        for e, i in best_var.items():
+            if e in selected:
+                continue
+            A = np.column_stack([A_sel, cols[i]])
+            coef, *_ = np.linalg.lstsq(A, z0, rcond=None)
+            r = z0 - A @ coef
+            b = bic(r, A.shape[1])
+            if best is None or b < best[0]:
+                best = (b, e, A, r)
+        if best is None or best[0] - cur > -SCREEN_DBIC:
+            break
+        cur, e, A_sel, res = best[0], best[1], best[2], best[3]
+        selected.append(e)
+    return Screening(single=single, guesses=guesses, selected=selected, channel_rms=rms.tolist())
+
+
+def screen_simulation(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: list[str],
+                      effects: list[cat.Effect], exclude: set[str] = frozenset()) -> dict[str, tuple[float, dict]]:
+    """Score-test screening on the simulation residuals (the objective of the nested fits).
+
+    One linearised Gauss-Newton step per effect: the simulation output change for the
+    effect's catalog step (finite differences through the extended simulator), with the free
+    nominal parameters' sensitivities projected out. Returns {effect: (Delta BIC of that step
+    with per-channel concentrated likelihoods, parameter guess)}. Integration accumulates small
+    force effects into large velocity residuals, so this catches effects whose per-sample torque
+    signature is below the equation-residual noise.
+    """
+    from otbot_hw.diagnose.refit import channel_sigmas
+
+    sig = channel_sigmas(recordings)
+    base = weighted_residuals(recordings, model, sig)
+    keys = list(base)
+    r0 = np.concatenate([base[k] for k in keys])
+    sl, i = {}, 0
+    for k in keys:
+        sl[k] = slice(i, i + len(base[k]))
+        i += len(base[k])
+
+    def vec(m):
+        res = weighted_residuals(recordings, m, sig)
+        return np.concatenate([res[k] for k in keys])
+
+    cols = []
+    for n in nominal_free:
+        h = 1e-4 * max(abs(model.get(n)), 1e-2)
+        cols.append(vec(model.with_values({n: model.get(n) + h})) - r0)
+    Qn = np.zeros((len(r0), 0))
+    if cols:
+        Qn, Rn = np.linalg.qr(np.column_stack(cols))
+        Qn = Qn[:, np.abs(np.diag(Rn)) > 1e-8 * np.max(np.abs(np.diag(Rn)))]
+    z0 = r0 - Qn @ (Qn.T @ r0)
+    n_tot = len(r0)
+
+    def bic(res, k):
+        return sum(len(base[key]) * np.log(max(res[sl[key]] @ res[sl[key]], 1e-300) / len(base[key]))
+                   for key in keys) + k * np.log(n_tot)
+
+    b0 = bic(z0, 0)
+    out: dict[str, tuple[float, dict]] = {}
+    for v in _variants(recordings, effects):
+        if v.effect in exclude:
+            continue
+        A = []
+        names = list(v.linear) if v.linear else [None]
+        for p in names:
+            vals = dict(v.fixed)
+            if p is not None:
+                vals[p] = v.values[p]
+            try:
+                d = vec(model.with_values(vals)) - r0
+            except ValueError:
+                continue
+            A.append(d - Qn @ (Qn.T @ d))
+        if not A:
+            continue
+        A = np.column_stack(A)
+        coef, *_ = np.linalg.lstsq(A, z0, rcond=None)
+        # the simulated output changes by A coef; the residual by -A coef
+        dres = z0 - A @ coef
+        d_bic = float(bic(dres, A.shape[1]) - b0)
+        # residual at the base ~ minus the residual change of the true effect: theta = -coef * step
+        guess = dict(v.fixed)
+        for c, p in zip(coef, v.linear):
+            guess[p] = float(-c * v.values[p])
+        if not v.linear and v.effect in ("current_lag", "imu_latency"):
+            (k, val), = v.fixed.items()
+            guess[k] = float(val * np.clip(-coef[0], 0.05, 2.0))
+        if d_bic < out.get(v.effect, (np.inf, {}))[0]:
+            out[v.effect] = (d_bic, guess)
+    return out
+
+
+# --- nested fits -------------------------------------------------------------
+
+def information_criteria(fit_rss: dict, n_samples: dict, k: int) -> tuple[float, float]:
+    """(AIC, BIC) from per-channel concentrated Gaussian likelihoods; k free parameters."""
+    n_tot = sum(n_samples.values())
+    ll = sum(n * np.log(max(fit_rss[key], 1e-300) / n) for key, n in n_samples.items())
+    return float(ll + 2 * k), float(ll + k * np.log(n_tot))
+
+
+def holdout_cost(holdout: list[DiagnosisData], model: ExtendedModel) -> float:
+    """Sum over held-out channels of N ln(RSS / N) (noise-weighted): lower predicts better."""
+    if not holdout:
+        return float("nan")
+    from otbot_hw.diagnose.refit import channel_sigmas
+
+    res = weighted_residuals(holdout, model, channel_sigmas(holdout))
+    return float(sum(len(v) * np.log(max(v @ v, 1e-300) / len(v)) for v in res.values()))
+
+
+@dataclass
+class Candidate:
+    """A nested fit of one effect: the fit, its BIC gain over the base model, its held-out gain."""
+
+    effect: str
+    fit: FitResult
+    dbic: float
+    daic: float
+    dholdout: float
+    screen_dbic: float
+    sim_screen_dbic: float = float("nan")
+    fit_gain: float = float("nan")  # largest fit-% gain of any channel (fitting or held-out), percentage points
+
+
+@dataclass
+class Selection:
+    """Accepted effects (in order), ambiguous groups, every candidate tried and the final fit."""
+
+    accepted: list[Candidate]
+    ambiguous: list[list[Candidate]]
+    tried: list[Candidate]
+    screenings: list[Screening]
+    base_fit: FitResult
+    final_fit: FitResult
+    sim_screenings: list[dict[str, float]] = field(default_factory=list)
+
+
+def _effect_guess(e: cat.Effect, screening: Screening, sim_guess: dict | None = None) -> dict[str, float]:
+    """Start values: the simulation screening's step when it has one, else the equation screening's."""
+    g = dict(screening.guesses.get(e.name, {}))
+    g.update(sim_guess or {})
+    out = {}
+    for p in e.parameters:
+        lo, hi = parameter_bounds(p)
+        v = g.get(p, e.magnitudes[0][p] * 0.5)
+        span = hi - lo
+        out[p] = float(np.clip(v, lo + 1e-3 * span, hi - 1e-3 * span))
+    return out
+
+
+def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_fit: FitResult,
+           nominal_free: list[str], progress=lambda msg: None) -> Selection:
+    """Greedy forward selection of effects (screen, nested fits, accept by BIC + held-out)."""
+    fixtures = {d.fixture for d in recordings}
+    effects = cat.applicable(fixtures)
+    current = base_fit
+    current_names = list(nominal_free)
+    accepted: list[Candidate] = []
+    ambiguous: list[list[Candidate]] = []
+    tried: list[Candidate] = []
+    screenings: list[Screening] = []
+    sim_screens: list[dict[str, float]] = []
+    used: set[str] = set()
+    for _round in range(MAX_EFFECTS):
+        sc = screen(recordings, current.model, nominal_free, effects, exclude=used)
+        screenings.append(sc)
+        ss = screen_simulation(recordings, current.model, nominal_free, effects, exclude=used)
+        sim_screens.append({e: d for e, (d, _) in ss.items()})
+        # after the first effect, residuals are smaller and relatively more correlated: later rounds
+        # need LATER_ROUND_FACTOR times the screening evidence before a nested fit is tried
+        bar = SCREEN_DBIC * (1 if _round == 0 else LATER_ROUND_FACTOR)
+        shortlist = []
+        for gains in ({e: d for e, d in sc.single.items()}, {e: d for e, (d, _) in ss.items()}):
+            ranked = sorted((d, e) for e, d in gains.items() if d < -bar)
+            # candidates explaining at least SHORTLIST_FRACTION of the best one's gain
+            shortlist += [e for d, e in ranked[:MAX_CANDIDATES] if d <= SHORTLIST_FRACTION * ranked[0][0]
+                          and e not in shortlist]
+        if not shortlist:
+            progress("[diagnose] screening: no effect explains the equation or simulation residuals")
+            break
+        progress(f"[diagnose] screening shortlist: {', '.join(shortlist)}")
+        aic0, bic0 = information_criteria(current.rss, current.n_samples, current.n_params)
+        ho0 = holdout_cost(holdout, current.model)
+        cands = []
+        for name in shortlist:
+            e = cat.effect(name)
+            guess = _effect_guess(e, sc, ss.get(name, (0.0, {}))[1])
+            progress(f"[diagnose] nested fit: + {name} (start {guess})")
+            fit = refit(recordings, current.model, current_names + list(e.parameters), guess=guess)
+            aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
+            cand = Candidate(name, fit, bic - bic0, aic - aic0, holdout_cost(holdout, fit.model) - ho0,
+                             sc.single.get(name, float("nan")), ss.get(name, (float("nan"), {}))[0])
+            progress(f"[diagnose]   {name}: dBIC {cand.dbic:.1f}, held-out d(cost) {cand.dholdout:.1f}")  # noqa
+            cands.append(cand)
+            tried.append(cand)
+        base_fit_pct = _fit_percent(recordings + holdout, current.model)
+        for c in cands:
+            c.fit_gain = max(np.subtract(_fit_percent(recordings + holdout, c.fit.model), base_fit_pct))
+        good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0) and c.fit_gain >= MIN_FIT_GAIN]
+        if good:
+            # guard against an under-converged base fit: refit the base model from the best candidate's
+            # nominal values; the gain must survive against this polished base
+            best0 = min(good, key=lambda c: c.dbic)
+            start = current.model.with_values({n: best0.fit.values[n] for n in current_names})
+            polished = refit(recordings, start, current_names)
+            aic_p, bic_p = information_criteria(polished.rss, polished.n_samples, polished.n_params)
+            if bic_p < bic0 - 0.1:
+                progress(f"[diagnose] base refit from the candidate's nominal values gains {bic0 - bic_p:.1f} BIC")
+                ho_p = holdout_cost(holdout, polished.model)
+                for c in cands:
+                    c.dbic += bic0 - bic_p
+                    c.daic += aic0 - aic_p
+                    if np.isfinite(ho0) and np.isfinite(ho_p):
+                        c.dholdout += ho0 - ho_p
+                current, bic0, aic0, ho0 = polished, bic_p, aic_p, ho_p
+                good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0)
+                        and c.fit_gain >= MIN_FIT_GAIN]
+        if not good:
+            break
+        good.sort(key=lambda c: c.dbic)
+        best = good[0]
+        group = [c for c in good if c.dbic - best.dbic < AMBIGUOUS_DBIC]
+        if len(group) > 1:
+            ambiguous.append(group)
+            current = best.fit  # predictions equivalent on this data; names withheld
+            break
+        accepted.append(best)
+        used.add(best.effect)
+        current = best.fit
+        current_names = list(best.fit.names)
+    return Selection(accepted, ambiguous, tried, screenings, base_fit, current, sim_screens)

@@ -1,0 +1,506 @@
+"""Extended Otbot model: the paper's dynamics plus the physical effects it leaves out.
+
+The paper (§1.5.2) assumes ideal torque motors, no caster dynamics, perfect rolling,
+a flat floor and viscous motor friction only. This module adds those effects back,
+each switched off by a zero parameter, without touching the compiled paper model:
+physics enters through its ``gen`` hook (an extra generalized force, 6,), actuator
+effects transform the commanded torque, sensor effects transform the outputs.
+
+Effect parameters form one flat vector ``eff`` (order ``EFFECT_PARAM_NAMES``, all
+zeros = the paper's model):
+
+=============  =========  ====================================================================
+name           unit       meaning
+=============  =========  ====================================================================
+c_r, c_l, c_p  N m        Coulomb friction at the right/left wheel and pivot motor shafts
+s_w            N m        Stribeck excess friction at both wheel motors, s_w exp(-(w/v_s)^2) sgn w
+v_s            rad/s      Stribeck velocity (only used when s_w != 0)
+c_rr           1          rolling-resistance coefficient: torque c_rr (m_c+m_p) g / 2 r per wheel
+f_cst          N          caster drag: a Coulomb-like force at the caster point opposing its velocity
+k_slip         rad/(s N m) longitudinal slip: wheel spins k_slip * (transmitted torque) faster than it rolls
+g_x, g_y       m/s^2      floor slope: in-plane gravity component, ground frame (recording start frame)
+c_air          N s^2/m^2  air drag at the pivot: F = -c_air |v| v
+k_r, k_l, k_p  1          torque gain error: delivered torque = (1 + k) * command
+u_max          N m        torque saturation of every motor (0 = none)
+T_i            s          current-loop lag: first-order lag of the delivered torque (0 = none)
+db_w           N m s/rad  viscous asymmetry: b_right = b_w + db_w, b_left = b_w - db_w
+dr             1          wheel radius asymmetry: r_right = r (1 + dr), r_left = r (1 - dr)
+b_ax, b_ay     m/s^2      IMU accelerometer bias (x, y of the IMU frame)
+b_gz           rad/s      gyro bias (z)
+d_x, d_y       m          IMU position in the platform frame B'' (lever arm from the pivot)
+psi            rad        IMU yaw misalignment: IMU frame = B'' rotated by psi about z
+d_imu          s          IMU latency: the IMU sample stamped t_k was taken at t_k - d_imu
+e_r, e_l       1          encoder scale error of the wheel encoders: reading = (1 + e) * angle
+=============  =========  ====================================================================
+
+Modelling choices (documented, not hidden):
+
+* Signs are smoothed, sgn(w) ~ tanh(w / ``SIGN_RATE``) (rad/s) and the caster's
+  direction v / sqrt(|v|^2 + ``SIGN_SPEED``^2), so the extended model stays smooth for
+  integration and least squares.
+* Different wheel radii break the paper's J. The compiled model is kept by working in
+  *rolling angles* psi_i = (r_i / r) phi_i, for which J is the paper's with radius r:
+  on psi_i act the torque rho_i (tau_i - friction(phi_dot_i)) with rho_i = r / r_i, the
+  wheel inertia becomes rho_i^2 I_a (one fixed-point correction of the accelerations),
+  and the encoders read phi_i = rho_i psi_i.
+* Wheel slip is a quasi-static longitudinal slip-velocity law: the contact slips with
+  r * s_dot_i = r * k_slip * tau_tr_i, tau_tr_i = delivered torque minus motor friction
+  (wheel inertia neglected in the split). The ground force equals the transmitted force,
+  so the body moves as without slip, but the encoders read psi_i + s_i: odometry and IMU
+  disagree, energy is lost at the contact. Slip states s_r, s_l (rad) are integrated.
+* Caster: one effective caster at ``CASTER_POSITION`` in the chassis frame B'.
+* Rolling resistance assumes the weight shared equally by the two wheels.
+* Current-loop lag is integrated exactly inside each zero-order-hold interval
+  (tau_a(t) = tau_c + (tau_a0 - tau_c) exp(-t / T_i)), so small T_i never makes RK4 unstable.
+* Floor slope, rolling resistance, caster drag, slip and air drag act only on the
+  ``floor`` fixture; on the stand/locked fixtures the slope turns the platform only.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from otbot_hw.model import compiled
+from otbot_hw.params import OtbotParams
+
+GRAVITY = 9.80665
+SIGN_RATE = 0.2  # rad/s, width of the smoothed sign for joint friction
+SIGN_SPEED = 0.01  # m/s, width of the smoothed direction for the caster
+CASTER_POSITION = (0.15, 0.0)  # m, effective caster contact in the chassis frame B'
+
+#: (name, unit, lower bound, upper bound, description)
+EFFECT_PARAMS: tuple[tuple[str, str, float, float, str], ...] = (
+    ("c_r", "N m", 0.0, 2.0, "Coulomb friction, right wheel motor"),
+    ("c_l", "N m", 0.0, 2.0, "Coulomb friction, left wheel motor"),
+    ("c_p", "N m", 0.0, 2.0, "Coulomb friction, pivot motor"),
+    ("s_w", "N m", 0.0, 2.0, "Stribeck excess friction, wheel motors"),
+    ("v_s", "rad/s", 0.05, 5.0, "Stribeck velocity"),
+    ("c_rr", "1", 0.0, 0.1, "rolling-resistance coefficient"),
+    ("f_cst", "N", 0.0, 200.0, "caster drag force"),
+    ("k_slip", "rad/(s N m)", 0.0, 1.0, "longitudinal slip rate per transmitted torque"),
+    ("g_x", "m/s^2", -2.0, 2.0, "floor slope: gravity component along ground x"),
+    ("g_y", "m/s^2", -2.0, 2.0, "floor slope: gravity component along ground y"),
+    ("c_air", "N s^2/m^2", 0.0, 50.0, "air drag coefficient at the pivot"),
+    ("k_r", "1", -0.5, 0.5, "torque gain error, right wheel"),
+    ("k_l", "1", -0.5, 0.5, "torque gain error, left wheel"),
+    ("k_p", "1", -0.5, 0.5, "torque gain error, pivot"),
+    ("u_max", "N m", 0.0, 100.0, "torque saturation (0 = none)"),
+    ("T_i", "s", 0.0, 0.2, "current-loop time constant (0 = none)"),
+    ("db_w", "N m s/rad", -0.2, 0.2, "viscous friction asymmetry of the wheels"),
+    ("dr", "1", -0.1, 0.1, "wheel radius asymmetry"),
+    ("b_ax", "m/s^2", -2.0, 2.0, "accelerometer bias x"),
+    ("b_ay", "m/s^2", -2.0, 2.0, "accelerometer bias y"),
+    ("b_gz", "rad/s", -0.5, 0.5, "gyro bias z"),
+    ("d_x", "m", -0.5, 0.5, "IMU position x in B''"),
+    ("d_y", "m", -0.5, 0.5, "IMU position y in B''"),
+    ("psi", "rad", -0.5, 0.5, "IMU yaw misalignment"),
+    ("d_imu", "s", 0.0, 0.1, "IMU latency"),
+    ("e_r", "1", -0.2, 0.2, "right wheel encoder scale error"),
+    ("e_l", "1", -0.2, 0.2, "left wheel encoder scale error"),
+)
+EFFECT_PARAM_NAMES: tuple[str, ...] = tuple(p[0] for p in EFFECT_PARAMS)
+EFFECT_INDEX: dict[str, int] = {n: i for i, n in enumerate(EFFECT_PARAM_NAMES)}
+EFFECT_UNITS: dict[str, str] = {p[0]: p[1] for p in EFFECT_PARAMS}
+EFFECT_BOUNDS: dict[str, tuple[float, float]] = {p[0]: (p[2], p[3]) for p in EFFECT_PARAMS}
+N_EFFECT = len(EFFECT_PARAMS)
+(C_R, C_L, C_P, S_W, V_S, C_RR, F_CST, K_SLIP, G_X, G_Y, C_AIR, K_R, K_L, K_P, U_MAX, T_I, DB_W, DR,
+ B_AX, B_AY, B_GZ, D_X, D_Y, PSI, D_IMU, E_R, E_L) = range(N_EFFECT)
+
+_IA, _BW, _R, _MC, _MP, _XB, _YB, _XF, _YF = 11, 12, 2, 3, 7, 5, 6, 9, 10
+
+
+def effect_vector(values: dict[str, float] | None = None) -> np.ndarray:
+    """Flat effect vector (N_EFFECT,) from ``{name: value}``; unnamed effects are 0 (v_s defaults 0.5)."""
+    eff = np.zeros(N_EFFECT)
+    eff[V_S] = 0.5
+    for k, v in (values or {}).items():
+        if k not in EFFECT_INDEX:
+            raise ValueError(f"unknown effect parameter '{k}' (known: {', '.join(EFFECT_PARAM_NAMES)})")
+        if not np.isfinite(v):
+            raise ValueError(f"effect parameter {k} must be finite, got {v}")
+        eff[EFFECT_INDEX[k]] = float(v)
+    if eff[V_S] <= 0:
+        raise ValueError(f"v_s must be > 0 rad/s, got {eff[V_S]}")
+    if abs(eff[DR]) >= 0.5:
+        raise ValueError(f"dr must be in (-0.5, 0.5), got {eff[DR]}")
+    return eff
+
+
+@njit(cache=True)
+def _sgn(v, w):
+    return np.tanh(v / w)
+
+
+@njit(cache=True)
+def actuated_torque(u, eff):
+    """Commanded torque (3,) -> torque the drives deliver in steady state (gain, then saturation)."""
+    out = np.empty(3)
+    out[0] = (1.0 + eff[K_R]) * u[0]
+    out[1] = (1.0 + eff[K_L]) * u[1]
+    out[2] = (1.0 + eff[K_P]) * u[2]
+    if eff[U_MAX] > 0.0:
+        for i in range(3):
+            out[i] = min(max(out[i], -eff[U_MAX]), eff[U_MAX])
+    return out
+
+
+@njit(cache=True)
+def _motor_friction(w, i, eff):
+    """Non-viscous friction torque (N m) at motor i (0 r, 1 l, 2 p) turning at w rad/s (opposes w)."""
+    c = eff[C_R + i]
+    t = c * _sgn(w, SIGN_RATE)
+    if i < 2 and eff[S_W] != 0.0:
+        t += eff[S_W] * np.exp(-(w / eff[V_S]) ** 2) * _sgn(w, SIGN_RATE)
+    return t
+
+
+@njit(cache=True)
+def _rhos(eff):
+    return 1.0 / (1.0 + eff[DR]), 1.0 / (1.0 - eff[DR])
+
+
+@njit(cache=True)
+def effect_force(x, tau, eff, prm, fixture):
+    """Extra generalized force (6,) of the effects at state x under delivered torque tau.
+
+    Excludes the inertia correction of unequal wheel radii (see ``ext_accelerations``).
+    The compiled model itself adds tau and the paper's viscous friction b_w psi_dot.
+    """
+    gen = np.zeros(6)
+    bw = prm[_BW]
+    rho = _rhos(eff)
+    # wheel motors, expressed on the rolling angles psi
+    for i in range(2):
+        psid = x[9 + i]
+        w = rho[i] * psid
+        b_i = bw + eff[DB_W] * (1.0 if i == 0 else -1.0)
+        motor = rho[i] * (tau[i] - b_i * w - _motor_friction(w, i, eff))
+        gen[3 + i] = motor - (tau[i] - bw * psid)
+    gen[5] = -_motor_friction(x[11], 2, eff)
+    a = x[2]
+    th = x[2] - x[5]
+    ca, sa, ct, st = np.cos(a), np.sin(a), np.cos(th), np.sin(th)
+    mc, mp = prm[_MC], prm[_MP]
+    # platform centre of mass relative to P, ground frame
+    fx = ca * prm[_XF] - sa * prm[_YF]
+    fy = sa * prm[_XF] + ca * prm[_YF]
+    if fixture != compiled.FLOOR:
+        gen[5] += mp * (-fy * eff[G_X] + fx * eff[G_Y])
+        return gen
+    # floor slope: gravity on both centres of mass
+    gx, gy = eff[G_X], eff[G_Y]
+    if gx != 0.0 or gy != 0.0:
+        bx = ct * prm[_XB] - st * prm[_YB]
+        by = st * prm[_XB] + ct * prm[_YB]
+        gen[0] += (mc + mp) * gx
+        gen[1] += (mc + mp) * gy
+        mom_c = mc * (-by * gx + bx * gy)
+        gen[2] += mom_c + mp * (-fy * gx + fx * gy)
+        gen[5] -= mom_c
+    # rolling resistance at both contacts, on the rolling angles
+    if eff[C_RR] != 0.0:
+        t_rr = eff[C_RR] * (mc + mp) * GRAVITY * 0.5 * prm[_R]
+        gen[3] -= t_rr * _sgn(x[9], SIGN_RATE)
+        gen[4] -= t_rr * _sgn(x[10], SIGN_RATE)
+    # caster drag at C (CASTER_POSITION in B')
+    if eff[F_CST] != 0.0:
+        rcx = ct * CASTER_POSITION[0] - st * CASTER_POSITION[1]
+        rcy = st * CASTER_POSITION[0] + ct * CASTER_POSITION[1]
+        thd = x[8] - x[11]
+        vx = x[6] - thd * rcy
+        vy = x[7] + thd * rcx
+        nv = np.sqrt(vx * vx + vy * vy + SIGN_SPEED * SIGN_SPEED)
+        Fx = -eff[F_CST] * vx / nv
+        Fy = -eff[F_CST] * vy / nv
+        gen[0] += Fx
+        gen[1] += Fy
+        m = -rcy * Fx + rcx * Fy
+        gen[2] += m
+        gen[5] -= m
+    # air drag at the pivot
+    if eff[C_AIR] != 0.0:
+        sp = np.sqrt(x[6] * x[6] + x[7] * x[7])
+        gen[0] -= eff[C_AIR] * sp * x[6]
+        gen[1] -= eff[C_AIR] * sp * x[7]
+    return gen
+
+
+@njit(cache=True)
+def ext_accelerations(x, tau, f, eff, prm, fixture):
+    """q_ddot (6,) of the extended model (rolling-angle coordinates) under delivered torque tau."""
+    gen = effect_force(x, tau, eff, prm, fixture)
+    if fixture == compiled.FLOOR:
+        acc = compiled.accelerations(x, tau, f, gen, prm)
+    else:
+        acc = compiled.fixture_accelerations(x, tau, gen, prm, fixture)
+    if eff[DR] != 0.0:
+        rho = _rhos(eff)
+        g2 = gen.copy()
+        for _ in range(2):  # fixed point for the wheel inertias rho^2 I_a
+            for i in range(2):
+                g2[3 + i] = gen[3 + i] - prm[_IA] * (rho[i] * rho[i] - 1.0) * acc[3 + i]
+            if fixture == compiled.FLOOR:
+                acc = compiled.accelerations(x, tau, f, g2, prm)
+            else:
+                acc = compiled.fixture_accelerations(x, tau, g2, prm, fixture)
+    return acc
+
+
+@njit(cache=True)
+def slip_rates(x, tau, eff, prm, fixture):
+    """Slip rates (2,) rad/s of the wheel encoders relative to the rolling angles."""
+    out = np.zeros(2)
+    if eff[K_SLIP] == 0.0 or fixture != compiled.FLOOR:
+        return out
+    rho = _rhos(eff)
+    for i in range(2):
+        w = rho[i] * x[9 + i]
+        b_i = prm[_BW] + eff[DB_W] * (1.0 if i == 0 else -1.0)
+        out[i] = eff[K_SLIP] * (tau[i] - b_i * w - _motor_friction(w, i, eff))
+    return out
+
+
+@njit(cache=True)
+def _lagged(tc, t0, s, T):
+    out = np.empty(3)
+    if T > 0.0:
+        e = np.exp(-s / T)
+        for i in range(3):
+            out[i] = tc[i] + (t0[i] - tc[i]) * e
+    else:
+        for i in range(3):
+            out[i] = tc[i]
+    return out
+
+
+@njit(cache=True)
+def _zderiv(z, tau, f, eff, prm, fixture):
+    dz = np.zeros(14)
+    x = z[:12]
+    dz[:6] = x[6:]
+    dz[6:12] = ext_accelerations(x, tau, f, eff, prm, fixture)
+    dz[12:14] = slip_rates(x, tau, eff, prm, fixture)
+    return dz
+
+
+@njit(cache=True, nogil=True)
+def ext_rk4_zoh(x0, tau0, U, F, dt, substeps, prm, eff, fixture):
+    """Integrate the extended model over N ZOH intervals of commands U (N, 3), forces F (N, 2).
+
+    Returns X (N+1, 12) states (rolling-angle coordinates), TAU (N+1, 3) delivered torque
+    at the samples (TAU[k] = delivered torque at t_k, with the command u_k applied) and
+    S (N+1, 2) wheel slip angles (rad). tau0 (3,) is the delivered torque just before t_0.
+    """
+    n = U.shape[0]
+    X = np.empty((n + 1, 12))
+    TAU = np.empty((n + 1, 3))
+    S = np.zeros((n + 1, 2))
+    z = np.zeros(14)
+    z[:12] = x0
+    X[0] = x0
+    h = dt / substeps
+    T = eff[T_I]
+    ta = tau0.copy()
+    for k in range(n):
+        tc = actuated_torque(U[k], eff)
+        f = F[k]
+        TAU[k] = _lagged(tc, ta, 0.0, T)
+        for j in range(substeps):
+            s0 = j * h
+            t1 = _lagged(tc, ta, s0, T)
+            t2 = _lagged(tc, ta, s0 + 0.5 * h, T)
+            t3 = _lagged(tc, ta, s0 + h, T)
+            k1 = _zderiv(z, t1, f, eff, prm, fixture)
+            k2 = _zderiv(z + 0.5 * h * k1, t2, f, eff, prm, fixture)
+            k3 = _zderiv(z + 0.5 * h * k2, t2, f, eff, prm, fixture)
+            k4 = _zderiv(z + h * k3, t3, f, eff, prm, fixture)
+            z = z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        ta = _lagged(tc, ta, dt, T)
+        X[k + 1] = z[:12]
+        S[k + 1] = z[12:14]
+    if n > 0:
+        TAU[n] = _lagged(actuated_torque(U[n - 1], eff), ta, 0.0, T)
+    else:
+        TAU[0] = tau0
+    return X, TAU, S
+
+
+@njit(cache=True, nogil=True)
+def ext_sample_accelerations(X, TAU, F, eff, prm, fixture):
+    """q_ddot (N, 6) at each sample from states X, delivered torques TAU and forces F."""
+    n = X.shape[0]
+    out = np.empty((n, 6))
+    for k in range(n):
+        out[k] = ext_accelerations(X[k], TAU[k], F[k], eff, prm, fixture)
+    return out
+
+
+@dataclass
+class ExtendedTrajectory:
+    """A run of the extended model: t (N+1,) s; x (N+1, 12) in rolling-angle coordinates;
+    tau (N+1, 3) delivered torque N m; slip (N+1, 2) rad; qdd (N+1, 6); u (N+1, 3) commands."""
+
+    t: np.ndarray
+    x: np.ndarray
+    tau: np.ndarray
+    slip: np.ndarray
+    qdd: np.ndarray
+    u: np.ndarray
+    dt: float
+    fixture: str
+
+
+def simulate_extended(params: OtbotParams, eff: np.ndarray, torques: np.ndarray, dt: float,
+                      x0: np.ndarray | None = None, fixture: str = "floor", tau0: np.ndarray | None = None,
+                      forces: np.ndarray | None = None, substeps: int | None = None) -> ExtendedTrajectory:
+    """Simulate the extended model under commanded ``torques`` (N, 3) N m held for ``dt`` s.
+
+    ``tau0``: delivered torque before t_0 (default 0: the drives start from rest), only
+    matters with a current-loop lag. ``x0`` (12,) in rolling-angle coordinates (default rest).
+    """
+    from otbot_hw.model.fixtures import fixture_code
+    from sim.simulator import _check_inputs, default_substeps
+
+    U, F, x0 = _check_inputs(torques, dt, forces, x0)
+    eff = np.asarray(eff, dtype=float)
+    if eff.shape != (N_EFFECT,) or not np.all(np.isfinite(eff)):
+        raise ValueError(f"effect vector must be {N_EFFECT} finite numbers")
+    code = fixture_code(fixture)
+    prm = params.as_array()
+    sub = substeps or default_substeps(dt, fixture)
+    t0 = np.zeros(3) if tau0 is None else np.asarray(tau0, dtype=float)
+    X, TAU, S = ext_rk4_zoh(x0, t0, U, F, dt, sub, prm, eff, code)
+    Uf = np.vstack([U, U[-1:]]) if len(U) else np.zeros((1, 3))
+    Ff = np.vstack([F, F[-1:]]) if len(U) else np.zeros((1, 2))
+    qdd = ext_sample_accelerations(X, TAU, Ff, eff, prm, code)
+    return ExtendedTrajectory(t=np.arange(len(X)) * dt, x=X, tau=TAU, slip=S, qdd=qdd, u=Uf, dt=dt,
+                              fixture=fixture)
+
+
+def sensor_outputs(traj: ExtendedTrajectory, params: OtbotParams, eff: np.ndarray) -> dict[str, np.ndarray]:
+    """Noise-free sensor readings of an extended run (the sensor effects applied).
+
+    Returns ``joint_pos``, ``joint_vel`` (N, 3) rad, rad/s and ``imu_accel``, ``imu_gyro``
+    (N, 3) m/s^2, rad/s in the IMU frame (= B'' rotated by psi), as the recording stores them.
+    """
+    x, qdd = traj.x, traj.qdd
+    rho = (1.0 / (1.0 + eff[DR]), 1.0 / (1.0 - eff[DR]))
+    pos = x[:, 3:6].copy()
+    vel = x[:, 9:12].copy()
+    slip_d = np.zeros((len(x), 2))
+    if eff[K_SLIP] != 0.0:
+        from otbot_hw.model.fixtures import fixture_code
+        code = fixture_code(traj.fixture)
+        prm = params.as_array()
+        slip_d = np.array([slip_rates(x[k], traj.tau[k], eff, prm, code) for k in range(len(x))])
+    for i in range(2):
+        scale = 1.0 + eff[E_R + i]
+        pos[:, i] = scale * (rho[i] * x[:, 3 + i] + traj.slip[:, i])
+        vel[:, i] = scale * (rho[i] * x[:, 9 + i] + slip_d[:, i])
+    acc, gyro = imu_from_motion(x[:, 2], x[:, 8], qdd[:, 0], qdd[:, 1], qdd[:, 2], eff,
+                                floor=traj.fixture == "floor")
+    acc, gyro = delay(traj.t, acc, eff[D_IMU]), delay(traj.t, gyro, eff[D_IMU])
+    return {"joint_pos": pos, "joint_vel": vel, "imu_accel": acc, "imu_gyro": gyro}
+
+
+def imu_from_motion(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor: bool = True):
+    """IMU specific force (N, 3) and rate (N, 3) from the platform motion (no latency).
+
+    Lever arm (d_x, d_y) in B'', the slope's gravity component (seen as -R^T g_plane),
+    yaw misalignment psi and biases applied; z reads GRAVITY.
+    """
+    c, s = np.cos(alpha), np.sin(alpha)
+    ax = c * xdd + s * ydd
+    ay = -s * xdd + c * ydd
+    if floor:
+        ax = ax - (c * eff[G_X] + s * eff[G_Y])
+        ay = ay - (-s * eff[G_X] + c * eff[G_Y])
+    dx, dy = eff[D_X], eff[D_Y]
+    ax = ax - alpha_dd * dy - alpha_d ** 2 * dx
+    ay = ay + alpha_dd * dx - alpha_d ** 2 * dy
+    cp, sp = np.cos(eff[PSI]), np.sin(eff[PSI])
+    acc = np.empty((len(alpha), 3))
+    acc[:, 0] = cp * ax + sp * ay + eff[B_AX]
+    acc[:, 1] = -sp * ax + cp * ay + eff[B_AY]
+    acc[:, 2] = GRAVITY
+    gyro = np.zeros((len(alpha), 3))
+    gyro[:, 2] = alpha_d + eff[B_GZ]
+    return acc, gyro
+
+
+def delay(t: np.ndarray, y: np.ndarray, d: float) -> np.ndarray:
+    """y sampled d seconds late: y(t_k - d) by linear interpolation (held before t_0)."""
+    if d == 0.0:
+        return y
+    out = np.empty_like(y)
+    for j in range(y.shape[1]):
+        out[:, j] = np.interp(t - d, t, y[:, j])
+    return out
+
+
+#: Catalog parameters that set several effect-vector entries at once (tied values).
+TIED_PARAMS: dict[str, tuple[str, ...]] = {"c_w": ("c_r", "c_l")}
+
+
+@dataclass(frozen=True)
+class ExtendedModel:
+    """The paper's parameters plus an effect vector: what simulation, identification and control use."""
+
+    params: OtbotParams
+    eff: np.ndarray
+
+    @classmethod
+    def paper(cls, params: OtbotParams) -> "ExtendedModel":
+        return cls(params, effect_vector())
+
+    def get(self, name: str) -> float:
+        """Value of a nominal parameter, an effect-vector entry or a tied catalog parameter."""
+        if name in TIED_PARAMS:
+            return float(self.eff[EFFECT_INDEX[TIED_PARAMS[name][0]]])
+        if name in EFFECT_INDEX:
+            return float(self.eff[EFFECT_INDEX[name]])
+        return float(getattr(self.params, name))
+
+    def with_values(self, values: dict[str, float]) -> "ExtendedModel":
+        """A copy with some nominal/effect/tied parameters set."""
+        eff = self.eff.copy()
+        nominal = {}
+        for k, v in values.items():
+            if k in TIED_PARAMS:
+                for t in TIED_PARAMS[k]:
+                    eff[EFFECT_INDEX[t]] = v
+            elif k in EFFECT_INDEX:
+                eff[EFFECT_INDEX[k]] = v
+            else:
+                nominal[k] = float(v)
+        params = self.params.replace(**nominal) if nominal else self.params
+        return ExtendedModel(params, eff)
+
+    def active_effects(self) -> dict[str, float]:
+        """Effect entries that differ from the paper's model."""
+        base = effect_vector()
+        return {n: float(self.eff[i]) for i, n in enumerate(EFFECT_PARAM_NAMES)
+                if self.eff[i] != base[i] and not (n == "v_s" and self.eff[S_W] == 0.0)}
+
+
+def parameter_unit(name: str) -> str:
+    """Unit of a nominal, effect or tied parameter name."""
+    from otbot_hw.params import UNITS
+
+    if name in TIED_PARAMS:
+        return EFFECT_UNITS[TIED_PARAMS[name][0]]
+    return EFFECT_UNITS.get(name) or UNITS[name]
+
+
+def parameter_bounds(name: str) -> tuple[float, float]:
+    """Physical bounds of a nominal, effect or tied parameter."""
+    from otbot_hw.params import _RULES
+
+    if name in TIED_PARAMS:
+        return EFFECT_BOUNDS[TIED_PARAMS[name][0]]
+    if name in EFFECT_BOUNDS:
+        return EFFECT_BOUNDS[name]
+    rule = _RULES[name]
+    return (1e-9, np.inf) if rule == "positive" else (0.0, np.inf) if rule == "nonnegative" else (-np.inf, np.inf)

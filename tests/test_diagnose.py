@@ -1,0 +1,195 @@
+"""otbot diagnose on concealed effects: finds, names and sizes the hidden effect; adds nothing when there is none;
+rejects bad input. Short recordings (5 s multisine + 2 s stand fitting, 5 s tracking held out) keep this fast."""
+import json
+
+import numpy as np
+import pytest
+
+from otbot_hw.cli import main
+from otbot_hw.diagnose.data import DiagnosisInputError, from_recording
+from otbot_hw.diagnose.diagnosis import diagnose
+from otbot_hw.params import nominal
+from otbot_hw.recording import write_recording
+from sim.concealed import concealed_recording
+
+P = nominal()
+
+
+def _sets(values, seed=7, stand=False):
+    fit = [from_recording(concealed_recording(P, values, "multisine", 6.0, seed=seed), "multisine")]
+    if stand:
+        fit.append(from_recording(concealed_recording(P, values, "stand", 2.0, seed=seed + 1), "stand"))
+    held = [from_recording(concealed_recording(P, values, "tracking", 6.0, seed=seed + 2), "tracking")]
+    return fit, held
+
+
+def _check_found(result, name, truth):
+    assert [e["name"] for e in result["effects"]] == [name], result["verdict"]
+    got = result["effects"][0]["parameters"]
+    for k, v in truth.items():
+        assert got[k]["value"] == pytest.approx(v, rel=0.2), (k, got[k])
+        assert got[k]["std"] is not None and got[k]["std"] < 0.2 * abs(v)
+    before = result["fit_before"]["heldout"]
+    after = result["fit_after"]["heldout"]
+    gain = [after[c]["fit_percent"] - before[c]["fit_percent"] for c in before]
+    assert max(gain) > 2.0 and min(gain) > -1.0, (before, after)
+    assert result["ambiguous"] == []
+    assert name in result["verdict"] or result["effects"][0]["title"] in result["verdict"]
+
+
+def test_coulomb_wheel_friction_absorbed_in_b_w_is_found():
+    truth = {"c_w": 0.3}
+    fit, held = _sets(truth, stand=True)
+    r = diagnose(fit, P, held)
+    # concealed: the nominal fit inflated b_w to absorb it, and still fits the fitting data plausibly
+    assert r["nominal_shift"]["b_w"]["before"] > 1.2 * P.b_w
+    assert min(v["fit_percent"] for v in r["fit_before"]["fitting"].values()) > 60
+    _check_found(r, "coulomb_wheels", truth)
+    assert r["nominal_shift"]["b_w"]["after"] == pytest.approx(P.b_w, rel=0.1)
+    assert any(w["kind"] == "torque" for w in r["located"])
+
+
+@pytest.mark.parametrize("name,truth", [
+    ("imu_bias", {"b_ax": 0.06, "b_ay": 0.04, "b_gz": -0.01}),
+    ("gain_right", {"k_r": -0.1}),
+    ("floor_slope", {"g_x": 0.04, "g_y": 0.03}),
+])
+def test_concealed_effect_is_found_named_and_sized(name, truth):
+    fit, held = _sets(truth, seed=11)
+    r = diagnose(fit, P, held)
+    _check_found(r, name, truth)
+
+
+def test_negative_control_adds_nothing():
+    fit, held = _sets({}, seed=5)
+    r = diagnose(fit, P, held)
+    assert r["effects"] == [] and r["ambiguous"] == []
+    assert r["verdict"].startswith("No missing physics found")
+    for ch, v in r["fit_after"]["fitting"].items():
+        assert v["fit_percent"] == r["fit_before"]["fitting"][ch]["fit_percent"]
+
+
+def _rec(tmp_path, **changes):
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    for k, v in changes.items():
+        setattr(rec, k, v)
+    path = tmp_path / "bad.mcap"
+    write_recording(path, rec)
+    return rec, path
+
+
+def test_bad_input_is_rejected_with_a_clear_message(tmp_path, capsys):
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    t = rec.t.copy()
+    t[40:] += 0.05
+    rec_gap = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    rec_gap.t = t
+    rec_gap.metadata.pop("sample_period")
+    with pytest.raises(DiagnosisInputError, match="gap or uneven sampling at sample 40"):
+        from_recording(rec_gap, "gap")
+    u = rec.torque.copy()
+    u[10, 1] = np.nan
+    rec.torque = u
+    with pytest.raises(DiagnosisInputError, match="torque is NaN or inf at sample 10"):
+        from_recording(rec, "nan")
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    rec.metadata["sample_period"] = 0.02
+    with pytest.raises(DiagnosisInputError, match="disagrees with the median time step"):
+        from_recording(rec, "meta")
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    rec.metadata["fixture"] = "ceiling"
+    with pytest.raises(DiagnosisInputError, match="fixture 'ceiling' is unknown"):
+        from_recording(rec, "fixture")
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    rec.joint_pos = rec.joint_vel = None
+    rec.truth_q = None
+    with pytest.raises(DiagnosisInputError, match="no /otbot/joints"):
+        from_recording(rec, "nojoints")
+    # a NaN in one IMU channel: the channel is dropped with the reason, the rest is used
+    rec = concealed_recording(P, {}, "multisine", 1.0, seed=1)
+    a = rec.imu_accel.copy()
+    a[5, 1] = np.nan
+    rec.imu_accel = a
+    d = from_recording(rec, "imu")
+    assert "a_y" in d.unusable and "NaN" in d.unusable["a_y"]
+    assert "a_y" not in d.channels() and "a_x" in d.channels()
+    from otbot_hw.diagnose.residuals import imu_residual, simulation_residual, torque_residual
+    from otbot_hw.model.effects import ExtendedModel
+    m = ExtendedModel.paper(P)
+    ir = imu_residual(d, m)
+    assert np.all(np.isnan(ir[:, 1])) and np.all(np.isfinite(ir[:, [0, 2]]))
+    assert np.all(np.isfinite(torque_residual(d, m)))
+    assert set(simulation_residual(d, m)) == set(d.channels())
+    # the CLI: exit 2 with the reason, nothing on stdout
+    _, path = _rec(tmp_path, torque=np.where(np.arange(101)[:, None] == 3, np.nan, rec.torque))
+    assert main(["diagnose", str(path), "--json"]) == 2
+    err = capsys.readouterr()
+    assert "torque is NaN" in err.err and err.out == ""
+    assert main(["diagnose", str(tmp_path / "missing.mcap")]) == 2
+    assert main(["diagnose"]) == 2
+    assert main(["diagnose", "--demo", "--demo-effect", "gremlins"]) == 2
+
+
+def test_truth_is_never_read(tmp_path):
+    """The diagnosis keeps only commands, encoders, IMU, sample period and fixture."""
+    rec = concealed_recording(P, {"c_w": 0.3}, "multisine", 1.0, seed=1, effect_name="coulomb_wheels")
+    d = from_recording(rec, "x")
+    assert not any("truth" in k for k in vars(d))
+    assert "coulomb" not in json.dumps({k: str(v) for k, v in vars(d).items()})
+
+
+def test_look_alikes_on_floor_data_are_reported_ambiguous_with_the_separating_experiment():
+    """Floor-only data cannot tell motor Coulomb friction from rolling resistance (same torque
+    signature): the tool says so instead of guessing, and names the stand experiment."""
+    fit, held = _sets({"c_w": 0.3}, seed=3)
+    r = diagnose(fit, P, held)
+    assert r["effects"] == []
+    assert len(r["ambiguous"]) == 1
+    names = {c["name"] for c in r["ambiguous"][0]["candidates"]}
+    assert {"coulomb_wheels", "rolling_resistance"} <= names
+    assert "stand" in r["ambiguous"][0]["experiment"]
+    cw = next(c for c in r["ambiguous"][0]["candidates"] if c["name"] == "coulomb_wheels")
+    assert cw["parameters"]["c_w"]["value"] == pytest.approx(0.3, rel=0.2)
+    assert "cannot tell apart" in r["verdict"]
+
+
+def test_refit_seam_recovers_known_parameters_with_honest_std():
+    """The seam alone: wheel inertia and friction from a stand run, started 30 % off."""
+    from otbot_hw.diagnose.refit import refit
+    from otbot_hw.model.effects import ExtendedModel
+
+    d = from_recording(concealed_recording(P, {}, "stand", 3.0, seed=4), "stand")
+    start = ExtendedModel.paper(P.replace(I_a=P.I_a * 1.3, b_w=P.b_w * 0.7))
+    fit = refit([d], start, ["I_a", "b_w"])
+    for n in ("I_a", "b_w"):
+        true = getattr(P, n)
+        assert abs(fit.values[n] - true) < 4 * fit.std[n] + 1e-3 * true, (n, fit.values[n], fit.std[n])
+        assert fit.std[n] < 0.05 * true
+
+
+def test_regime_tags_come_from_the_measured_signals():
+    from otbot_hw.diagnose.locate import regimes
+    from otbot_hw.diagnose.residuals import joint_rates
+
+    d = from_recording(concealed_recording(P, {}, "steps", 3.0, seed=2), "steps")
+    vel, _ = joint_rates(d)
+    speed = np.full(len(d), 1.0)
+    turn = np.zeros(len(d))
+    assert "torque step" in regimes(d, 45, 60, speed, turn, vel)  # a step every 0.5 s (sample 50)
+    assert "torque step" not in regimes(d, 55, 95, speed, turn, vel)
+    still = np.zeros_like(vel)
+    assert "standstill" in regimes(d, 55, 95, speed, turn, still)
+    assert "high turn rate" in regimes(d, 55, 95, speed, np.full(len(d), 1.0), vel)
+
+
+def test_cli_writes_report_and_strict_json(tmp_path, capsys):
+    path = tmp_path / "run.mcap"
+    write_recording(path, concealed_recording(P, {}, "multisine", 3.0, seed=9))
+    rc = main(["diagnose", str(path), "--report", str(tmp_path / "rep"), "--json"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    r = json.loads(out)
+    assert r["effects"] == [] and "No missing physics" in r["verdict"]
+    assert (tmp_path / "rep" / "diagnosis.json").exists()
+    assert all(p.endswith(".png") and (tmp_path / "rep" / p.split("/")[-1]).exists() for p in r["plots"])
+    assert set(r["fit_before"]["fitting"]) == {"w_r", "w_l", "w_p", "a_x", "a_y", "g_z"}
