@@ -2,28 +2,30 @@
 
 Every fit the diagnosis makes -- the nominal fit ("before"), each nested fit of a
 candidate effect, the final joint re-identification ("after") -- goes through
-``refit``. It is a prediction-error (output-error) fit like the paper's §4:
-simulate each whole recording with the extended model from its encoder-estimated
-initial state, compare the usable CHANNELS weighted by each channel's noise level,
-and minimise with scipy's Trust Region Reflective least squares. Standard
-deviations come from the Jacobian at the solution.
-
-Phase B replaces the body of ``refit`` by a call to the shared identification
-fitter (``otbot_hw.identification``), keeping this signature and ``FitResult``:
-the fitter needs (i) a model callable ``simulate_outputs(data, ExtendedModel)`` and
-(ii) names resolved by ``ExtendedModel.with_values`` (nominal, effect-vector or
-tied names). Nothing else in ``otbot_hw.diagnose`` calls scipy.optimize.
+``refit``, which is a call of the shared identification fitter
+``otbot_hw.identification.prediction_error.fit_parameters`` (prediction/output error
+like the paper's §4, scipy Trust Region Reflective least squares, Jacobian columns
+simulated as one batch): the extended model is its prediction model
+(``prediction.ExtendedPredictionModel``), each recording one ``Experiment`` (usable
+channels, initial state from the encoders, each (recording, channel) weighted by the
+noise level measured from the data). Options chosen for the diagnosis: no
+residual-vs-noise acceptance test (the "before" fit of a model that misses physics
+is expected to be poor and is still the answer), no identifiability exception (a
+parameter the data cannot determine gets std NaN instead), the diagnosis's fixed
+2.5 ms RK4 step, standard deviations with each channel's noise variance estimated
+from its residuals.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.residuals import initial_state, simulate_outputs
-from otbot_hw.model.effects import ExtendedModel, parameter_bounds
+from otbot_hw.diagnose.prediction import FITTER_CHANNEL, ExtendedPredictionModel, diagnosis_experiments
+from otbot_hw.diagnose.residuals import simulate_outputs
+from otbot_hw.identification.prediction_error import RANK_TOL, fit_parameters
+from otbot_hw.model.effects import TIED_PARAMS, ExtendedModel, parameter_bounds
 
 
 @dataclass
@@ -67,32 +69,6 @@ def weighted_residuals(recordings: list[DiagnosisData], model: ExtendedModel,
     return out
 
 
-JACOBIAN_THREADS = 2
-REL_STEP = 1e-6
-
-
-def _parallel_jacobian(fun, lo, hi):
-    """Forward-difference Jacobian whose columns are simulated on ``JACOBIAN_THREADS`` threads
-    (the compiled integrator releases the GIL). Step REL_STEP * max(1, |x|), mirrored at bounds."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    def jac(theta, f0=None):
-        f0 = fun(theta) if f0 is None else f0
-        steps = REL_STEP * np.maximum(1.0, np.abs(theta))
-        steps = np.where(theta + steps > hi, -steps, steps)
-
-        def col(i):
-            t = theta.copy()
-            t[i] += steps[i]
-            return (fun(t) - f0) / steps[i]
-
-        with ThreadPoolExecutor(JACOBIAN_THREADS) as pool:
-            cols = list(pool.map(col, range(len(theta))))
-        return np.column_stack(cols)
-
-    return jac
-
-
 def _typical(name: str) -> float:
     """Typical size of a parameter for scaling the search: 1 % of its bounded range, else 1 cm / small."""
     lo, hi = parameter_bounds(name)
@@ -113,51 +89,44 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
     names = list(free_names)
     guess = guess or {}
     x_start = np.array([guess.get(n, model.get(n)) for n in names], dtype=float)
-    lo = np.array([(bounds or {}).get(n, parameter_bounds(n))[0] for n in names])
-    hi = np.array([(bounds or {}).get(n, parameter_bounds(n))[1] for n in names])
+    bnd = {n: tuple(map(float, (bounds or {}).get(n, parameter_bounds(n)))) for n in names}
+    lo = np.array([bnd[n][0] for n in names])
+    hi = np.array([bnd[n][1] for n in names])
     with np.errstate(invalid="ignore"):
         x_start = np.clip(x_start, np.where(np.isfinite(lo), lo + 1e-12 * (np.abs(lo) + 1), lo),
                           np.where(np.isfinite(hi), hi - 1e-12 * (np.abs(hi) + 1), hi))
+    if not names:
+        res = weighted_residuals(recordings, model, sigmas)
+        return FitResult(names=[], values={}, std={}, model=model, rss={k: float(v @ v) for k, v in res.items()},
+                         n_samples={k: len(v) for k, v in res.items()}, nfev=1, success=True,
+                         message="nothing to fit", sigma=sigmas)
+    pm = ExtendedPredictionModel(model, tied=[n for n in names if n in TIED_PARAMS])
+    fit = fit_parameters(
+        pm, diagnosis_experiments(recordings, model, sigmas), names, pm.vector(model),
+        guess=dict(zip(names, x_start)), bounds=bnd,
+        scale={n: max(abs(x), _typical(n)) for n, x in zip(names, x_start)},
+        noise="residuals", max_nfev=max_nfev or 30 * (len(names) + 1), tol=1e-7,
+        residual_tolerance=None, check_identifiability=False, integration_tol=None)
+    rss, nobs = {}, {}
+    for d in recordings:
+        for ch in d.channels():
+            key = f"{d.name}/{FITTER_CHANNEL[ch]}"
+            rss[(d.name, ch)] = float(fit.weighted_rss[key])
+            nobs[(d.name, ch)] = int(fit.samples[key])
+    std = {n: float(fit.std[n]) for n in names}
+    if not _determined(fit.covariance):
+        std = {n: float("nan") for n in names}
+    return FitResult(names=names, values=dict(fit.estimate), std=std, model=model.with_values(fit.estimate),
+                     rss=rss, n_samples=nobs, nfev=fit.nfev, success=fit.optimizer_status > 0,
+                     message=fit.message, sigma=sigmas)
 
-    def build(theta: np.ndarray) -> ExtendedModel:
-        return model.with_values(dict(zip(names, theta)))
 
-    last: dict = {}
-
-    def fun(theta: np.ndarray) -> np.ndarray:
-        if "x" in last and np.array_equal(last["x"], theta):
-            return last["f"]
-        try:
-            m = build(theta)
-        except ValueError:
-            return np.full(n_res, 1e6)
-        res = weighted_residuals(recordings, m, sigmas)
-        out = np.concatenate(list(res.values()))
-        last["x"], last["f"] = theta.copy(), out
-        return out
-
-    base = weighted_residuals(recordings, build(x_start), sigmas)
-    n_res = sum(len(v) for v in base.values())
-    if names:
-        scale = np.array([max(abs(x), _typical(n)) for n, x in zip(names, x_start)])
-        sol = least_squares(fun, x_start, jac=_parallel_jacobian(fun, lo, hi), method="trf", bounds=(lo, hi),
-                            x_scale=scale, max_nfev=max_nfev or 30 * (len(names) + 1), xtol=1e-7, ftol=1e-7)
-        theta, jac, nfev, success, msg = sol.x, sol.jac, sol.nfev, bool(sol.success), str(sol.message)
-    else:
-        theta, jac, nfev, success, msg = x_start, np.zeros((n_res, 0)), 1, True, "nothing to fit"
-    fitted = build(theta)
-    res = weighted_residuals(recordings, fitted, sigmas)
-    rss = {k: float(v @ v) for k, v in res.items()}
-    nobs = {k: len(v) for k, v in res.items()}
-    std = {n: float("nan") for n in names}
-    if names:
-        total = sum(rss.values())
-        dof = max(1, n_res - len(names))
-        s2 = total / dof
-        U, S, Vt = np.linalg.svd(jac, full_matrices=False)
-        ok = S > S[0] * 1e-9 if len(S) else S > 0
-        if np.all(ok):
-            cov = (Vt.T / S ** 2) @ Vt * s2
-            std = {n: float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
-    return FitResult(names=names, values=dict(zip(names, map(float, theta))), std=std, model=fitted, rss=rss,
-                     n_samples=nobs, nfev=int(nfev), success=success, message=msg, sigma=sigmas)
+def _determined(cov: np.ndarray) -> bool:
+    """Whether the data determine every free parameter: a finite covariance whose correlation matrix
+    has condition number below 1 / RANK_TOL^2 (the identification's rank tolerance)."""
+    if not np.all(np.isfinite(cov)):
+        return False
+    d = np.sqrt(np.diag(cov))
+    if not np.all(d > 0):
+        return False
+    return bool(np.linalg.cond(cov / np.outer(d, d)) < 1.0 / RANK_TOL ** 2)

@@ -106,6 +106,18 @@ def _pool(n: int):
     return _POOL[0]
 
 
+def map_prediction_rows(fn, n_rows: int) -> list:
+    """[fn(0), ..., fn(n_rows - 1)] on the prediction threads (``set_prediction_threads``).
+
+    For prediction models whose per-row work releases the GIL (compiled simulation):
+    model extensions use it to spread a batch (the Jacobian columns) like ``OtbotModel``.
+    """
+    n = min(_THREADS[0], n_rows)
+    if n <= 1:
+        return [fn(i) for i in range(n_rows)]
+    return list(_pool(n).map(fn, range(n_rows)))
+
+
 class OtbotModel:
     """The paper's rigid-body model (parameters ``PARAM_NAMES``), fast compiled prediction."""
 

@@ -84,6 +84,11 @@ class FitResult:
     predicted: list[dict[str, np.ndarray]] = field(default_factory=list, repr=False)
 
     @property
+    def weighted_rss(self) -> dict[str, float]:
+        """Sum of squared residuals / sigma^2 per ``experiment/channel`` (dimensionless)."""
+        return {k: self.samples[k] * self.residual_ratio[k] ** 2 for k in self.residual_ratio}
+
+    @property
     def log_likelihood(self) -> float:
         """Gaussian log-likelihood with each channel's noise variance at its ML value (RMS^2)."""
         return sum(-0.5 * self.samples[k] * (math.log(2 * math.pi * max(rms, 1e-300) ** 2) + 1.0)
@@ -361,7 +366,8 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
     upper = np.array([bnd[n][1] for n in free])
     sc = np.array([float((scale or {}).get(n, max(abs(g[n]), TYPICAL_SCALE.get(n, 0.0)) or 1.0)) for n in free])
     z0 = np.array([g[n] for n in free])
-    margin = 1e-6 * (upper - lower)
+    span = upper - lower
+    margin = np.where(np.isfinite(span), 1e-6 * span, 0.0)  # half-open bounds: no margin needed
     bad = (z0 < lower) | (z0 > upper)
     if bad.any():
         i = int(np.argmax(bad))

@@ -1,0 +1,109 @@
+"""The extended model as the shared identification fitter sees it.
+
+``otbot_hw.identification.prediction_error.fit_parameters`` fits any *prediction
+model* (``otbot_hw.identification.model``): ``names``, ``channels`` and
+``predict(thetas (m, P), experiment) -> (m, n_samples, n_channels)``. This module
+gives the extended model (``otbot_hw.model.effects.ExtendedModel``) that interface and
+turns diagnosis recordings into the fitter's ``Experiment`` objects, so every fit of the
+diagnosis runs through the same fitter as the identification.
+
+* Parameter vector: the paper's ``PARAM_NAMES`` (SI), then the effect vector
+  ``EFFECT_PARAM_NAMES``, then the requested tied catalog parameters (e.g. ``c_w``,
+  which sets ``c_r`` and ``c_l`` together). A vector is resolved by
+  ``ExtendedModel.with_values`` in that order, so a tied parameter overrides its members
+  (free either the tied name or its members, never both).
+* Channels: the diagnosis channels (encoder rates ``w_r, w_l, w_p`` rad/s, IMU ``a_x,
+  a_y`` m/s^2, gyro z rad/s); the gyro is called ``omega_z`` as in the identification
+  (``g_z`` in the diagnosis).
+* Prediction: ``residuals.simulate_outputs`` -- the whole run simulated from the initial
+  state estimated from the encoders *with the candidate parameters* (encoder scale,
+  radius asymmetry and slip change it), with the experiment's RK4 ``substeps``.
+  A simulation that fails or diverges predicts ``FAILED_OUTPUT`` (a large finite value,
+  so the fitter's finite differences stay finite and steer away from it).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from otbot_hw.diagnose.data import CHANNELS as DIAGNOSIS_CHANNELS
+from otbot_hw.diagnose.data import DiagnosisData
+from otbot_hw.diagnose.residuals import initial_state, simulate_outputs, simulation_substeps
+from otbot_hw.identification.experiment import Experiment
+from otbot_hw.identification.model import map_prediction_rows
+from otbot_hw.model.effects import EFFECT_PARAM_NAMES, TIED_PARAMS, ExtendedModel
+from otbot_hw.params import PARAM_NAMES
+
+#: diagnosis channel -> identification channel name
+FITTER_CHANNEL: dict[str, str] = {ch: ("omega_z" if ch == "g_z" else ch) for ch in DIAGNOSIS_CHANNELS}
+DIAGNOSIS_CHANNEL: dict[str, str] = {v: k for k, v in FITTER_CHANNEL.items()}
+FAILED_OUTPUT = 1e6
+
+
+@dataclass
+class DiagnosisExperiment(Experiment):
+    """An identification ``Experiment`` that also carries its diagnosis recording (encoders for x0)."""
+
+    data: DiagnosisData | None = None
+
+
+class ExtendedPredictionModel:
+    """Prediction model (identification interface) of ``ExtendedModel`` around ``base``.
+
+    ``tied``: tied catalog parameters (``TIED_PARAMS``) to append to the vector.
+    """
+
+    channels: tuple[str, ...] = tuple(FITTER_CHANNEL[c] for c in DIAGNOSIS_CHANNELS)
+
+    def __init__(self, base: ExtendedModel, tied: Sequence[str] = ()):
+        unknown = [n for n in tied if n not in TIED_PARAMS]
+        if unknown:
+            raise ValueError(f"not tied parameters: {', '.join(unknown)} (tied: {', '.join(TIED_PARAMS)})")
+        self.base = base
+        self.names: tuple[str, ...] = tuple(PARAM_NAMES) + tuple(EFFECT_PARAM_NAMES) + tuple(tied)
+
+    def vector(self, model: ExtendedModel | None = None) -> np.ndarray:
+        """Full parameter vector (``names`` order) of ``model`` (default: the base model)."""
+        m = self.base if model is None else model
+        return np.array([m.get(n) for n in self.names], dtype=float)
+
+    def resolve(self, theta: np.ndarray) -> ExtendedModel:
+        """The extended model of a full parameter vector (raises ValueError for invalid values)."""
+        return self.base.with_values(dict(zip(self.names, map(float, theta))))
+
+    def _one(self, theta: np.ndarray, data: DiagnosisData, substeps: int) -> np.ndarray:
+        try:
+            sim = simulate_outputs(data, self.resolve(theta), substeps=substeps)
+            y = np.column_stack([sim[c] for c in DIAGNOSIS_CHANNELS])
+        except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError):
+            return np.full((len(data), len(DIAGNOSIS_CHANNELS)), FAILED_OUTPUT)
+        return np.where(np.isfinite(y), y, FAILED_OUTPUT)
+
+    def predict(self, thetas: np.ndarray, experiment: DiagnosisExperiment) -> np.ndarray:
+        """Predicted outputs (m, n_samples, 6) in ``channels`` order for parameter rows ``thetas`` (m, P)."""
+        P = np.atleast_2d(np.asarray(thetas, dtype=float))
+        if P.shape[1] != len(self.names):
+            raise ValueError(f"parameter rows must have {len(self.names)} entries ({', '.join(self.names)})")
+        data = experiment.data
+        if data is None:
+            raise ValueError(f"{experiment.name}: not a diagnosis experiment (no recording attached)")
+        rows = map_prediction_rows(lambda i: self._one(P[i], data, experiment.substeps), len(P))
+        return np.stack(rows)
+
+
+def diagnosis_experiments(recordings: Sequence[DiagnosisData], model: ExtendedModel,
+                          sigmas: dict[tuple[str, str], float]) -> list[DiagnosisExperiment]:
+    """One fitter experiment per recording: its usable channels, weighted by ``sigmas[(name, channel)]``
+    (units of the channel), x0 from the encoders under ``model``, the diagnosis's RK4 step."""
+    out = []
+    for d in recordings:
+        chans = d.channels()
+        out.append(DiagnosisExperiment(
+            name=d.name, t=d.t, torque=d.u, fixture=d.fixture, data=d,
+            measured={FITTER_CHANNEL[c]: np.asarray(d.measured(c), dtype=float) for c in chans},
+            sigma={FITTER_CHANNEL[c]: float(sigmas[(d.name, c)]) for c in chans},
+            sigma_source={FITTER_CHANNEL[c]: "given" for c in chans},
+            x0=initial_state(d, model), substeps=simulation_substeps(d.dt)))
+    return out
