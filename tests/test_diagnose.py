@@ -167,6 +167,35 @@ def test_refit_seam_recovers_known_parameters_with_honest_std():
         assert fit.std[n] < 0.05 * true
 
 
+def test_extended_model_serves_the_shared_fitter_interface():
+    """ExtendedPredictionModel: a batch of parameter rows predicts what the diagnosis simulates; a tied
+    parameter sets its members; the seam's per-channel RSS is that of the fitted model's residuals."""
+    from otbot_hw.diagnose.prediction import ExtendedPredictionModel, diagnosis_experiments
+    from otbot_hw.diagnose.refit import channel_sigmas, refit, weighted_residuals
+    from otbot_hw.diagnose.residuals import simulate_outputs
+    from otbot_hw.model.effects import ExtendedModel
+
+    d = from_recording(concealed_recording(P, {"c_w": 0.2}, "stand", 2.0, seed=3), "stand")
+    base = ExtendedModel.paper(P)
+    pm = ExtendedPredictionModel(base, tied=["c_w"])
+    (e,) = diagnosis_experiments([d], base, channel_sigmas([d]))
+    assert e.channels == ("w_r", "w_l", "w_p", "a_x", "a_y", "omega_z")
+    rows = np.repeat(pm.vector()[None], 2, axis=0)
+    rows[1, pm.names.index("c_w")] = 0.2
+    y = pm.predict(rows, e)
+    assert y.shape == (2, len(d), 6)
+    for row, m in zip(y, (base, base.with_values({"c_r": 0.2, "c_l": 0.2}))):
+        sim = simulate_outputs(d, m)
+        assert np.array_equal(row[:, 0], sim["w_r"]) and np.array_equal(row[:, 5], sim["g_z"])
+    assert np.max(np.abs(y[1, :, :2] - y[0, :, :2])) > 0.05  # friction slows both wheels
+    fit = refit([d], base, ["c_w"])
+    assert fit.values["c_w"] == pytest.approx(0.2, rel=0.05) and fit.std["c_w"] < 0.01
+    res = weighted_residuals([d], fit.model, fit.sigma)
+    assert set(res) == set(fit.rss)
+    for k, r in res.items():
+        assert fit.rss[k] == pytest.approx(float(r @ r), rel=1e-9) and fit.n_samples[k] == len(r)
+
+
 def test_regime_tags_come_from_the_measured_signals():
     from otbot_hw.diagnose.locate import regimes
     from otbot_hw.diagnose.residuals import joint_rates
