@@ -222,3 +222,38 @@ def test_cli_writes_report_and_strict_json(tmp_path, capsys):
     assert (tmp_path / "rep" / "diagnosis.json").exists()
     assert all(p.endswith(".png") and (tmp_path / "rep" / p.split("/")[-1]).exists() for p in r["plots"])
     assert set(r["fit_before"]["fitting"]) == {"w_r", "w_l", "w_p", "a_x", "a_y", "g_z"}
+
+
+def test_fleet_runs_on_the_shared_executor_serial_and_dask(tmp_path, capsys):
+    """--each on a Dask cluster gives the same diagnoses, in the given order, as in this process;
+    an unreadable recording is reported and the others go on."""
+    from distributed import LocalCluster
+
+    from otbot_hw.diagnose.fleet import diagnose_each
+    from otbot_hw.identification.executors import SerialExecutor
+
+    paths = []
+    for i, values in enumerate(({"b_ax": 0.06, "b_ay": 0.04, "b_gz": -0.01}, {})):
+        paths.append(tmp_path / f"run{i}.mcap")
+        write_recording(paths[-1], concealed_recording(P, values, "multisine", 3.0, seed=20 + i))
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(b"not an mcap file")
+    paths.insert(1, broken)
+    serial = diagnose_each(paths, P, executor=SerialExecutor())
+    assert [r["recording"] for r in serial] == [str(p) for p in paths]
+    assert "error" in serial[1] and "broken.mcap" in serial[1]["error"]
+    assert [e["name"] for e in serial[0]["effects"]] == ["imu_bias"] and serial[2]["effects"] == []
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+        rc = main(["diagnose", *map(str, paths), "--each", "--scheduler", cluster.scheduler_address, "--json"])
+    assert rc == 0
+    runs = json.loads(capsys.readouterr().out)["runs"]
+    assert [r["recording"] for r in runs] == [str(p) for p in paths]
+    assert runs[1]["error"] == serial[1]["error"]
+    for a, b in ((runs[0], serial[0]), (runs[2], serial[2])):
+        assert a["verdict"] == b["verdict"] and a["effects"] == b["effects"]
+    # bad executor arguments: exit 2, nothing on stdout
+    for argv in (["--each", "--workers", "0"], ["--scheduler", cluster.scheduler_address],
+                 ["--each", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]):
+        assert main(["diagnose", str(paths[0]), *argv]) == 2
+        cap = capsys.readouterr()
+        assert cap.out == "" and "--" in cap.err

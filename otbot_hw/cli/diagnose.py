@@ -35,8 +35,13 @@ def register(sub) -> None:
     p.add_argument("--report", type=Path, default=None, metavar="DIR",
                    help="write residual plots (PNG) and diagnosis.json into DIR")
     p.add_argument("--each", action="store_true",
-                   help="diagnose every RECORDING on its own, in parallel worker processes (a fleet's runs)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes for --each (default 2)")
+                   help="diagnose every RECORDING on its own, in parallel (a fleet's runs): local worker "
+                        "processes, or a Dask cluster with --scheduler; JSON: {runs: [one diagnosis each]}")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="with --each: local worker processes (default one per CPU; 1 = in this process)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="with --each: Dask distributed scheduler (e.g. tcp://10.0.0.5:8786) whose workers run the "
+                        "diagnoses (recordings are sent to them, no shared file system needed)")
     p.add_argument("--demo", action="store_true",
                    help="simulate recordings with a hidden effect and diagnose them")
     p.add_argument("--demo-effect", default="coulomb_wheels",
@@ -101,12 +106,22 @@ def run(args: argparse.Namespace) -> dict:
     if overlap:
         raise CliError(f"recording(s) both fitting and held-out: {sorted(overlap)}")
     params = OtbotParams.load(args.params) if args.params else nominal()
+    if not args.each and (args.workers is not None or args.scheduler):
+        raise CliError("--workers and --scheduler apply only with --each")
     if args.each:
         from otbot_hw.diagnose.fleet import diagnose_each
+        from otbot_hw.identification.executors import make_executor
 
-        if args.workers < 1:
+        if args.workers is not None and args.workers < 1:
             raise CliError(f"--workers must be >= 1, got {args.workers}")
-        runs = diagnose_each(list(fitting), args.params, list(held), args.workers, say)
+        if args.scheduler and args.workers is not None:
+            raise CliError("give --scheduler or --workers, not both (a Dask cluster has its own workers)")
+        try:
+            ex = make_executor(args.scheduler, args.workers)
+        except (ConnectionError, OSError, ValueError) as exc:
+            raise CliError(f"--scheduler: {exc}") from None
+        with ex:
+            runs = diagnose_each(list(fitting), params, list(held), executor=ex, progress=say)
         if not quiet:
             for r in runs:
                 print(f"{r['recording']}: {r.get('verdict', 'error: ' + str(r.get('error')))}")
