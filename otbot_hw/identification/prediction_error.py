@@ -412,7 +412,10 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
                                 max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol)
             z = sol.x
     r = prob.residuals(z)
-    J = prob.jac(z, covariance_jacobian)
+    if covariance_jacobian == jacobian and np.array_equal(sol.x, z) and np.shape(sol.jac) == (len(r), len(free)):
+        J = np.asarray(sol.jac)  # trf's last Jacobian is the same finite difference at the estimate
+    else:
+        J = prob.jac(z, covariance_jacobian)
     groups = rank_check(J, free) if check_identifiability else []
     # per-channel residual statistics and noise estimates
     preds = prob.predictions(z)
