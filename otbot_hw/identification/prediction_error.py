@@ -303,7 +303,7 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
     base: full parameter set (mapping / ``OtbotParams`` / vector) giving the fixed values.
     guess: start of the free parameters (default: their base values).
     bounds, scale: per name (defaults ``DEFAULT_BOUNDS`` / ``TYPICAL_SCALE``; names the
-        defaults do not know need both).
+        defaults do not know need both; a bound may be infinite).
     noise: "residuals" (each channel's noise variance estimated from its residuals) or
         "given" (the experiments' sigma, or ``sigma``).
     jacobian: "forward" or "central" differences during the iterations;
