@@ -314,6 +314,20 @@ def test_given_noise_sets_the_reported_sigma(robot):
         fit_parameters(OtbotModel(), [e], ["I_p"], robot, sigma={"w_p": -1.0})
 
 
+def test_half_open_bounds_and_per_channel_weighted_rss(robot):
+    """Bounds may be infinite on one side (same estimate as finite ones); weighted_rss per channel is
+    sum(((y - y_pred) / sigma)^2) over that channel's samples."""
+    e = Experiment.from_recording(simulate_experiment("pivot", robot, seed=2), ["w_p", "phi_p"])
+    a = fit_parameters(OtbotModel(), [e], ["I_p", "b_p"], robot, bounds={"I_p": (1e-4, 1e3), "b_p": (0.0, 100.0)})
+    b = fit_parameters(OtbotModel(), [e], ["I_p", "b_p"], robot, bounds={"I_p": (0.0, np.inf), "b_p": (0.0, np.inf)})
+    assert b.estimate["I_p"] == pytest.approx(a.estimate["I_p"], rel=1e-6)
+    assert b.estimate["b_p"] == pytest.approx(a.estimate["b_p"], rel=1e-6)
+    for c in e.channels:
+        res = (e.measured[c] - b.predicted[0][c]) / e.sigma[c]
+        assert b.weighted_rss[f"{e.name}/{c}"] == pytest.approx(float(res @ res), rel=1e-9)
+    assert sum(b.weighted_rss.values()) == pytest.approx(2 * b.cost, rel=1e-9)
+
+
 def test_more_bad_input(robot):
     rec = simulate_experiment("chassis", robot, seed=0)
     rec.t = rec.t.copy()
