@@ -16,7 +16,6 @@ import argparse
 import json
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +68,11 @@ def run_case(effect_name: str, magnitude_index: int, seed: int, scale: float = 1
             "heldout_before": {c: v["fit_percent"] for c, v in hb.items()},
             "heldout_after": {c: v["fit_percent"] for c, v in ha.items()},
             "elapsed_s": time.perf_counter() - t0}
+
+
+def run_job(job: tuple) -> dict:
+    """``run_case(effect, magnitude_index, seed, scale)`` for the executor (one picklable item)."""
+    return run_case(*job)
 
 
 def label(case: dict) -> str:
@@ -145,7 +149,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=2, help="noise/excitation seeds per effect and magnitude")
     ap.add_argument("--negatives", type=int, default=4, help="negative-control cases (no effect)")
-    ap.add_argument("--workers", type=int, default=2, help="worker processes")
+    ap.add_argument("--workers", type=int, default=2, help="local worker processes")
+    ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="run the cases on a Dask distributed scheduler instead (tcp://host:8786)")
     ap.add_argument("--quick", action="store_true", help="first magnitude, one seed (smoke run)")
     ap.add_argument("--doc", type=Path, default=ROOT / "docs" / "diagnose.md")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "diagnose_confusion.json")
@@ -170,15 +176,17 @@ def main() -> int:
     jobs = [(e, m, s) for e in effects for m in mags for s in seeds]
     jobs += [("none", 0, 50 + s) for s in range(1 if args.quick else args.negatives)]
     t0 = time.perf_counter()
-    cases = []
-    with ProcessPoolExecutor(args.workers) as pool:
-        futs = {pool.submit(run_case, *j, args.scale): j for j in jobs}
-        for i, f in enumerate(as_completed(futs), 1):
-            c = f.result()
-            cases.append(c)
-            print(f"[confusion] {i}/{len(jobs)} true={c['true']} mag={c['magnitude']} seed={c['seed']} -> "
-                  f"{label(c)} rel.err={c.get('max_rel_error')} ({time.perf_counter() - t0:.0f} s)",
-                  file=sys.stderr, flush=True)
+    from otbot_hw.identification.executors import make_executor
+
+    def report(done: int, total: int) -> None:
+        print(f"[confusion] {done}/{total} cases ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+
+    with make_executor(args.scheduler, args.workers) as ex:  # the executor the fleet and sweeps use
+        print(f"[confusion] {len(jobs)} cases on {ex.describe()}", file=sys.stderr, flush=True)
+        cases = ex.map(run_job, [(*j, args.scale) for j in jobs], progress=report)
+    for c in cases:
+        print(f"[confusion] true={c['true']} mag={c['magnitude']} seed={c['seed']} -> {label(c)} "
+              f"rel.err={c.get('max_rel_error')}", file=sys.stderr)
     cases.sort(key=lambda c: (c["true"], c["magnitude"], c["seed"]))
     args.out.write_text(json.dumps(cases, indent=1, default=float))
     write_doc(cases, args.doc, time.perf_counter() - t0, args.workers, args.scale)
