@@ -91,7 +91,8 @@ def default_substeps(dt: float, fixture: str = "floor") -> int:
     return max(1, math.ceil(dt / h - 1e-9))
 
 
-def _check_inputs(U: np.ndarray, dt: float, F: np.ndarray | None, x0: np.ndarray | None):
+def check_inputs(U: np.ndarray, dt: float, F: np.ndarray | None, x0: np.ndarray | None):
+    """Validate and normalize torques (N, 3), sample period, forces (N, 2) and initial state (12,)."""
     U = np.asarray(U, dtype=float)
     if U.ndim != 2 or U.shape[1] != 3:
         raise ValueError(f"torques must have shape (N, 3), got {U.shape}")
@@ -119,7 +120,7 @@ def simulate(params: OtbotParams, torques: np.ndarray, dt: float, x0: np.ndarray
     n = len(torques)
     t = np.arange(n + 1) * dt
     F = forces.sample(t[:-1]) if isinstance(forces, ForceSchedule) else forces
-    U, F, x0 = _check_inputs(torques, dt, F, x0)
+    U, F, x0 = check_inputs(torques, dt, F, x0)
     code = fixture_code(fixture)
     if method == "fast":
         X = compiled.rk4_zoh(x0, U, F, dt, substeps or default_substeps(dt, fixture), params.as_array(), code)
@@ -161,7 +162,7 @@ class Stepper:
 
     def __init__(self, params: OtbotParams, dt: float, x0: np.ndarray | None = None,
                  fixture: str = "floor", substeps: int | None = None):
-        _, _, x0 = _check_inputs(np.zeros((1, 3)), dt, None, x0)
+        _, _, x0 = check_inputs(np.zeros((1, 3)), dt, None, x0)
         self.params = params
         self.dt = dt
         self.x = x0.copy()

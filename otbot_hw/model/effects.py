@@ -361,9 +361,9 @@ def simulate_extended(params: OtbotParams, eff: np.ndarray, torques: np.ndarray,
     matters with a current-loop lag. ``x0`` (12,) in rolling-angle coordinates (default rest).
     """
     from otbot_hw.model.fixtures import fixture_code
-    from sim.simulator import _check_inputs, default_substeps
+    from sim.simulator import check_inputs, default_substeps
 
-    U, F, x0 = _check_inputs(torques, dt, forces, x0)
+    U, F, x0 = check_inputs(torques, dt, forces, x0)
     eff = np.asarray(eff, dtype=float)
     if eff.shape != (N_EFFECT,) or not np.all(np.isfinite(eff)):
         raise ValueError(f"effect vector must be {N_EFFECT} finite numbers")
