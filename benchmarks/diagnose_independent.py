@@ -204,9 +204,9 @@ def make_recording(path: Path, params, kind: str, seed: int, e: dict) -> None:
 CASES = [
     ("coulomb_wheels", "Coulomb at both wheels, sharp sign", {"coulomb_w": 0.3}, {"c_w": 0.3}),
     ("coulomb_pivot", "Coulomb at the pivot, sharp sign", {"coulomb_p": 0.3}, {"c_p": 0.3}),
-    ("floor_slope", "slope: gravity (0.03, -0.025) m/s² on both CoMs", {"slope": (0.03, -0.025)},
+    ("floor_slope", "gravity component (0.03, −0.025) m/s² on both centres of mass", {"slope": (0.03, -0.025)},
      {"g_x": 0.03, "g_y": -0.025}),
-    ("air_drag", "drag -c|v|v at the pivot", {"c_air": 20.0}, {"c_air": 20.0}),
+    ("air_drag", "quadratic drag −c_air ‖v‖ v at the pivot", {"c_air": 20.0}, {"c_air": 20.0}),
     ("gain_right", "right motor delivers 0.92 x command", {"gain_r": -0.08}, {"k_r": -0.08}),
     ("current_lag", "first-order lag on all three motors", {"T_i": 0.03}, {"T_i": 0.03}),
     ("imu_bias", "IMU bias", {"bias": (0.04, -0.03, 0.006)}, {"b_ax": 0.04, "b_ay": -0.03, "b_gz": 0.006}),
@@ -218,17 +218,20 @@ CASES = [
 ]
 
 
-def run_case(case) -> dict:
+def run_case(case, rep: int = 0, sharp: float | None = None) -> dict:
     from otbot_hw.diagnose.data import load
     from otbot_hw.diagnose.diagnosis import diagnose
     from otbot_hw.recording import read_recording
 
+    global SHARP
+    if sharp is not None:
+        SHARP = sharp
     label, desc, e, truth = case
     P = nominal()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         paths = []
-        for kind, seed in (("multisine", 21), ("tracking", 22)):
+        for kind, seed in (("multisine", 21 + 2 * rep), ("tracking", 22 + 2 * rep)):
             path = Path(tmp) / f"{label}_{kind}.mcap"
             make_recording(path, P, kind, seed, e)
             paths.append(path)
@@ -246,70 +249,105 @@ def run_case(case) -> dict:
     err = {k: (est[k] - v) / abs(v) if k in est else None for k, v in truth.items()}
     hb, ha = r["fit_before"]["heldout"], r["fit_after"]["heldout"]
     worst = min(hb, key=lambda ch: hb[ch]["fit_percent"]) if hb else None
-    return {"case": label, "description": desc, "truth": truth, "named": named, "ambiguous": amb,
+    return {"case": label, "rep": rep, "seeds": [21 + 2 * rep, 22 + 2 * rep], "description": desc, "truth": truth, "named": named, "ambiguous": amb,
             "estimate": est, "rel_error": err, "worst_channel": worst,
             "heldout_before": hb[worst]["fit_percent"] if worst else None,
             "heldout_after": ha[worst]["fit_percent"] if worst else None,
             "verdict": r["verdict"], "sim_s": t_sim, "total_s": time.perf_counter() - t0}
 
 
+def _named(r: dict) -> str:
+    named = ", ".join(r["named"])
+    if r["ambiguous"]:
+        named = (named + "; " if named else "") + "; ".join("ambiguous {" + ", ".join(g) + "}" for g in r["ambiguous"])
+    return named or "none"
+
+
 def table(rows: list[dict]) -> list[str]:
+    """One row per case (first seed pair): truth, what was named, recovered values, errors, held-out fit."""
     out = ["| true effect (independent form) | truth | tool named | recovered | error | held-out worst channel: fit % before -> after |",
            "|---|---|---|---|---|---|"]
     for r in rows:
         truth = ", ".join(f"{k} = {v:g}" for k, v in r["truth"].items()) or "-"
-        named = ", ".join(r["named"]) or ""
-        if r["ambiguous"]:
-            named = (named + "; " if named else "") + "; ".join("ambiguous {" + ", ".join(g) + "}" for g in r["ambiguous"])
-        named = named or "none"
         extra = {k: v for k, v in r["estimate"].items() if k not in r["truth"]}
         rec = ", ".join(f"{k} = {r['estimate'][k]:.4g}" for k in r["truth"] if k in r["estimate"])
-        if extra and r["truth"]:
-            rec += (" (also " + ", ".join(f"{k} = {v:.3g}" for k, v in extra.items()) + ")")
-        rec = rec or ("-" if not extra else ", ".join(f"{k} = {v:.3g}" for k, v in extra.items()))
+        if extra:
+            rec += (" (also " if rec else "(") + ", ".join(f"{k} = {v:.3g}" for k, v in extra.items()) + ")"
         errs = [f"{k} {100 * v:+.1f} %" if v is not None else f"{k} not estimated" for k, v in r["rel_error"].items()]
         fit = (f"{r['worst_channel']}: {r['heldout_before']:.1f} -> {r['heldout_after']:.1f}"
                if r["worst_channel"] else "-")
-        out.append(f"| {r['case']}: {r['description']} | {truth} | {named} | {rec} | {', '.join(errs) or '-'} | {fit} |")
+        out.append(f"| {r['case']}: {r['description']} | {truth} | {_named(r)} | {rec or '-'} | "
+                   f"{', '.join(errs) or '-'} | {fit} |")
+    return out
+
+
+def seed_table(rows: list[dict], labels: list[str]) -> list[str]:
+    """Per case over all seed pairs: named counts, worst |error| per seed, held-out fit per seed."""
+    out = ["| case | seed pairs | named (count) | max abs error per seed pair | held-out worst channel before -> after per seed pair |",
+           "|---|---|---|---|---|"]
+    for lab in labels:
+        rs = sorted((r for r in rows if r["case"] == lab), key=lambda r: r["rep"])
+        if not rs:
+            continue
+        counts: dict[str, int] = {}
+        for r in rs:
+            counts[_named(r)] = counts.get(_named(r), 0) + 1
+        errs = []
+        for r in rs:
+            v = [abs(x) for x in r["rel_error"].values() if x is not None]
+            miss = any(x is None for x in r["rel_error"].values())
+            errs.append("n/a" if not r["rel_error"] else ("not estimated" if miss else f"{100 * max(v):.1f} %"))
+        fits = [f"{r['worst_channel']} {r['heldout_before']:.1f} -> {r['heldout_after']:.1f}" for r in rs]
+        out.append(f"| {lab} | {len(rs)} | {'; '.join(f'{k} ({n})' for k, n in counts.items())} | "
+                   f"{', '.join(errs)} | {', '.join(fits)} |")
     return out
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+    ap.add_argument("--seeds", type=int, default=3, help="seed pairs per case: (21, 22), (23, 24), ... (default 3)")
     ap.add_argument("--cases", default="", help="comma-separated case labels (default: all)")
+    ap.add_argument("--sharp", type=float, default=None,
+                    help="width of the friction sign in rad/s (default 0.005; the tool's own is 0.2) — a diagnostic")
     ap.add_argument("--out", default=str(ROOT / "docs" / "diagnose_independent.json"), help="JSON results file")
     ap.add_argument("--no-doc", action="store_true", help="do not rewrite docs/diagnose.md")
     args = ap.parse_args()
     chosen = [c for c in CASES if not args.cases or c[0] in args.cases.split(",")]
     t0 = time.perf_counter()
-    rows = {}
+    rows = []
     with ProcessPoolExecutor(max_workers=args.workers) as ex:
-        futs = {ex.submit(run_case, c): c[0] for c in chosen}
+        futs = {ex.submit(run_case, c, rep, args.sharp): (c[0], rep) for rep in range(args.seeds) for c in chosen}
         for f in as_completed(futs):
             try:
                 r = f.result()
             except Exception as exc:  # a failing case is reported, the others go on
-                r = {"case": futs[f], "error": repr(exc)}
-            rows[r["case"]] = r
-            print(f"[independent] {time.perf_counter() - t0:6.0f} s  {r['case']}: "
+                r = {"case": futs[f][0], "rep": futs[f][1], "error": repr(exc)}
+            rows.append(r)
+            print(f"[independent] {time.perf_counter() - t0:6.0f} s  {r['case']} #{r['rep']}: "
                   f"{r.get('named')} amb={r.get('ambiguous')} err={r.get('rel_error')} "
                   f"held-out {r.get('worst_channel')} {r.get('heldout_before')} -> {r.get('heldout_after')}",
                   file=sys.stderr, flush=True)
-    ordered = [rows[c[0]] for c in chosen if c[0] in rows]
-    Path(args.out).write_text(json.dumps(ordered, indent=1) + "\n")
-    ok = [r for r in ordered if "error" not in r]
+    order = {c[0]: i for i, c in enumerate(CASES)}
+    rows.sort(key=lambda r: (r["rep"], order[r["case"]]))
+    Path(args.out).write_text(json.dumps(rows, indent=1) + "\n")
+    ok = [r for r in rows if "error" not in r]
+    labels = [c[0] for c in chosen]
     lines = ["<!-- INDEPENDENT:BEGIN (written by benchmarks/diagnose_independent.py) -->", "",
-             f"{len(ok)} cases ({len(ordered) - len(ok)} failed), {(time.perf_counter() - t0) / 60:.1f} min on "
-             f"{args.workers} worker process(es). Per case: 8 s multisine fitting run + 8 s tracking held-out run, "
-             "100 Hz, paper noise, written with the plain `mcap` package (no truth topic). The simulator, the "
-             "effects and the sensor model are written in the script, not taken from `otbot_hw/model/effects.py` "
-             "or `otbot_hw/sensors.py`; see its docstring. Error = (recovered - true) / |true|. Held-out column: the "
-             "channel with the worst held-out fit before the diagnosis, its fit % before -> after.", ""]
-    lines += table(ok)
-    for r in ordered:
+             f"{len(ok)} runs ({len(labels)} cases x {args.seeds} seed pairs; {len(rows) - len(ok)} failed), "
+             f"{(time.perf_counter() - t0) / 60:.1f} min on {args.workers} worker process(es). Per run: 8 s multisine "
+             "fitting recording + 8 s tracking held-out recording, 100 Hz, paper noise, written with the plain `mcap` "
+             "package (no truth topic). Simulator, effects and sensor model are written in the script (see its "
+             "docstring), not taken from `otbot_hw/model/effects.py` or `otbot_hw/sensors.py`. Error = "
+             "(recovered − true) / |true|. Held-out column: the channel with the worst held-out fit before the "
+             "diagnosis, its fit % before → after. All results: `docs/diagnose_independent.json`.", "",
+             "First seed pair (21, 22):", ""]
+    lines += table([r for r in ok if r["rep"] == 0])
+    lines += ["", f"All seed pairs:", ""]
+    lines += seed_table(ok, labels)
+    for r in rows:
         if "error" in r:
-            lines.append(f"\nCase `{r['case']}` failed: {r['error']}")
+            lines.append(f"\nRun `{r['case']}` #{r['rep']} failed: {r['error']}")
     lines += ["", "<!-- INDEPENDENT:END -->"]
     if not args.no_doc:
         block = "\n".join(lines)
@@ -318,9 +356,9 @@ def main() -> int:
         a = text.index("<!-- INDEPENDENT:BEGIN")
         b = text.index("<!-- INDEPENDENT:END -->") + len("<!-- INDEPENDENT:END -->")
         doc.write_text(text[:a] + block + text[b:])
-    print(json.dumps({"cases": [{k: r.get(k) for k in ("case", "named", "ambiguous", "rel_error", "worst_channel",
-                                                        "heldout_before", "heldout_after", "error")}
-                                for r in ordered]}))
+    print(json.dumps({"runs": [{k: r.get(k) for k in ("case", "rep", "named", "ambiguous", "rel_error",
+                                                       "worst_channel", "heldout_before", "heldout_after", "error")}
+                               for r in rows]}))
     return 0
 
 
