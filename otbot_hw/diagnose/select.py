@@ -40,6 +40,21 @@ LATER_ROUND_FACTOR = 5.0
 MIN_FIT_GAIN = 0.5  # percentage points: an accepted effect must visibly improve some channel's fit
 
 
+def _guess_from_coefficients(v, coef) -> dict[str, float]:
+    """Starting values of an effect from its screening coefficients.
+
+    The regressor columns are the change of the residual per unit step of each
+    parameter, so the model change that cancels the residual is -coef * step.
+    Nonlinear lags (current_lag, imu_latency) scale their probe value instead.
+    """
+    guess = dict(v.fixed)
+    for c, p in zip(coef, v.linear):
+        guess[p] = float(-c * v.values[p])
+    if not v.linear and v.effect in ("current_lag", "imu_latency"):
+        (k, val), = v.fixed.items()
+        guess[k] = float(val * np.clip(-coef[0], 0.05, 2.0))
+    return guess
+
 def _fit_percent(recordings: list[DiagnosisData], model: ExtendedModel) -> np.ndarray:
     """Fit % (NRMSE) of every (recording, channel) in a fixed order."""
     from otbot_hw.diagnose.residuals import simulate_outputs
@@ -199,14 +214,7 @@ def screen(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: 
         if d < single.get(v.effect, np.inf):
             single[v.effect] = float(d)
             best_var[v.effect] = i
-            g = dict(v.fixed)
-            # the model change that cancels the residual is -coef (columns = change of the residual)
-            for c, p in zip(coef, v.linear):
-                g[p] = float(-c * v.values[p])
-            if not v.linear and v.effect in ("current_lag", "imu_latency"):
-                (k, val), = v.fixed.items()
-                g[k] = float(val * np.clip(-coef[0], 0.05, 2.0))
-            guesses[v.effect] = g
+            guesses[v.effect] = _guess_from_coefficients(v, coef)
     # greedy group selection
     selected: list[str] = []
     A_sel = np.zeros((len(z0), 0))
@@ -294,13 +302,7 @@ def screen_simulation(recordings: list[DiagnosisData], model: ExtendedModel, nom
         # the simulated output changes by A coef; the residual by -A coef
         dres = z0 - A @ coef
         d_bic = float(bic(dres, A.shape[1]) - b0)
-        # residual at the base ~ minus the residual change of the true effect: theta = -coef * step
-        guess = dict(v.fixed)
-        for c, p in zip(coef, v.linear):
-            guess[p] = float(-c * v.values[p])
-        if not v.linear and v.effect in ("current_lag", "imu_latency"):
-            (k, val), = v.fixed.items()
-            guess[k] = float(val * np.clip(-coef[0], 0.05, 2.0))
+        guess = _guess_from_coefficients(v, coef)
         if d_bic < out.get(v.effect, (np.inf, {}))[0]:
             out[v.effect] = (d_bic, guess)
     return out
