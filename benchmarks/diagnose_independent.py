@@ -10,7 +10,7 @@ extended model the tool fits. Here every recording is made independently of
   by scipy's adaptive RK45, restarted on every ZOH interval (the current-loop lag adds
   three states to the integrated vector);
 * effects, one per catalog category, with this file's own functional forms: hard-ish
-  Coulomb signs (tanh(w / 0.005 rad/s), 40x sharper than the tool's), the slope as gravity
+  Coulomb signs (tanh(w / 0.005 rad/s), 2x sharper than the tool's pivot sign and 10x its wheel sign on the floor), the slope as gravity
   on both centres of mass through their position Jacobians, drag as a force at the pivot,
   gain and lag on the delivered torque, and sensor effects on an IMU written here
   (specific force of the sensor point in its own frame, rigid-body lever arm terms);
@@ -259,7 +259,7 @@ def run_case(case, rep: int = 0, sharp: float | None = None) -> dict:
 def _named(r: dict) -> str:
     named = ", ".join(r["named"])
     if r["ambiguous"]:
-        named = (named + "; " if named else "") + "; ".join("ambiguous {" + ", ".join(g) + "}" for g in r["ambiguous"])
+        named = (named + "; " if named else "") + "; ".join("ambiguous {" + ", ".join(sorted(g)) + "}" for g in r["ambiguous"])
     return named or "none"
 
 
@@ -309,7 +309,7 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=3, help="seed pairs per case: (21, 22), (23, 24), ... (default 3)")
     ap.add_argument("--cases", default="", help="comma-separated case labels (default: all)")
     ap.add_argument("--sharp", type=float, default=None,
-                    help="width of the friction sign in rad/s (default 0.005; the tool's own is 0.2) — a diagnostic")
+                    help="width of the friction sign in rad/s (default 0.005; the tool's own: 0.01 pivot, 0.05 wheels on the floor) — a diagnostic")
     ap.add_argument("--out", default=str(ROOT / "docs" / "diagnose_independent.json"), help="JSON results file")
     ap.add_argument("--no-doc", action="store_true", help="do not rewrite docs/diagnose.md")
     args = ap.parse_args()

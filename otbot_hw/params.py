@@ -43,6 +43,7 @@ PARAM_NAMES: tuple[str, ...] = (
 PARAM_INDEX: dict[str, int] = {n: i for i, n in enumerate(PARAM_NAMES)}
 UNITS: dict[str, str] = {name: unit for _, name, unit, _ in SCHEMA}
 _RULES: dict[str, str] = {name: rule for _, name, _, rule in SCHEMA}
+EFFECTS_SECTION = "effects"  # optional section of extended-model terms (otbot_hw.model.effects)
 _SECTIONS: dict[str, list[str]] = {}
 for _sec, _name, _, _ in SCHEMA:
     _SECTIONS.setdefault(_sec, []).append(_name)
@@ -162,10 +163,22 @@ class OtbotParams:
 
     # -- loading -----------------------------------------------------------
     @classmethod
-    def from_dict(cls, data: Any, source: str = "<dict>") -> "OtbotParams":
-        """Validate the YAML structure; errors name the key and the rule broken."""
+    def from_dict(cls, data: Any, source: str = "<dict>", allow_effects: bool = False) -> "OtbotParams":
+        """Validate the YAML structure; errors name the key and the rule broken.
+
+        An ``effects`` section (missing-physics terms, ``otbot diagnose --out``) belongs to the
+        extended model (``ExtendedModel.from_dict``); it is skipped with ``allow_effects`` and
+        rejected otherwise, so a command on the paper's model never drops it silently.
+        """
         if not isinstance(data, Mapping):
             raise ParameterError(f"{source}: top level must be a mapping of sections")
+        if EFFECTS_SECTION in data:
+            if not allow_effects:
+                raise ParameterError(
+                    f"{source}: section '{EFFECTS_SECTION}' holds extended-model terms (written by otbot diagnose "
+                    f"--out); this command uses the paper's model only -- use otbot simulate or otbot track, or "
+                    f"remove the section")
+            data = {k: v for k, v in data.items() if k != EFFECTS_SECTION}
         unknown = set(data) - set(_SECTIONS)
         if unknown:
             raise ParameterError(

@@ -54,7 +54,7 @@ def fx_admissible(p, phid):
 
 
 def test_coulomb_friction_dissipates_power_c_times_speed(params):
-    """Wheel Coulomb friction on the stand: I_a w_dot = tau - b w - c tanh(w / SIGN_RATE)."""
+    """Wheel Coulomb friction on the stand: I_a w_dot = tau - b w - c tanh(w / SIGN_RATE_WHEEL)."""
     eff = fx.effect_vector({"c_r": 0.4})
     tr = fx.simulate_extended(params, eff, np.tile([1.0, 1.0, 0.0], (100, 1)), 0.01, fixture="stand")
     w_r, w_l = tr.x[-1, 9], tr.x[-1, 10]

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
+from otbot_hw.cli.simulate import check_output_folder
 
 
 def register(sub) -> None:
@@ -34,6 +35,10 @@ def register(sub) -> None:
                    help="held-out recordings: used only to judge prediction")
     p.add_argument("--report", type=Path, default=None, metavar="DIR",
                    help="write residual plots (PNG) and diagnosis.json into DIR")
+    p.add_argument("--out", type=Path, default=None, metavar="MODEL.yaml",
+                   help="write the diagnosed model: refit nominal parameters and accepted effects, each with its "
+                        "one-sigma std (SI units), as a parameter YAML with an 'effects' section that otbot simulate "
+                        "and otbot track load with --params / --plant-params")
     p.add_argument("--each", action="store_true",
                    help="diagnose every RECORDING on its own, in parallel (a fleet's runs): local worker "
                         "processes, or a Dask cluster with --scheduler; JSON: {runs: [one diagnosis each]}")
@@ -106,6 +111,10 @@ def run(args: argparse.Namespace) -> dict:
     if overlap:
         raise CliError(f"recording(s) both fitting and held-out: {sorted(overlap)}")
     params = OtbotParams.load(args.params) if args.params else nominal()
+    if args.out is not None:
+        if args.each:
+            raise CliError("--out writes one model; it does not apply with --each")
+        check_output_folder(args.out, "--out")
     if not args.each and (args.workers is not None or args.scheduler):
         raise CliError("--workers and --scheduler apply only with --each")
     if args.each:
@@ -131,7 +140,7 @@ def run(args: argparse.Namespace) -> dict:
     for d in recs + hold:
         for ch, why in d.unusable.items():
             say(f"[diagnose] {d.name}: channel {ch} not used: {why}")
-    result = diagnose(recs, params, hold, report_dir=args.report, progress=say)
+    result = diagnose(recs, params, hold, report_dir=args.report, progress=say, model_out=args.out)
     if truth is not None:
         result["demo_truth"] = truth
     if args.report:
@@ -158,6 +167,8 @@ def _print_summary(r: dict) -> None:
         print("nominal parameters moved: " + ", ".join(f"{n} {v['before']:.4g} -> {v['after']:.4g} {v['unit']}"
                                                      for n, v in moved.items()), file=out)
     print(f"located windows: {len(r['located'])} ({r['located_summary']['per_channel']})", file=out)
+    if r.get("model_file"):
+        print(f"diagnosed model: {r['model_file']}", file=out)
     for p in r.get("plots", []):
         print(f"plot: {p}", file=out)
     if "demo_truth" in r:

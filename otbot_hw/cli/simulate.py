@@ -29,7 +29,9 @@ def register(sub) -> None:
     p.add_argument("--noise", choices=["paper", "none"], default="paper",
                    help="sensor noise: the paper's levels (default) or none")
     p.add_argument("--seed", type=seed_int, default=0, help="noise seed, an integer >= 0 (default 0)")
-    p.add_argument("--params", type=Path, default=None, help="parameter YAML (default config/otbot.yaml)")
+    p.add_argument("--params", type=Path, default=None,
+                   help="parameter YAML (default config/otbot.yaml); a diagnosed model (otbot diagnose --out) with "
+                        "an 'effects' section is simulated with those effects")
     p.add_argument("--out", type=Path, default=None, help="write the recording (MCAP) here")
     p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write PNG plots into DIR")
     add_json_flag(p)
@@ -88,23 +90,29 @@ def write_outputs(result: dict, rec, params, out: Path | None, plot: Path | None
 
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.model.kinematics import constraint_jacobian, holonomic_constraint
-    from otbot_hw.params import OtbotParams
+    from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.sensors import NoiseModel
-    from sim.runs import simulated_recording
+    from sim.runs import extended_recording, simulated_recording
 
     torques = parse_vector(args.torques, 3, "--torques")
     n = check_duration(args.duration, args.rate)
     check_output_folder(args.out, "--out")
-    params = OtbotParams.load(args.params)
+    model = ExtendedModel.load(args.params)
+    params = model.params
     dt = 1.0 / args.rate
     noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
-    rec = simulated_recording(params, np.tile(torques, (n, 1)), dt, noise, seed=args.seed, fixture=args.fixture)
+    U = np.tile(torques, (n, 1))
+    if model.active_effects():  # a diagnosed model: the paper's dynamics plus its effects
+        rec = extended_recording(model, U, dt, noise, seed=args.seed, fixture=args.fixture)
+    else:
+        rec = simulated_recording(params, U, dt, noise, seed=args.seed, fixture=args.fixture)
     q, qd = rec.truth_q[-1], rec.truth_qd[-1]
     result = {
         "t_final": float(rec.t[-1]),
         "samples": len(rec),
         "fixture": args.fixture,
         "torques": torques,
+        "effects": model.active_effects(),
         "q": q.tolist(),
         "qd": qd.tolist(),
         "max_constraint_residual": float(max(np.abs(constraint_jacobian(a, params) @ b).max()

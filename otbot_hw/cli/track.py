@@ -23,10 +23,13 @@ def register(sub) -> None:
     p.add_argument("--sim", action="store_true", help="run against the simulated robot (required: the only "
                    "plant available to this command)")
     p.add_argument("--params", type=Path, default=None,
-                   help="parameter YAML for plant and controller (default config/otbot.yaml; an identified file works)")
+                   help="parameter YAML for plant and controller (default config/otbot.yaml; an identified file "
+                        "works; a diagnosed model from otbot diagnose --out adds its 'effects', which the controller "
+                        "compensates by feedforward: friction, slope, drag, torque-gain errors)")
     p.add_argument("--plant-params", type=Path, default=None,
                    help="parameter YAML of the simulated robot when it differs from the controller's --params "
-                        "(e.g. --params identified.yaml --plant-params config/otbot.yaml)")
+                        "(e.g. --params identified.yaml --plant-params config/otbot.yaml); may hold 'effects' "
+                        "(missing physics the simulated robot has)")
     p.add_argument("--robot", type=Path, default=None, help="hardware YAML with motor limits (default config/robot.yaml)")
     p.add_argument("--tstab", default="3", help="stabilization time T_stab in s, one value or x,y,alpha (default 3)")
     p.add_argument("--rate", type=positive_float("--rate"), default=1000.0, help="control rate in Hz (default 1000)")
@@ -60,7 +63,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.control.scenarios import SCENARIOS, build_spec, run_scenario
     from otbot_hw.control.trajectories import TrajectoryError
     from otbot_hw.motors import load_motor_limits
-    from otbot_hw.params import OtbotParams
+    from otbot_hw.model.effects import ExtendedModel
 
     if not args.sim:
         raise CliError("only the simulated robot is available: add --sim")
@@ -71,8 +74,11 @@ def run(args: argparse.Namespace) -> dict:
     if args.plot is not None and args.plot.exists() and not args.plot.is_dir():
         raise CliError(f"--plot {args.plot} exists and is not a folder")
     tstab = parse_tstab(args.tstab)
-    params = OtbotParams.load(args.params)
-    plant = OtbotParams.load(args.plant_params) if args.plant_params is not None else None
+    model = ExtendedModel.load(args.params)
+    params = model.params
+    effects = model.eff if model.active_effects() else None
+    plant = ExtendedModel.load(args.plant_params) if args.plant_params is not None else (
+        model if effects is not None else None)
     limits = load_motor_limits(args.robot)
     eb = None
     if args.error_bounds is not None:
@@ -92,7 +98,9 @@ def run(args: argparse.Namespace) -> dict:
                                f"({len(rep.violations)} violation(s))")
         result = run_scenario(args.scenario, params, limits, t_stab=tstab, rate_hz=args.rate,
                               robustness=not args.no_robustness, plot_dir=args.plot, animate=args.animate,
-                              progress=say, error_bounds=eb, spec=spec, plant=plant)
+                              progress=say, error_bounds=eb, spec=spec, plant=plant, effects=effects)
+        if effects is not None:
+            result["compensated_effects"] = model.active_effects()
     except TrajectoryError as exc:
         raise CliError(str(exc)) from None
     if not args.json:

@@ -20,7 +20,7 @@ from otbot_hw.control.computed_torque import ComputedTorqueController, TaskState
 from otbot_hw.control.limiter import TorqueLimiter
 from otbot_hw.control.trajectories import DesiredTrajectory
 from otbot_hw.params import OtbotParams
-from sim.simulator import ForceSchedule, Stepper
+from sim.simulator import ForceSchedule, Stepper, make_stepper
 
 DEFAULT_RATE_HZ = 1000.0
 
@@ -72,7 +72,7 @@ def rest_state(p: np.ndarray, heading: float = 0.0) -> np.ndarray:
     return x0
 
 
-def run_closed_loop(reference: DesiredTrajectory, controller: ComputedTorqueController, plant: OtbotParams,
+def run_closed_loop(reference: DesiredTrajectory, controller: ComputedTorqueController, plant,
                     limiter: TorqueLimiter | None = None, rate_hz: float = DEFAULT_RATE_HZ,
                     duration: float | None = None, x0: np.ndarray | None = None,
                     forces: ForceSchedule | None = None,
@@ -80,8 +80,9 @@ def run_closed_loop(reference: DesiredTrajectory, controller: ComputedTorqueCont
                     progress: Callable[[str], None] | None = None) -> ClosedLoopRun:
     """Track ``reference`` for ``duration`` s (default: its duration) at ``rate_hz``.
 
-    ``plant`` are the true parameters of the simulated robot (they may differ from the
-    controller's); ``x0`` defaults to rest at p_d(0) with the chassis heading 0.
+    ``plant`` are the true parameters of the simulated robot (``OtbotParams``, or an
+    ``ExtendedModel`` with missing-physics effects; they may differ from the controller's);
+    ``x0`` defaults to rest at p_d(0) with the chassis heading 0.
     ``feedback`` builds the feedback source from the plant's ``Stepper`` (default: ground truth;
     an estimator would read simulated sensors from ``stepper.x`` and be told the torques).
     """
@@ -95,7 +96,7 @@ def run_closed_loop(reference: DesiredTrajectory, controller: ComputedTorqueCont
     P, PD, PDD = (np.ascontiguousarray(a) for a in (P, PD, PDD))
     if x0 is None:
         x0 = rest_state(P[0])
-    stepper = Stepper(plant, dt, x0)
+    stepper = make_stepper(plant, dt, x0)
     source = feedback(stepper)
     X = np.empty((n + 1, 12))
     X[0] = stepper.x
@@ -125,7 +126,7 @@ def run_closed_loop(reference: DesiredTrajectory, controller: ComputedTorqueCont
                          rate_hz=rate_hz, saturation=[] if limiter is None else limiter.report(), wall_time_s=wall)
 
 
-def run_open_loop(torques: np.ndarray, torque_times: np.ndarray, plant: OtbotParams, x0: np.ndarray,
+def run_open_loop(torques: np.ndarray, torque_times: np.ndarray, plant, x0: np.ndarray,
                   rate_hz: float = DEFAULT_RATE_HZ, duration: float | None = None):
     """Replay torques (held from each of ``torque_times`` to the next, ZOH) at ``rate_hz``;
     returns (t (N+1,), X (N+1, 12), U (N, 3))."""
@@ -137,5 +138,10 @@ def run_open_loop(torques: np.ndarray, torque_times: np.ndarray, plant: OtbotPar
     tk = np.arange(n) * dt
     idx = np.clip(np.searchsorted(torque_times, tk + 1e-12, side="right") - 1, 0, len(torques) - 1)
     U = np.asarray(torques, float)[idx]
-    run = simulate(plant, U, dt, x0=x0)
+    if hasattr(plant, "eff") and plant.active_effects():  # ExtendedModel
+        from otbot_hw.model.effects import simulate_extended
+
+        run = simulate_extended(plant.params, plant.eff, U, dt, x0=x0)
+    else:
+        run = simulate(getattr(plant, "params", plant), U, dt, x0=x0)
     return run.t, run.x, U

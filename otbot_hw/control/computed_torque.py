@@ -18,7 +18,9 @@ from typing import Protocol
 import numpy as np
 
 from otbot_hw.control.gains import Gains, gains_from_tstab
-from otbot_hw.control.task_model import computed_torque
+from otbot_hw.control.task_model import computed_torque, reference_state
+from otbot_hw.model.compiled import FLOOR
+from otbot_hw.model.effects import compensated_command
 from otbot_hw.params import OtbotParams
 
 
@@ -59,9 +61,21 @@ class ControlOutput:
 
 
 class ComputedTorqueController:
-    """The law with fixed model parameters (the controller's belief) and gains."""
+    """The law with fixed model parameters (the controller's belief) and gains.
 
-    def __init__(self, params: OtbotParams, gains: Gains | None = None):
+    ``params`` may be an ``ExtendedModel`` (e.g. a diagnosed model, ``otbot diagnose --out``): its
+    physical and actuator effects are then compensated by feedforward. The law's torque u is what the
+    paper's model needs; the command sent is ``effects.compensated_command`` of it, evaluated on the
+    desired motion (p_d, p_dot_d) and the measured pivot angle, so friction signs follow the reference
+    and do not chatter with noisy feedback. The compensation is part of u_traj (u_corr is unchanged).
+    """
+
+    def __init__(self, params, gains: Gains | None = None):
+        self._eff = None
+        if hasattr(params, "eff"):  # ExtendedModel
+            if params.active_effects():
+                self._eff = np.ascontiguousarray(params.eff, dtype=float)
+            params = params.params
         self.params = params
         self.gains = gains or gains_from_tstab(3.0)
         self._prm = params.as_array()
@@ -76,7 +90,21 @@ class ComputedTorqueController:
         All vectors must be contiguous float64 (3,). The buffer is overwritten by the next call.
         """
         computed_torque(p, p_dot, phi_p, p_d, pd_d, pdd_d, self._kp, self._kv, self._prm, self._out)
+        if self._eff is not None:
+            cmd = compensated_command(reference_state(p_d, pd_d, phi_p, self._prm), self._out[0], self._eff,
+                                      self._prm, FLOOR)
+            self._out[1] += cmd - self._out[0]
+            self._out[0] = cmd
         return self._out
+
+    @property
+    def compensates(self) -> dict[str, float]:
+        """Effects the controller compensates (name: value), empty for the paper's model."""
+        if self._eff is None:
+            return {}
+        from otbot_hw.model.effects import ExtendedModel
+
+        return ExtendedModel(self.params, self._eff).active_effects()
 
     def update(self, state: TaskState, p_d: np.ndarray, pd_d: np.ndarray, pdd_d: np.ndarray) -> ControlOutput:
         """Evaluate the law for feedback ``state`` and the desired (p_d, p_dot_d, p_dd_d)."""

@@ -115,6 +115,9 @@ def controller_params(params: OtbotParams, variant: str,
     """
     if plant is not None and variant == "nominal":
         return plant, params
+    if plant is not None and hasattr(plant, "eff"):  # ExtendedModel plant: vary its paper parameters
+        base, ctrl = controller_params(params, variant, plant.params)
+        return type(plant)(base, plant.eff), ctrl
     if plant is not None:
         base_plant, _ = controller_params(plant, variant)
         _, ctrl = controller_params(params, variant)
@@ -131,9 +134,17 @@ def controller_params(params: OtbotParams, variant: str,
 
 def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: Gains,
           variant: str = "nominal", rate_hz: float = 1000.0, forces: ForceSchedule | None | str = "spec",
-          progress: Callable[[str], None] | None = None, plant: OtbotParams | None = None) -> ClosedLoopRun:
-    """Closed-loop run of ``spec`` with the controller believing ``params`` (see ``controller_params``)."""
+          progress: Callable[[str], None] | None = None, plant=None,
+          effects: np.ndarray | None = None) -> ClosedLoopRun:
+    """Closed-loop run of ``spec`` with the controller believing ``params`` (see ``controller_params``).
+
+    ``plant``: ``OtbotParams`` or an ``ExtendedModel`` (default: ``params``); ``effects``: an effect
+    vector the controller compensates (``ComputedTorqueController`` on an ``ExtendedModel``)."""
+    from otbot_hw.model.effects import ExtendedModel
+
     plant, ctrl = controller_params(params, variant, plant)
+    if effects is not None:
+        ctrl = ExtendedModel(ctrl, effects)
     lim = TorqueLimiter(limits, on_saturation=(lambda e: progress(
         f"saturation: {e.motor} at t = {e.t_start:.3f} s (requested {e.peak_request:.1f} N m, "
         f"limit {e.limit:g})")) if progress else None)
@@ -186,9 +197,9 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
                  rate_hz: float = 1000.0, robustness: bool = True, plot_dir: Path | None = None,
                  animate: Path | None = None, check_feasibility: bool = True,
                  error_bounds=None, progress: Callable[[str], None] | None = None,
-                 spec: ScenarioSpec | None = None, plant: OtbotParams | None = None) -> dict:
+                 spec: ScenarioSpec | None = None, plant=None, effects: np.ndarray | None = None) -> dict:
     """Run scenario ``name`` (or a CSV path, or a prebuilt ``spec``); returns the JSON summary
-    (see ``otbot track --help``)."""
+    (see ``otbot track --help``). ``plant`` and ``effects``: see ``track``."""
     say = progress or (lambda m: None)
     gains = gains_from_tstab(t_stab)
     spec = spec or build_spec(name, params, limits, progress)
@@ -204,12 +215,13 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
             say(f"feasibility: {v['motor']} may exceed {v['limit_Nm']:g} N m on "
                 f"[{v['t_start']:.2f}, {v['t_end']:.2f}] s (bound {v['bound_Nm']:.1f} N m)")
     say(f"closed loop at {rate_hz:g} Hz, {spec.reference.duration:.1f} s ...")
-    run = track(spec, params, limits, gains, "nominal", rate_hz, progress=progress, plant=plant)
+    run = track(spec, params, limits, gains, "nominal", rate_hz, progress=progress, plant=plant, effects=effects)
     result.update(summarize(spec, run, limits, params))
     result["wall_time_s"] = run.wall_time_s
     if spec.name == "figure8":
         for ev, f in zip(result["events"], FIGURE8_FORCES):
-            iso = track(spec, params, limits, gains, "nominal", rate_hz, forces=ForceSchedule([f]), plant=plant)
+            iso = track(spec, params, limits, gains, "nominal", rate_hz, forces=ForceSchedule([f]), plant=plant,
+                        effects=effects)
             e = event_summary(iso.t, iso.e_p, iso.e_v, [Event(f.start, ev["kind"], f.start + f.duration)])[0]
             ev["settle_time_isolated_s"] = e["settle_time_s"]
     open_loop = None
@@ -233,7 +245,7 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
         result["robustness"] = {}
         for variant in ("payload", "friction"):
             say(f"robustness variant: {variant} ...")
-            r = track(spec, params, limits, gains, variant, rate_hz, plant=plant)
+            r = track(spec, params, limits, gains, variant, rate_hz, plant=plant, effects=effects)
             s = summarize(spec, r, limits, params)
             result["robustness"][variant] = {k: s[k] for k in ("max_abs_error", "rms_error", "fraction_within", "peak_torque",
                                                                 "events", "goal_overshoot_m") if k in s}

@@ -136,3 +136,23 @@ def task_space(alpha: float, phi_p: float, pd: np.ndarray, prm: np.ndarray) -> t
     Cbar = np.empty((3, 3))
     task_space_matrices(float(alpha), float(phi_p), np.ascontiguousarray(pd, dtype=float), prm, Mbar, Cbar)
     return Mbar, Cbar
+
+
+@njit(cache=True)
+def reference_state(p, pd, phi_p, prm):
+    """State x (12,) for task pose p = (x, y, alpha), task rates pd and pivot angle phi_p: wheel angles
+    0 (no physics depends on them), joint rates from the inverse kinematics (paper §2.3.2):
+    v = c x_dot + s y_dot, theta_dot = -(s x_dot - c y_dot) / l1 (theta = alpha - phi_p),
+    phi_r,l_dot = (v +- l2 theta_dot) / r, phi_p_dot = alpha_dot - theta_dot."""
+    l1, l2, r = prm[_L1], prm[_L2], prm[_R]
+    th = p[2] - phi_p
+    s, c = np.sin(th), np.cos(th)
+    v = c * pd[0] + s * pd[1]
+    thd = -(s * pd[0] - c * pd[1]) / l1
+    x = np.zeros(12)
+    x[0], x[1], x[2], x[5] = p[0], p[1], p[2], phi_p
+    x[6], x[7], x[8] = pd[0], pd[1], pd[2]
+    x[9] = (v + l2 * thd) / r
+    x[10] = (v - l2 * thd) / r
+    x[11] = pd[2] - thd
+    return x

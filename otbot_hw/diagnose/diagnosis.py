@@ -50,9 +50,33 @@ def _params_json(fit, names):
             for n in names}
 
 
+def save_model(path: Path, fit, effects: list[dict], ambiguous: list[dict], recordings: list[str]) -> None:
+    """Write the diagnosed model (the final fit: refit nominal parameters and effects, with std) as a
+    parameter YAML with an ``effects`` section: what ``otbot simulate`` and ``otbot track`` load. An
+    ambiguous group's best candidate is in the final fit (it predicts as well as its look-alikes);
+    the header says so."""
+    import dataclasses
+
+    from otbot_hw.params import PARAM_INDEX
+
+    std = {n: float(s) for n, s in fit.std.items() if n in PARAM_INDEX and s is not None and np.isfinite(s)}
+    model = fit.model
+    model = type(model)(dataclasses.replace(model.params, std=std), model.eff)
+    lines = ["Diagnosed model (otbot diagnose --out): nominal parameters refit together with the accepted",
+             "effects; std = one standard deviation. Recordings: " + ", ".join(Path(r).name for r in recordings),
+             "Accepted effects: " + (", ".join(e["name"] for e in effects) or "none")]
+    for g in ambiguous:
+        names = [c["name"] for c in g["candidates"]]
+        lines.append(f"Ambiguous, the data cannot tell apart: {' / '.join(names)}. The file holds the best of them "
+                     f"({names[0]}), which predicts this data as well as the others; before relying on it elsewhere "
+                     f"(another fixture, load or floor) separate them: {g['experiment']}")
+    model.save(path, header="\n".join(lines), effect_std={n: s for n, s in fit.std.items() if n not in PARAM_INDEX})
+
+
 def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list[DiagnosisData] | None = None,
-             report_dir: Path | None = None, progress=lambda msg: None) -> dict:
-    """Diagnose ``recordings`` against ``params``; ``holdout`` recordings judge prediction only."""
+             report_dir: Path | None = None, progress=lambda msg: None, model_out: Path | None = None) -> dict:
+    """Diagnose ``recordings`` against ``params``; ``holdout`` recordings judge prediction only.
+    ``model_out``: also write the diagnosed model there (``save_model``)."""
     t_start = time.perf_counter()
     holdout = holdout or []
     if not recordings:
@@ -130,5 +154,8 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
             plots.append(plot_residuals(report_dir / f"residuals_{tag}_{i}.png", d, base.model, final.model,
                                         windows, f"{Path(d.name).name} ({tag})"))
         result["plots"] = plots
+    if model_out is not None:
+        save_model(Path(model_out), final, effects, ambiguous, result["recordings"])
+        result["model_file"] = str(model_out)
     result["elapsed_s"] = time.perf_counter() - t_start
     return _json_safe(result)

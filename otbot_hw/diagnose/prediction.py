@@ -30,7 +30,8 @@ import numpy as np
 
 from otbot_hw.diagnose.data import CHANNELS as DIAGNOSIS_CHANNELS
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.residuals import initial_state, simulate_outputs, simulation_substeps
+from otbot_hw.diagnose.residuals import initial_state, simulate_outputs
+from sim.simulator import default_substeps
 from otbot_hw.identification.experiment import Experiment
 from otbot_hw.identification.model import map_prediction_rows
 from otbot_hw.model.effects import EFFECT_PARAM_NAMES, TIED_PARAMS, ExtendedModel
@@ -105,5 +106,5 @@ def diagnosis_experiments(recordings: Sequence[DiagnosisData], model: ExtendedMo
             measured={FITTER_CHANNEL[c]: np.asarray(d.measured(c), dtype=float) for c in chans},
             sigma={FITTER_CHANNEL[c]: float(sigmas[(d.name, c)]) for c in chans},
             sigma_source={FITTER_CHANNEL[c]: "given" for c in chans},
-            x0=initial_state(d, model), substeps=simulation_substeps(d.dt)))
+            x0=initial_state(d, model), substeps=default_substeps(d.dt, d.fixture)))
     return out

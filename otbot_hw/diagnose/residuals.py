@@ -29,6 +29,7 @@ from otbot_hw.model import compiled
 from otbot_hw.model import effects as fx
 from otbot_hw.model.effects import ExtendedModel
 from otbot_hw.model.fixtures import fixture_code
+from sim.simulator import default_substeps
 
 
 @dataclass
@@ -250,22 +251,12 @@ def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     return _X0_CACHE[key].copy()
 
 
-RK4_STEP = 2.5e-3  # s, longest RK4 step of the diagnosis simulations
-
-
-def simulation_substeps(dt: float) -> int:
-    """RK4 steps per sample interval of ``dt`` s: steps of at most ``RK4_STEP`` on every fixture (the
-    stiffest term, the smoothed Coulomb sign on a free wheel, c / SIGN_RATE / I_a, stays inside RK4's
-    stability region for c up to its 2 N m bound)."""
-    return max(1, int(np.ceil(dt / RK4_STEP - 1e-9)))
-
-
 def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray | None = None,
                      substeps: int | None = None) -> dict[str, np.ndarray]:
     """Simulated CHANNELS (each (N,)) for the recording's commands, from the encoder-estimated x0
-    (``substeps`` RK4 steps per sample, default ``simulation_substeps(dt)``)."""
+    (``substeps`` RK4 steps per sample, default ``sim.simulator.default_substeps``)."""
     x0 = initial_state(data, model) if x0 is None else x0
-    sub = substeps or simulation_substeps(data.dt)
+    sub = substeps or default_substeps(data.dt, data.fixture)
     traj = fx.simulate_extended(model.params, model.eff, data.u[:-1], data.dt, x0=x0, fixture=data.fixture,
                                 substeps=sub,
                                 tau0=fx.actuated_torque(initial_tau(data), model.eff) if np.any(initial_tau(data))

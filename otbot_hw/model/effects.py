@@ -35,9 +35,15 @@ e_r, e_l       1          encoder scale error of the wheel encoders: reading = (
 
 Modelling choices (documented, not hidden):
 
-* Signs are smoothed, sgn(w) ~ tanh(w / ``SIGN_RATE``) (rad/s) and the caster's
-  direction v / sqrt(|v|^2 + ``SIGN_SPEED``^2), so the extended model stays smooth for
-  integration and least squares.
+* Signs are smoothed, sgn(w) ~ tanh(w / width) and the caster's direction
+  v / sqrt(|v|^2 + ``SIGN_SPEED``^2), so the extended model stays smooth for integration
+  and least squares. Real Coulomb friction is (nearly) discontinuous, and a wide tanh
+  under-predicts it whenever the joint turns slower than the width (a fit then inflates c),
+  so each width is about the narrowest the RK4 step (``sim.simulator.default_substeps``:
+  2.5 ms, 0.5 ms on the stand) keeps stable for a Coulomb level up to its 2 N m bound on
+  the joint's smallest effective inertia (``sign_width``): ``SIGN_RATE_PIVOT`` at the pivot
+  (>= 0.31 kg m^2 on the floor), ``SIGN_RATE_WHEEL`` at a wheel (>= 0.048 kg m^2 on the
+  floor, chassis reflected; I_a = 0.0104 kg m^2 spinning free on the stand).
 * Different wheel radii break the paper's J. The compiled model is kept by working in
   *rolling angles* psi_i = (r_i / r) phi_i, for which J is the paper's with radius r:
   on psi_i act the torque rho_i (tau_i - friction(phi_dot_i)) with rho_i = r / r_i, the
@@ -66,7 +72,8 @@ from otbot_hw.model import compiled
 from otbot_hw.params import OtbotParams
 
 GRAVITY = 9.80665
-SIGN_RATE = 0.2  # rad/s, width of the smoothed sign for joint friction
+SIGN_RATE_PIVOT = 0.01  # rad/s, width of the smoothed friction sign at the pivot motor
+SIGN_RATE_WHEEL = 0.05  # rad/s, ... at a wheel motor
 SIGN_SPEED = 0.01  # m/s, width of the smoothed direction for the caster
 CASTER_POSITION = (0.15, 0.0)  # m, effective caster contact in the chassis frame B'
 
@@ -108,7 +115,7 @@ N_EFFECT = len(EFFECT_PARAMS)
 (C_R, C_L, C_P, S_W, V_S, C_RR, F_CST, K_SLIP, G_X, G_Y, C_AIR, K_R, K_L, K_P, U_MAX, T_I, DB_W, DR,
  B_AX, B_AY, B_GZ, D_X, D_Y, PSI, D_IMU, E_R, E_L) = range(N_EFFECT)
 
-_IA, _BW, _R, _MC, _MP, _XB, _YB, _XF, _YF = 11, 12, 2, 3, 7, 5, 6, 9, 10
+_L1, _L2, _IA, _BW, _R, _MC, _MP, _XB, _YB, _XF, _YF = 0, 1, 11, 12, 2, 3, 7, 5, 6, 9, 10
 
 
 def effect_vector(values: dict[str, float] | None = None) -> np.ndarray:
@@ -134,6 +141,12 @@ def _sgn(v, w):
 
 
 @njit(cache=True)
+def sign_width(i):
+    """Width (rad/s) of the smoothed friction sign at motor i (0 r, 1 l, 2 p)."""
+    return SIGN_RATE_PIVOT if i == 2 else SIGN_RATE_WHEEL
+
+
+@njit(cache=True)
 def actuated_torque(u, eff):
     """Commanded torque (3,) -> torque the drives deliver in steady state (gain, then saturation)."""
     out = np.empty(3)
@@ -149,10 +162,10 @@ def actuated_torque(u, eff):
 @njit(cache=True)
 def _motor_friction(w, i, eff):
     """Non-viscous friction torque (N m) at motor i (0 r, 1 l, 2 p) turning at w rad/s (opposes w)."""
-    c = eff[C_R + i]
-    t = c * _sgn(w, SIGN_RATE)
+    sg = _sgn(w, sign_width(i))
+    t = eff[C_R + i] * sg
     if i < 2 and eff[S_W] != 0.0:
-        t += eff[S_W] * np.exp(-(w / eff[V_S]) ** 2) * _sgn(w, SIGN_RATE)
+        t += eff[S_W] * np.exp(-(w / eff[V_S]) ** 2) * sg
     return t
 
 
@@ -202,8 +215,8 @@ def effect_force(x, tau, eff, prm, fixture):
     # rolling resistance at both contacts, on the rolling angles
     if eff[C_RR] != 0.0:
         t_rr = eff[C_RR] * (mc + mp) * GRAVITY * 0.5 * prm[_R]
-        gen[3] -= t_rr * _sgn(x[9], SIGN_RATE)
-        gen[4] -= t_rr * _sgn(x[10], SIGN_RATE)
+        gen[3] -= t_rr * _sgn(x[9], SIGN_RATE_WHEEL)
+        gen[4] -= t_rr * _sgn(x[10], SIGN_RATE_WHEEL)
     # caster drag at C (CASTER_POSITION in B')
     if eff[F_CST] != 0.0:
         rcx = ct * CASTER_POSITION[0] - st * CASTER_POSITION[1]
@@ -225,6 +238,40 @@ def effect_force(x, tau, eff, prm, fixture):
         gen[0] -= eff[C_AIR] * sp * x[6]
         gen[1] -= eff[C_AIR] * sp * x[7]
     return gen
+
+
+@njit(cache=True)
+def effect_joint_torque(x, tau, eff, prm, fixture):
+    """Joint-torque equivalent (3,) N m of the effect forces at state x under delivered torque tau:
+    Delta(q)^T gen, what the effects add to the right side of the task-space model
+    M_bar p_dd + C_bar p_d = u (Delta = [M_FIK; I], Delta^T E = I)."""
+    gen = effect_force(x, tau, eff, prm, fixture)
+    l1, l2, r = prm[_L1], prm[_L2], prm[_R]
+    th = x[2] - x[5]
+    s, c = np.sin(th), np.cos(th)
+    k = r / (2.0 * l2)
+    out = gen[3:6].copy()
+    out[0] += k * ((l2 * c - l1 * s) * gen[0] + (l1 * c + l2 * s) * gen[1] + gen[2])
+    out[1] += k * ((l2 * c + l1 * s) * gen[0] + (-l1 * c + l2 * s) * gen[1] - gen[2])
+    out[2] += gen[2]
+    return out
+
+
+@njit(cache=True)
+def compensated_command(x, u_task, eff, prm, fixture):
+    """Command (3,) N m under which the extended model's drives act like the paper model's torque
+    ``u_task``: the delivered torque tau solves tau + Delta^T gen(x, tau) = u_task (fixed point; gen
+    depends on tau only through a wheel-radius asymmetry, a contraction of factor |dr|), then each
+    motor's gain error is divided out. Not compensated: saturation, current-loop lag, the inertia
+    change of unequal radii, slip and sensor effects."""
+    tau = u_task.copy()
+    for _ in range(3):
+        tau = u_task - effect_joint_torque(x, tau, eff, prm, fixture)
+    out = np.empty(3)
+    out[0] = tau[0] / (1.0 + eff[K_R])
+    out[1] = tau[1] / (1.0 + eff[K_L])
+    out[2] = tau[2] / (1.0 + eff[K_P])
+    return out
 
 
 @njit(cache=True)
@@ -483,6 +530,84 @@ class ExtendedModel:
         base = effect_vector()
         return {n: float(self.eff[i]) for i, n in enumerate(EFFECT_PARAM_NAMES)
                 if self.eff[i] != base[i] and not (n == "v_s" and self.eff[S_W] == 0.0)}
+
+    # -- model files: the parameter YAML plus an optional ``effects`` section ----------------
+    @classmethod
+    def from_dict(cls, data, source: str = "<dict>") -> "ExtendedModel":
+        """Parameters and effects from the YAML structure. ``effects`` maps effect-parameter names
+        (``EFFECT_PARAMS``; ``c_w`` sets both wheels) to ``{value, unit[, std]}``; absent = paper's model."""
+        from otbot_hw.params import EFFECTS_SECTION, OtbotParams, ParameterError
+
+        params = OtbotParams.from_dict(data, source, allow_effects=True)
+        block = data.get(EFFECTS_SECTION) or {}
+        if not isinstance(block, dict):
+            raise ParameterError(f"{source}: section '{EFFECTS_SECTION}' must be a mapping of effect parameters")
+        values: dict[str, float] = {}
+        for name, entry in block.items():
+            key = f"{EFFECTS_SECTION}.{name}"
+            if name not in EFFECT_INDEX and name not in TIED_PARAMS:
+                raise ParameterError(f"{source}: unknown effect parameter '{key}' "
+                                     f"(known: {', '.join(EFFECT_PARAM_NAMES + tuple(TIED_PARAMS))})")
+            if not isinstance(entry, dict) or "value" not in entry:
+                raise ParameterError(f"{source}: '{key}' must be a mapping with 'value' and 'unit'")
+            bad = set(entry) - {"value", "unit", "std"}
+            if bad:
+                raise ParameterError(f"{source}: '{key}' has unknown field(s) {sorted(bad)}")
+            if entry.get("unit") != parameter_unit(name):
+                raise ParameterError(f"{source}: '{key}' unit must be '{parameter_unit(name)}', got {entry.get('unit')!r}")
+            v = entry["value"]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise ParameterError(f"{source}: '{key}' value must be a finite number, got {v!r}")
+            sd = entry.get("std", 0.0)
+            if isinstance(sd, bool) or not isinstance(sd, (int, float)) or not sd >= 0:
+                raise ParameterError(f"{source}: '{key}.std' must be a number >= 0, got {sd!r}")
+            v = float(v)
+            lo, hi = parameter_bounds(name)
+            if not lo <= v <= hi:
+                raise ParameterError(f"{source}: '{key}' = {v} is outside its physical range [{lo}, {hi}]")
+            values[name] = v
+        try:
+            return cls(params, effect_vector()).with_values(values).checked()
+        except ValueError as exc:
+            raise ParameterError(f"{source}: {exc}") from None
+
+    @classmethod
+    def load(cls, path=None) -> "ExtendedModel":
+        """Load a parameter YAML with or without ``effects`` (default: ``config/otbot.yaml``)."""
+        from otbot_hw.params import DEFAULT_PARAMS_FILE, read_yaml
+
+        p = path if path is not None else DEFAULT_PARAMS_FILE
+        return cls.from_dict(read_yaml(p, "parameter file"), source=str(p))
+
+    def checked(self) -> "ExtendedModel":
+        """Self, after the cross-checks ``effect_vector`` applies (ValueError otherwise)."""
+        effect_vector({n: float(v) for n, v in zip(EFFECT_PARAM_NAMES, self.eff)})
+        return self
+
+    def to_dict(self, effect_std: dict[str, float] | None = None) -> dict:
+        """The YAML structure: the parameter sections plus ``effects`` (active entries only)."""
+        out = self.params.to_dict()
+        effect_std = effect_std or {}
+        active = self.active_effects()
+        if active:
+            block = {}
+            for n, v in active.items():
+                entry = {"value": v, "unit": EFFECT_UNITS[n]}
+                s = effect_std.get(n, effect_std.get(next((t for t, m in TIED_PARAMS.items() if n in m), ""), None))
+                if s is not None and np.isfinite(s):
+                    entry["std"] = float(s)
+                block[n] = entry
+            out["effects"] = block
+        return out
+
+    def save(self, path, header: str = "", effect_std: dict[str, float] | None = None) -> None:
+        """Write the model as YAML (``config/otbot.yaml`` layout plus the ``effects`` section)."""
+        import yaml
+        from pathlib import Path
+
+        text = yaml.safe_dump(self.to_dict(effect_std), sort_keys=False)
+        prefix = "".join(f"# {line}\n" for line in header.splitlines())
+        Path(path).write_text(prefix + text)
 
 
 def parameter_unit(name: str) -> str:
