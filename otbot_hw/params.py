@@ -86,6 +86,32 @@ def check_value(name: str, value: Any) -> float:
     return v
 
 
+def write_yaml(path: str | Path, data: Any, header: str = "") -> None:
+    """Write ``data`` as YAML (keys in order) under ``header`` turned into comment lines."""
+    import yaml
+
+    prefix = "".join(f"# {line}\n" for line in header.splitlines())
+    Path(path).write_text(prefix + yaml.safe_dump(data, sort_keys=False))
+
+
+def read_entry(source: str, key: str, entry: Any, unit: str) -> tuple[Any, float | None]:
+    """(raw value, std or None) of one ``{value, unit[, std]}`` entry, after checking its shape, that
+    its unit is ``unit`` and that std is a number >= 0; the value's own rule is the caller's."""
+    if not isinstance(entry, Mapping) or "value" not in entry:
+        raise ParameterError(f"{source}: '{key}' must be a mapping with 'value' and 'unit'")
+    bad = set(entry) - {"value", "unit", "std"}
+    if bad:
+        raise ParameterError(f"{source}: '{key}' has unknown field(s) {sorted(bad)}")
+    if entry.get("unit") != unit:
+        raise ParameterError(f"{source}: '{key}' unit must be '{unit}', got {entry.get('unit')!r}")
+    if "std" not in entry:
+        return entry["value"], None
+    s = entry["std"]
+    if isinstance(s, bool) or not isinstance(s, (int, float)) or not s >= 0:
+        raise ParameterError(f"{source}: '{key}.std' must be a number >= 0, got {s!r}")
+    return entry["value"], float(s)
+
+
 @dataclass(frozen=True)
 class OtbotParams:
     """Geometry and dynamic parameters of Otbot (SI units, paper Table 3 symbols).
@@ -199,25 +225,13 @@ class OtbotParams:
                 key = f"{sec}.{name}"
                 if name not in block:
                     raise ParameterError(f"{source}: missing key '{key}'")
-                entry = block[name]
-                if not isinstance(entry, Mapping) or "value" not in entry:
-                    raise ParameterError(f"{source}: '{key}' must be a mapping with 'value' and 'unit'")
-                bad = set(entry) - {"value", "unit", "std"}
-                if bad:
-                    raise ParameterError(f"{source}: '{key}' has unknown field(s) {sorted(bad)}")
-                unit = entry.get("unit")
-                if unit != UNITS[name]:
-                    raise ParameterError(
-                        f"{source}: '{key}' unit must be '{UNITS[name]}', got {unit!r}")
+                value, s = read_entry(source, key, block[name], UNITS[name])
                 try:
-                    values[name] = check_value(name, entry["value"])
+                    values[name] = check_value(name, value)
                 except ParameterError as exc:
                     raise ParameterError(f"{source}: '{key}': {exc}") from None
-                if "std" in entry:
-                    s = entry["std"]
-                    if isinstance(s, bool) or not isinstance(s, (int, float)) or not s >= 0:
-                        raise ParameterError(f"{source}: '{key}.std' must be a number >= 0, got {s!r}")
-                    std[name] = float(s)
+                if s is not None:
+                    std[name] = s
         try:
             return cls(**values, std=std)
         except ParameterError as exc:
@@ -232,11 +246,7 @@ class OtbotParams:
 
     def save(self, path: str | Path, header: str = "") -> None:
         """Write the parameters as YAML in the ``config/otbot.yaml`` layout."""
-        import yaml
-
-        text = yaml.safe_dump(self.to_dict(), sort_keys=False)
-        prefix = "".join(f"# {line}\n" for line in header.splitlines())
-        Path(path).write_text(prefix + text)
+        write_yaml(path, self.to_dict(), header)
 
 
 def nominal() -> OtbotParams:

@@ -536,7 +536,7 @@ class ExtendedModel:
     def from_dict(cls, data, source: str = "<dict>") -> "ExtendedModel":
         """Parameters and effects from the YAML structure. ``effects`` maps effect-parameter names
         (``EFFECT_PARAMS``; ``c_w`` sets both wheels) to ``{value, unit[, std]}``; absent = paper's model."""
-        from otbot_hw.params import EFFECTS_SECTION, OtbotParams, ParameterError
+        from otbot_hw.params import EFFECTS_SECTION, OtbotParams, ParameterError, read_entry
 
         params = OtbotParams.from_dict(data, source, allow_effects=True)
         block = data.get(EFFECTS_SECTION) or {}
@@ -548,19 +548,9 @@ class ExtendedModel:
             if name not in EFFECT_INDEX and name not in TIED_PARAMS:
                 raise ParameterError(f"{source}: unknown effect parameter '{key}' "
                                      f"(known: {', '.join(EFFECT_PARAM_NAMES + tuple(TIED_PARAMS))})")
-            if not isinstance(entry, dict) or "value" not in entry:
-                raise ParameterError(f"{source}: '{key}' must be a mapping with 'value' and 'unit'")
-            bad = set(entry) - {"value", "unit", "std"}
-            if bad:
-                raise ParameterError(f"{source}: '{key}' has unknown field(s) {sorted(bad)}")
-            if entry.get("unit") != parameter_unit(name):
-                raise ParameterError(f"{source}: '{key}' unit must be '{parameter_unit(name)}', got {entry.get('unit')!r}")
-            v = entry["value"]
+            v, _ = read_entry(source, key, entry, parameter_unit(name))
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
                 raise ParameterError(f"{source}: '{key}' value must be a finite number, got {v!r}")
-            sd = entry.get("std", 0.0)
-            if isinstance(sd, bool) or not isinstance(sd, (int, float)) or not sd >= 0:
-                raise ParameterError(f"{source}: '{key}.std' must be a number >= 0, got {sd!r}")
             v = float(v)
             lo, hi = parameter_bounds(name)
             if not lo <= v <= hi:
@@ -602,12 +592,9 @@ class ExtendedModel:
 
     def save(self, path, header: str = "", effect_std: dict[str, float] | None = None) -> None:
         """Write the model as YAML (``config/otbot.yaml`` layout plus the ``effects`` section)."""
-        import yaml
-        from pathlib import Path
+        from otbot_hw.params import write_yaml
 
-        text = yaml.safe_dump(self.to_dict(effect_std), sort_keys=False)
-        prefix = "".join(f"# {line}\n" for line in header.splitlines())
-        Path(path).write_text(prefix + text)
+        write_yaml(path, self.to_dict(effect_std), header)
 
 
 def parameter_unit(name: str) -> str:
