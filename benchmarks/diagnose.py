@@ -29,7 +29,7 @@ def main() -> int:
     from otbot_hw.diagnose.data import from_recording
     from otbot_hw.diagnose.diagnosis import diagnose
     from otbot_hw.params import nominal
-    from sim.concealed import concealed_recording
+    from otbot_hw.simulation.concealed import concealed_recording
 
     P = nominal()
     import subprocess
@@ -37,7 +37,7 @@ def main() -> int:
 
     code = ("import time; t = time.perf_counter()\n"
             "from otbot_hw.params import nominal\nfrom otbot_hw.diagnose.data import from_recording\n"
-            "from otbot_hw.diagnose.diagnosis import diagnose\nfrom sim.concealed import concealed_recording\n"
+            "from otbot_hw.diagnose.diagnosis import diagnose\nfrom otbot_hw.simulation.concealed import concealed_recording\n"
             "P = nominal(); d = [from_recording(concealed_recording(P, {}, 'multisine', 1.0, seed=0), 'w')]\n"
             "diagnose(d, P); print(time.perf_counter() - t)")
     with tempfile.TemporaryDirectory() as cache:

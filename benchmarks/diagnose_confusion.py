@@ -29,7 +29,7 @@ def run_case(effect_name: str, magnitude_index: int, seed: int, scale: float = 1
     from otbot_hw.diagnose.data import from_recording
     from otbot_hw.diagnose.diagnosis import diagnose
     from otbot_hw.params import nominal
-    from sim.concealed import concealed_recording
+    from otbot_hw.simulation.concealed import concealed_recording
 
     params = nominal()
     values = {} if effect_name == "none" else dict(cat.effect(effect_name).magnitudes[magnitude_index])

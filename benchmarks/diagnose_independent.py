@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT))
 from otbot_hw.model.dynamics import coriolis_matrix, friction_matrix, mass_matrix  # noqa: E402
 from otbot_hw.model.kinematics import constraint_jacobian, constraint_jacobian_dot  # noqa: E402
 from otbot_hw.params import nominal  # noqa: E402
-from sim.concealed import excitation  # noqa: E402
+from otbot_hw.simulation.concealed import excitation  # noqa: E402
 
 G = 9.80665
 SHARP = 0.005  # rad/s: width of the (nearly hard) friction sign used here

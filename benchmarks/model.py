@@ -38,7 +38,7 @@ from otbot_hw.model import compiled  # noqa: E402
 from otbot_hw.model import dynamics as dyn  # noqa: E402
 from otbot_hw.model import kinematics as kin  # noqa: E402
 from otbot_hw.params import nominal  # noqa: E402
-from sim.simulator import default_substeps, simulate  # noqa: E402
+from otbot_hw.simulation.simulator import default_substeps, simulate  # noqa: E402
 
 DT = 0.01  # s, 100 Hz zero-order hold
 STEPS = 300  # 3 s

@@ -2,7 +2,7 @@
 
 Sample k of the recording is the command u_k written before SYNC k (held until SYNC k+1) and
 the drives', encoder's and IMU's readings at SYNC k, so a run of N torques gives N+1 samples
-(the last command repeats), the layout of ``sim.runs.simulated_recording``.
+(the last command repeats), the layout of ``otbot_hw.simulation.runs.simulated_recording``.
 """
 from __future__ import annotations
 

@@ -1,2 +1,4 @@
-"""The simulated Otbot: integration of the model (``sim.simulator``) and, behind the
-same buses as the real robot, simulated CANopen devices and IMU."""
+"""The simulated Otbot hardware, behind the same buses as the real robot: CiA 402 drives and the
+CiA 406 encoder as CANopen slaves (``canopen_slaves``), the lockstep plant (``plant``), the
+VectorNav IMU on a pseudo-terminal (``imu``) and an slcan USB-CAN adapter (``slcan_adapter``).
+The numerical simulator they step is ``otbot_hw.simulation``."""

@@ -40,7 +40,7 @@ from otbot_hw.model.fixtures import fixture_code
 from otbot_hw.params import OtbotParams, nominal
 from otbot_hw.sensors import NoiseModel, imu_ideal
 from sim.canopen_slaves import SimulatedDrive, SimulatedEncoder
-from sim.simulator import ForceSchedule, Stepper
+from otbot_hw.simulation.simulator import ForceSchedule, Stepper
 
 
 @dataclass

@@ -21,8 +21,8 @@ from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording
 from otbot_hw.sensors import NoiseModel, encoders_ideal, imu_sigma
 from sim.plant import simulated_robot
-from sim.runs import simulated_recording
-from sim.simulator import ForceSchedule, PivotForce, simulate
+from otbot_hw.simulation.runs import simulated_recording
+from otbot_hw.simulation.simulator import ForceSchedule, PivotForce, simulate
 
 CFG = load_robot_config()
 DRIVE_Q = 2 * np.pi / (4096 * 10)  # rad per motor count at the joint

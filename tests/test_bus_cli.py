@@ -9,7 +9,7 @@ from otbot_hw.cli import main
 from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording
 from otbot_hw.sensors import encoders_ideal
-from sim.simulator import simulate
+from otbot_hw.simulation.simulator import simulate
 
 
 def test_otbot_run_sim_json_and_recording(tmp_path, capsys):

@@ -10,7 +10,7 @@ import pytest
 from otbot_hw.cli import main
 from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording
-from sim.simulator import simulate
+from otbot_hw.simulation.simulator import simulate
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

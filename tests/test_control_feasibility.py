@@ -12,7 +12,7 @@ from otbot_hw.control.interval import Interval
 from otbot_hw.control.trajectories import PolylineTrajectory, figure_eight
 from otbot_hw.model.dynamics import coriolis_matrix
 from otbot_hw.motors import MotorLimits
-from sim.simulator import ForceSchedule, PivotForce
+from otbot_hw.simulation.simulator import ForceSchedule, PivotForce
 
 
 def test_interval_sine_encloses_samples(rng):
@@ -53,7 +53,7 @@ def test_interval_task_space_model_encloses_point_values(params, rng):
 
 def test_reference_states_follow_the_rolling_constraints(params):
     """Simulating u_traj open loop from a state on p_d reproduces the reference states."""
-    from sim.simulator import simulate
+    from otbot_hw.simulation.simulator import simulate
     from otbot_hw.control.task_model import task_space
 
     ref = PolylineTrajectory([(0, 0), (1.0, 0), (1.0, 1.0)], speed=0.8, smoothing=0.6, alpha=0.3)

@@ -10,7 +10,7 @@ from otbot_hw.control.metrics import Event, event_summary
 from otbot_hw.control.scenarios import FIGURE8_FORCES, corridor_spec, figure8_spec, track
 from otbot_hw.motors import MotorLimits, load_motor_limits
 from otbot_hw.params import nominal
-from sim.simulator import ForceSchedule
+from otbot_hw.simulation.simulator import ForceSchedule
 
 T_STAB = 3.0
 

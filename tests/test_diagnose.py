@@ -10,7 +10,7 @@ from otbot_hw.diagnose.data import DiagnosisInputError, from_recording
 from otbot_hw.diagnose.diagnosis import diagnose
 from otbot_hw.params import nominal
 from otbot_hw.recording import write_recording
-from sim.concealed import concealed_recording
+from otbot_hw.simulation.concealed import concealed_recording
 
 P = nominal()
 

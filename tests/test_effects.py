@@ -5,7 +5,7 @@ import pytest
 from otbot_hw.model import compiled
 from otbot_hw.model import effects as fx
 from otbot_hw.model.dynamics import kinetic_energy
-from sim.simulator import simulate
+from otbot_hw.simulation.simulator import simulate, simulate_extended
 
 
 def _torques(n=400, dt=0.01, seed=3):
@@ -18,7 +18,7 @@ def _torques(n=400, dt=0.01, seed=3):
 
 def test_zero_effects_is_the_papers_model(params):
     U = _torques()
-    ext = fx.simulate_extended(params, fx.effect_vector(), U, 0.01)
+    ext = simulate_extended(params, fx.effect_vector(), U, 0.01)
     ref = simulate(params, U, 0.01)
     assert np.max(np.abs(ext.x - ref.x)) < 1e-12
     # sample accelerations equal the compiled model's
@@ -34,7 +34,7 @@ def test_slope_conserves_energy_without_friction(params):
     eff = fx.effect_vector({"g_x": g[0], "g_y": g[1]})
     x0 = np.zeros(12)
     x0[6:] = fx_admissible(p, np.array([2.0, -1.0, 0.5]))
-    tr = fx.simulate_extended(p, eff, np.zeros((300, 3)), 0.01, x0=x0)
+    tr = simulate_extended(p, eff, np.zeros((300, 3)), 0.01, x0=x0)
 
     def energy(x):
         q, qd = x[:6], x[6:]
@@ -56,7 +56,7 @@ def fx_admissible(p, phid):
 def test_coulomb_friction_dissipates_power_c_times_speed(params):
     """Wheel Coulomb friction on the stand: I_a w_dot = tau - b w - c tanh(w / SIGN_RATE_WHEEL)."""
     eff = fx.effect_vector({"c_r": 0.4})
-    tr = fx.simulate_extended(params, eff, np.tile([1.0, 1.0, 0.0], (100, 1)), 0.01, fixture="stand")
+    tr = simulate_extended(params, eff, np.tile([1.0, 1.0, 0.0], (100, 1)), 0.01, fixture="stand")
     w_r, w_l = tr.x[-1, 9], tr.x[-1, 10]
     # steady state: tau = b w + c sgn w
     assert w_l == pytest.approx(1.0 / params.b_w, rel=1e-3)
@@ -66,7 +66,7 @@ def test_coulomb_friction_dissipates_power_c_times_speed(params):
 def test_gain_saturation_and_lag_shape_the_delivered_torque(params):
     U = np.tile([10.0, -2.0, 4.0], (50, 1))
     eff = fx.effect_vector({"k_r": -0.1, "u_max": 8.0, "T_i": 0.03})
-    tr = fx.simulate_extended(params, eff, U, 0.01, fixture="stand")
+    tr = simulate_extended(params, eff, U, 0.01, fixture="stand")
     assert tr.tau[-1] == pytest.approx([8.0, -2.0, 4.0], abs=1e-4)  # 9 N m clipped to 8
     assert tr.tau[3, 2] == pytest.approx(4.0 * (1 - np.exp(-0.03 / 0.03)), rel=1e-9)
 
@@ -78,7 +78,7 @@ def test_wheel_radius_asymmetry_conserves_energy_and_scales_encoders(params):
     p = params.replace(b_w=0.0, b_p=0.0)
     eff = fx.effect_vector({"dr": dr})
     U = _torques(300)
-    tr = fx.simulate_extended(p, eff, U, 0.01)
+    tr = simulate_extended(p, eff, U, 0.01)
     s = fx.sensor_outputs(tr, p, eff)
     assert np.allclose(s["joint_pos"][:, 0], tr.x[:, 3] / (1 + dr), rtol=1e-12)
     assert np.allclose(s["joint_pos"][:, 1], tr.x[:, 4] / (1 - dr), rtol=1e-12)
@@ -91,14 +91,14 @@ def test_wheel_radius_asymmetry_conserves_energy_and_scales_encoders(params):
 
     assert true_ke(tr.x[-1]) - true_ke(tr.x[0]) == pytest.approx(work, rel=1e-6)
     # and the paper's model (dr = 0) would not balance these encoder readings
-    ref = fx.simulate_extended(p, fx.effect_vector(), U, 0.01)
+    ref = simulate_extended(p, fx.effect_vector(), U, 0.01)
     assert abs(np.sum(U * np.diff(ref.x[:, 3:6], axis=0)) - work) > 1e-3 * abs(work)
 
 
 def test_slip_makes_encoders_count_more_than_the_wheel_rolls(params):
     eff = fx.effect_vector({"k_slip": 0.05})
     U = np.tile([3.0, 3.0, 0.0], (100, 1))
-    tr = fx.simulate_extended(params, eff, U, 0.01)
+    tr = simulate_extended(params, eff, U, 0.01)
     ref = simulate(params, U, 0.01)
     assert np.max(np.abs(tr.x - ref.x)) < 1e-12  # the body moves as without slip
     s = fx.sensor_outputs(tr, params, eff)

@@ -15,7 +15,7 @@ from otbot_hw.model import compiled
 from otbot_hw.model import effects as fx
 from otbot_hw.model.kinematics import inverse_kinematics_matrix
 from otbot_hw.params import DEFAULT_PARAMS_FILE, OtbotParams, ParameterError, nominal
-from sim.simulator import ExtendedStepper, Stepper, make_stepper
+from otbot_hw.simulation.simulator import ExtendedStepper, Stepper, make_stepper, simulate_extended
 
 P = nominal()
 PHYSICS = {"c_w": 0.3, "c_p": 0.2, "s_w": 0.1, "v_s": 0.4, "c_rr": 0.01, "f_cst": 3.0, "g_x": 0.05, "g_y": -0.03,
@@ -82,7 +82,7 @@ def test_effects_enter_the_task_space_model_as_delta_transpose_gen_and_are_compe
 def test_extended_stepper_matches_the_batch_integrator_and_falls_back_to_the_paper_stepper():
     m = fx.ExtendedModel.paper(P).with_values({"c_w": 0.3, "T_i": 0.02, "k_p": -0.1, "g_x": 0.05})
     U = np.random.default_rng(0).uniform(-4, 4, (200, 3))
-    tr = fx.simulate_extended(m.params, m.eff, U, 0.01)
+    tr = simulate_extended(m.params, m.eff, U, 0.01)
     st = make_stepper(m, 0.01)
     assert isinstance(st, ExtendedStepper)
     for u in U:

@@ -15,7 +15,7 @@ from otbot_hw.model import dynamics as dyn
 from otbot_hw.model import kinematics as kin
 from otbot_hw.params import OtbotParams, nominal
 from otbot_hw.sensors import NoiseModel
-from sim.runs import simulated_recording
+from otbot_hw.simulation.runs import simulated_recording
 
 HEAVY = dict(mass=300.0, x=0.3, y=-0.2, inertia=5.0)  # a large, off-centre load
 

@@ -23,8 +23,8 @@ from otbot_hw.recording import (
     write_recording,
 )
 from otbot_hw.sensors import NoiseModel
-from sim.runs import simulated_recording
-from sim.simulator import ForceSchedule, PivotForce
+from otbot_hw.simulation.runs import simulated_recording
+from otbot_hw.simulation.simulator import ForceSchedule, PivotForce
 
 ARRAYS = ("t", "torque", "joint_pos", "joint_vel", "imu_accel", "imu_gyro", "truth_q", "truth_qd", "truth_force")
 FORMAT_KEYS = ("format", "format_version", "units", "frames")
@@ -368,7 +368,7 @@ def test_format_doc_example_loads(tmp_path, monkeypatch):
 def test_format_doc_sign_conventions_hold_in_the_model(params):
     """§3 of the format document: wheel and torque signs as the model implements them."""
     from otbot_hw.model import kinematics as kin
-    from sim.simulator import simulate
+    from otbot_hw.simulation.simulator import simulate
 
     q = np.array([0.0, 0.0, 0.9, 0.0, 0.0, 0.4])  # theta = 0.5 rad
     th = q[2] - q[5]

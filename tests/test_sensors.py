@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from otbot_hw.sensors import GRAVITY, NoiseModel, imu_sigma, measure
-from sim.runs import simulated_recording
-from sim.simulator import ForceSchedule, PivotForce, simulate
+from otbot_hw.simulation.runs import simulated_recording
+from otbot_hw.simulation.simulator import ForceSchedule, PivotForce, simulate
 
 
 def test_imu_sigma_is_noise_density_times_root_sample_rate():

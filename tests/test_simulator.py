@@ -5,7 +5,7 @@ import pytest
 from otbot_hw.model import dynamics as dyn
 from otbot_hw.model import kinematics as kin
 from otbot_hw.params import nominal
-from sim.simulator import ForceSchedule, PivotForce, Stepper, simulate
+from otbot_hw.simulation.simulator import ForceSchedule, PivotForce, Stepper, simulate
 
 DT = 0.01
 

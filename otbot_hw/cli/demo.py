@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.params import nominal
     from otbot_hw.recording import write_recording
     from otbot_hw.sensors import NoiseModel
-    from sim.runs import simulated_recording
+    from otbot_hw.simulation.runs import simulated_recording
 
     out = args.out_dir
     try:

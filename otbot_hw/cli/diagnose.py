@@ -68,7 +68,7 @@ def demo_recordings(effect_name: str, out_dir: Path, seed: int = 0) -> tuple[lis
     from otbot_hw.diagnose.catalog import effect
     from otbot_hw.params import nominal
     from otbot_hw.recording import write_recording
-    from sim.concealed import concealed_recording
+    from otbot_hw.simulation.concealed import concealed_recording
 
     values = {} if effect_name == "none" else dict(effect(effect_name).magnitudes[0])
     params = nominal()

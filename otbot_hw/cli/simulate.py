@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.model.kinematics import constraint_jacobian, holonomic_constraint
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.sensors import NoiseModel
-    from sim.runs import extended_recording, simulated_recording
+    from otbot_hw.simulation.runs import extended_recording, simulated_recording
 
     torques = parse_vector(args.torques, 3, "--torques")
     n = check_duration(args.duration, args.rate)

@@ -2,7 +2,7 @@
 
 Each tick k (t_k = k / rate): the feedback source reports the task state, the
 computed-torque law evaluates u_k against the desired trajectory sampled at t_k, the
-limiter clamps (and records) it, and the plant (``sim.simulator.Stepper``, the full
+limiter clamps (and records) it, and the plant (``otbot_hw.simulation.simulator.Stepper``, the full
 multiplier-free model) advances one zero-order-hold period under u_k and the external
 pivot force at t_k. The default rate is 1 kHz: the law costs a few microseconds
 (``benchmarks/control.py``) and the 1 ms hold makes the sampled loop indistinguishable
@@ -20,7 +20,7 @@ from otbot_hw.control.computed_torque import ComputedTorqueController, TaskState
 from otbot_hw.control.limiter import TorqueLimiter
 from otbot_hw.control.trajectories import DesiredTrajectory
 from otbot_hw.params import OtbotParams
-from sim.simulator import ForceSchedule, Stepper, make_stepper
+from otbot_hw.simulation.simulator import ForceSchedule, Stepper, make_stepper, simulate, simulate_extended
 
 DEFAULT_RATE_HZ = 1000.0
 
@@ -130,8 +130,6 @@ def run_open_loop(torques: np.ndarray, torque_times: np.ndarray, plant, x0: np.n
                   rate_hz: float = DEFAULT_RATE_HZ, duration: float | None = None):
     """Replay torques (held from each of ``torque_times`` to the next, ZOH) at ``rate_hz``;
     returns (t (N+1,), X (N+1, 12), U (N, 3))."""
-    from sim.simulator import simulate
-
     dt = 1.0 / rate_hz
     T = float(torque_times[-1]) if duration is None else float(duration)
     n = int(round(T * rate_hz))
@@ -139,8 +137,6 @@ def run_open_loop(torques: np.ndarray, torque_times: np.ndarray, plant, x0: np.n
     idx = np.clip(np.searchsorted(torque_times, tk + 1e-12, side="right") - 1, 0, len(torques) - 1)
     U = np.asarray(torques, float)[idx]
     if hasattr(plant, "eff") and plant.active_effects():  # ExtendedModel
-        from otbot_hw.model.effects import simulate_extended
-
         run = simulate_extended(plant.params, plant.eff, U, dt, x0=x0)
     else:
         run = simulate(getattr(plant, "params", plant), U, dt, x0=x0)

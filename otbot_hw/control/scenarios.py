@@ -33,7 +33,7 @@ from otbot_hw.control.metrics import Event, error_summary, event_summary, fracti
 from otbot_hw.control.trajectories import DesiredTrajectory, PolylineTrajectory, corridor, figure_eight, load_csv
 from otbot_hw.motors import MOTORS, MotorLimits
 from otbot_hw.params import OtbotParams
-from sim.simulator import ForceSchedule, PivotForce
+from otbot_hw.simulation.simulator import ForceSchedule, PivotForce
 
 SCENARIOS = ("corridor", "corridor-smooth", "figure8", "planned")
 PLANNED_HOLD_S = 2.0  # rest at the goal after a planned / CSV trajectory, s

@@ -31,7 +31,7 @@ import numpy as np
 from otbot_hw.diagnose.data import CHANNELS as DIAGNOSIS_CHANNELS
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.diagnose.residuals import initial_state, simulate_outputs
-from sim.simulator import default_substeps
+from otbot_hw.simulation.simulator import default_substeps
 from otbot_hw.identification.experiment import Experiment
 from otbot_hw.identification.model import map_prediction_rows
 from otbot_hw.model.effects import EFFECT_PARAM_NAMES, TIED_PARAMS, ExtendedModel

@@ -29,7 +29,7 @@ from otbot_hw.model import compiled
 from otbot_hw.model import effects as fx
 from otbot_hw.model.effects import ExtendedModel
 from otbot_hw.model.fixtures import fixture_code
-from sim.simulator import default_substeps
+from otbot_hw.simulation.simulator import default_substeps, simulate_extended
 
 
 @dataclass
@@ -254,10 +254,10 @@ def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
 def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray | None = None,
                      substeps: int | None = None) -> dict[str, np.ndarray]:
     """Simulated CHANNELS (each (N,)) for the recording's commands, from the encoder-estimated x0
-    (``substeps`` RK4 steps per sample, default ``sim.simulator.default_substeps``)."""
+    (``substeps`` RK4 steps per sample, default ``otbot_hw.simulation.simulator.default_substeps``)."""
     x0 = initial_state(data, model) if x0 is None else x0
     sub = substeps or default_substeps(data.dt, data.fixture)
-    traj = fx.simulate_extended(model.params, model.eff, data.u[:-1], data.dt, x0=x0, fixture=data.fixture,
+    traj = simulate_extended(model.params, model.eff, data.u[:-1], data.dt, x0=x0, fixture=data.fixture,
                                 substeps=sub,
                                 tau0=fx.actuated_torque(initial_tau(data), model.eff) if np.any(initial_tau(data))
                                 else np.zeros(3))

@@ -96,7 +96,7 @@ class Experiment:
     motion: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        from sim.simulator import default_substeps
+        from otbot_hw.simulation.simulator import default_substeps
 
         self.t = np.asarray(self.t, dtype=float)
         self.torque = np.ascontiguousarray(self.torque, dtype=float)

@@ -87,7 +87,7 @@ PAPER_EXPERIMENTS: dict[str, ExperimentSpec] = {
 def simulate_experiment(step: str, truth: OtbotParams, seed: int | None = 0, noise: NoiseModel | None = None,
                         spec: ExperimentSpec | None = None):
     """A simulated ``Recording`` of a step's experiment on a robot with parameters ``truth``."""
-    from sim.runs import simulated_recording
+    from otbot_hw.simulation.runs import simulated_recording
 
     spec = spec or PAPER_EXPERIMENTS[step]
     return simulated_recording(truth, spec.torques(), 1.0 / spec.rate, noise or paper_noise(), seed=seed,

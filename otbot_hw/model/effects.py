@@ -39,7 +39,7 @@ Modelling choices (documented, not hidden):
   v / sqrt(|v|^2 + ``SIGN_SPEED``^2), so the extended model stays smooth for integration
   and least squares. Real Coulomb friction is (nearly) discontinuous, and a wide tanh
   under-predicts it whenever the joint turns slower than the width (a fit then inflates c),
-  so each width is about the narrowest the RK4 step (``sim.simulator.default_substeps``:
+  so each width is about the narrowest the RK4 step (``otbot_hw.simulation.simulator.default_substeps``:
   2.5 ms, 0.5 ms on the stand) keeps stable for a Coulomb level up to its 2 N m bound on
   the joint's smallest effective inertia (``sign_width``): ``SIGN_RATE_PIVOT`` at the pivot
   (>= 0.31 kg m^2 on the floor), ``SIGN_RATE_WHEEL`` at a wheel (>= 0.048 kg m^2 on the
@@ -384,50 +384,8 @@ def ext_sample_accelerations(X, TAU, F, eff, prm, fixture):
     return out
 
 
-@dataclass
-class ExtendedTrajectory:
-    """A run of the extended model: t (N+1,) s; x (N+1, 12) in rolling-angle coordinates;
-    tau (N+1, 3) delivered torque N m; slip (N+1, 2) rad; qdd (N+1, 6); u (N+1, 3) commands."""
-
-    t: np.ndarray
-    x: np.ndarray
-    tau: np.ndarray
-    slip: np.ndarray
-    qdd: np.ndarray
-    u: np.ndarray
-    dt: float
-    fixture: str
-
-
-def simulate_extended(params: OtbotParams, eff: np.ndarray, torques: np.ndarray, dt: float,
-                      x0: np.ndarray | None = None, fixture: str = "floor", tau0: np.ndarray | None = None,
-                      forces: np.ndarray | None = None, substeps: int | None = None) -> ExtendedTrajectory:
-    """Simulate the extended model under commanded ``torques`` (N, 3) N m held for ``dt`` s.
-
-    ``tau0``: delivered torque before t_0 (default 0: the drives start from rest), only
-    matters with a current-loop lag. ``x0`` (12,) in rolling-angle coordinates (default rest).
-    """
-    from otbot_hw.model.fixtures import fixture_code
-    from sim.simulator import check_inputs, default_substeps
-
-    U, F, x0 = check_inputs(torques, dt, forces, x0)
-    eff = np.asarray(eff, dtype=float)
-    if eff.shape != (N_EFFECT,) or not np.all(np.isfinite(eff)):
-        raise ValueError(f"effect vector must be {N_EFFECT} finite numbers")
-    code = fixture_code(fixture)
-    prm = params.as_array()
-    sub = substeps or default_substeps(dt, fixture)
-    t0 = np.zeros(3) if tau0 is None else np.asarray(tau0, dtype=float)
-    X, TAU, S = ext_rk4_zoh(x0, t0, U, F, dt, sub, prm, eff, code)
-    Uf = np.vstack([U, U[-1:]]) if len(U) else np.zeros((1, 3))
-    Ff = np.vstack([F, F[-1:]]) if len(U) else np.zeros((1, 2))
-    qdd = ext_sample_accelerations(X, TAU, Ff, eff, prm, code)
-    return ExtendedTrajectory(t=np.arange(len(X)) * dt, x=X, tau=TAU, slip=S, qdd=qdd, u=Uf, dt=dt,
-                              fixture=fixture)
-
-
-def sensor_outputs(traj: ExtendedTrajectory, params: OtbotParams, eff: np.ndarray) -> dict[str, np.ndarray]:
-    """Noise-free sensor readings of an extended run (the sensor effects applied).
+def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.ndarray]:
+    """Noise-free sensor readings of an extended run (``ExtendedTrajectory``; the sensor effects applied).
 
     Returns ``joint_pos``, ``joint_vel`` (N, 3) rad, rad/s and ``imu_accel``, ``imu_gyro``
     (N, 3) m/s^2, rad/s in the IMU frame (= B'' rotated by psi), as the recording stores them.

@@ -21,7 +21,7 @@ from otbot_hw.model import effects as fx
 from otbot_hw.params import OtbotParams
 from otbot_hw.recording import Recording
 from otbot_hw.sensors import NoiseModel
-from sim.runs import extended_recording
+from otbot_hw.simulation.runs import extended_recording
 
 EXCITATIONS = ("multisine", "tracking", "steps", "stand")
 

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from otbot_hw.model import compiled
+from otbot_hw.model import effects as fx
 from otbot_hw.model.dynamics import forward_dynamics
 from otbot_hw.model.fixtures import fixture_code, held_chassis_accelerations
 from otbot_hw.params import OtbotParams
@@ -192,6 +193,46 @@ class Stepper:
         return self.x
 
 
+@dataclass
+class ExtendedTrajectory:
+    """A run of the extended model: t (N+1,) s; x (N+1, 12) in rolling-angle coordinates;
+    tau (N+1, 3) delivered torque N m; slip (N+1, 2) rad; qdd (N+1, 6); u (N+1, 3) commands."""
+
+    t: np.ndarray
+    x: np.ndarray
+    tau: np.ndarray
+    slip: np.ndarray
+    qdd: np.ndarray
+    u: np.ndarray
+    dt: float
+    fixture: str
+
+
+def simulate_extended(params: OtbotParams, eff: np.ndarray, torques: np.ndarray, dt: float,
+                      x0: np.ndarray | None = None, fixture: str = "floor", tau0: np.ndarray | None = None,
+                      forces: np.ndarray | None = None, substeps: int | None = None) -> ExtendedTrajectory:
+    """Simulate the extended model under commanded ``torques`` (N, 3) N m held for ``dt`` s.
+
+    ``tau0``: delivered torque before t_0 (default 0: the drives start from rest), only
+    matters with a current-loop lag. ``x0`` (12,) in rolling-angle coordinates (default rest).
+    """
+    U, F, x0 = check_inputs(torques, dt, forces, x0)
+    eff = np.asarray(eff, dtype=float)
+    if eff.shape != (fx.N_EFFECT,) or not np.all(np.isfinite(eff)):
+        raise ValueError(f"effect vector must be {fx.N_EFFECT} finite numbers")
+    code = fixture_code(fixture)
+    prm = params.as_array()
+    sub = substeps or default_substeps(dt, fixture)
+    t0 = np.zeros(3) if tau0 is None else np.asarray(tau0, dtype=float)
+    X, TAU, S = fx.ext_rk4_zoh(x0, t0, U, F, dt, sub, prm, eff, code)
+    Uf = np.vstack([U, U[-1:]]) if len(U) else np.zeros((1, 3))
+    Ff = np.vstack([F, F[-1:]]) if len(U) else np.zeros((1, 2))
+    qdd = fx.ext_sample_accelerations(X, TAU, Ff, eff, prm, code)
+    return ExtendedTrajectory(t=np.arange(len(X)) * dt, x=X, tau=TAU, slip=S, qdd=qdd, u=Uf, dt=dt,
+                              fixture=fixture)
+
+
+
 class ExtendedStepper(Stepper):
     """``Stepper`` for the extended model (``otbot_hw.model.effects.ExtendedModel``: the paper's
     dynamics plus missing-physics effects, e.g. a diagnosed model as a closed loop's plant).
@@ -208,13 +249,11 @@ class ExtendedStepper(Stepper):
         self.tau = np.zeros(3)
 
     def step(self, u: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
-        from otbot_hw.model.effects import ext_rk4_zoh
-
         U = np.asarray(u, dtype=float).reshape(1, 3)
         if not np.all(np.isfinite(U)):
             raise ValueError(f"torques must be finite, got {u}")
         F = np.zeros((1, 2)) if f is None else np.asarray(f, dtype=float).reshape(1, 2)
-        X, TAU, _ = ext_rk4_zoh(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code)
+        X, TAU, _ = fx.ext_rk4_zoh(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code)
         self.x, self.tau = X[1], TAU[1]
         self.t += self.dt
         return self.x

@@ -6,7 +6,7 @@ import numpy as np
 from otbot_hw.params import OtbotParams
 from otbot_hw.recording import Recording
 from otbot_hw.sensors import NoiseModel, measure
-from sim.simulator import ForceSchedule, simulate
+from otbot_hw.simulation.simulator import ForceSchedule, simulate, simulate_extended
 
 
 def simulated_recording(params: OtbotParams, torques: np.ndarray, dt: float, noise: NoiseModel | None = None,
@@ -49,7 +49,7 @@ def extended_recording(model, torques: np.ndarray, dt: float, noise: NoiseModel 
     from otbot_hw.model import effects as fx
 
     noise = noise or NoiseModel()
-    traj = fx.simulate_extended(model.params, model.eff, torques, dt, fixture=fixture)
+    traj = simulate_extended(model.params, model.eff, torques, dt, fixture=fixture)
     s = fx.sensor_outputs(traj, model.params, model.eff)
     rng = np.random.default_rng(seed)
     n = len(traj.t)
