@@ -24,7 +24,8 @@ from canopen.profiles.p402 import BaseNode402, OperationMode, State402
 
 from drivers.config import DriveConfig
 from drivers.device import CanopenDevice, pdo_bytes, pdo_get, pdo_put
-from drivers.faults import DriverError, Fault, error_meaning
+from drivers.faults import DriverError, error_meaning
+from otbot_hw.robot import Fault
 
 CW_FAULT_RESET = 0x0080
 RPDO_LAYOUT = {1: [0x6040, 0x6071]}

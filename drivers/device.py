@@ -15,7 +15,8 @@ import canopen
 from canopen.emcy import EmcyError
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from drivers.faults import DriverError, Fault, error_meaning
+from drivers.faults import DriverError, error_meaning
+from otbot_hw.robot import Fault
 
 log = logging.getLogger(__name__)
 

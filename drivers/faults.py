@@ -1,4 +1,5 @@
-"""Driver faults: what went wrong on which device, with the CANopen error code and its meaning.
+"""CANopen error codes and their meanings, and ``DriverError`` (the fault record itself,
+``otbot_hw.robot.Fault``, belongs to the ``Robot`` interface).
 
 Error codes are the CiA 301 / CiA 402 EMCY error codes (also found in a drive's 0x603F and
 0x1003); ``error_meaning`` names the specific code where the profile defines it and falls
@@ -6,10 +7,9 @@ back to the error class (``canopen.emcy.EmcyError``) otherwise.
 """
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass, field
-
 from canopen.emcy import EmcyError
+
+from otbot_hw.robot import RobotError
 
 #: Specific error codes of CiA 301 / CiA 402 (the classes are in canopen's EmcyError).
 ERROR_CODES: dict[int, str] = {
@@ -56,39 +56,5 @@ def error_meaning(code: int) -> str:
     return f"{cls.lower()} error (0x{code:04X})" if cls else f"unknown error 0x{code:04X}"
 
 
-#: Kinds of fault, by where they were detected.
-FAULT_KINDS = ("emcy", "statusword", "heartbeat", "stale", "nmt", "boot", "config", "imu")
-
-
-@dataclass(frozen=True)
-class Fault:
-    """One fault: ``device`` (joint or encoder name), CANopen ``node`` ID (None for the IMU),
-    ``kind`` (one of ``FAULT_KINDS``), error ``code`` (or None), ``meaning``, host ``time`` (monotonic s)."""
-
-    device: str
-    node: int | None
-    kind: str
-    meaning: str
-    code: int | None = None
-    time: float = field(default_factory=time.monotonic)
-
-    def __str__(self) -> str:
-        where = f"{self.device} (node {self.node})" if self.node is not None else self.device
-        code = f" 0x{self.code:04X}" if self.code is not None else ""
-        return f"{where}: {self.kind}{code}: {self.meaning}"
-
-    def to_dict(self) -> dict:
-        return {"device": self.device, "node": self.node, "kind": self.kind, "code": self.code,
-                "meaning": self.meaning}
-
-
-class DriverError(RuntimeError):
+class DriverError(RobotError):
     """A driver operation failed (boot, configuration, enabling); ``faults`` says why."""
-
-    def __init__(self, message: str, faults: tuple[Fault, ...] = ()):
-        super().__init__(message)
-        self.faults = tuple(faults)
-
-
-class RobotFault(DriverError):
-    """The robot is in a fault state: torques cannot be applied until the fault is reset."""

@@ -16,7 +16,7 @@ from typing import Callable
 
 from canopen.nmt import NMT_STATES
 
-from drivers.faults import Fault
+from otbot_hw.robot import Fault
 
 
 @dataclass

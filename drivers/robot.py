@@ -1,5 +1,4 @@
-"""The ``Robot`` interface every control and identification loop uses, and its implementation
-over CANopen (``CanopenRobot``).
+"""``CanopenRobot``: the ``otbot_hw.robot.Robot`` interface over CANopen.
 
 One control cycle::
 
@@ -7,21 +6,17 @@ One control cycle::
     s = robot.read()      # SYNC -> every drive/encoder answers with TPDOs sampled at that SYNC
 
 so the torque written before a ``read()`` is held from that SYNC to the next one, and the
-snapshot returned by that ``read()`` holds the joints at the same SYNC: sample k of a run is
-(u_k held on [t_k, t_k+1), sensors at t_k), the recording convention of ``otbot_hw.recording``.
-A controller that computes u_k from the sensors at t_k therefore acts one period later, as on
-the real bus.
+snapshot returned by that ``read()`` holds the joints at the same SYNC (the convention of
+``otbot_hw.robot``).
 
 With ``realtime=True`` each ``read()`` waits for the next period boundary (real robot); without,
 cycles run back to back (lockstep with a simulated plant, faster than real time).
 """
 from __future__ import annotations
 
-import abc
 import math
 import threading
 import time
-from dataclasses import dataclass, field
 
 import can
 import canopen
@@ -31,42 +26,9 @@ from drivers.cia402 import CiA402Drive
 from drivers.cia406 import CiA406Encoder
 from drivers.config import RobotConfig
 from drivers.device import CycleTracker, wait_until
-from drivers.faults import DriverError, Fault, RobotFault
+from drivers.faults import DriverError
 from drivers.heartbeat import HeartbeatConsumer
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    """Everything read at one SYNC.
-
-    t: s since the drives were enabled (cycle * period); cycle: SYNC count since enabling;
-    host_time: host monotonic time of the SYNC (s); joint_pos (3,) rad and joint_vel (3,) rad/s
-    for (phi_r, phi_l, phi_p); joint_torque (3,) N m as the drives report it; imu_accel (3,) m/s^2
-    and imu_gyro (3,) rad/s in the platform frame B'' (None without IMU), imu_time its host
-    reception time; drive_states: CiA 402 state names; faults: active faults.
-    """
-
-    t: float
-    cycle: int
-    host_time: float
-    joint_pos: np.ndarray
-    joint_vel: np.ndarray
-    joint_torque: np.ndarray
-    imu_accel: np.ndarray | None = None
-    imu_gyro: np.ndarray | None = None
-    imu_time: float | None = None
-    drive_states: tuple[str, ...] = ()
-    faults: tuple[Fault, ...] = ()
-
-
-@dataclass(frozen=True)
-class Command:
-    """What ``write`` did: requested (3,) N m, commanded (3,) N m after limit clamping and the
-    drives' per-mille quantization, saturated (3,) bool: a limit cut the request."""
-
-    requested: np.ndarray
-    commanded: np.ndarray
-    saturated: np.ndarray = field(default_factory=lambda: np.zeros(3, bool))
+from otbot_hw.robot import Command, Fault, Robot, RobotError, RobotFault, Snapshot
 
 
 def imu_due(sync_index: int, period: float, imu_rate: float) -> bool:
@@ -81,52 +43,6 @@ def imu_due(sync_index: int, period: float, imu_rate: float) -> bool:
 #: python-can filter passing only 11-bit-ID frames: CANopen (CiA 301) never uses extended IDs,
 #: and canopen's dispatcher would otherwise take an extended 0x181 for TPDO1 of node 1.
 STANDARD_FRAMES_ONLY = [{"can_id": 0, "can_mask": 0, "extended": False}]
-
-
-class Robot(abc.ABC):
-    """A robot with three torque-controlled joints (right wheel, left wheel, pivot) and an IMU."""
-
-    @abc.abstractmethod
-    def read(self) -> Snapshot:
-        """One synchronous sample of all sensors (see the module docstring for timing)."""
-
-    @abc.abstractmethod
-    def write(self, torques) -> Command:
-        """Command joint torques (tau_r, tau_l, tau_p) N m, clamped to the motor limits."""
-
-    @abc.abstractmethod
-    def enable(self) -> None:
-        """Bring every drive to OPERATION ENABLED with zero torque."""
-
-    @abc.abstractmethod
-    def disable(self) -> None:
-        """Remove power from the motors (drives to SWITCH ON DISABLED)."""
-
-    @abc.abstractmethod
-    def quick_stop(self) -> None:
-        """Quick stop every drive (zero torque, QUICK STOP ACTIVE)."""
-
-    @abc.abstractmethod
-    def fault_reset(self) -> None:
-        """Reset drive faults and clear the fault list (faults still present come back)."""
-
-    @property
-    @abc.abstractmethod
-    def faults(self) -> tuple[Fault, ...]:
-        """Active faults; while any is active ``write`` raises ``RobotFault``."""
-
-    @property
-    def faulted(self) -> bool:
-        return bool(self.faults)
-
-    def close(self) -> None:
-        """Release the buses."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def open_imu(cfg, port: str | None = None, configure: bool = True):
@@ -227,7 +143,7 @@ class CanopenRobot(Robot):
         if self._powered and not self._faults:
             try:
                 self.disable()
-            except DriverError:
+            except RobotError:
                 pass
         self._open = False
         try:

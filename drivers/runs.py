@@ -12,10 +12,9 @@ from typing import Callable
 
 import numpy as np
 
-from drivers.faults import Fault
-from drivers.robot import Robot
 from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_IMU, TOPIC_JOINTS, TOPIC_TRUTH, Recording,
                                 RecordingWriter)
+from otbot_hw.robot import Fault, Robot
 
 
 @dataclass

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from drivers.config import load_robot_config
-from drivers.faults import RobotFault, error_meaning
+from drivers.faults import error_meaning
+from otbot_hw.robot import RobotFault
 from otbot_hw.params import ParameterError
 from sim.plant import simulated_robot
 

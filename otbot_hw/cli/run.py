@@ -62,9 +62,9 @@ def _fail(result: dict, message: str, as_json: bool):
 
 def run(args: argparse.Namespace) -> dict:
     from drivers.busload import bus_load
+    from otbot_hw.robot import RobotError
     from drivers.cia402 import interpolation_period
     from drivers.config import load_robot_config
-    from drivers.faults import DriverError
     from drivers.robot import CanopenRobot, open_imu
     from drivers.runs import run_torques
     from otbot_hw.sensors import NoiseModel
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> dict:
                 robot.open()
                 res = run_torques(robot, torques, cfg.bus.period, args.out, meta,
                                   progress=None if quiet else (lambda m: progress(f"[run] {m}")))
-    except DriverError as exc:
+    except RobotError as exc:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
     except Exception as exc:

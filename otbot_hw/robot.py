@@ -1,0 +1,158 @@
+"""The ``Robot`` interface: the one seam every loop talks through (python-can's ``BusABC`` idea).
+
+Back ends: ``drivers.robot.CanopenRobot`` (the real robot, or the simulated plant behind virtual
+CAN / slcan) and ``sim.direct.DirectSimRobot`` (the model stepped in-process with sensor noise, no
+bus). The loop runner (``otbot_hw.runtime``) knows only this module.
+
+One control cycle::
+
+    robot.write(u)        # torques (N m); applied from the next sample instant on
+    s = robot.read()      # one synchronous sample of every sensor
+
+so the torque written before a ``read()`` is held from that sample to the next one, and the
+snapshot returned by that ``read()`` holds the joints at the same instant: sample k of a run is
+(u_k held on [t_k, t_k+1), sensors at t_k), the recording convention of ``otbot_hw.recording``.
+A controller that computes u_k from the sensors at t_k therefore acts one period later, as on
+the real bus.
+"""
+from __future__ import annotations
+
+import abc
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Kinds of fault, by where they were detected.
+FAULT_KINDS = ("emcy", "statusword", "heartbeat", "stale", "nmt", "boot", "config", "imu")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One fault: ``device`` (joint or encoder name), CANopen ``node`` ID (None for the IMU),
+    ``kind`` (one of ``FAULT_KINDS``), error ``code`` (or None), ``meaning``, host ``time`` (monotonic s)."""
+
+    device: str
+    node: int | None
+    kind: str
+    meaning: str
+    code: int | None = None
+    time: float = field(default_factory=time.monotonic)
+
+    def __str__(self) -> str:
+        where = f"{self.device} (node {self.node})" if self.node is not None else self.device
+        code = f" 0x{self.code:04X}" if self.code is not None else ""
+        return f"{where}: {self.kind}{code}: {self.meaning}"
+
+    def to_dict(self) -> dict:
+        return {"device": self.device, "node": self.node, "kind": self.kind, "code": self.code,
+                "meaning": self.meaning}
+
+
+
+class RobotError(RuntimeError):
+    """A robot operation failed (boot, configuration, enabling, I/O); ``faults`` says why."""
+
+    def __init__(self, message: str, faults: tuple[Fault, ...] = ()):
+        super().__init__(message)
+        self.faults = tuple(faults)
+
+
+class RobotFault(RobotError):
+    """The robot is in a fault state: torques cannot be applied until the fault is reset."""
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Everything read at one SYNC.
+
+    t: s since the drives were enabled (cycle * period); cycle: SYNC count since enabling;
+    host_time: host monotonic time of the SYNC (s); joint_pos (3,) rad and joint_vel (3,) rad/s
+    for (phi_r, phi_l, phi_p); joint_torque (3,) N m as the drives report it; imu_accel (3,) m/s^2
+    and imu_gyro (3,) rad/s in the platform frame B'' (None without IMU), imu_time its host
+    reception time; drive_states: CiA 402 state names; faults: active faults.
+    """
+
+    t: float
+    cycle: int
+    host_time: float
+    joint_pos: np.ndarray
+    joint_vel: np.ndarray
+    joint_torque: np.ndarray
+    imu_accel: np.ndarray | None = None
+    imu_gyro: np.ndarray | None = None
+    imu_time: float | None = None
+    drive_states: tuple[str, ...] = ()
+    faults: tuple[Fault, ...] = ()
+
+
+@dataclass(frozen=True)
+class Command:
+    """What ``write`` did: requested (3,) N m, commanded (3,) N m after limit clamping and the
+    drives' per-mille quantization, saturated (3,) bool: a limit cut the request."""
+
+    requested: np.ndarray
+    commanded: np.ndarray
+    saturated: np.ndarray = field(default_factory=lambda: np.zeros(3, bool))
+
+
+class Robot(abc.ABC):
+    """A robot with three torque-controlled joints (right wheel, left wheel, pivot) and an IMU.
+
+    ``period`` is the sample (control) period in s: one ``read()`` per period.
+    """
+
+    period: float
+
+    @abc.abstractmethod
+    def read(self) -> Snapshot:
+        """One synchronous sample of all sensors (see the module docstring for timing)."""
+
+    @abc.abstractmethod
+    def write(self, torques) -> Command:
+        """Command joint torques (tau_r, tau_l, tau_p) N m, clamped to the motor limits."""
+
+    @abc.abstractmethod
+    def enable(self) -> None:
+        """Bring every drive to OPERATION ENABLED with zero torque."""
+
+    @abc.abstractmethod
+    def disable(self) -> None:
+        """Remove power from the motors (drives to SWITCH ON DISABLED)."""
+
+    @abc.abstractmethod
+    def quick_stop(self) -> None:
+        """Quick stop every drive (zero torque, QUICK STOP ACTIVE)."""
+
+    @abc.abstractmethod
+    def fault_reset(self) -> None:
+        """Reset drive faults and clear the fault list (faults still present come back)."""
+
+    @property
+    @abc.abstractmethod
+    def faults(self) -> tuple[Fault, ...]:
+        """Active faults; while any is active ``write`` raises ``RobotFault``."""
+
+    @property
+    def faulted(self) -> bool:
+        return bool(self.faults)
+
+    @property
+    def has_imu(self) -> bool:
+        """Whether ``read()`` delivers IMU samples."""
+        return getattr(self, "imu", None) is not None
+
+    def truth(self) -> np.ndarray | None:
+        """Ground-truth state x = (q, q_dot) (12,) at the last ``read()``'s sample instant, where
+        the back end knows it (a simulator); None on a real robot."""
+        return None
+
+    def close(self) -> list[str]:
+        """Release the buses. Never raises: returns what it could not do (empty when all went well)."""
+        return []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
