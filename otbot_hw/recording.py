@@ -13,6 +13,11 @@ topic               payload (JSON)                                   required
 /otbot/imu          t, accel [x, y, z] (m/s^2), gyro [x, y, z]       no
                     (rad/s), platform frame B''
 /otbot/truth        t, q (6), qd (6), force [f_x, f_y] (N, ground)   no (sim)
+/otbot/estimate     t, pose [x, y, alpha] (m, rad), twist (m/s,      no (loop)
+                    rad/s), std (6) of pose and twist, gyro_bias
+/otbot/reference    t, p [x, y, alpha], pd, pdd (desired motion)     no (loop)
+/otbot/events       t, kind, text: sparse (mode changes, faults,     no (loop)
+                    saturation), not one per sample
 ==================  ===============================================  ==========
 
 Messages are written unchunked and uncompressed and flushed every few samples,
@@ -39,6 +44,11 @@ TOPIC_COMMAND = "/otbot/command"
 TOPIC_JOINTS = "/otbot/joints"
 TOPIC_IMU = "/otbot/imu"
 TOPIC_TRUTH = "/otbot/truth"
+TOPIC_ESTIMATE = "/otbot/estimate"
+TOPIC_REFERENCE = "/otbot/reference"
+TOPIC_EVENTS = "/otbot/events"
+#: Topics carried once per sample (every other topic of ``TOPICS`` is sparse).
+SAMPLE_TOPICS = ("/otbot/command", "/otbot/joints", "/otbot/imu", "/otbot/truth", "/otbot/estimate", "/otbot/reference")
 
 _VEC3 = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
 _VEC6 = {"type": "array", "items": {"type": "number"}, "minItems": 6, "maxItems": 6}
@@ -66,6 +76,24 @@ TOPICS: dict[str, tuple[str, dict]] = {
                        "q": {**_VEC6, "description": "x, y (m), alpha, phi_r, phi_l, phi_p (rad)"},
                        "qd": {**_VEC6, "description": "time derivative of q"},
                        "force": {**_VEC2, "description": "f_x, f_y at the pivot, N, ground frame"}}}),
+    TOPIC_ESTIMATE: ("otbot.Estimate", {
+        "type": "object", "required": ["t", "pose", "twist", "std"],
+        "properties": {"t": {"type": "number"},
+                       "pose": {**_VEC3, "description": "estimated x, y (m), alpha (rad) of the platform, frame B"},
+                       "twist": {**_VEC3, "description": "estimated x_dot, y_dot (m/s), alpha_dot (rad/s)"},
+                       "std": {**_VEC6, "description": "standard deviations of pose and twist (same units)"},
+                       "gyro_bias": {"type": "number", "description": "estimated gyro z bias, rad/s"}}}),
+    TOPIC_REFERENCE: ("otbot.Reference", {
+        "type": "object", "required": ["t", "p", "pd"],
+        "properties": {"t": {"type": "number"},
+                       "p": {**_VEC3, "description": "desired x, y (m), alpha (rad), frame B"},
+                       "pd": {**_VEC3, "description": "desired velocity, m/s, m/s, rad/s"},
+                       "pdd": {**_VEC3, "description": "desired acceleration, m/s^2, m/s^2, rad/s^2"}}}),
+    TOPIC_EVENTS: ("otbot.Event", {
+        "type": "object", "required": ["t", "kind", "text"],
+        "properties": {"t": {"type": "number", "description": "s since start (the sample it belongs to)"},
+                       "kind": {"type": "string", "description": "mode, fault, saturation, note, ..."},
+                       "text": {"type": "string", "description": "what happened, in words"}}}),
 }
 
 UNITS = {
@@ -92,8 +120,10 @@ class Recording:
 
     t (N,) s; torque (N, 3) N m held on [t_k, t_k+1); joint_pos/joint_vel (N, 3)
     rad, rad/s; imu_accel/imu_gyro (N, 3) m/s^2, rad/s in B''; truth_q/truth_qd
-    (N, 6) and truth_force (N, 2) N for simulated runs; metadata: see
-    ``docs/recording-format.md``.
+    (N, 6) and truth_force (N, 2) N for simulated runs; estimate_pose/estimate_twist (N, 3),
+    estimate_std (N, 6), estimate_gyro_bias (N,) from a loop's estimator; reference_p/pd/pdd
+    (N, 3) the desired motion; events: the sparse ``/otbot/events`` messages (dicts with t, kind,
+    text); metadata: see ``docs/recording-format.md``.
     """
 
     t: np.ndarray
@@ -105,6 +135,14 @@ class Recording:
     truth_q: np.ndarray | None = None
     truth_qd: np.ndarray | None = None
     truth_force: np.ndarray | None = None
+    estimate_pose: np.ndarray | None = None
+    estimate_twist: np.ndarray | None = None
+    estimate_std: np.ndarray | None = None
+    estimate_gyro_bias: np.ndarray | None = None
+    reference_p: np.ndarray | None = None
+    reference_pd: np.ndarray | None = None
+    reference_pdd: np.ndarray | None = None
+    events: list[dict[str, Any]] = field(default_factory=list)
     metadata: dict[str, Any] = field(default_factory=dict)
     truncated: bool = False
 
@@ -129,6 +167,12 @@ class Recording:
             out.append(TOPIC_IMU)
         if self.truth_q is not None:
             out.append(TOPIC_TRUTH)
+        if self.estimate_pose is not None:
+            out.append(TOPIC_ESTIMATE)
+        if self.reference_p is not None:
+            out.append(TOPIC_REFERENCE)
+        if self.events:
+            out.append(TOPIC_EVENTS)
         return out
 
     def sample(self, k: int) -> dict[str, dict[str, Any]]:
@@ -145,6 +189,17 @@ class Recording:
             if self.truth_force is not None:
                 m["force"] = self.truth_force[k].tolist()
             msgs[TOPIC_TRUTH] = m
+        if self.estimate_pose is not None:
+            m = {"t": float(self.t[k]), "pose": self.estimate_pose[k].tolist(),
+                 "twist": self.estimate_twist[k].tolist(), "std": self.estimate_std[k].tolist()}
+            if self.estimate_gyro_bias is not None:
+                m["gyro_bias"] = float(self.estimate_gyro_bias[k])
+            msgs[TOPIC_ESTIMATE] = m
+        if self.reference_p is not None:
+            m = {"t": float(self.t[k]), "p": self.reference_p[k].tolist(), "pd": self.reference_pd[k].tolist()}
+            if self.reference_pdd is not None:
+                m["pdd"] = self.reference_pdd[k].tolist()
+            msgs[TOPIC_REFERENCE] = m
         return msgs
 
 
@@ -188,8 +243,9 @@ class RecordingWriter:
         self._writer.flush()
 
     def write_sample(self, messages: dict[str, dict[str, Any]]) -> None:
-        """Write one sample: ``{topic: payload}`` for the command and every registered topic."""
-        missing = set(self._channels) - set(messages)
+        """Write one sample: ``{topic: payload}`` for the command and every registered per-sample
+        topic (``SAMPLE_TOPICS``); sparse topics go through ``write_event``."""
+        missing = {tp for tp in self._channels if tp in SAMPLE_TOPICS} - set(messages)
         if missing:
             raise ValueError(f"sample {self._count} lacks topic(s) {sorted(missing)}")
         t = messages[TOPIC_COMMAND]["t"]
@@ -197,19 +253,38 @@ class RecordingWriter:
             raise ValueError(f"sample {self._count}: time must be finite and >= 0, got {t}")
         if self._last_t is not None and not t > self._last_t:
             raise ValueError(f"sample {self._count}: time {t} s does not increase (previous {self._last_t} s)")
-        for topic in self._channels:
+        sample_topics = [tp for tp in self._channels if tp in SAMPLE_TOPICS]
+        for topic in sample_topics:
             if messages[topic].get("t") != t:
                 raise ValueError(f"sample {self._count}: {topic} has t = {messages[topic].get('t')!r}, but "
                                  f"{TOPIC_COMMAND} has t = {t}: all topics of a sample share its time")
         self._last_t = t
         stamp = int(round(t * 1e9))
-        for topic, cid in self._channels.items():
+        for topic in sample_topics:
             data = json.dumps(messages[topic], allow_nan=True).encode()
-            self._writer.add_message(channel_id=cid, log_time=stamp, publish_time=stamp, data=data,
-                                     sequence=self._count)
+            self._writer.add_message(channel_id=self._channels[topic], log_time=stamp, publish_time=stamp,
+                                     data=data, sequence=self._count)
         self._count += 1
         if self._count % self._flush_every == 0:
             self.flush()
+
+    def write_event(self, t: float, kind: str, text: str, **extra: Any) -> None:
+        """Write one sparse ``/otbot/events`` message (the topic must have been registered):
+        at t (s, the sample it belongs to) something of ``kind`` happened, said in ``text``."""
+        if TOPIC_EVENTS not in self._channels:
+            raise ValueError(f"{TOPIC_EVENTS} was not registered with this writer")
+        if not math.isfinite(t) or t < 0:
+            raise ValueError(f"event time must be finite and >= 0, got {t}")
+        stamp = int(round(t * 1e9))
+        data = json.dumps({"t": float(t), "kind": str(kind), "text": str(text), **extra}, allow_nan=True).encode()
+        self._writer.add_message(channel_id=self._channels[TOPIC_EVENTS], log_time=stamp, publish_time=stamp,
+                                 data=data, sequence=self._count)
+        self._writer.flush()
+
+    @property
+    def samples(self) -> int:
+        """Samples written so far."""
+        return self._count
 
     def flush(self) -> None:
         """Push everything written so far to the operating system."""
@@ -233,7 +308,8 @@ def _check_shapes(rec: Recording) -> None:
     """ValueError naming the field when the arrays of ``rec`` do not fit together."""
     n = len(rec.t)
     widths = {"torque": 3, "joint_pos": 3, "joint_vel": 3, "imu_accel": 3, "imu_gyro": 3,
-              "truth_q": 6, "truth_qd": 6, "truth_force": 2}
+              "truth_q": 6, "truth_qd": 6, "truth_force": 2, "estimate_pose": 3, "estimate_twist": 3,
+              "estimate_std": 6, "reference_p": 3, "reference_pd": 3, "reference_pdd": 3}
     if np.shape(rec.t) != (n,):
         raise ValueError(f"recording: t must be a 1-D array, got shape {np.shape(rec.t)}")
     for name, width in widths.items():
@@ -245,6 +321,13 @@ def _check_shapes(rec: Recording) -> None:
             raise ValueError(f"recording: {a} and {b} go together (one topic); got only one of them")
     if rec.truth_force is not None and rec.truth_q is None:
         raise ValueError("recording: truth_force needs truth_q and truth_qd")
+    est = [getattr(rec, a) is None for a in ("estimate_pose", "estimate_twist", "estimate_std")]
+    if any(est) and not all(est):
+        raise ValueError("recording: estimate_pose, estimate_twist and estimate_std go together (one topic)")
+    if (rec.reference_p is None) != (rec.reference_pd is None):
+        raise ValueError("recording: reference_p and reference_pd go together (one topic)")
+    if rec.estimate_gyro_bias is not None and np.shape(rec.estimate_gyro_bias) != (n,):
+        raise ValueError(f"recording: estimate_gyro_bias must have shape ({n},)")
 
 
 def write_recording(path: str | Path, rec: Recording) -> None:
@@ -254,8 +337,14 @@ def write_recording(path: str | Path, rec: Recording) -> None:
     for key in ("format", "format_version", "units", "frames"):
         meta.pop(key, None)
     with RecordingWriter(path, meta, topics=rec.channels(), flush_every=1000) as w:
+        events = sorted(rec.events, key=lambda e: e["t"])
+        j = 0
         for k in range(len(rec)):
             w.write_sample(rec.sample(k))
+            while j < len(events) and (k + 1 == len(rec) or events[j]["t"] < rec.t[k + 1]):
+                e = events[j]
+                w.write_event(e["t"], e["kind"], e["text"], **{a: b for a, b in e.items() if a not in ("t", "kind", "text")})
+                j += 1
 
 
 def _records(path: Path) -> tuple[list, bool]:
@@ -322,7 +411,7 @@ def read_recording(path: str | Path) -> Recording:
                              f"(this reader knows versions 1..{FORMAT_VERSION})")
     if TOPIC_COMMAND not in channels.values():
         raise RecordingError(f"{path}: no {TOPIC_COMMAND} channel: not an Otbot recording")
-    present = sorted(set(channels.values()), key=list(TOPICS).index)
+    present = sorted((tp for tp in set(channels.values()) if tp in SAMPLE_TOPICS), key=list(TOPICS).index)
     counts = {tp: len(data.get(tp, [])) for tp in present}
     n = min(counts.values())
     if any(c != n for c in counts.values()):
@@ -377,4 +466,21 @@ def read_recording(path: str | Path) -> Recording:
         rec.truth_q = field_array(TOPIC_TRUTH, "q", 6)
         rec.truth_qd = field_array(TOPIC_TRUTH, "qd", 6)
         rec.truth_force = field_array(TOPIC_TRUTH, "force", 2, required=False)
+    if TOPIC_ESTIMATE in present:
+        rec.estimate_pose = field_array(TOPIC_ESTIMATE, "pose", 3)
+        rec.estimate_twist = field_array(TOPIC_ESTIMATE, "twist", 3)
+        rec.estimate_std = field_array(TOPIC_ESTIMATE, "std", 6)
+        rows = data.get(TOPIC_ESTIMATE, [])[:n]
+        if rows and "gyro_bias" in rows[0]:
+            rec.estimate_gyro_bias = np.array([float(m.get("gyro_bias", np.nan)) for m in rows])
+    if TOPIC_REFERENCE in present:
+        rec.reference_p = field_array(TOPIC_REFERENCE, "p", 3)
+        rec.reference_pd = field_array(TOPIC_REFERENCE, "pd", 3)
+        rec.reference_pdd = field_array(TOPIC_REFERENCE, "pdd", 3, required=False)
+    for k, m in enumerate(data.get(TOPIC_EVENTS, [])):
+        if (not isinstance(m, dict) or isinstance(m.get("t"), bool) or not isinstance(m.get("t"), (int, float))
+                or not isinstance(m.get("kind"), str) or not isinstance(m.get("text"), str)):
+            raise RecordingError(f"{path}: {TOPIC_EVENTS} message {k} needs t (number), kind and text (strings); "
+                                 f"got {str(m)[:80]}")
+        rec.events.append(m)
     return rec

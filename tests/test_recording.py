@@ -404,3 +404,35 @@ def test_chunked_compressed_files_load_and_truncate_by_chunk(tmp_path, compressi
     part = read_recording(tmp_path / "cut.mcap")
     assert part.truncated and 0 < len(part) < 200
     assert np.array_equal(part.torque, torques[: len(part)])
+
+
+def test_loop_topics_round_trip_with_sparse_events(tmp_path):
+    """Estimate and reference are per-sample topics; events are sparse and keep their times."""
+    from otbot_hw.recording import SAMPLE_TOPICS, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_REFERENCE
+
+    n = 6
+    rng = np.random.default_rng(1)
+    rec = Recording(t=np.arange(n) * 0.01, torque=rng.normal(size=(n, 3)),
+                    joint_pos=rng.normal(size=(n, 3)), joint_vel=rng.normal(size=(n, 3)),
+                    estimate_pose=rng.normal(size=(n, 3)), estimate_twist=rng.normal(size=(n, 3)),
+                    estimate_std=rng.uniform(size=(n, 6)), estimate_gyro_bias=rng.normal(size=n) * 1e-3,
+                    reference_p=rng.normal(size=(n, 3)), reference_pd=rng.normal(size=(n, 3)),
+                    reference_pdd=rng.normal(size=(n, 3)),
+                    events=[{"t": 0.02, "kind": "mode", "text": "hold -> track"},
+                            {"t": 0.02, "kind": "fault", "text": "left_wheel: stale", "node": 2}],
+                    metadata={"sample_period": 0.01})
+    write_recording(tmp_path / "loop.mcap", rec)
+    back = read_recording(tmp_path / "loop.mcap")
+    assert TOPIC_EVENTS not in SAMPLE_TOPICS
+    assert back.channels()[-3:] == [TOPIC_ESTIMATE, TOPIC_REFERENCE, TOPIC_EVENTS]
+    for name in ("estimate_pose", "estimate_twist", "estimate_std", "estimate_gyro_bias", "reference_p",
+                 "reference_pd", "reference_pdd"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(rec, name), err_msg=name)
+    assert [(e["t"], e["kind"], e["text"]) for e in back.events] == [(e["t"], e["kind"], e["text"]) for e in rec.events]
+    assert back.events[1]["node"] == 2
+
+
+def test_estimate_topic_needs_its_three_fields(tmp_path):
+    rec = Recording(t=np.arange(3) * 0.01, torque=np.zeros((3, 3)), estimate_pose=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="estimate_pose, estimate_twist and estimate_std"):
+        write_recording(tmp_path / "x.mcap", rec)
