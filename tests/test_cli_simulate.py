@@ -54,18 +54,19 @@ def test_json_with_fixture_rate_and_negative_first_torque(capsys):
     (["--torques", "nan,0,0"], "--torques: values must be finite"),
     (["--torques", "1,inf,0"], "--torques: values must be finite"),
     (["--torques", ""], "--torques needs 3"),
-    (["--duration", "-1"], "--duration must be a finite number of seconds > 0"),
-    (["--duration", "0"], "--duration must be a finite number of seconds > 0"),
-    (["--duration", "nan"], "--duration must be a finite number of seconds > 0"),
+    (["--duration", "-1"], "argument --duration: must be a finite number of seconds > 0, got '-1'"),
+    (["--duration", "0"], "argument --duration: must be a finite number of seconds > 0"),
+    (["--duration", "nan"], "argument --duration: must be a finite number of seconds > 0"),
     (["--duration", "three"], "--duration"),
-    (["--duration", "0.001", "--rate", "100"], "gives no sample interval"),
-    (["--rate", "-100"], "--rate must be a finite number > 0"),
-    (["--rate", "nan"], "--rate must be a finite number > 0"),
+    (["--duration", "0.001", "--rate", "100"], "is shorter than one period (0.01 s)"),
+    (["--rate", "-100"], "argument --rate: must be a finite number of Hz > 0"),
+    (["--rate", "nan"], "argument --rate: must be a finite number of Hz > 0"),
     (["--fixture", "ceiling"], "invalid choice"),
-    (["--seed", "1.5"], "--seed must be an integer >= 0"),
-    (["--seed", "-1"], "--seed must be an integer >= 0"),
+    (["--seed", "1.5"], "argument --seed: must be an integer >= 0"),
+    (["--seed", "-1"], "argument --seed: must be an integer >= 0"),
     (["--duration", "1e9"], "samples; at most"),
     (["--out", "/nonexistent-folder/run.mcap"], "--out /nonexistent-folder/run.mcap: folder /nonexistent-folder does not exist"),
+    (["--torques", "1e9,0,0", "--duration", "0.1"], "the simulation diverged: the state is not finite from t = "),
     (["--params", "/nonexistent-folder/p.yaml"], "cannot read parameter file"),
 ])
 def test_bad_arguments_exit_2_with_a_message(capsys, args, message):
@@ -108,7 +109,7 @@ def test_unwritable_outputs_exit_2(tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
     rc, out, err = run_cli(["simulate", "--duration", "0.1", "--plot", str(blocker), "--json"], capsys)
-    assert rc == 2 and "cannot write output" in err and out == ""
+    assert rc == 2 and "exists and is not a folder" in err and out == ""
     rc, out, err = run_cli(["demo", "--out-dir", str(blocker / "sub"), "--json"], capsys)
     assert rc == 2 and "--out-dir" in err and out == ""
 

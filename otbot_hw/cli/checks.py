@@ -85,6 +85,22 @@ def positive_float(name: str | None = None) -> Callable[[str], float]:
     return number(above=0)  # type: ignore[return-value]
 
 
+#: Longest run a command accepts (samples); 10^7 samples of 12 states are about 1 GB.
+MAX_SAMPLES = 10_000_000
+
+
+def sample_count(duration_s: float, rate_hz: float, limit: int = MAX_SAMPLES) -> int:
+    """Number of control/sample periods in ``duration_s`` at ``rate_hz``; CliError when there is none
+    or more than ``limit``."""
+    n = int(round(duration_s * rate_hz))
+    if n < 1:
+        raise CliError(f"--duration {duration_s:g} s at {rate_hz:g} Hz is shorter than one period "
+                       f"({1 / rate_hz:g} s)")
+    if n > limit:
+        raise CliError(f"--duration {duration_s:g} s at {rate_hz:g} Hz gives {n} samples; at most {limit}")
+    return n
+
+
 def parse_vector(text: str, n: int, name: str) -> list[float]:
     """Parse 'a,b,c' into n finite floats or raise CliError naming the option."""
     parts = [s.strip() for s in text.split(",")]

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, progress
-from otbot_hw.cli.simulate import seed_int
+from otbot_hw.cli.checks import output_folder, seed
 
 
 def register(sub) -> None:
@@ -24,7 +24,7 @@ def register(sub) -> None:
                     "and write its MCAP recording and PNG plots into --out-dir.",
     )
     p.add_argument("--out-dir", type=Path, default=Path("otbot-demo"), help="output folder (default otbot-demo)")
-    p.add_argument("--seed", type=seed_int, default=0, help="sensor noise seed, an integer >= 0 (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="sensor noise seed, an integer >= 0 (default 0)")
     add_json_flag(p)
     p.set_defaults(func=run)
 
