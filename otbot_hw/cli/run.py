@@ -200,7 +200,7 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     from sim.plant import simulated_robot
 
     cfg = load_robot_config()
-    progress("[demo] the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
+    progress("[demo] 3/4 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
     path = out_dir / "chassis_bus.mcap"
     wall = time.perf_counter()
     with simulated_robot(cfg, noise=NoiseModel.paper(), seed=seed) as (robot, plant):
@@ -224,6 +224,9 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
         out["max_state_difference_vs_pure_simulation"] = float(np.abs(rec.truth_q - reference.truth_q).max())
     if not quiet:
         print(f"[demo] bus recording: {path} ({len(rec)} samples, {out['realtime_factor']:.1f}x real time)")
-        print("[demo] bus final phi = " + ", ".join(f"{v:.4f}" for v in out["phi"])
-              + f" rad; encoder error <= {out['max_encoder_error']:.2e} rad")
+        print("[demo] bus final joint angles (drives and pivot encoder): " + ", ".join(
+            f"{n} {v:.4f} rad" for n, v in zip(("phi_r", "phi_l", "phi_p"), out["phi"]))
+              + f"; |encoder - true angle| <= {out['max_encoder_error']:.2e} rad")
+        for p in plots:
+            print(f"[demo] plot: {p}")
     return out
