@@ -88,6 +88,20 @@ def explain_unidentifiable(names: list[str], experiments: Sequence[Experiment]) 
     return None
 
 
+def check_guess(step: str, guess: Mapping[str, float], base: OtbotParams) -> None:
+    """``IdentificationError`` unless every guessed value of ``step`` lies within the fit's bounds
+    (cheap: callers check before simulating or loading anything)."""
+    from otbot_hw.params import UNITS
+
+    spec = PAPER_EXPERIMENTS[step]
+    bounds = platform_bounds(base)
+    for n, v in guess.items():
+        lo, hi = bounds.get(n, (-np.inf, np.inf))
+        if not lo <= v <= hi:
+            raise IdentificationError(f"guess {spec.symbol(n)} = {v:g} {UNITS.get(n, '')} lies outside its bounds "
+                                      f"[{lo:g}, {hi:g}]".replace("  ", " "))
+
+
 def _attempt_summary(label: str, fit: FitResult | None, error: str | None = None) -> dict[str, Any]:
     if fit is None:
         return {"start": label, "error": error}
@@ -132,14 +146,16 @@ def experiments_from_recordings(step: str, recordings: Sequence, base: OtbotPara
 def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Mapping[str, float] | None = None,
                   global_start: bool = True, spec: ExperimentSpec | None = None, t_max: float | None = -1.0,
                   sigma: Mapping[str, float] | None = None, residual_tolerance: float | None = 1.5,
-                  max_nfev: int = 200, truth: OtbotParams | None = None) -> StepResult:
+                  max_nfev: int = 200, truth: OtbotParams | None = None, guess_first: bool = False) -> StepResult:
     """Identify the parameters of ``step`` from ``recordings`` (project format).
 
     base: all other parameters (known from the earlier steps); guess: initial guess of
     the free parameters (default: the paper's); global_start: also try the
     equation-error start and, if needed, spread starts (False: a single fit from
-    the guess, like the paper); truth: the simulated robot's parameters, for the report
-    (default: read from a simulated recording's metadata).
+    the guess, like the paper); guess_first: with global_start, fit from the guess before
+    the equation-error start (a guess the user gave is tried, not only kept as a fallback);
+    truth: the simulated robot's parameters, for the report (default: read from a
+    simulated recording's metadata).
     Raises ``IdentificationError`` / ``NotIdentifiableError`` for bad input.
     """
     t0 = time.perf_counter()
@@ -169,7 +185,7 @@ def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Map
             starts.append(("equation error", est))
         except IdentificationError as exc:
             attempts.append(_attempt_summary("equation error", None, str(exc)))
-    starts.append(("guess", g))
+    starts.insert(0 if guess_first else len(starts), ("guess", g))
     fits: list[FitResult] = []
 
     def run(label: str, start: dict[str, float]) -> FitResult:
