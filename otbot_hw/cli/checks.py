@@ -101,6 +101,22 @@ def sample_count(duration_s: float, rate_hz: float, limit: int = MAX_SAMPLES) ->
     return n
 
 
+def bus_config(config_path: Path | None, rate_hz: float | None = None):
+    """The hardware configuration (``drivers.config.RobotConfig``) with ``--rate`` applied; CliError
+    when the control period 1/rate cannot be programmed into the drives (0x60C2)."""
+    from drivers.cia402 import interpolation_period
+    from drivers.config import load_robot_config
+
+    cfg = load_robot_config(config_path)
+    if rate_hz is not None:
+        cfg = cfg.replace_bus(control_rate=rate_hz)
+    try:
+        interpolation_period(cfg.bus.period)
+    except ValueError as exc:
+        raise CliError(f"--rate {cfg.bus.control_rate:g} Hz: {exc}") from None
+    return cfg
+
+
 def parse_vector(text: str, n: int, name: str) -> list[float]:
     """Parse 'a,b,c' into n finite floats or raise CliError naming the option."""
     parts = [s.strip() for s in text.split(",")]

@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.identification.model import OtbotModel
     from otbot_hw.identification.prediction_error import cramer_rao_std
     from otbot_hw.identification.report import plot_fit, step_table, step_to_dict
-    from otbot_hw.identification.steps import check_guess, identify_step
+    from otbot_hw.identification.steps import check_fixtures, check_guess, identify_step
     from otbot_hw.params import OtbotParams, ParameterError
     from otbot_hw.recording import read_recording
 
@@ -132,6 +132,7 @@ def run(args: argparse.Namespace) -> dict:
         recs = [simulate_experiment(args.step, truth, seed=args.seed)]
     else:
         recs = [read_recording(p) for p in args.recording]
+        check_fixtures(args.step, recs, [str(p) for p in args.recording])
         for path, rec in zip(args.recording, recs):
             if rec.truncated:
                 if len(rec) < 2:

@@ -122,6 +122,17 @@ def _spread_starts(step: str, base: OtbotParams) -> list[dict[str, float]]:
     return [{n: getattr(base, n) * f for n in spec.free} for f in (0.1, 10.0)]
 
 
+def check_fixtures(step: str, recordings: Sequence, names: Sequence[str], spec: ExperimentSpec | None = None) -> None:
+    """``IdentificationError`` when a recording's metadata names another fixture than the step needs."""
+    spec = spec or PAPER_EXPERIMENTS[step]
+    for name, rec in zip(names, recordings):
+        fixture = rec.metadata.get("fixture") if rec.metadata else None
+        if fixture is not None and fixture != spec.fixture:
+            raise IdentificationError(
+                f"{name}: recording was made on the '{fixture}' fixture, step {step} needs '{spec.fixture}' "
+                f"({spec.description})")
+
+
 def experiments_from_recordings(step: str, recordings: Sequence, base: OtbotParams,
                                 spec: ExperimentSpec | None = None, t_max: float | None = -1.0,
                                 sigma: Mapping[str, float] | None = None) -> list[Experiment]:
@@ -130,14 +141,10 @@ def experiments_from_recordings(step: str, recordings: Sequence, base: OtbotPara
     if not recordings:
         raise IdentificationError(f"step {step}: no recording given")
     tm = spec.duration if t_max == -1.0 else t_max
+    names = [f"{step}" if len(recordings) == 1 else f"{step}{i + 1}" for i in range(len(recordings))]
+    check_fixtures(step, recordings, names, spec)
     out = []
-    for i, rec in enumerate(recordings):
-        name = f"{step}" if len(recordings) == 1 else f"{step}{i + 1}"
-        fixture = rec.metadata.get("fixture") if rec.metadata else None
-        if fixture is not None and fixture != spec.fixture:
-            raise IdentificationError(
-                f"{name}: recording was made on the '{fixture}' fixture, step {step} needs '{spec.fixture}' "
-                f"({spec.description})")
+    for name, rec in zip(names, recordings):
         out.append(Experiment.from_recording(rec, spec.channels, name=name, fixture=spec.fixture, t_max=tm,
                                              sigma=sigma, geometry=base))
     return out
