@@ -89,6 +89,8 @@ BAD_INPUT = [
     # --- diagnose (generic input errors only; its own checks are tested with it)
     ("diagnose", "{missing}/a.mcap", "no such file"),
     ("diagnose", "{text}", "not an MCAP recording"),
+    ("diagnose", "{ok} --report {ok}", "exists and is not a folder"),
+    ("diagnose", "--demo --demo-dir {missing}/demo", "does not exist (otbot creates no parent folders)"),
     # --- imu
     ("imu", "parse {missing}/capture.bin", "cannot read: No such file or directory"),
     ("imu", "parse {folder}", "is a directory"),
