@@ -9,7 +9,6 @@ run the real ``python -m otbot_hw`` to show the console entry point behaves the 
 """
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -20,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from otbot_hw.cli import SUBCOMMANDS, build_parser, main
+from otbot_hw.cli import SUBCOMMANDS, build_parser
 from otbot_hw.params import nominal
 from otbot_hw.recording import write_recording
 from otbot_hw.sensors import NoiseModel
@@ -174,16 +173,6 @@ def files(tmp_path_factory) -> dict[str, str]:
             "cut_before_samples": str(d / "cut_before_samples.mcap")}
 
 
-def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of ``otbot argv`` run in-process."""
-    try:
-        rc = main(argv)
-    except SystemExit as exc:  # commands may exit 1 themselves; --help exits 0
-        rc = exc.code
-    out = capsys.readouterr()
-    return rc, out.out, out.err
-
-
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:
     assert rc == 2, (rc, err)
     assert "Traceback" not in err, err
@@ -198,24 +187,17 @@ def _skip_reason(command: str | None, argv: str) -> str | None:
         return f"otbot {command} is not on this branch"
     if "{unreadable}" in argv and os.geteuid() == 0:
         return "root reads files without read permission"
-    if "socketcan" in argv:
-        try:
-            import socket
-
-            socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
-        except (AttributeError, OSError):
-            return None  # no SocketCAN at all: the row checks that message
     return None
 
 
 @pytest.mark.parametrize("command, argv, expected", BAD_INPUT,
                          ids=[f"{c or 'otbot'} {a}".strip() for c, a, _ in BAD_INPUT])
-def test_bad_input_exits_2_with_one_line(command, argv, expected, files, capsys):
+def test_bad_input_exits_2_with_one_line(command, argv, expected, files, otbot_cli):
     reason = _skip_reason(command, argv)
     if reason:
         pytest.skip(reason)
     args = ([command] if command else []) + [a.format(**files) for a in argv.split()]
-    rc, out, err = run_cli(args, capsys)
+    rc, out, err = otbot_cli(args)
     assert_one_line_error(rc, out, err, expected.format(**files))
 
 
@@ -233,10 +215,10 @@ def _leaf_parsers():
 
 
 @pytest.mark.parametrize("name", [n for n, _ in _leaf_parsers()])
-def test_unknown_option_names_the_subcommand_usage(name, capsys):
+def test_unknown_option_names_the_subcommand_usage(name, otbot_cli):
     needs = {"identify": ["chassis", "--sim"], "imu parse": ["capture.bin"], "plan": ["--out", "p.csv"],
              "track": ["corridor", "--sim"]}
-    rc, out, err = run_cli([*name.split(), *needs.get(name, []), "--no-such-option"], capsys)
+    rc, out, err = otbot_cli([*name.split(), *needs.get(name, []), "--no-such-option"])
     assert_one_line_error(rc, out, err, "unrecognized arguments: --no-such-option")
     assert f"; usage: otbot {name} [-h]" in err and "usage: otbot [-h] COMMAND" not in err
 

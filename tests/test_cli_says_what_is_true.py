@@ -4,24 +4,13 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from otbot_hw.cli import main
 from otbot_hw.identification.experiments import deviation_guess, simulate_experiment
 from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording, write_recording
-
-
-def run_cli(argv, capsys):
-    try:
-        rc = main(argv)
-    except SystemExit as exc:
-        rc = exc.code
-    out = capsys.readouterr()
-    return rc, out.out, out.err
 
 
 @pytest.fixture(scope="module")
@@ -39,11 +28,11 @@ def chassis_runs(tmp_path_factory):
     return paths, cut
 
 
-def test_identify_says_a_recording_is_truncated_and_fits_what_it_holds(chassis_runs, capsys):
+def test_identify_says_a_recording_is_truncated_and_fits_what_it_holds(chassis_runs, otbot_cli):
     _, cut = chassis_runs
     rec = read_recording(cut)
     assert rec.truncated and 10 < len(rec) < 300
-    rc, out, err = run_cli(["identify", "chassis", "--recording", str(cut), "--json"], capsys)
+    rc, out, err = otbot_cli(["identify", "chassis", "--recording", str(cut), "--json"])
     assert rc == 0
     notices = [line for line in err.splitlines() if "truncated" in line]
     assert len(notices) == 1 and str(cut) in notices[0]
@@ -55,11 +44,11 @@ def test_identify_says_a_recording_is_truncated_and_fits_what_it_holds(chassis_r
         assert abs(v["value"] - getattr(truth, name)) <= 4 * v["std"], name
 
 
-def test_recording_option_takes_several_files_in_either_form(chassis_runs, capsys):
+def test_recording_option_takes_several_files_in_either_form(chassis_runs, otbot_cli):
     (a, b), _ = chassis_runs
-    rc, out_list, _ = run_cli(["identify", "chassis", "--recording", str(a), str(b), "--json"], capsys)
+    rc, out_list, _ = otbot_cli(["identify", "chassis", "--recording", str(a), str(b), "--json"])
     assert rc == 0
-    rc, out_rep, _ = run_cli(["identify", "chassis", "--recording", str(a), "--recording", str(b), "--json"], capsys)
+    rc, out_rep, _ = otbot_cli(["identify", "chassis", "--recording", str(a), "--recording", str(b), "--json"])
     assert rc == 0
     one, two = json.loads(out_list), json.loads(out_rep)
     assert one["source"] == two["source"] == [str(a), str(b)]
@@ -67,8 +56,8 @@ def test_recording_option_takes_several_files_in_either_form(chassis_runs, capsy
     assert set(one["fit_percent"]) == {f"chassis{i}/{c}" for i in (1, 2) for c in ("a_x", "a_y", "omega_z")}
 
 
-def test_a_guess_is_fitted_first_not_ignored_without_local_only(capsys):
-    rc, out, _ = run_cli(["identify", "chassis", "--sim", "--guess", "m_c=150", "--json"], capsys)
+def test_a_guess_is_fitted_first_not_ignored_without_local_only(otbot_cli):
+    rc, out, _ = otbot_cli(["identify", "chassis", "--sim", "--guess", "m_c=150", "--json"])
     assert rc == 0
     d = json.loads(out)
     first = d["attempts"][0]
@@ -76,9 +65,9 @@ def test_a_guess_is_fitted_first_not_ignored_without_local_only(capsys):
     assert d["converged"] and abs(d["parameters"]["m_c"]["value"] - nominal().m_c) < 1.0
 
 
-def test_sweep_fits_from_each_guess_by_default_and_says_so_with_global_start(capsys):
+def test_sweep_fits_from_each_guess_by_default_and_says_so_with_global_start(otbot_cli):
     argv = ["sweep", "--points", "2", "--seeds", "1", "--max-deviation", "80", "--workers", "1", "--json"]
-    rc, out, err = run_cli(argv, capsys)
+    rc, out, err = otbot_cli(argv)
     assert rc == 0 and "single fit from each guess" in err
     local = json.loads(out)
     assert local["global_start"] is False
@@ -87,7 +76,7 @@ def test_sweep_fits_from_each_guess_by_default_and_says_so_with_global_start(cap
         assert p["converged"] and p["accepted"] == "guess" and p["starts"] == 1
         assert p["guess"] == pytest.approx(deviation_guess("platform", truth, p["deviation"], angle=np.pi / 4))
     assert local["summary"]["accepted_start"] == {"guess": 2}
-    rc, out, _ = run_cli([*argv, "--global-start"], capsys)
+    rc, out, _ = otbot_cli([*argv, "--global-start"])
     assert rc == 0
     pipeline = json.loads(out)
     s = pipeline["summary"]
@@ -96,9 +85,9 @@ def test_sweep_fits_from_each_guess_by_default_and_says_so_with_global_start(cap
         assert all(v["spread_over_deviations"] == 0 for v in s["parameters"].values())
 
 
-def test_demo_labels_numbers_announces_files_and_explains_saturation_once(tmp_path, capsys):
+def test_demo_labels_numbers_announces_files_and_explains_saturation_once(tmp_path, otbot_cli):
     out_dir = tmp_path / "demo"
-    rc, out, err = run_cli(["demo", "--out-dir", str(out_dir)], capsys)
+    rc, out, err = otbot_cli(["demo", "--out-dir", str(out_dir)])
     assert rc == 0
     written = sorted(str(p) for p in out_dir.rglob("*") if p.is_file())
     assert written and all(p in out for p in written), [p for p in written if p not in out]
