@@ -13,9 +13,10 @@ self-contained. ``progress(done, total)`` is called as results come in. Use as a
 manager or call ``close()``; executors are reusable for many ``map`` calls.
 
 Interrupts: local workers ignore SIGINT, so Ctrl-C (to the whole process group) or a SIGINT to
-the parent alone reaches only the parent; ``map`` then ends the work it started (local workers
-are terminated, Dask futures cancelled) before the ``KeyboardInterrupt`` goes on, and leaving
-the ``with`` block on any exception does the same instead of waiting for running items.
+the parent alone reaches only the parent. ``map`` then ends the work it started (local workers
+are terminated and the executor closed, Dask futures cancelled) before the ``KeyboardInterrupt``
+goes on; leaving the ``with`` block on any exception does the same instead of waiting for
+running items.
 """
 from __future__ import annotations
 
