@@ -29,7 +29,7 @@ def load_motor_limits(path: str | Path | None = None) -> MotorLimits:
     """Read ``motors.<name>.max_torque`` for the three motors; errors name the key."""
     p = Path(path) if path is not None else DEFAULT_ROBOT_FILE
     data = read_yaml(p)
-    motors = (data or {}).get("motors")
+    motors = data.get("motors") if isinstance(data, dict) else None
     if not isinstance(motors, dict):
         raise ParameterError(f"{p}: missing section 'motors'")
     out = []

@@ -65,6 +65,8 @@ def read_yaml(path: str | Path, what: str = "configuration file") -> Any:
         return yaml.safe_load(p.read_text())
     except OSError as exc:
         raise ParameterError(f"{p}: cannot read {what}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise ParameterError(f"{p}: not a text file; a {what} is YAML text") from None
     except yaml.YAMLError as exc:
         raise ParameterError(f"{p}: {what} is not valid YAML: {exc}") from None
 

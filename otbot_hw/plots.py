@@ -37,6 +37,23 @@ def draw_robot(ax, q: np.ndarray, p: OtbotParams, color: str = "k", alpha: float
     ax.plot(*P, "o", color=color, ms=3, alpha=alpha)
 
 
+def robot_legend_handles(p: OtbotParams, color: str = "k") -> list:
+    """Legend entries for the symbols ``draw_robot`` draws (proxy artists)."""
+    plt = _plt()
+    from matplotlib.lines import Line2D
+
+    return [plt.Circle((0, 0), 1, fill=False, color=color, alpha=0.5, label=f"platform footprint (r = {p.radius:g} m)"),
+            Line2D([], [], color="tab:red", lw=1, label="platform heading (alpha)"),
+            Line2D([], [], color=color, lw=4, label="chassis: wheels and axle"),
+            Line2D([], [], color=color, marker="o", ms=3, lw=0, label="pivot P")]
+
+
+def legend_with_robot(ax, p: OtbotParams, **kw) -> None:
+    """``ax.legend`` with the plotted lines' labels and the robot symbols' meaning."""
+    handles, _ = ax.get_legend_handles_labels()
+    ax.legend(handles=handles + robot_legend_handles(p), **kw)
+
+
 def plot_xy_path(path: str | Path, q: np.ndarray, p: OtbotParams, title: str = "",
                  reference: np.ndarray | None = None, snapshots: int = 5,
                  obstacles: Sequence[tuple[float, float, float]] = ()) -> Path:
@@ -55,7 +72,7 @@ def plot_xy_path(path: str | Path, q: np.ndarray, p: OtbotParams, title: str = "
     ax.set_ylabel("y (m)")
     ax.set_title(title or "Pivot path (robot drawn at a few instants)")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best")
+    legend_with_robot(ax, p, loc="best", fontsize=8)
     out = Path(path)
     fig.savefig(out, dpi=110, bbox_inches="tight")
     plt.close(fig)

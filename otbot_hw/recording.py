@@ -40,6 +40,9 @@ FORMAT_NAME = "otbot-recording"
 FORMAT_VERSION = 1
 PROFILE = "otbot"
 
+#: The 8 bytes every MCAP file starts (and ends) with.
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
 TOPIC_COMMAND = "/otbot/command"
 TOPIC_JOINTS = "/otbot/joints"
 TOPIC_IMU = "/otbot/imu"
@@ -354,15 +357,31 @@ def _records(path: Path) -> tuple[list, bool]:
 
     records = []
     truncated = False
-    with open(path, "rb") as f:
-        reader = StreamReader(f, record_size_limit=64 * 2 ** 20)
-        try:
-            for rec in reader.records:
-                records.append(rec)
-        except (McapError, EOFError, ValueError, IndexError, struct.error) as exc:
-            if not records:
-                raise RecordingError(f"{path}: not an MCAP recording ({exc})") from None
-            truncated = True
+    if path.is_dir():
+        raise RecordingError(f"{path}: is a folder, expected an MCAP recording file")
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(MCAP_MAGIC))
+            if not magic:
+                raise RecordingError(f"{path}: empty file, expected an MCAP recording")
+            if magic != MCAP_MAGIC[:len(magic)]:
+                raise RecordingError(f"{path}: not an MCAP recording (the file does not start with the MCAP "
+                                     "magic bytes)")
+            if len(magic) < len(MCAP_MAGIC):
+                raise RecordingError(f"{path}: MCAP file cut short inside its magic bytes (truncated)")
+            f.seek(0)
+            reader = StreamReader(f, record_size_limit=64 * 2 ** 20)
+            try:
+                for rec in reader.records:
+                    records.append(rec)
+            except (McapError, EOFError, ValueError, IndexError, struct.error) as exc:
+                if len(records) <= 1:  # at most the header: nothing to load
+                    why = f": {exc}" if str(exc) else ""
+                    raise RecordingError(f"{path}: MCAP file cut short before its first record "
+                                         f"(truncated{why})") from None
+                truncated = True
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror or exc}") from None
     return records, truncated
 
 
@@ -410,6 +429,8 @@ def read_recording(path: str | Path) -> Recording:
         raise RecordingError(f"{path}: metadata format_version {version!r} is not supported "
                              f"(this reader knows versions 1..{FORMAT_VERSION})")
     if TOPIC_COMMAND not in channels.values():
+        if truncated:
+            raise RecordingError(f"{path}: MCAP file cut short before its first sample (truncated)")
         raise RecordingError(f"{path}: no {TOPIC_COMMAND} channel: not an Otbot recording")
     present = sorted((tp for tp in set(channels.values()) if tp in SAMPLE_TOPICS), key=list(TOPICS).index)
     counts = {tp: len(data.get(tp, [])) for tp in present}

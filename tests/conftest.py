@@ -13,3 +13,19 @@ def params():
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+@pytest.fixture
+def otbot_cli(capsys):
+    """Run ``otbot argv`` in-process: returns (exit code, stdout, stderr)."""
+    from otbot_hw.cli import main
+
+    def run(argv):
+        try:
+            rc = main(list(argv))
+        except SystemExit as exc:  # commands may exit 1 themselves; --help exits 0
+            rc = exc.code
+        out = capsys.readouterr()
+        return rc, out.out, out.err
+
+    return run

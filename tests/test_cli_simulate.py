@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from otbot_hw.cli import main
 from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording
 from otbot_hw.simulation.simulator import simulate
@@ -15,18 +14,8 @@ from otbot_hw.simulation.simulator import simulate
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def run_cli(argv, capsys):
-    """(exit code, stdout, stderr) of ``otbot argv`` run in-process; argparse errors exit via SystemExit."""
-    try:
-        rc = main(argv)
-    except SystemExit as exc:
-        rc = exc.code
-    out = capsys.readouterr()
-    return rc, out.out, out.err
-
-
-def test_json_reports_final_state_of_a_direct_simulation(capsys):
-    rc, out, err = run_cli(["simulate", "--torques", "6,-10,6", "--duration", "3", "--rate", "100", "--json"], capsys)
+def test_json_reports_final_state_of_a_direct_simulation(otbot_cli):
+    rc, out, err = otbot_cli(["simulate", "--torques", "6,-10,6", "--duration", "3", "--rate", "100", "--json"])
     assert rc == 0
     assert out.count("\n") == 1  # one JSON object, on one line
     result = json.loads(out)
@@ -37,9 +26,9 @@ def test_json_reports_final_state_of_a_direct_simulation(capsys):
     assert result["max_constraint_residual"] < 1e-8 and result["max_holonomic_residual"] < 1e-8
 
 
-def test_json_with_fixture_rate_and_negative_first_torque(capsys):
-    rc, out, _ = run_cli(["simulate", "--torques", "-2,1.5,0.5", "--duration", "0.5", "--rate", "50",
-                          "--fixture", "stand", "--json"], capsys)
+def test_json_with_fixture_rate_and_negative_first_torque(otbot_cli):
+    rc, out, _ = otbot_cli(["simulate", "--torques", "-2,1.5,0.5", "--duration", "0.5", "--rate", "50",
+                          "--fixture", "stand", "--json"])
     assert rc == 0
     result = json.loads(out)
     x = simulate(nominal(), np.tile([-2.0, 1.5, 0.5], (25, 1)), 0.02, fixture="stand").x[-1]
@@ -54,31 +43,32 @@ def test_json_with_fixture_rate_and_negative_first_torque(capsys):
     (["--torques", "nan,0,0"], "--torques: values must be finite"),
     (["--torques", "1,inf,0"], "--torques: values must be finite"),
     (["--torques", ""], "--torques needs 3"),
-    (["--duration", "-1"], "--duration must be a finite number of seconds > 0"),
-    (["--duration", "0"], "--duration must be a finite number of seconds > 0"),
-    (["--duration", "nan"], "--duration must be a finite number of seconds > 0"),
+    (["--duration", "-1"], "argument --duration: must be a finite number of seconds > 0, got '-1'"),
+    (["--duration", "0"], "argument --duration: must be a finite number of seconds > 0"),
+    (["--duration", "nan"], "argument --duration: must be a finite number of seconds > 0"),
     (["--duration", "three"], "--duration"),
-    (["--duration", "0.001", "--rate", "100"], "gives no sample interval"),
-    (["--rate", "-100"], "--rate must be a finite number > 0"),
-    (["--rate", "nan"], "--rate must be a finite number > 0"),
+    (["--duration", "0.001", "--rate", "100"], "is shorter than one period (0.01 s)"),
+    (["--rate", "-100"], "argument --rate: must be a finite number of Hz > 0"),
+    (["--rate", "nan"], "argument --rate: must be a finite number of Hz > 0"),
     (["--fixture", "ceiling"], "invalid choice"),
-    (["--seed", "1.5"], "--seed must be an integer >= 0"),
-    (["--seed", "-1"], "--seed must be an integer >= 0"),
+    (["--seed", "1.5"], "argument --seed: must be an integer >= 0"),
+    (["--seed", "-1"], "argument --seed: must be an integer >= 0"),
     (["--duration", "1e9"], "samples; at most"),
     (["--out", "/nonexistent-folder/run.mcap"], "--out /nonexistent-folder/run.mcap: folder /nonexistent-folder does not exist"),
+    (["--torques", "1e9,0,0", "--duration", "0.1"], "the simulation diverged: the state is not finite from t = "),
     (["--params", "/nonexistent-folder/p.yaml"], "cannot read parameter file"),
 ])
-def test_bad_arguments_exit_2_with_a_message(capsys, args, message):
-    rc, out, err = run_cli(["simulate", *args, "--json"], capsys)
+def test_bad_arguments_exit_2_with_a_message(otbot_cli, args, message):
+    rc, out, err = otbot_cli(["simulate", *args, "--json"])
     assert rc == 2
     assert message in err, err
     assert out == ""
 
 
-def test_out_and_plot_write_a_readable_recording_and_pngs(tmp_path, capsys):
+def test_out_and_plot_write_a_readable_recording_and_pngs(tmp_path, otbot_cli):
     rec_path, plot_dir = tmp_path / "run.mcap", tmp_path / "plots"
-    rc, out, _ = run_cli(["simulate", "--duration", "1", "--rate", "100", "--seed", "5",
-                          "--out", str(rec_path), "--plot", str(plot_dir), "--json"], capsys)
+    rc, out, _ = otbot_cli(["simulate", "--duration", "1", "--rate", "100", "--seed", "5",
+                          "--out", str(rec_path), "--plot", str(plot_dir), "--json"])
     assert rc == 0
     result = json.loads(out)
     rec = read_recording(rec_path)
@@ -94,35 +84,35 @@ def test_out_and_plot_write_a_readable_recording_and_pngs(tmp_path, capsys):
         assert data[:8] == PNG_MAGIC and len(data) > 10_000
 
 
-def test_text_output_and_seeds(tmp_path, capsys):
-    rc, out, _ = run_cli(["simulate", "--duration", "0.2", "--seed", "1", "--out", str(tmp_path / "a.mcap")], capsys)
+def test_text_output_and_seeds(tmp_path, otbot_cli):
+    rc, out, _ = otbot_cli(["simulate", "--duration", "0.2", "--seed", "1", "--out", str(tmp_path / "a.mcap")])
     assert rc == 0 and "final q" in out and "x, y m" in out
-    run_cli(["simulate", "--duration", "0.2", "--seed", "2", "--out", str(tmp_path / "b.mcap")], capsys)
-    run_cli(["simulate", "--duration", "0.2", "--seed", "1", "--out", str(tmp_path / "c.mcap")], capsys)
+    otbot_cli(["simulate", "--duration", "0.2", "--seed", "2", "--out", str(tmp_path / "b.mcap")])
+    otbot_cli(["simulate", "--duration", "0.2", "--seed", "1", "--out", str(tmp_path / "c.mcap")])
     a, b, c = (read_recording(tmp_path / f"{n}.mcap") for n in "abc")
     assert np.array_equal(a.imu_accel, c.imu_accel) and not np.array_equal(a.imu_accel, b.imu_accel)
     assert np.array_equal(a.truth_q, b.truth_q)
 
 
-def test_unwritable_outputs_exit_2(tmp_path, capsys):
+def test_unwritable_outputs_exit_2(tmp_path, otbot_cli):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
-    rc, out, err = run_cli(["simulate", "--duration", "0.1", "--plot", str(blocker), "--json"], capsys)
-    assert rc == 2 and "cannot write output" in err and out == ""
-    rc, out, err = run_cli(["demo", "--out-dir", str(blocker / "sub"), "--json"], capsys)
+    rc, out, err = otbot_cli(["simulate", "--duration", "0.1", "--plot", str(blocker), "--json"])
+    assert rc == 2 and "exists and is not a folder" in err and out == ""
+    rc, out, err = otbot_cli(["demo", "--out-dir", str(blocker / "sub"), "--json"])
     assert rc == 2 and "--out-dir" in err and out == ""
 
 
-def test_help_explains_units(capsys):
-    rc, out, _ = run_cli(["simulate", "--help"], capsys)
+def test_help_explains_units(otbot_cli):
+    rc, out, _ = otbot_cli(["simulate", "--help"])
     assert rc == 0
     for unit in ("N m", "in s", "Hz", "rad"):
         assert unit in out, unit
 
 
-def test_demo_writes_recording_and_plots(tmp_path, capsys):
+def test_demo_writes_recording_and_plots(tmp_path, otbot_cli):
     out_dir = tmp_path / "demo"
-    rc, out, err = run_cli(["demo", "--out-dir", str(out_dir), "--json"], capsys)
+    rc, out, err = otbot_cli(["demo", "--out-dir", str(out_dir), "--json"])
     assert rc == 0
     result = json.loads(out)["chassis_experiment"]
     rec = read_recording(result["recording"])

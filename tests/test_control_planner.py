@@ -60,7 +60,7 @@ def test_planner_rejects_impossible_warm_start(params):
     limits = MotorLimits(np.array([30.0, 30.0, 30.0]))
     prob = PlanningProblem(params, limits, start=(0.0, 0.0, 0.0), goal=(3.0, 0.0, 0.0),
                            obstacles=[(1.5, 0.0, 0.8)], walls=(-1.2, 1.2), intervals=10)
-    with pytest.raises(PlannerError, match="collides"):
+    with pytest.raises(PlannerError, match=r"no collision-free initial path: .* hits obstacle 0 at \(1.5, 0\) m"):
         plan(prob)
     with pytest.raises(PlannerError):
         PlanningProblem(params, limits, (0, 0, 0), (1, 0, 0), intervals=2)

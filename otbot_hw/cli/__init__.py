@@ -3,26 +3,66 @@
 Each module in ``SUBCOMMANDS`` defines ``register(subparsers)``, which adds its
 parser and sets ``func(args) -> dict``. The returned dict is printed as one JSON
 object with ``--json``; otherwise the command prints its own human summary.
-Exit codes: 0 success, 2 bad input (arguments, config, recordings), 1 failure.
+Exit codes: 0 success, 2 bad input (arguments, config, recordings), 1 failure,
+130 interrupted.
+
+Bad input ends in exactly one line on stderr, ``otbot CMD: error: <what is wrong>``,
+never a traceback: commands raise ``CliError`` (or a library error listed in
+``input_errors()``), argparse's own errors go through ``CliParser.error``. Shared
+parsers and the output-path rule are in ``otbot_hw.cli.checks``.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import json
+import re
 import sys
 from typing import Sequence
+
+from otbot_hw.cli.checks import CliError, parse_vector, positive_float  # noqa: F401  (re-exported)
 
 #: Subcommand modules under otbot_hw.cli, in --help order.
 SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "imu", "track", "plan", "run", "plant")
 
 
-class CliError(Exception):
-    """Bad input to a command: printed as ``otbot: error: ...`` with exit code 2."""
+class UsageError(CliError):
+    """An argparse error (unknown option, missing or malformed argument) of one (sub)command."""
+
+    def __init__(self, parser: argparse.ArgumentParser, message: str):
+        super().__init__(message)
+        self.parser = parser
+
+    def line(self) -> str:
+        """One line: the error, with the (sub)command's usage when the arguments do not fit its form."""
+        text = f"{self.parser.prog}: error: {self}"
+        if not str(self).startswith("argument "):  # unknown or missing arguments: show the form
+            text += "; " + " ".join(self.parser.format_usage().split())
+        return text
+
+
+class CliParser(argparse.ArgumentParser):
+    """argparse with one-line errors, subcommands that name their own unknown options, and values
+    that start like a negative number (``--load -5@0,0``, ``--torques -6,10,6``) taken as values."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
+
+    def error(self, message: str):
+        raise UsageError(self, message)
+
+    def parse_known_args(self, args=None, namespace=None):
+        ns, extras = super().parse_known_args(args, namespace)
+        if self._subparsers is None:  # a leaf: the command that runs
+            if extras:
+                self.error("unrecognized arguments: " + " ".join(extras))
+            setattr(ns, "_prog", self.prog)
+        return ns, extras
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CliParser(
         prog="otbot",
         description="Otbot control stack: model, simulation, identification, control and drivers. "
                     "Units are SI throughout: m, rad, s, kg, N, N m.",
@@ -34,62 +74,47 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def input_errors() -> tuple[type[BaseException], ...]:
+    """The exception types that mean bad input (exit 2, one line): the CLI's own and the library's
+    errors documented as "bad input" (parameters/config, recordings, trajectories, identification)."""
+    from otbot_hw.control.trajectories import TrajectoryError
+    from otbot_hw.identification.errors import IdentificationError
     from otbot_hw.params import ParameterError
     from otbot_hw.recording import RecordingError
 
+    return CliError, ParameterError, RecordingError, TrajectoryError, IdentificationError
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line (messages quoting multi-line library errors)."""
+    return "; ".join(s.strip() for s in str(text).splitlines() if s.strip())
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``otbot argv``; returns the exit code (commands may also raise ``SystemExit(1)``)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as exc:
+        print(one_line(exc.line()), file=sys.stderr)
+        return 2
+    prog = getattr(args, "_prog", f"otbot {args.command}")
+    errors = input_errors()
     try:
         result = args.func(args)
-    except (CliError, ParameterError, RecordingError) as exc:
-        print(f"otbot {args.command}: error: {exc}", file=sys.stderr)
+        if getattr(args, "json", False) and result is not None:
+            print(json.dumps(result, allow_nan=False))
+    except errors as exc:
+        print(f"{prog}: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"otbot {args.command}: interrupted", file=sys.stderr)
+        print(f"{prog}: interrupted", file=sys.stderr)
         return 130
-    if getattr(args, "json", False) and result is not None:
-        print(json.dumps(result, allow_nan=False))
     return 0
 
 
 def add_json_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (SI units) instead of text")
-
-
-def parse_vector(text: str, n: int, name: str) -> list[float]:
-    """Parse 'a,b,c' into n finite floats or raise CliError naming the option."""
-    import math
-
-    parts = [s.strip() for s in text.split(",")]
-    if len(parts) != n:
-        raise CliError(f"{name} needs {n} comma-separated numbers, got {text!r}")
-    out = []
-    for s in parts:
-        try:
-            v = float(s)
-        except ValueError:
-            raise CliError(f"{name}: {s!r} is not a number") from None
-        if not math.isfinite(v):
-            raise CliError(f"{name}: values must be finite, got {s!r}")
-        out.append(v)
-    return out
-
-
-def positive_float(name: str):
-    """argparse type: a finite number > 0, errors naming the option."""
-    import math
-
-    def conv(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        if not (math.isfinite(v) and v > 0):
-            raise argparse.ArgumentTypeError(f"{name} must be a finite number > 0, got {text!r}")
-        return v
-
-    return conv
 
 
 def progress(msg: str, enabled: bool = True) -> None:

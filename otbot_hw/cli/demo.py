@@ -1,9 +1,13 @@
-"""``otbot demo``: the main job against the built-in simulated robot.
+"""``otbot demo``: the main job against the built-in simulated robot, in four stages.
 
-Runs the paper's chassis experiment (tau = (6, -10, 6) N m for 3 s, 100 Hz
-zero-order hold, IMU noise sigma = ND sqrt(SR) = 13.7e-3), writes its recording and plots, then
-tracks the paper's narrow corridor with the computed-torque controller (plots in
-``corridor/``).
+1. the paper's chassis experiment (tau = (6, -10, 6) N m for 3 s, 100 Hz zero-order hold, IMU
+   noise sigma = ND sqrt(SR) = 13.7e-3): MCAP recording and plots;
+2. chassis identification (paper step 2) from that recording;
+3. the same experiment through the CANopen drivers (simulated robot on virtual CAN);
+4. the paper's narrow corridor tracked in closed loop by the computed-torque controller
+   (plots in ``corridor/``).
+
+Every file written is announced on stdout (text mode) or listed in the JSON.
 """
 from __future__ import annotations
 
@@ -12,21 +16,36 @@ from pathlib import Path
 
 import numpy as np
 
-from otbot_hw.cli import CliError, add_json_flag, progress
-from otbot_hw.cli.simulate import seed_int
+from otbot_hw.cli import add_json_flag, progress
+from otbot_hw.cli.checks import output_folder, seed, writing
+
+#: Names of q's entries with their units, for printing a configuration.
+Q_LABELS = (("x", "m"), ("y", "m"), ("alpha", "rad"), ("phi_r", "rad"), ("phi_l", "rad"), ("phi_p", "rad"))
 
 
 def register(sub) -> None:
     p = sub.add_parser(
         "demo",
-        help="run the main job against the built-in simulated robot",
-        description="Simulate the paper's chassis experiment (tau = 6, -10, 6 N m for 3 s at 100 Hz) "
-                    "and write its MCAP recording and PNG plots into --out-dir.",
+        help="run the main job against the built-in simulated robot (simulate, identify, CAN, track)",
+        description="The main job on the built-in simulated robot, in four stages, all files in --out-dir: "
+                    "(1) the paper's chassis experiment (tau = 6, -10, 6 N m for 3 s at 100 Hz): MCAP recording "
+                    "chassis.mcap and PNG plots in chassis/; (2) chassis identification (paper step 2: m_c in kg, "
+                    "I_c in kg m^2, x_B, y_B in m) from that recording, plot in identification/; (3) the same "
+                    "experiment through the CANopen drivers against the simulated robot on a virtual CAN bus: "
+                    "chassis_bus.mcap and plots in chassis_bus/; (4) the paper's narrow corridor (five 3 m "
+                    "segments at 0.6 m/s) tracked in closed loop at 1 kHz: errors in mm and rad, settle times "
+                    "in s per event, plots in corridor/. Runs in about 10 s.",
     )
-    p.add_argument("--out-dir", type=Path, default=Path("otbot-demo"), help="output folder (default otbot-demo)")
-    p.add_argument("--seed", type=seed_int, default=0, help="sensor noise seed, an integer >= 0 (default 0)")
+    p.add_argument("--out-dir", type=Path, default=Path("otbot-demo"), metavar="DIR",
+                   help="output folder, created if missing (its parent must exist); default otbot-demo")
+    p.add_argument("--seed", type=seed, default=0, help="sensor noise seed, an integer >= 0 (default 0)")
     add_json_flag(p)
     p.set_defaults(func=run)
+
+
+def format_q(q) -> str:
+    """'x 1.0000 m, y ..., phi_p ... rad' for a configuration q (6,)."""
+    return ", ".join(f"{n} {v:.4f} {u}" for (n, u), v in zip(Q_LABELS, q))
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -36,30 +55,25 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.sensors import NoiseModel
     from otbot_hw.simulation.runs import simulated_recording
 
-    out = args.out_dir
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CliError(f"--out-dir {out}: cannot create folder: {exc.strerror}") from None
+    out = output_folder(args.out_dir, "--out-dir")
     params = nominal()
     quiet = args.json
-    progress("[demo] chassis experiment: tau = (6, -10, 6) N m, 3 s, 100 Hz", not quiet)
+    progress("[demo] 1/4 chassis experiment: tau = (6, -10, 6) N m, 3 s, 100 Hz", not quiet)
     rec = simulated_recording(params, np.tile([6.0, -10.0, 6.0], (300, 1)), 0.01, NoiseModel.paper(),
                               seed=args.seed, extra_metadata={"experiment": "chassis (paper §4.3.2)"})
     path = out / "chassis.mcap"
-    try:
+    with writing("--out-dir"):
+        out.mkdir(exist_ok=True)
         write_recording(path, rec)
         plots = write_plots(out / "chassis", rec, params, "Chassis experiment")
-    except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
     result = {"chassis_experiment": {"recording": str(path), "plots": plots,
                                      "final_q": rec.truth_q[-1].tolist(), "final_qd": rec.truth_qd[-1].tolist()}}
     if not quiet:
         print(f"[demo] recording: {path}")
         for p in plots:
             print(f"[demo] plot: {p}")
-        print("[demo] final q = " + ", ".join(f"{v:.4f}" for v in rec.truth_q[-1]))
-    progress("[demo] identification: chassis parameters (step 2) from the recording", not quiet)
+        print(f"[demo] final configuration q at t = {rec.t[-1]:g} s: {format_q(rec.truth_q[-1])}")
+    progress("[demo] 2/4 identification: chassis parameters (step 2) from the recording", not quiet)
     from otbot_hw.identification.steps import demo_stage
     result["identification"] = demo_stage(rec, params, out, quiet)
     from otbot_hw.cli.run import bus_demo
@@ -68,19 +82,50 @@ def run(args: argparse.Namespace) -> dict:
     return result
 
 
+def saturation_line(saturation: list[dict], events: list[dict], rate_hz: float) -> str | None:
+    """One line explaining a run's saturation episodes: how many, which motors, how long, and
+    whether they all start at the reference's velocity steps (``events``), where they are expected."""
+    if not saturation:
+        return None
+    motors = sorted({s["motor"] for s in saturation})
+    longest_ms = 1e3 * max(s["ticks"] for s in saturation) / rate_hz
+    peak = max(s["peak_request_Nm"] for s in saturation)
+    limit = min(s["limit_Nm"] for s in saturation)
+    steps = [e["t"] for e in events]
+    at_steps = all(any(abs(s["t_start"] - t) <= 2.0 / rate_hz for t in steps) for s in saturation)
+    head = (f"the torque limiter clipped {', '.join(motors)} in {len(saturation)} episode(s) of at most "
+            f"{longest_ms:.0f} ms (up to {peak:.1f} N m asked, limit {limit:g} N m)")
+    if at_steps:
+        return head + ("; expected: every episode starts at a velocity step of the reference (start, corner "
+                       "or stop), which no motor can follow instantly")
+    return head + "; not all at the reference's velocity steps: see 'saturation' in --json for when"
+
+
 def _corridor(out: Path, params, quiet: bool) -> dict:
     """The paper's corridor with the computed-torque controller (closed loop, 1 kHz)."""
     from otbot_hw.control.scenarios import demo_corridor
     from otbot_hw.motors import load_motor_limits
 
-    progress("[demo] corridor: computed-torque tracking, 5 x 3 m at 0.6 m/s, 1 kHz", not quiet)
-    res = demo_corridor(out / "corridor", params, load_motor_limits(),
-                        progress=None if quiet else (lambda m: progress(f"[demo] {m}")))
+    progress("[demo] 4/4 corridor: computed-torque tracking, five 3 m segments at 0.6 m/s, 1 kHz", not quiet)
+
+    def say(m: str) -> None:
+        # per-episode saturation and feasibility notices are summed up in one line after the run
+        if not m.startswith(("saturation:", "feasibility:")):
+            progress(f"[demo] {m}")
+
+    res = demo_corridor(out / "corridor", params, load_motor_limits(), progress=None if quiet else say)
     if not quiet:
         e = res["max_abs_error"]
-        print(f"[demo] corridor: max |e| x {e['x'] * 1e3:.1f} mm, y {e['y'] * 1e3:.1f} mm, alpha {e['alpha']:.1e} rad; "
-              "settle " + ", ".join(f"{ev['settle_time_s']:.2f}" if ev["settle_time_s"] is not None else "-"
-                                    for ev in res["events"]) + " s")
+        print(f"[demo] corridor: max |error| x {e['x'] * 1e3:.1f} mm, y {e['y'] * 1e3:.1f} mm, "
+              f"alpha {e['alpha']:.1e} rad" + (f"; footprint to the walls >= {res['min_wall_clearance_m'] * 1e3:.0f} mm"
+                                               if "min_wall_clearance_m" in res else ""))
+        print("[demo] corridor settle times (until the errors stay below 2 % of the event's peak): "
+              + ", ".join(f"{ev['kind']} at t = {ev['t']:g} s: "
+                          + (f"{ev['settle_time_s']:.2f} s" if ev["settle_time_s"] is not None else "not settled")
+                          for ev in res["events"]))
+        line = saturation_line(res["saturation"], res["events"], res["rate_hz"])
+        if line:
+            print(f"[demo] corridor: {line}")
         for p in res["plots"]:
             print(f"[demo] plot: {p}")
     return res

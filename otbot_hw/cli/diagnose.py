@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
+from otbot_hw.cli.checks import output_folder
 from otbot_hw.cli.simulate import check_output_folder
 
 
@@ -95,6 +96,9 @@ def run(args: argparse.Namespace) -> dict:
     quiet = args.json
     say = (lambda m: progress(m, True))
     truth = None
+    output_folder(args.report, "--report")
+    if args.demo:
+        output_folder(args.demo_dir, "--demo-dir")
     if args.demo:
         if args.recordings:
             raise CliError("--demo simulates its own recordings; give no RECORDING")

@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from otbot_hw.cli import CliError, add_json_flag, positive_float, progress
+from otbot_hw.cli import CliError, add_json_flag, progress
+from otbot_hw.cli.checks import count, duration, seed
 
 
 def register(sub) -> None:
@@ -37,7 +38,7 @@ def register(sub) -> None:
                     "byte offset of their '$' in the file.",
     )
     parse.add_argument("file", type=Path, metavar="FILE", help="captured bytes (binary file)")
-    parse.add_argument("--limit", type=int, default=None, metavar="N",
+    parse.add_argument("--limit", type=count(0), default=None, metavar="N",
                        help="print/report only the first N records (counts still cover the whole file)")
     add_json_flag(parse)
     parse.set_defaults(func=run_parse)
@@ -54,11 +55,11 @@ def register(sub) -> None:
     )
     read.add_argument("--config", type=Path, default=None, help="hardware config YAML (default config/robot.yaml)")
     read.add_argument("--port", default=None, help="serial port (default: imu.port from the config)")
-    read.add_argument("--duration", type=positive_float("--duration"), default=1.0,
+    read.add_argument("--duration", type=duration, default=1.0,
                       help="how long to read, s (default 1)")
     read.add_argument("--sim", action="store_true",
                       help="read a simulated IMU at rest (gravity + the paper's noise) on a pseudo-terminal")
-    read.add_argument("--seed", type=int, default=0, help="noise seed for --sim (default 0)")
+    read.add_argument("--seed", type=seed, default=0, help="noise seed for --sim, an integer >= 0 (default 0)")
     add_json_flag(read)
     read.set_defaults(func=run_read)
 
@@ -67,8 +68,6 @@ def run_parse(args: argparse.Namespace) -> dict:
     from drivers.vectornav import ImuRecord, parse_bytes
 
     path: Path = args.file
-    if args.limit is not None and args.limit < 0:
-        raise CliError(f"--limit must be >= 0, got {args.limit}")
     try:
         data = path.read_bytes()
     except IsADirectoryError:
@@ -169,7 +168,7 @@ def run_read(args: argparse.Namespace) -> dict:
             elapsed = time.monotonic() - t0
             sentences = imu.stats.records - records0
         except ImuFault as exc:
-            print(f"otbot imu: error: {exc}", file=sys.stderr)
+            print(f"otbot imu read: error: {exc}", file=sys.stderr)
             raise SystemExit(1) from None
     finally:
         imu.close()

@@ -4,7 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from otbot_hw.cli import CliError, add_json_flag, parse_vector, positive_float, progress
+from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
+from otbot_hw.cli.checks import count, duration, non_negative, number, output_file, writing
 
 
 def register(sub) -> None:
@@ -15,23 +16,25 @@ def register(sub) -> None:
                     "(x, y in m, alpha in rad), circular obstacles kept clear of the platform footprint "
                     "(radius from the parameter file) plus --clearance (m), torques within --torque-margin times "
                     "the motor limits (N m, config/robot.yaml), pivot speed <= --max-speed (m/s). Minimum time "
-                    "unless --duration (s) is given. Without obstacles options the crowded-corridor scenario is "
-                    "planned. Writes a trajectory CSV (t, x, y, alpha, x_dot, y_dot, alpha_dot, tau_r, tau_l, tau_p) "
+                    "unless --duration (s) is given. Without --obstacle the crowded corridor's obstacles are used, "
+                    "without --walls its walls (y = -1.6 and 1.6 m). Writes a trajectory CSV (t, x, y, alpha, x_dot, y_dot, alpha_dot, tau_r, tau_l, tau_p) "
                     "for `otbot track FILE.csv --sim`.",
     )
-    p.add_argument("--out", type=Path, required=True, help="trajectory CSV to write")
+    p.add_argument("--out", type=Path, required=True, metavar="TRAJ.csv",
+                   help="trajectory CSV to write (its folder must exist; checked before planning)")
     p.add_argument("--start", default=None, help="x,y,alpha (m, m, rad); default 0,0,0")
     p.add_argument("--goal", default=None, help="x,y,alpha (m, m, rad); default 8,0,0")
     p.add_argument("--obstacle", action="append", default=None, metavar="CX,CY,R",
                    help="circular obstacle, centre and radius in m (repeatable; default: the crowded corridor)")
     p.add_argument("--walls", default=None, metavar="YMIN,YMAX",
                    help="corridor walls in m bounding the footprint, e.g. --walls=-1.6,1.6 (the default, crowded corridor)")
-    p.add_argument("--clearance", type=float, default=0.05, help="extra clearance in m (default 0.05)")
-    p.add_argument("--duration", type=positive_float("--duration"), default=None,
+    p.add_argument("--clearance", type=non_negative, default=0.05,
+                   help="extra clearance from obstacles in m, >= 0 (default 0.05)")
+    p.add_argument("--duration", type=duration, default=None,
                    help="fixed duration in s (default: minimum time)")
-    p.add_argument("--intervals", type=int, default=60, help="collocation intervals (default 60)")
-    p.add_argument("--max-speed", type=positive_float("--max-speed"), default=1.0, help="m/s (default 1)")
-    p.add_argument("--torque-margin", type=positive_float("--torque-margin"), default=0.8,
+    p.add_argument("--intervals", type=count(4, 400), default=60, help="collocation intervals, 4..400 (default 60)")
+    p.add_argument("--max-speed", type=number(above=0), default=1.0, help="largest pivot speed, m/s (default 1)")
+    p.add_argument("--torque-margin", type=number(above=0, maximum=1), default=0.8,
                    help="fraction of the motor limits the plan may use (default 0.8, room for feedback)")
     p.add_argument("--params", type=Path, default=None, help="parameter YAML (default config/otbot.yaml)")
     p.add_argument("--robot", type=Path, default=None, help="hardware YAML with motor limits")
@@ -44,14 +47,9 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.motors import load_motor_limits
     from otbot_hw.params import OtbotParams
 
+    output_file(args.out, "--out")
     params = OtbotParams.load(args.params)
     limits = load_motor_limits(args.robot)
-    if args.intervals < 4 or args.intervals > 400:
-        raise CliError(f"--intervals must be between 4 and 400, got {args.intervals}")
-    if not (args.clearance >= 0):
-        raise CliError(f"--clearance must be >= 0 m, got {args.clearance}")
-    if args.torque_margin > 1:
-        raise CliError(f"--torque-margin must be in (0, 1], got {args.torque_margin}")
     base = crowded_corridor_problem(params, limits, args.intervals)
     start = tuple(parse_vector(args.start, 3, "--start")) if args.start else base.start
     goal = tuple(parse_vector(args.goal, 3, "--goal")) if args.goal else base.goal
@@ -68,8 +66,11 @@ def run(args: argparse.Namespace) -> dict:
                                max_speed=args.max_speed)
         res = plan(prob, progress=lambda m: progress(f"[plan] {m}", not args.json))
     except PlannerError as exc:
-        raise CliError(str(exc)) from None
-    res.save_csv(args.out)
+        default = [] if args.obstacle is not None else ["the crowded corridor's obstacles (no --obstacle given)"]
+        default += [] if args.walls is not None else ["its walls (no --walls given)"]
+        raise CliError(f"{exc}" + (f" [planned with {' and '.join(default)}]" if default else "")) from None
+    with writing("--out"):
+        res.save_csv(args.out)
     out = {"out": str(args.out), **res.summary()}
     if not args.json:
         print(f"planned {out['duration_s']:.2f} s ({out['status']}, {out['iterations']} iterations, "

@@ -10,9 +10,11 @@ until its standard input closes. A master then runs e.g.
 from __future__ import annotations
 
 import argparse
+import errno
 from pathlib import Path
 
-from otbot_hw.cli import positive_float
+from otbot_hw.cli import CliError
+from otbot_hw.cli.checks import bus_config, rate, seed
 
 
 def register(sub) -> None:
@@ -23,26 +25,45 @@ def register(sub) -> None:
                     "emulated slcan USB-CAN adapter on a pseudo-terminal, or on a socketcan interface. Prints one "
                     "JSON line {can_interface, can_channel, imu_port}; stops when stdin closes. Units: SI.",
     )
-    p.add_argument("--transport", choices=("slcan", "socketcan"), default="slcan")
+    p.add_argument("--transport", choices=("slcan", "socketcan"), default="slcan",
+                   help="slcan: emulate a USB-CAN adapter on a new pseudo-terminal (default, works everywhere); "
+                        "socketcan: use the Linux CAN interface --channel (needs kernel CAN support)")
     p.add_argument("--channel", default="vcan0", help="socketcan interface (default vcan0, a virtual CAN device)")
     p.add_argument("--config", type=Path, default=None, help="hardware configuration (default config/robot.yaml)")
-    p.add_argument("--rate", type=positive_float("--rate"), default=None, help="control (SYNC) rate, Hz")
-    p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor")
-    p.add_argument("--noise", choices=("paper", "none"), default="paper")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rate", type=rate, default=None,
+                   help="control (SYNC) rate in Hz: one model step per SYNC (default: bus.control_rate of the config)")
+    p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor",
+                   help="bench fixture: floor, stand (chassis held, wheels free), locked (chassis and wheels held)")
+    p.add_argument("--noise", choices=("paper", "none"), default="paper",
+                   help="sensor noise: the paper's IMU and encoder-rate sigmas (default), or none")
+    p.add_argument("--seed", type=seed, default=0, help="noise seed, an integer >= 0 (default 0)")
     p.add_argument("--no-imu", action="store_true", help="no simulated IMU")
     p.add_argument("--json", action="store_true", help="accepted for uniformity: the output is always one JSON line")
     p.set_defaults(func=run)
 
 
+def check_socketcan(channel: str) -> None:
+    """CliError unless the socketcan interface ``channel`` can be opened (tried and closed again)."""
+    import can
+
+    try:
+        can.Bus(interface="socketcan", channel=channel).shutdown()
+    except (OSError, can.CanError) as exc:
+        code = getattr(exc, "errno", None) or getattr(getattr(exc, "__cause__", None), "errno", None)
+        hint = {errno.EAFNOSUPPORT: "this kernel has no SocketCAN support; use --transport slcan",
+                errno.ENODEV: f"no interface {channel}; create one with `ip link add dev {channel} type vcan` "
+                              f"and `ip link set up {channel}`, or use --transport slcan"}.get(code, "")
+        raise CliError(f"--transport socketcan --channel {channel}: cannot open the CAN interface: "
+                       f"{getattr(exc, 'strerror', None) or exc}" + (f" ({hint})" if hint else "")) from None
+
+
 def run(args: argparse.Namespace) -> None:
-    from drivers.config import load_robot_config
     from otbot_hw.sensors import NoiseModel
     from sim.plant import serve
 
-    cfg = load_robot_config(args.config)
-    if args.rate is not None:
-        cfg = cfg.replace_bus(control_rate=args.rate)
+    cfg = bus_config(args.config, args.rate)
+    if args.transport == "socketcan":
+        check_socketcan(args.channel)
     noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
     serve(cfg, transport=args.transport, channel=args.channel, with_imu=not args.no_imu,
           fixture=args.fixture, noise=noise, seed=args.seed)

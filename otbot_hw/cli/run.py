@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from otbot_hw.cli import CliError, add_json_flag, parse_vector, positive_float, progress
+from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
+from otbot_hw.cli.checks import bus_config, duration, output_file, output_folder, rate, sample_count, seed
 
 
 def register(sub) -> None:
@@ -31,15 +32,15 @@ def register(sub) -> None:
                    help="sim: simulated robot in this process (virtual CAN); config: the bus of --config")
     p.add_argument("--config", type=Path, default=None, help="hardware configuration (default config/robot.yaml)")
     p.add_argument("--torques", default="6,-10,6", help="tau_r,tau_l,tau_p in N m (default 6,-10,6)")
-    p.add_argument("--duration", type=positive_float("--duration"), default=3.0, help="s (default 3)")
-    p.add_argument("--rate", type=positive_float("--rate"), default=None,
+    p.add_argument("--duration", type=duration, default=3.0, help="s (default 3)")
+    p.add_argument("--rate", type=rate, default=None,
                    help="control (SYNC) rate in Hz (default: bus.control_rate of the config)")
     p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor",
                    help="bench fixture: floor, stand (chassis held, wheels free), locked (chassis and wheels "
                         "held); simulated with --bus sim, declared (recorded in the metadata) with --bus config")
     p.add_argument("--noise", choices=("paper", "none"), default="paper",
                    help="simulated sensor noise (--bus sim): the paper's IMU/encoder-rate sigmas, or none")
-    p.add_argument("--seed", type=int, default=0, help="simulated noise seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="simulated noise seed, an integer >= 0 (default 0)")
     p.add_argument("--no-imu", action="store_true", help="run without the IMU")
     p.add_argument("--interface", default=None, help="override bus.interface (python-can name), --bus config")
     p.add_argument("--channel", default=None, help="override bus.channel, --bus config")
@@ -47,8 +48,10 @@ def register(sub) -> None:
     p.add_argument("--lockstep", action="store_true",
                    help="--bus config talks to a simulated plant (otbot plant): send SYNCs back to back instead "
                         "of every 1/rate s, and wait for the IMU sample of each SYNC")
-    p.add_argument("--out", type=Path, default=None, help="MCAP recording to write")
-    p.add_argument("--plot", type=Path, default=None, help="folder for PNG plots of the run")
+    p.add_argument("--out", type=Path, default=None, metavar="RUN.mcap",
+                   help="MCAP recording to write (its folder must exist)")
+    p.add_argument("--plot", type=Path, default=None, metavar="DIR",
+                   help="folder for PNG plots of the run (created if missing; its parent must exist)")
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -63,24 +66,16 @@ def _fail(result: dict, message: str, as_json: bool):
 def run(args: argparse.Namespace) -> dict:
     from drivers.busload import bus_load
     from otbot_hw.robot import RobotError
-    from drivers.cia402 import interpolation_period
-    from drivers.config import load_robot_config
     from drivers.robot import CanopenRobot, open_imu
     from drivers.runs import run_torques
     from otbot_hw.sensors import NoiseModel
 
     quiet = args.json
-    cfg = load_robot_config(args.config)
+    output_file(args.out, "--out")
+    output_folder(args.plot, "--plot")
+    cfg = bus_config(args.config, args.rate)
     tau = parse_vector(args.torques, 3, "--torques")
-    if args.rate is not None:
-        cfg = cfg.replace_bus(control_rate=args.rate)
-    try:
-        interpolation_period(cfg.bus.period)
-    except ValueError as exc:
-        raise CliError(f"--rate: {exc}") from None
-    n = int(round(args.duration * cfg.bus.control_rate))
-    if n < 1:
-        raise CliError(f"--duration {args.duration} s is shorter than one control period ({cfg.bus.period:g} s)")
+    n = sample_count(args.duration, cfg.bus.control_rate)
     if args.bus == "sim":
         cfg = cfg.replace_bus(interface="virtual", channel="otbot-sim")
     else:
@@ -102,6 +97,14 @@ def run(args: argparse.Namespace) -> dict:
             "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture,
             "source": "robot" if args.bus == "config" else "bus-simulation"}
     with_imu = cfg.imu is not None and not args.no_imu
+    imu = None
+    if args.bus == "config" and with_imu:
+        from drivers.imu import ImuFault
+
+        try:  # a port that cannot be opened is bad input (exit 2), as in `otbot imu read`
+            imu = open_imu(cfg.imu, port=args.imu_port, configure=False)
+        except ImuFault as exc:
+            raise CliError(str(exc)) from None
     progress(f"[run] {args.bus} bus ({cfg.bus.interface}:{cfg.bus.channel}), tau = {tau} N m for "
              f"{args.duration:g} s at {cfg.bus.control_rate:g} Hz", not quiet)
     wall = time.perf_counter()
@@ -117,7 +120,8 @@ def run(args: argparse.Namespace) -> dict:
                 res = run_torques(robot, torques, cfg.bus.period, args.out, meta, truth=plant.truth,
                                   progress=None if quiet else (lambda m: progress(f"[run] {m}")))
         else:
-            imu = open_imu(cfg.imu, port=args.imu_port) if with_imu else None
+            if imu is not None:
+                imu.configure(output=cfg.imu.output, rate_hz=cfg.imu.rate_hz)
             robot = CanopenRobot(cfg, imu=imu, realtime=not args.lockstep, imu_lockstep=args.lockstep)
             with robot:
                 robot.open()
@@ -200,7 +204,7 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     from sim.plant import simulated_robot
 
     cfg = load_robot_config()
-    progress("[demo] the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
+    progress("[demo] 3/4 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
     path = out_dir / "chassis_bus.mcap"
     wall = time.perf_counter()
     with simulated_robot(cfg, noise=NoiseModel.paper(), seed=seed) as (robot, plant):
@@ -224,6 +228,9 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
         out["max_state_difference_vs_pure_simulation"] = float(np.abs(rec.truth_q - reference.truth_q).max())
     if not quiet:
         print(f"[demo] bus recording: {path} ({len(rec)} samples, {out['realtime_factor']:.1f}x real time)")
-        print("[demo] bus final phi = " + ", ".join(f"{v:.4f}" for v in out["phi"])
-              + f" rad; encoder error <= {out['max_encoder_error']:.2e} rad")
+        print("[demo] bus final joint angles (drives and pivot encoder): " + ", ".join(
+            f"{n} {v:.4f} rad" for n, v in zip(("phi_r", "phi_l", "phi_p"), out["phi"]))
+              + f"; |encoder - true angle| <= {out['max_encoder_error']:.2e} rad")
+        for p in plots:
+            print(f"[demo] plot: {p}")
     return out

@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
 import numpy as np
 
-from otbot_hw.cli import CliError, add_json_flag, parse_vector, positive_float
+from otbot_hw.cli import CliError, add_json_flag, parse_vector
+from otbot_hw.cli.checks import duration, output_file, output_folder, rate, sample_count, seed, writing
 
 
 def register(sub) -> None:
@@ -21,71 +21,49 @@ def register(sub) -> None:
     p.add_argument("--torques", default="6,-10,6",
                    help="tau_r,tau_l,tau_p in N m, held constant (default: 6,-10,6); a leading minus "
                         "is fine: --torques -6,10,6")
-    p.add_argument("--duration", type=float, default=3.0, help="simulated time in s (default 3)")
-    p.add_argument("--rate", type=positive_float("--rate"), default=100.0,
+    p.add_argument("--duration", type=duration, default=3.0, help="simulated time in s (default 3)")
+    p.add_argument("--rate", type=rate, default=100.0,
                    help="sample and command rate in Hz (default 100)")
     p.add_argument("--fixture", choices=["floor", "stand", "locked"], default="floor",
                    help="floor (default), stand (chassis held, wheels free) or locked (wheels locked)")
     p.add_argument("--noise", choices=["paper", "none"], default="paper",
                    help="sensor noise: the paper's levels (default) or none")
-    p.add_argument("--seed", type=seed_int, default=0, help="noise seed, an integer >= 0 (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="noise seed, an integer >= 0 (default 0)")
     p.add_argument("--params", type=Path, default=None,
                    help="parameter YAML (default config/otbot.yaml); a diagnosed model (otbot diagnose --out) with "
                         "an 'effects' section is simulated with those effects")
-    p.add_argument("--out", type=Path, default=None, help="write the recording (MCAP) here")
-    p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write PNG plots into DIR")
+    p.add_argument("--out", type=Path, default=None, metavar="RUN.mcap",
+                   help="write the recording (MCAP) here; its folder must exist")
+    p.add_argument("--plot", type=Path, default=None, metavar="DIR",
+                   help="write PNG plots into DIR (created if missing; its parent must exist)")
     add_json_flag(p)
     p.set_defaults(func=run)
-    # argparse takes "-6,10,6" for an option; let values that start like a negative number be values
-    if hasattr(p, "_negative_number_matcher"):
-        p._negative_number_matcher = re.compile(r"^-\.?\d[0-9.eE+-]*(,.*)?$")
 
 
-#: Longest run the command accepts (samples); 10^7 samples of 12 states are about 1 GB.
-MAX_SAMPLES = 10_000_000
-
-
-def seed_int(text: str) -> int:
-    """argparse type: a noise seed, an integer >= 0."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--seed must be an integer >= 0, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"--seed must be an integer >= 0, got {text!r}")
-    return v
-
-
-def check_duration(duration: float, rate: float) -> int:
-    """Number of ZOH intervals for ``duration`` s at ``rate`` Hz; CliError when not positive/finite."""
-    if not np.isfinite(duration) or duration <= 0:
-        raise CliError(f"--duration must be a finite number of seconds > 0, got {duration}")
-    n = int(round(duration * rate))
-    if n < 1:
-        raise CliError(f"--duration {duration} s at --rate {rate} Hz gives no sample interval")
-    if n > MAX_SAMPLES:
-        raise CliError(f"--duration {duration} s at --rate {rate} Hz gives {n} samples; at most {MAX_SAMPLES}")
-    return n
-
-
-def check_output_folder(path: Path | None, option: str) -> None:
-    """CliError unless the folder that will receive ``path`` exists (checked before simulating)."""
-    if path is not None and not path.parent.resolve().is_dir():
-        raise CliError(f"{option} {path}: folder {path.parent} does not exist")
+#: Kept for callers that import it from here: the shared output-file check (``checks.output_file``).
+check_output_folder = output_file
 
 
 def write_outputs(result: dict, rec, params, out: Path | None, plot: Path | None, title: str) -> None:
-    """Write the recording and plots, turning file-system errors into CliError (exit 2)."""
+    """Write the recording and plots; file-system errors become CliError (exit 2)."""
     from otbot_hw.recording import write_recording
 
-    try:
+    with writing("output"):
         if out:
             write_recording(out, rec)
             result["recording"] = str(out)
         if plot:
             result["plots"] = write_plots(plot, rec, params, title)
-    except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+
+
+def check_finite(rec, what: str) -> None:
+    """CliError when a simulated state went non-finite (the integration diverged)."""
+    x = np.hstack([rec.truth_q, rec.truth_qd])
+    bad = ~np.isfinite(x).all(axis=1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise CliError(f"the simulation diverged: the state is not finite from t = {rec.t[k]:g} s (sample {k}); "
+                       f"{what}")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -95,8 +73,9 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.simulation.runs import extended_recording, simulated_recording
 
     torques = parse_vector(args.torques, 3, "--torques")
-    n = check_duration(args.duration, args.rate)
-    check_output_folder(args.out, "--out")
+    n = sample_count(args.duration, args.rate)
+    output_file(args.out, "--out")
+    output_folder(args.plot, "--plot")
     model = ExtendedModel.load(args.params)
     params = model.params
     dt = 1.0 / args.rate
@@ -106,6 +85,8 @@ def run(args: argparse.Namespace) -> dict:
         rec = extended_recording(model, U, dt, noise, seed=args.seed, fixture=args.fixture)
     else:
         rec = simulated_recording(params, U, dt, noise, seed=args.seed, fixture=args.fixture)
+    check_finite(rec, f"--torques {args.torques} N m are too large for the model (or for --rate "
+                      f"{args.rate:g} Hz); nothing was written")
     q, qd = rec.truth_q[-1], rec.truth_qd[-1]
     result = {
         "t_final": float(rec.t[-1]),

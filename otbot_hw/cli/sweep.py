@@ -5,6 +5,7 @@ import argparse
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
+from otbot_hw.cli.checks import count, number, output_folder
 
 
 def register(sub) -> None:
@@ -12,22 +13,33 @@ def register(sub) -> None:
         "sweep",
         help="step-3 identification error vs initial-guess deviation, over noise seeds",
         description="For each noise seed, simulate the platform experiment (tau = 6, -10, 6 N m, 1 s) and "
-                    "identify m_p (kg), I_p (kg m^2), x_F, y_F (m) from guesses deviating by up to "
-                    "--max-deviation percent (a load of PCT %% of 500 kg guessed PCT %% of 0.45 m off). "
-                    "Runs on local processes, or on a Dask cluster with --scheduler.",
+                    "identify m_p (kg), I_p (kg m^2), x_F, y_F (m) from initial guesses deviating by up to "
+                    "--max-deviation percent: at PCT percent the guess adds a load of PCT percent of 500 kg, "
+                    "PCT percent of 0.45 m away from the true centre of mass. By default every fit starts from "
+                    "that guess alone (the paper's method), so the sweep measures how the guess affects the "
+                    "result. With --global-start each fit first tries the equation-error estimate, which does "
+                    "not depend on the guess; the guess is then only a fallback, and the report counts how many "
+                    "fits used it. Runs on local processes, or on a Dask cluster with --scheduler; Ctrl-C ends "
+                    "the workers and exits 130.",
     )
-    p.add_argument("--max-deviation", type=float, default=100.0, metavar="PCT",
-                   help="largest deviation in percent (default 100)")
-    p.add_argument("--points", type=int, default=40, help="number of deviations (default 40)")
-    p.add_argument("--seeds", type=int, default=20, help="number of noise seeds (default 20)")
+    p.add_argument("--max-deviation", type=number(above=0, maximum=1000), default=100.0, metavar="PCT",
+                   help="largest deviation in percent, in (0, 1000] (default 100)")
+    p.add_argument("--points", type=count(1), default=40, metavar="N", help="number of deviations (default 40)")
+    p.add_argument("--seeds", type=count(1), default=20, metavar="N", help="number of noise seeds (default 20)")
     p.add_argument("--load", default=None, metavar="KG@X,Y[,I]",
                    help="true load on the simulated platform: KG kg at (X, Y) m (own inertia I kg m^2)")
     p.add_argument("--params", type=Path, default=None, help="robot parameters (YAML; default config/otbot.yaml)")
-    p.add_argument("--local-only", action="store_true", help="single fit from each guess (the paper's method)")
+    start = p.add_mutually_exclusive_group()
+    start.add_argument("--local-only", action="store_true",
+                       help="a single fit from each guess (the paper's method; the default)")
+    start.add_argument("--global-start", action="store_true",
+                       help="the full identify pipeline: equation-error start first, the guess only as fallback")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask distributed scheduler (e.g. tcp://10.0.0.5:8786); default: local processes")
-    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: CPU count)")
-    p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the sensitivity plots into DIR")
+    p.add_argument("--workers", type=count(1), default=None, metavar="N",
+                   help="local worker processes (default: CPU count; 1 = in this process)")
+    p.add_argument("--plot", type=Path, default=None, metavar="DIR",
+                   help="write the sensitivity plots into DIR (created if missing; its parent must exist)")
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -38,12 +50,9 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.identification.sweep import deviation_grid, plot_sweep, run_sweep
     from otbot_hw.params import OtbotParams, ParameterError
 
-    if not (0 < args.max_deviation <= 1000):
-        raise CliError(f"--max-deviation must be in (0, 1000] percent, got {args.max_deviation}")
-    if args.points < 1 or args.seeds < 1:
-        raise CliError("--points and --seeds must be >= 1")
-    if args.workers is not None and args.workers < 1:
-        raise CliError(f"--workers must be >= 1, got {args.workers}")
+    if args.scheduler and args.workers is not None:
+        raise CliError("give --scheduler or --workers, not both (a Dask cluster has its own workers)")
+    output_folder(args.plot, "--plot")
     base = OtbotParams.load(args.params)
     load = parse_load(args.load)
     try:
@@ -56,24 +65,31 @@ def run(args: argparse.Namespace) -> dict:
     except (ConnectionError, OSError, ValueError) as exc:
         raise CliError(f"--scheduler: {exc}") from None
     devs = deviation_grid(args.max_deviation / 100.0, args.points)
+    mode = "equation-error start, guess as fallback" if args.global_start else "single fit from each guess"
     with ex:
-        progress(f"[sweep] {args.points} deviations x {args.seeds} seeds on {ex.describe()}", True)
+        progress(f"[sweep] {args.points} deviations x {args.seeds} seeds ({mode}) on {ex.describe()}", True)
 
         def report(done: int, total: int) -> None:
             if done == total or done % max(1, total // 10) == 0:
                 progress(f"[sweep] {done}/{total} work items done", True)
 
-        res = run_sweep(truth, devs, range(args.seeds), ex, base=base, global_start=not args.local_only,
+        res = run_sweep(truth, devs, range(args.seeds), ex, base=base, global_start=args.global_start,
                         progress=report)
     if args.plot:
         res["plots"] = plot_sweep(args.plot, res)
     if not quiet:
         s = res["summary"]
-        print(f"{res['fits']} fits in {res['wall_time']:.1f} s on {res['executor']}: "
+        print(f"{res['fits']} fits ({mode}) in {res['wall_time']:.1f} s on {res['executor']}: "
               f"{100 * s['converged_fraction']:.1f} % converged")
+        starts = s["accepted_start"]
+        if args.global_start:
+            print(f"  accepted start: " + ", ".join(f"{k} {v}" for k, v in starts.items())
+                  + " (only fits accepted from 'guess' depend on the deviation)")
         for n, v in s["parameters"].items():
+            spread = v["spread_over_deviations"]
             print(f"  {n}: max |error| {v['max_abs_error']:.3g} {v['unit']}, "
-                  f"{100 * (v['within_3_sigma'] or 0):.1f} % within 3 sigma")
+                  f"{100 * (v['within_3_sigma'] or 0):.1f} % within 3 sigma, estimates differ by up to "
+                  + (f"{spread:.3g} {v['unit']}" if spread is not None else "-") + " between deviations")
         for p in res.get("plots", []):
             print(f"plot: {p}")
     return res

@@ -4,7 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from otbot_hw.cli import CliError, add_json_flag, positive_float, progress
+from otbot_hw.cli import CliError, add_json_flag, progress
+from otbot_hw.cli.checks import output_file, output_folder, rate
 
 _TIMES = "Settle times: seconds until the position and velocity errors stay below 2 % of the event's peak"
 
@@ -32,7 +33,7 @@ def register(sub) -> None:
                         "(missing physics the simulated robot has)")
     p.add_argument("--robot", type=Path, default=None, help="hardware YAML with motor limits (default config/robot.yaml)")
     p.add_argument("--tstab", default="3", help="stabilization time T_stab in s, one value or x,y,alpha (default 3)")
-    p.add_argument("--rate", type=positive_float("--rate"), default=1000.0, help="control rate in Hz (default 1000)")
+    p.add_argument("--rate", type=rate, default=1000.0, help="control rate in Hz (default 1000)")
     p.add_argument("--error-bounds", default=None, metavar="EX,EY,EA,EVX,EVY,EVA",
                    help="feasibility-check error bounds: |e_p| in m, m, rad and |e_v| in m/s, m/s, rad/s "
                         "(default 0.02,0.02,0.01,0.05,0.05,0.02)")
@@ -69,10 +70,8 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError("only the simulated robot is available: add --sim")
     if args.scenario not in SCENARIOS and not Path(args.scenario).exists():
         raise CliError(f"unknown scenario {args.scenario!r}: use {', '.join(SCENARIOS)} or an existing CSV file")
-    if args.animate is not None and args.animate.suffix.lower() != ".gif":
-        raise CliError(f"--animate writes a GIF: give a path ending in .gif, got {args.animate}")
-    if args.plot is not None and args.plot.exists() and not args.plot.is_dir():
-        raise CliError(f"--plot {args.plot} exists and is not a folder")
+    output_file(args.animate, "--animate", suffix=".gif")
+    output_folder(args.plot, "--plot")
     tstab = parse_tstab(args.tstab)
     model = ExtendedModel.load(args.params)
     params = model.params

@@ -183,7 +183,8 @@ def _guess(prob: PlanningProblem, N: int):
     P, _, _ = ref.sample(tf)
     clear = _clearance(P, prob)
     if clear < 0:
-        raise PlannerError(f"warm-start path collides (clearance {clear:.3f} m); move the obstacles apart")
+        raise PlannerError(f"no collision-free initial path: the path that passes each obstacle in turn from "
+                           f"start to goal {_first_contact(P, prob)}; move the start, goal or obstacles")
     t = np.linspace(0, ref.duration, N + 1)
     X = reference_states(ref, prob.params, t, prob.start_heading)
     z = np.column_stack([X[:, :3], X[:, 5], X[:, 6:9]])
@@ -199,6 +200,22 @@ def _clearance(P: np.ndarray, prob: PlanningProblem) -> float:
         r = prob.params.radius
         out = min(out, float(np.min(P[:, 1] - r - prob.walls[0])), float(np.min(prob.walls[1] - r - P[:, 1])))
     return out
+
+
+def _first_contact(P: np.ndarray, prob: PlanningProblem) -> str:
+    """What the footprint along P (n, 2) m hits first: 'hits obstacle j at (cx, cy) m' or a wall."""
+    hits = []
+    for j, ((cx, cy, _), k) in enumerate(zip(prob.obstacles, prob.keep_out())):
+        inside = np.flatnonzero(np.hypot(P[:, 0] - cx, P[:, 1] - cy) < k)
+        if inside.size:
+            hits.append((inside[0], f"hits obstacle {j} at ({cx:g}, {cy:g}) m"))
+    if prob.walls is not None:
+        r = prob.params.radius
+        for y, out in ((prob.walls[0], P[:, 1] - r < prob.walls[0]), (prob.walls[1], P[:, 1] + r > prob.walls[1])):
+            idx = np.flatnonzero(out)
+            if idx.size:
+                hits.append((idx[0], f"crosses the wall y = {y:g} m"))
+    return min(hits)[1] if hits else "collides"
 
 
 def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,

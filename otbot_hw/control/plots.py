@@ -7,12 +7,19 @@ import numpy as np
 
 from otbot_hw.motors import MOTORS, MotorLimits
 from otbot_hw.params import OtbotParams
-from otbot_hw.plots import _plt, draw_robot, plot_series
+from otbot_hw.plots import _plt, draw_robot, legend_with_robot, plot_series
+
+
+def _draw_surroundings(ax, spec, legend: bool = True) -> None:
+    """Obstacles (grey discs) and corridor walls (dark lines) of a scenario."""
+    for i, (cx, cy, r) in enumerate(spec.obstacles):
+        ax.add_patch(_plt().Circle((cx, cy), r, color="0.6", label="obstacle" if legend and i == 0 else None))
+    for i, wall in enumerate(getattr(spec, "walls", ())):
+        ax.plot(wall[:, 0], wall[:, 1], color="0.25", lw=2.5, label="corridor wall" if legend and i == 0 else None)
 
 
 def _xy_axes(ax, spec, run, params, open_loop=None, snapshots=6):
-    for cx, cy, r in spec.obstacles:
-        ax.add_patch(_plt().Circle((cx, cy), r, color="0.6"))
+    _draw_surroundings(ax, spec)
     ax.plot(run.p_ref[:, 0], run.p_ref[:, 1], "--", color="tab:green", lw=1.5, label="desired")
     if open_loop is not None:
         ax.plot(open_loop[1][:, 0], open_loop[1][:, 1], ":", color="tab:red", lw=1.5, label="open loop")
@@ -30,7 +37,7 @@ def _xy_axes(ax, spec, run, params, open_loop=None, snapshots=6):
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    legend_with_robot(ax, params, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
 
 
 def scenario_plots(out_dir: Path, spec, run, params: OtbotParams, limits: MotorLimits,
@@ -54,15 +61,16 @@ def scenario_plots(out_dir: Path, spec, run, params: OtbotParams, limits: MotorL
     fig, axes = plt.subplots(3, 1, figsize=(8, 6.5), sharex=True)
     tk = run.t[:-1]
     for i, ax in enumerate(axes):
-        ax.plot(tk, run.u_cmd[:, i], lw=0.8, color="tab:orange", label="commanded")
-        ax.plot(tk, run.u[:, i], lw=1, color="tab:blue", label="applied")
-        ax.plot(tk, run.u_traj[:, i], lw=0.8, color="tab:green", alpha=0.7, label="u_traj")
+        ax.plot(tk, run.u_cmd[:, i], lw=0.8, color="tab:orange", label="commanded (feedforward + feedback)")
+        ax.plot(tk, run.u[:, i], lw=1, color="tab:blue", label="applied (after the limiter)")
+        ax.plot(tk, run.u_traj[:, i], lw=0.8, color="tab:green", alpha=0.7, label="feedforward")
+        ax.plot(tk, run.u_corr[:, i], lw=0.8, color="tab:purple", alpha=0.7, label="feedback")
         lim = limits.max_torque[i]
         ax.axhline(lim, color="tab:red", ls="--", lw=1)
         ax.axhline(-lim, color="tab:red", ls="--", lw=1, label="limit")
         ax.set_ylabel(f"{MOTORS[i]}\n(N m)", fontsize=8)
         ax.grid(True, alpha=0.3)
-    axes[0].legend(loc="best", fontsize=7, ncol=4)
+    axes[0].legend(loc="best", fontsize=6, ncol=3)
     axes[0].set_title(f"{spec.name}: motor torques against limits")
     axes[-1].set_xlabel("t (s)")
     p = out_dir / f"{spec.name}_torques.png"
@@ -90,8 +98,7 @@ def animate_run(path: Path, spec, run, params: OtbotParams, fps: int = 10, max_f
 
     def draw(k):
         ax.clear()
-        for cx, cy, r in spec.obstacles:
-            ax.add_patch(plt.Circle((cx, cy), r, color="0.6"))
+        _draw_surroundings(ax, spec, legend=False)
         ax.plot(run.p_ref[:, 0], run.p_ref[:, 1], "--", color="tab:green", lw=1)
         ax.plot(run.x[:k + 1, 0], run.x[:k + 1, 1], color="tab:blue", lw=1)
         draw_robot(ax, run.x[k, :6], params)

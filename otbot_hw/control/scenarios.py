@@ -41,6 +41,9 @@ CSV_HOLD_S = 2.0
 LONG_RUN_S = 60.0     # simulated seconds beyond which a run reports its progress
 #: Paper friction values used by the friction robustness variant when the parameters have none.
 PAPER_FRICTION = {"b_w": 0.18, "b_p": 0.24}
+#: Half width of the narrow corridor's walls about its centre line, m. The paper gives no width; ours
+#: leaves 0.2 m on each side of the nominal 0.5 m footprint.
+CORRIDOR_HALF_WIDTH_M = 0.7
 FIGURE8_FORCES = (PivotForce(4.0, 1.0, 0.0, -150.0), PivotForce(8.0, 1.0, 200.0, 0.0),
                   PivotForce(11.0, 1.0, -350.0, 0.0))
 
@@ -58,6 +61,33 @@ class ScenarioSpec:
     open_loop_torques: np.ndarray | None = None      # (K, 3) N m held from open_loop_times[k]
     open_loop_times: np.ndarray | None = None
     info: dict = field(default_factory=dict)
+    walls: Sequence[np.ndarray] = ()                  # wall polylines, (k, 2) m each
+
+
+def offset_polyline(points, d: float) -> np.ndarray:
+    """The polyline ``points`` (k, 2) m moved sideways by ``d`` m (left of the direction of travel
+    for d > 0), with mitred corners: the wall of a corridor of half width |d|."""
+    pts = np.asarray(points, dtype=float)
+    seg = np.diff(pts, axis=0)
+    n = np.stack([-seg[:, 1], seg[:, 0]], axis=1) / np.linalg.norm(seg, axis=1)[:, None]
+    out = [pts[0] + d * n[0]]
+    for i in range(1, len(pts) - 1):
+        m = n[i - 1] + n[i]
+        out.append(pts[i] + d * m / (1.0 + n[i - 1] @ n[i]))
+    out.append(pts[-1] + d * n[-1])
+    return np.array(out)
+
+
+def wall_clearance(xy: np.ndarray, walls: Sequence[np.ndarray], footprint: float) -> float:
+    """Smallest distance (m) between the footprint (radius, m) around the pivot path ``xy`` (N, 2)
+    and the walls; < 0 means the footprint crossed a wall."""
+    best = np.inf
+    for wall in walls:
+        for a, b in zip(wall[:-1], wall[1:]):
+            ab = b - a
+            s = np.clip((xy - a) @ ab / (ab @ ab), 0.0, 1.0)
+            best = min(best, float(np.min(np.linalg.norm(xy - (a + s[:, None] * ab), axis=1))))
+    return best - footprint
 
 
 def corridor_spec(smooth: bool = False) -> ScenarioSpec:
@@ -66,7 +96,12 @@ def corridor_spec(smooth: bool = False) -> ScenarioSpec:
     kinds = ["start"] + ["corner"] * (len(ct) - 2) + ["stop"]
     # with smoothing there are no velocity steps to recover from: nothing to settle
     events = [] if smooth else [Event(float(t), k, float(t)) for t, k in zip(ct, kinds)]
-    return ScenarioSpec("corridor-smooth" if smooth else "corridor", ref, events)
+    centre = np.array(ref.waypoints, dtype=float)  # walls reach past both ends by the half width
+    for end, inner in ((0, 1), (-1, -2)):
+        d = centre[end] - centre[inner]
+        centre[end] += CORRIDOR_HALF_WIDTH_M * d / np.linalg.norm(d)
+    walls = [offset_polyline(centre, d) for d in (CORRIDOR_HALF_WIDTH_M, -CORRIDOR_HALF_WIDTH_M)]
+    return ScenarioSpec("corridor-smooth" if smooth else "corridor", ref, events, walls=walls)
 
 
 def figure8_spec() -> ScenarioSpec:
@@ -103,6 +138,9 @@ def build_spec(name: str, params: OtbotParams, limits: MotorLimits,
         spec = ScenarioSpec("planned", res.trajectory(hold=PLANNED_HOLD_S), [],
                             x0=res.x[0].copy(), obstacles=prob.obstacles_with_radius(),
                             open_loop_torques=res.u, open_loop_times=res.t[:-1], info={"planner": res.summary()})
+        if prob.walls is not None:
+            x0, x1 = min(prob.start[0], prob.goal[0]) - params.radius, max(prob.start[0], prob.goal[0]) + params.radius
+            spec.walls = [np.array([[x0, y], [x1, y]]) for y in prob.walls]
         return spec
     return csv_spec(name)
 
@@ -190,6 +228,8 @@ def summarize(spec: ScenarioSpec, run: ClosedLoopRun, limits: MotorLimits, param
     out["saturation"] = run.saturation
     if spec.obstacles:
         out["collisions"] = collisions(run.x[:, :3], run.t, spec.obstacles, params.radius)
+    if spec.walls:
+        out["min_wall_clearance_m"] = wall_clearance(run.x[:, :2], spec.walls, params.radius)
     return out
 
 
@@ -270,5 +310,6 @@ def demo_corridor(out_dir: Path, params: OtbotParams, limits: MotorLimits,
                   progress: Callable[[str], None] | None = None) -> dict:
     """The corridor scenario for ``otbot demo``: closed loop at 1 kHz, plots, no robustness reruns."""
     res = run_scenario("corridor", params, limits, robustness=False, plot_dir=Path(out_dir), progress=progress)
-    keep = ("max_abs_error", "rms_error", "peak_torque", "events", "saturation", "plots", "wall_time_s")
+    keep = ("rate_hz", "max_abs_error", "rms_error", "peak_torque", "events", "saturation", "min_wall_clearance_m",
+            "plots", "wall_time_s")
     return {k: res[k] for k in keep}

@@ -326,6 +326,8 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
         text = path.read_text()
     except OSError as exc:
         raise TrajectoryError(f"{path}: cannot read: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise TrajectoryError(f"{path}: not a text file; a trajectory is a CSV text file") from None
     obstacles = []
     for n, line in enumerate(text.splitlines(), start=1):
         if line.startswith("# obstacle:"):

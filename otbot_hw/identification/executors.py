@@ -11,10 +11,17 @@
 ``fn`` must be a module-level function (it is pickled to the workers) and each item
 self-contained. ``progress(done, total)`` is called as results come in. Use as a context
 manager or call ``close()``; executors are reusable for many ``map`` calls.
+
+Interrupts: local workers ignore SIGINT, so Ctrl-C (to the whole process group) or a SIGINT to
+the parent alone reaches only the parent. ``map`` then ends the work it started (local workers
+are terminated and the executor closed, Dask futures cancelled) before the ``KeyboardInterrupt``
+goes on; leaving the ``with`` block on any exception does the same instead of waiting for
+running items.
 """
 from __future__ import annotations
 
 import os
+import signal
 from typing import Any, Callable, Iterable
 
 Progress = Callable[[int, int], None] | None
@@ -34,11 +41,18 @@ class Executor:
     def close(self) -> None:
         pass
 
+    def abort(self) -> None:
+        """End all work now (nothing waits for running items); default: ``close``."""
+        self.close()
+
     def __enter__(self) -> "Executor":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
 
 
 class SerialExecutor(Executor):
@@ -56,6 +70,11 @@ class SerialExecutor(Executor):
         return out
 
 
+def _ignore_sigint() -> None:
+    """Worker initializer: interrupts are the parent's to handle (it terminates the workers)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class LocalExecutor(Executor):
     """A pool of local worker processes (``ProcessPoolExecutor``)."""
 
@@ -65,7 +84,7 @@ class LocalExecutor(Executor):
         from concurrent.futures import ProcessPoolExecutor
 
         self.workers = workers or os.cpu_count() or 1
-        self._pool = ProcessPoolExecutor(max_workers=self.workers)
+        self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_ignore_sigint)
 
     def describe(self) -> str:
         return f"{self.kind} ({self.workers} workers)"
@@ -74,16 +93,37 @@ class LocalExecutor(Executor):
         from concurrent.futures import as_completed
 
         items = list(items)
-        futs = {self._pool.submit(fn, it): i for i, it in enumerate(items)}
-        out: list[Any] = [None] * len(items)
-        for done, fut in enumerate(as_completed(futs), start=1):
-            out[futs[fut]] = fut.result()
-            if progress:
-                progress(done, len(items))
+        try:
+            futs = {self._pool.submit(fn, it): i for i, it in enumerate(items)}
+            out: list[Any] = [None] * len(items)
+            for done, fut in enumerate(as_completed(futs), start=1):
+                out[futs[fut]] = fut.result()
+                if progress:
+                    progress(done, len(items))
+        except BaseException:
+            self.abort()
+            raise
         return out
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def abort(self) -> None:
+        """Cancel queued items and terminate the workers (SIGTERM, then SIGKILL after 1 s)."""
+        terminate = getattr(self._pool, "terminate_workers", None)  # Python >= 3.14
+        if terminate is not None:
+            terminate()
+            return
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())  # no public handle before 3.14
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in procs:
+            proc.join(timeout=1.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout=1.0)
 
 
 class DaskExecutor(Executor):
@@ -112,12 +152,16 @@ class DaskExecutor(Executor):
 
         items = list(items)
         futs = self.client.map(fn, items, pure=False)
-        index = {f.key: i for i, f in enumerate(futs)}
-        out: list[Any] = [None] * len(items)
-        for done, fut in enumerate(as_completed(futs), start=1):
-            out[index[fut.key]] = fut.result()
-            if progress:
-                progress(done, len(items))
+        try:
+            index = {f.key: i for i, f in enumerate(futs)}
+            out: list[Any] = [None] * len(items)
+            for done, fut in enumerate(as_completed(futs), start=1):
+                out[index[fut.key]] = fut.result()
+                if progress:
+                    progress(done, len(items))
+        except BaseException:
+            self.client.cancel(futs)
+            raise
         return out
 
     def close(self) -> None:

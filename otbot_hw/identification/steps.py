@@ -88,6 +88,20 @@ def explain_unidentifiable(names: list[str], experiments: Sequence[Experiment]) 
     return None
 
 
+def check_guess(step: str, guess: Mapping[str, float], base: OtbotParams) -> None:
+    """``IdentificationError`` unless every guessed value of ``step`` lies within the fit's bounds
+    (cheap: callers check before simulating or loading anything)."""
+    from otbot_hw.params import UNITS
+
+    spec = PAPER_EXPERIMENTS[step]
+    bounds = platform_bounds(base)
+    for n, v in guess.items():
+        lo, hi = bounds.get(n, (-np.inf, np.inf))
+        if not lo <= v <= hi:
+            raise IdentificationError(f"guess {spec.symbol(n)} = {v:g} {UNITS.get(n, '')} lies outside its bounds "
+                                      f"[{lo:g}, {hi:g}]".replace("  ", " "))
+
+
 def _attempt_summary(label: str, fit: FitResult | None, error: str | None = None) -> dict[str, Any]:
     if fit is None:
         return {"start": label, "error": error}
@@ -108,6 +122,17 @@ def _spread_starts(step: str, base: OtbotParams) -> list[dict[str, float]]:
     return [{n: getattr(base, n) * f for n in spec.free} for f in (0.1, 10.0)]
 
 
+def check_fixtures(step: str, recordings: Sequence, names: Sequence[str], spec: ExperimentSpec | None = None) -> None:
+    """``IdentificationError`` when a recording's metadata names another fixture than the step needs."""
+    spec = spec or PAPER_EXPERIMENTS[step]
+    for name, rec in zip(names, recordings):
+        fixture = rec.metadata.get("fixture") if rec.metadata else None
+        if fixture is not None and fixture != spec.fixture:
+            raise IdentificationError(
+                f"{name}: recording was made on the '{fixture}' fixture, step {step} needs '{spec.fixture}' "
+                f"({spec.description})")
+
+
 def experiments_from_recordings(step: str, recordings: Sequence, base: OtbotParams,
                                 spec: ExperimentSpec | None = None, t_max: float | None = -1.0,
                                 sigma: Mapping[str, float] | None = None) -> list[Experiment]:
@@ -116,14 +141,10 @@ def experiments_from_recordings(step: str, recordings: Sequence, base: OtbotPara
     if not recordings:
         raise IdentificationError(f"step {step}: no recording given")
     tm = spec.duration if t_max == -1.0 else t_max
+    names = [f"{step}" if len(recordings) == 1 else f"{step}{i + 1}" for i in range(len(recordings))]
+    check_fixtures(step, recordings, names, spec)
     out = []
-    for i, rec in enumerate(recordings):
-        name = f"{step}" if len(recordings) == 1 else f"{step}{i + 1}"
-        fixture = rec.metadata.get("fixture") if rec.metadata else None
-        if fixture is not None and fixture != spec.fixture:
-            raise IdentificationError(
-                f"{name}: recording was made on the '{fixture}' fixture, step {step} needs '{spec.fixture}' "
-                f"({spec.description})")
+    for name, rec in zip(names, recordings):
         out.append(Experiment.from_recording(rec, spec.channels, name=name, fixture=spec.fixture, t_max=tm,
                                              sigma=sigma, geometry=base))
     return out
@@ -132,14 +153,16 @@ def experiments_from_recordings(step: str, recordings: Sequence, base: OtbotPara
 def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Mapping[str, float] | None = None,
                   global_start: bool = True, spec: ExperimentSpec | None = None, t_max: float | None = -1.0,
                   sigma: Mapping[str, float] | None = None, residual_tolerance: float | None = 1.5,
-                  max_nfev: int = 200, truth: OtbotParams | None = None) -> StepResult:
+                  max_nfev: int = 200, truth: OtbotParams | None = None, guess_first: bool = False) -> StepResult:
     """Identify the parameters of ``step`` from ``recordings`` (project format).
 
     base: all other parameters (known from the earlier steps); guess: initial guess of
     the free parameters (default: the paper's); global_start: also try the
     equation-error start and, if needed, spread starts (False: a single fit from
-    the guess, like the paper); truth: the simulated robot's parameters, for the report
-    (default: read from a simulated recording's metadata).
+    the guess, like the paper); guess_first: with global_start, fit from the guess before
+    the equation-error start (a guess the user gave is tried, not only kept as a fallback);
+    truth: the simulated robot's parameters, for the report (default: read from a
+    simulated recording's metadata).
     Raises ``IdentificationError`` / ``NotIdentifiableError`` for bad input.
     """
     t0 = time.perf_counter()
@@ -169,7 +192,7 @@ def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Map
             starts.append(("equation error", est))
         except IdentificationError as exc:
             attempts.append(_attempt_summary("equation error", None, str(exc)))
-    starts.append(("guess", g))
+    starts.insert(0 if guess_first else len(starts), ("guess", g))
     fits: list[FitResult] = []
 
     def run(label: str, start: dict[str, float]) -> FitResult:

@@ -1,0 +1,195 @@
+"""Checks of command-line input shared by every subcommand: numbers, durations, seeds, output paths.
+
+Number parsers are argparse ``type=`` callables: they raise ``argparse.ArgumentTypeError``, which
+``otbot_hw.cli.main`` prints as one line ``otbot CMD: error: argument --opt: must be ...`` with exit
+code 2. Each rejects what cannot be meant: NaN and infinity always, negative or zero values where
+the quantity cannot be (durations, rates, counts), non-integers for seeds and counts.
+
+Output paths follow one rule (README, "CLI reference"): **otbot creates the file or folder you name,
+never the folders above it.** The folder that will hold an output must already exist and be
+writable; a file output must not be an existing folder, a folder output must not be an existing
+file; an existing file is replaced. ``output_file`` / ``output_folder`` check this before the
+work starts (they create nothing that stays), and ``writing`` turns a file-system error that still
+happens while writing (disk full, a folder removed meanwhile) into the same one-line error.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, Iterator
+
+
+class CliError(Exception):
+    """Bad input to a command: printed as ``otbot CMD: error: ...`` with exit code 2."""
+
+
+# --- numbers (argparse types) -----------------------------------------------------------------------
+
+def number(*, minimum: float | None = None, above: float | None = None, maximum: float | None = None,
+           integer: bool = False, unit: str = "") -> Callable[[str], float | int]:
+    """argparse type: a finite number (an integer with ``integer``) within the given bounds.
+
+    minimum: smallest allowed value (inclusive); above: exclusive lower bound; maximum: inclusive
+    upper bound; unit: named in the message (e.g. "s", "Hz").
+    """
+    kind = "an integer" if integer else "a finite number"
+    if unit:
+        kind += f" of {unit}"
+    bounds = []
+    if above is not None:
+        bounds.append(f"> {above:g}")
+    if minimum is not None:
+        bounds.append(f">= {minimum:g}")
+    if maximum is not None:
+        bounds.append(f"<= {maximum:g}")
+    rule = f"must be {kind}" + (" " + " and ".join(bounds) if bounds else "")
+
+    def convert(text: str) -> float | int:
+        try:
+            value: float | int = int(text, 10) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{rule}, got {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{rule}, got {text!r}")
+        if ((above is not None and not value > above) or (minimum is not None and value < minimum)
+                or (maximum is not None and value > maximum)):
+            raise argparse.ArgumentTypeError(f"{rule}, got {text!r}")
+        return value
+
+    convert.__name__ = "integer" if integer else "number"
+    return convert
+
+
+#: A duration in s, > 0.
+duration = number(above=0, unit="seconds")
+#: A rate in Hz, > 0.
+rate = number(above=0, unit="Hz")
+#: A noise seed: an integer >= 0 (numpy's generators take no negative seeds).
+seed = number(minimum=0, integer=True)
+#: A finite number >= 0.
+non_negative = number(minimum=0)
+
+
+def count(minimum: int = 1, maximum: int | None = None) -> Callable[[str], int]:
+    """argparse type: an integer count in [minimum, maximum]."""
+    return number(minimum=minimum, maximum=maximum, integer=True)  # type: ignore[return-value]
+
+
+def positive_float(name: str | None = None) -> Callable[[str], float]:
+    """argparse type: a finite number > 0 (``name`` is kept for callers that pass it; argparse
+    already names the option in its message)."""
+    return number(above=0)  # type: ignore[return-value]
+
+
+#: Longest run a command accepts (samples); 10^7 samples of 12 states are about 1 GB.
+MAX_SAMPLES = 10_000_000
+
+
+def sample_count(duration_s: float, rate_hz: float, limit: int = MAX_SAMPLES) -> int:
+    """Number of control/sample periods in ``duration_s`` at ``rate_hz``; CliError when there is none
+    or more than ``limit``."""
+    n = int(round(duration_s * rate_hz))
+    if n < 1:
+        raise CliError(f"--duration {duration_s:g} s at {rate_hz:g} Hz is shorter than one period "
+                       f"({1 / rate_hz:g} s)")
+    if n > limit:
+        raise CliError(f"--duration {duration_s:g} s at {rate_hz:g} Hz gives {n} samples; at most {limit}")
+    return n
+
+
+def bus_config(config_path: Path | None, rate_hz: float | None = None):
+    """The hardware configuration (``drivers.config.RobotConfig``) with ``--rate`` applied; CliError
+    when the control period 1/rate cannot be programmed into the drives (0x60C2)."""
+    from drivers.cia402 import interpolation_period
+    from drivers.config import load_robot_config
+
+    cfg = load_robot_config(config_path)
+    if rate_hz is not None:
+        cfg = cfg.replace_bus(control_rate=rate_hz)
+    try:
+        interpolation_period(cfg.bus.period)
+    except ValueError as exc:
+        raise CliError(f"--rate {cfg.bus.control_rate:g} Hz: {exc}") from None
+    return cfg
+
+
+def parse_vector(text: str, n: int, name: str) -> list[float]:
+    """Parse 'a,b,c' into n finite floats or raise CliError naming the option."""
+    parts = [s.strip() for s in text.split(",")]
+    if len(parts) != n:
+        raise CliError(f"{name} needs {n} comma-separated numbers, got {text!r}")
+    out = []
+    for s in parts:
+        try:
+            v = float(s)
+        except ValueError:
+            raise CliError(f"{name}: {s!r} is not a number") from None
+        if not math.isfinite(v):
+            raise CliError(f"{name}: values must be finite, got {s!r}")
+        out.append(v)
+    return out
+
+
+# --- output paths -----------------------------------------------------------------------------------
+
+def _writable_folder(folder: Path, option: str, path: Path) -> None:
+    """CliError unless ``folder`` exists, is a folder and accepts a new file (tried, then removed)."""
+    if not folder.exists():
+        raise CliError(f"{option} {path}: folder {folder} does not exist (otbot creates no parent folders)")
+    if not folder.is_dir():
+        raise CliError(f"{option} {path}: {folder} is not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise CliError(f"{option} {path}: cannot write in folder {folder}: {exc.strerror}") from None
+
+
+def output_file(path: Path | str | None, option: str, suffix: str | None = None) -> Path | None:
+    """Check an output file before the work starts (see the module's rule); None passes through.
+
+    suffix: required file ending (e.g. ".gif"), compared case-insensitively.
+    """
+    if path is None:
+        return None
+    path = Path(path)
+    if suffix is not None and path.suffix.lower() != suffix:
+        raise CliError(f"{option} {path}: the file name must end in {suffix}")
+    if path.is_dir():
+        raise CliError(f"{option} {path}: is a folder; give a file name")
+    _writable_folder(path.parent if str(path.parent) else Path("."), option, path)
+    if path.exists() and not os.access(path, os.W_OK):
+        raise CliError(f"{option} {path}: the existing file is not writable")
+    return path
+
+
+def output_folder(path: Path | str | None, option: str) -> Path | None:
+    """Check an output folder before the work starts (see the module's rule); None passes through.
+
+    An existing folder must accept new files; a missing one is created by the writer, so its
+    parent must exist.
+    """
+    if path is None:
+        return None
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise CliError(f"{option} {path}: exists and is not a folder")
+    if path.is_dir():
+        _writable_folder(path, option, path)
+    else:
+        _writable_folder(path.parent if str(path.parent) else Path("."), option, path)
+    return path
+
+
+@contextlib.contextmanager
+def writing(what: str) -> Iterator[None]:
+    """Turn an ``OSError`` while writing outputs into ``CliError`` naming ``what`` and the file."""
+    try:
+        yield
+    except OSError as exc:
+        where = f": {exc.filename}" if exc.filename else ""
+        raise CliError(f"{what}: cannot write{where}: {exc.strerror or exc}") from None

@@ -1,0 +1,326 @@
+"""Every subcommand on bad input: exit code 2, exactly one line on stderr, no traceback, nothing on stdout.
+
+``BAD_INPUT`` is the table: one row per case, ``(command, argv, expected part of the message)``; argv
+may name the files of the ``files`` fixture as ``{ok}``, ``{missing}`` ... (see ``files``). A row
+whose command is not registered (a subcommand another branch adds) is skipped, so rows can be
+added before the command lands; ``test_unknown_option_names_the_subcommand_usage`` covers every
+registered command automatically. Most rows run in-process through ``otbot_hw.cli.main``; a few
+run the real ``python -m otbot_hw`` to show the console entry point behaves the same.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from otbot_hw.cli import SUBCOMMANDS, build_parser
+from otbot_hw.params import nominal
+from otbot_hw.recording import write_recording
+from otbot_hw.sensors import NoiseModel
+from otbot_hw.simulation.runs import simulated_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+
+BAD_INPUT = [
+    # --- demo
+    ("demo", "--seed -1", "argument --seed: must be an integer >= 0, got '-1'"),
+    ("demo", "--seed 1.5", "argument --seed: must be an integer >= 0"),
+    ("demo", "--out-dir {ok}", "exists and is not a folder"),
+    ("demo", "--out-dir {missing}/demo", "does not exist (otbot creates no parent folders)"),
+    # --- simulate
+    ("simulate", "--duration nan", "argument --duration: must be a finite number of seconds > 0, got 'nan'"),
+    ("simulate", "--duration inf", "argument --duration: must be a finite number of seconds > 0"),
+    ("simulate", "--duration 0", "argument --duration: must be a finite number of seconds > 0"),
+    ("simulate", "--duration -1", "argument --duration: must be a finite number of seconds > 0"),
+    ("simulate", "--duration 3s", "argument --duration: must be a finite number of seconds > 0"),
+    ("simulate", "--rate inf", "argument --rate: must be a finite number of Hz > 0"),
+    ("simulate", "--torques 1,x,3", "--torques: 'x' is not a number"),
+    ("simulate", "--torques 1,nan,3", "--torques: values must be finite"),
+    ("simulate", "--torques 1e9,0,0 --duration 0.1 --out {tmp}/diverged.mcap",
+     "the simulation diverged: the state is not finite from t = 0.01 s"),
+    ("simulate", "--seed -3", "argument --seed: must be an integer >= 0"),
+    ("simulate", "--params {missing}/p.yaml", "cannot read parameter file: No such file or directory"),
+    ("simulate", "--params {ok}", "not a text file"),
+    ("simulate", "--params {folder}", "cannot read parameter file"),
+    ("simulate", "--params {unreadable}", "Permission denied"),
+    ("simulate", "--out {missing}/run.mcap", "folder {missing} does not exist"),
+    ("simulate", "--out {ok}/run.mcap", "is not a folder"),
+    ("simulate", "--out {folder}", "is a folder; give a file name"),
+    ("simulate", "--plot {ok}", "exists and is not a folder"),
+    # --- identify
+    ("identify", "chassis --sim --seed -3", "argument --seed: must be an integer >= 0, got '-3'"),
+    ("identify", "chassis --sim --deviation nan", "argument --deviation: must be a finite number"),
+    ("identify", "chassis --sim --deviation -5", "argument --deviation: must be a finite number >= 0 and <= 1000"),
+    ("identify", "chassis --sim --load -5@0,0", "--load mass must be >= 0 kg, got -5"),
+    ("identify", "chassis --sim --load 5@inf,0", "--load position: values must be finite"),
+    ("identify", "chassis --sim --guess m_c=-5", "guess m_c = -5 kg lies outside its bounds"),
+    ("identify", "chassis --sim --guess m_c=heavy", "--guess m_c: 'heavy' is not a number"),
+    ("identify", "chassis --sim --guess m_p=5", "step chassis estimates m_c, I_c, x_B, y_B"),
+    ("identify", "chassis --recording {missing}/a.mcap", "no such file"),
+    ("identify", "chassis --recording {ok} {missing}/b.mcap", "b.mcap: no such file"),
+    ("identify", "chassis --recording {empty}", "empty file, expected an MCAP recording"),
+    ("identify", "chassis --recording {text}", "not an MCAP recording (the file does not start with the MCAP magic"),
+    ("identify", "chassis --recording {folder}", "is a folder, expected an MCAP recording file"),
+    ("identify", "chassis --recording {unreadable}", "cannot read: Permission denied"),
+    ("identify", "chassis --recording {cut_before_samples}", "truncated"),
+    ("identify", "wheel --recording {ok}", "recording was made on the 'floor' fixture, step wheel needs 'stand'"),
+    ("identify", "chassis --sim --out {missing}/p.yaml", "does not exist"),
+    ("identify", "chassis --sim --plot {ok}", "exists and is not a folder"),
+    ("identify", "chassis --sim --params {binary_yaml}", "not a text file"),
+    ("identify", "chassis", "one of the arguments --recording --sim is required"),
+    # --- sweep
+    ("sweep", "--points 0", "argument --points: must be an integer >= 1, got '0'"),
+    ("sweep", "--points many", "argument --points: must be an integer >= 1"),
+    ("sweep", "--seeds -2", "argument --seeds: must be an integer >= 1"),
+    ("sweep", "--max-deviation nan", "argument --max-deviation: must be a finite number > 0 and <= 1000"),
+    ("sweep", "--max-deviation 0", "argument --max-deviation: must be a finite number > 0"),
+    ("sweep", "--workers 0", "argument --workers: must be an integer >= 1"),
+    ("sweep", "--load heavy", "--load must look like KG@X,Y or KG@X,Y,I"),
+    ("sweep", "--plot {ok}", "exists and is not a folder"),
+    ("sweep", "--local-only --global-start", "not allowed with argument"),
+    ("sweep", "--guess m_p=5", "unrecognized arguments: --guess"),
+    # --- diagnose (generic input errors only; its own checks are tested with it)
+    ("diagnose", "{missing}/a.mcap", "no such file"),
+    ("diagnose", "{text}", "not an MCAP recording"),
+    ("diagnose", "{ok} --report {ok}", "exists and is not a folder"),
+    ("diagnose", "--demo --demo-dir {missing}/demo", "does not exist (otbot creates no parent folders)"),
+    # --- imu
+    ("imu", "parse {missing}/capture.bin", "cannot read: No such file or directory"),
+    ("imu", "parse {folder}", "is a directory"),
+    ("imu", "parse {ok} --limit -1", "argument --limit: must be an integer >= 0"),
+    ("imu", "parse {ok} --limit x", "argument --limit: must be an integer >= 0"),
+    ("imu", "read --duration 0", "argument --duration: must be a finite number of seconds > 0"),
+    ("imu", "read --duration nan", "argument --duration: must be a finite number of seconds > 0"),
+    ("imu", "read --sim --seed -1", "argument --seed: must be an integer >= 0"),
+    ("imu", "read --port {missing}/ttyUSB0", "cannot open"),
+    ("imu", "read --config {binary_yaml}", "not a text file"),
+    ("imu", "", "the following arguments are required: ACTION"),
+    # --- track
+    ("track", "{binary_csv} --sim", "not a text file; a trajectory is a CSV text file"),
+    ("track", "{ok} --sim", "not a text file"),
+    ("track", "{missing}/traj.csv --sim", "unknown scenario"),
+    ("track", "corridor --sim --tstab nan", "--tstab: values must be finite"),
+    ("track", "corridor --sim --tstab -1", "--tstab needs 1 or 3 numbers of seconds > 0"),
+    ("track", "corridor --sim --rate 0", "argument --rate: must be a finite number of Hz > 0"),
+    ("track", "corridor --sim --animate {missing}/a.gif", "does not exist"),
+    ("track", "corridor --sim --animate {tmp}/a.png", "the file name must end in .gif"),
+    ("track", "corridor --sim --plot {ok}", "exists and is not a folder"),
+    ("track", "corridor --sim --params {ok}", "not a text file"),
+    ("track", "corridor --sim --error-bounds 1,2", "--error-bounds needs 6 comma-separated numbers"),
+    # --- plan
+    ("plan", "--out {missing}/p.csv", "folder {missing} does not exist"),
+    ("plan", "--out {folder}", "is a folder; give a file name"),
+    ("plan", "--out {tmp}/p.csv --duration nan", "argument --duration: must be a finite number of seconds > 0"),
+    ("plan", "--out {tmp}/p.csv --duration -1", "argument --duration: must be a finite number of seconds > 0"),
+    ("plan", "--out {tmp}/p.csv --intervals x", "argument --intervals: must be an integer >= 4 and <= 400"),
+    ("plan", "--out {tmp}/p.csv --intervals 2", "argument --intervals: must be an integer >= 4"),
+    ("plan", "--out {tmp}/p.csv --max-speed inf", "argument --max-speed: must be a finite number > 0"),
+    ("plan", "--out {tmp}/p.csv --clearance -0.1", "argument --clearance: must be a finite number >= 0"),
+    ("plan", "--out {tmp}/p.csv --start 1,2", "--start needs 3 comma-separated numbers"),
+    ("plan", "--out {tmp}/p.csv --start -1,0,nan", "--start: values must be finite"),
+    ("plan", "--out {tmp}/p.csv --obstacle 1,2,nan", "--obstacle: values must be finite"),
+    ("plan", "--out {tmp}/p.csv --goal 3,3,0", "goal y = 3 m puts the footprint outside the walls"),
+    ("plan", "", "the following arguments are required: --out"),
+    # --- run
+    ("run", "--duration 0", "argument --duration: must be a finite number of seconds > 0"),
+    ("run", "--duration nan", "argument --duration: must be a finite number of seconds > 0"),
+    ("run", "--duration 1e9", "samples; at most"),
+    ("run", "--rate -1", "argument --rate: must be a finite number of Hz > 0"),
+    ("run", "--rate 0.3", "cannot be written as 0x60C2"),
+    ("run", "--seed -1", "argument --seed: must be an integer >= 0"),
+    ("run", "--torques nan,0,0", "--torques: values must be finite"),
+    ("run", "--out {missing}/r.mcap", "folder {missing} does not exist"),
+    ("run", "--plot {ok}", "exists and is not a folder"),
+    ("run", "--bus config --imu-port {missing}/ttyUSB0", "cannot open"),
+    ("run", "--config {binary_yaml}", "not a text file"),
+    # --- plant
+    ("plant", "--seed -1", "argument --seed: must be an integer >= 0"),
+    ("plant", "--rate 0", "argument --rate: must be a finite number of Hz > 0"),
+    ("plant", "--rate 0.5", "cannot be written as 0x60C2"),
+    ("plant", "--config {binary_yaml}", "not a text file"),
+    ("plant", "--transport socketcan --channel otbot-no-such-can", "cannot open the CAN interface"),
+    # --- the entry point itself
+    (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
+    (None, "", "the following arguments are required: COMMAND"),
+]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> dict[str, str]:
+    """Paths the table's argv may name: a valid recording and many broken inputs."""
+    d = tmp_path_factory.mktemp("bad-input")
+    ok = d / "ok.mcap"
+    write_recording(ok, simulated_recording(nominal(), np.tile([6.0, -10.0, 6.0], (20, 1)), 0.01, NoiseModel.paper()))
+    data = ok.read_bytes()
+    (d / "cut_before_samples.mcap").write_bytes(data[:data.index(b'{"t": 0.0') + 5])  # inside sample 0
+    (d / "empty.mcap").write_bytes(b"")
+    (d / "text.mcap").write_text("t,x,y\n0,0,0\n")
+    (d / "binary.csv").write_bytes(data[:4000])
+    (d / "binary.yaml").write_bytes(data[:4000])
+    (d / "folder").mkdir()
+    unreadable = d / "unreadable.mcap"
+    unreadable.write_bytes(data)
+    unreadable.chmod(0)
+    return {"tmp": str(d), "ok": str(ok), "missing": str(d / "missing"), "folder": str(d / "folder"),
+            "empty": str(d / "empty.mcap"), "text": str(d / "text.mcap"), "binary_csv": str(d / "binary.csv"),
+            "binary_yaml": str(d / "binary.yaml"), "unreadable": str(unreadable),
+            "cut_before_samples": str(d / "cut_before_samples.mcap")}
+
+
+def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:
+    assert rc == 2, (rc, err)
+    assert "Traceback" not in err, err
+    assert err.count("\n") == 1 and err.endswith("\n"), f"expected one line on stderr, got:\n{err}"
+    assert err.startswith("otbot"), err
+    assert expected in err, err
+    assert out == "", out
+
+
+def _skip_reason(command: str | None, argv: str) -> str | None:
+    if command is not None and command not in SUBCOMMANDS:
+        return f"otbot {command} is not on this branch"
+    if "{unreadable}" in argv and os.geteuid() == 0:
+        return "root reads files without read permission"
+    return None
+
+
+@pytest.mark.parametrize("command, argv, expected", BAD_INPUT,
+                         ids=[f"{c or 'otbot'} {a}".strip() for c, a, _ in BAD_INPUT])
+def test_bad_input_exits_2_with_one_line(command, argv, expected, files, otbot_cli):
+    reason = _skip_reason(command, argv)
+    if reason:
+        pytest.skip(reason)
+    args = ([command] if command else []) + [a.format(**files) for a in argv.split()]
+    rc, out, err = otbot_cli(args)
+    assert_one_line_error(rc, out, err, expected.format(**files))
+
+
+def _leaf_parsers():
+    """(name, parser) of every command that runs, e.g. ('imu parse', <parser>)."""
+    def walk(prefix, parser):
+        sub = parser._subparsers
+        if sub is None:
+            yield prefix, parser
+            return
+        for action in sub._group_actions:
+            for name, child in action.choices.items():
+                yield from walk(f"{prefix} {name}".strip(), child)
+    return list(walk("", build_parser()))
+
+
+@pytest.mark.parametrize("name", [n for n, _ in _leaf_parsers()])
+def test_unknown_option_names_the_subcommand_usage(name, otbot_cli):
+    needs = {"identify": ["chassis", "--sim"], "imu parse": ["capture.bin"], "plan": ["--out", "p.csv"],
+             "track": ["corridor", "--sim"]}
+    rc, out, err = otbot_cli([*name.split(), *needs.get(name, []), "--no-such-option"])
+    assert_one_line_error(rc, out, err, "unrecognized arguments: --no-such-option")
+    assert f"; usage: otbot {name} [-h]" in err and "usage: otbot [-h] COMMAND" not in err
+
+
+@pytest.mark.parametrize("name", [n for n, _ in _leaf_parsers()])
+def test_every_option_has_help_and_no_literal_percent_signs(name):
+    parser = dict(_leaf_parsers())[name]
+    missing = [a.option_strings[0] for a in parser._actions if a.option_strings and not a.help]
+    assert not missing, f"otbot {name}: options without help: {missing}"
+    text = parser.format_help()
+    assert "%%" not in text and "%(" not in text
+
+
+def test_demo_help_describes_every_stage():
+    text = " ".join(dict(_leaf_parsers())["demo"].format_help().split())
+    for stage in ("chassis experiment", "identification", "CANopen drivers", "narrow corridor"):
+        assert stage in text, stage
+
+
+# --- the console entry point: a real process behaves the same --------------------------------------
+
+def otbot(*args: str, **kw) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, "-m", "otbot_hw", *args], capture_output=True, text=True, env=env,
+                          timeout=120, **kw)
+
+
+@pytest.mark.parametrize("argv, expected", [
+    ("simulate --torques 1e9,0,0 --duration 0.1 --json", "the simulation diverged"),
+    ("plan --out {missing}/p.csv", "folder {missing} does not exist"),
+    ("imu parse {missing}/capture.bin", "cannot read: No such file or directory"),
+    ("run --no-such-option", "usage: otbot run"),
+])
+def test_entry_point_process_exits_2_with_one_line(argv, expected, files):
+    proc = otbot(*[a.format(**files) for a in argv.split()])
+    assert_one_line_error(proc.returncode, proc.stdout, proc.stderr, expected.format(**files))
+
+
+# --- interrupts ---------------------------------------------------------------------------------------
+
+def _children(pid: int) -> list[int]:
+    import psutil
+
+    return [c.pid for c in psutil.Process(pid).children(recursive=True)]
+
+
+def _alive(pids: list[int]) -> list[int]:
+    import psutil
+
+    out = []
+    for pid in pids:
+        try:
+            if psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
+                out.append(pid)
+        except psutil.NoSuchProcess:
+            pass
+    return out
+
+
+def _interrupt_when_busy(proc: subprocess.Popen, workers: int) -> tuple[float, list[int]]:
+    """Wait until ``workers`` child processes exist, SIGINT the parent alone; (seconds to exit, children)."""
+    deadline = time.monotonic() + 60
+    kids: list[int] = []
+    while time.monotonic() < deadline and len(kids) < workers:
+        time.sleep(0.1)
+        kids = _children(proc.pid)
+    assert len(kids) >= workers, f"workers never started: {kids}"
+    time.sleep(0.5)  # the workers are inside their first work items now
+    t0 = time.monotonic()
+    os.kill(proc.pid, signal.SIGINT)  # the parent only, not its process group
+    proc.wait(timeout=30)
+    return time.monotonic() - t0, kids
+
+
+def test_sigint_to_the_parent_ends_sweep_workers_and_exits_130():
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "sweep", "--points", "400", "--seeds", "8",
+                             "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env, start_new_session=True)
+    try:
+        elapsed, kids = _interrupt_when_busy(proc, 2)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    err = proc.stderr.read()
+    assert proc.returncode == 130, err
+    assert elapsed < 1.0, f"took {elapsed:.2f} s to exit after SIGINT"
+    assert err.strip().splitlines()[-1] == "otbot sweep: interrupted" and "Traceback" not in err
+    assert _alive(kids) == []
+
+
+def test_interrupted_local_executor_terminates_running_items():
+    """Items that would run 60 s: an interrupt ends them at once instead of waiting (library level)."""
+    code = ("import time; from otbot_hw.identification.executors import LocalExecutor\n"
+            "with LocalExecutor(2) as ex:\n    ex.map(time.sleep, [60, 60, 60])\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)), start_new_session=True)
+    try:
+        elapsed, kids = _interrupt_when_busy(proc, 2)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert elapsed < 1.0, f"took {elapsed:.2f} s to exit after SIGINT"
+    assert "KeyboardInterrupt" in proc.stderr.read()
+    assert _alive(kids) == []
