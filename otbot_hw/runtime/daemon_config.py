@@ -44,7 +44,7 @@ class ControlSocketConfig:
 
     path: Path | None = None
     allowed_users: tuple[str | int, ...] = ()
-    allowed_groups: tuple[str | int, ...] = ("otbot",)
+    allowed_groups: tuple[str | int, ...] = ("otbot-operators",)
     max_request: int = 65536
     max_clients: int = 32
     request_timeout: float = 5.0
