@@ -136,8 +136,8 @@ class Watchdog:
         now = time.monotonic() if now is None else now
         if self.last_ping is not None and now - self.last_ping < self.interval:
             return False
+        self.last_ping = now  # also after a failed send: retry next interval, not every cycle
         if self.notifier.watchdog():
-            self.last_ping = now
             self.pings += 1
             return True
         return False
