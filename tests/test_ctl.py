@@ -104,3 +104,22 @@ def test_no_daemon_is_one_line_and_exit_1(tmp_path):
     assert p.returncode == 1
     assert p.stderr.strip() == f"otbot ctl: no daemon at {tmp_path / 'none.sock'} (no such socket)"
     assert p.stdout == ""
+
+
+def test_socket_is_found_where_the_daemon_puts_it(tmp_path, monkeypatch, capsys):
+    from otbot_hw.runtime.daemon_config import default_socket_path, socket_candidates
+
+    env = {"RUNTIME_DIRECTORY": "/run/otbot:/run/other", "XDG_RUNTIME_DIR": "/run/user/1000"}
+    assert default_socket_path(env) == Path("/run/otbot/control.sock")
+    assert default_socket_path({"XDG_RUNTIME_DIR": "/run/user/1000"}) == Path("/run/user/1000/otbot/control.sock")
+    assert default_socket_path({}) == Path("/run/otbot/control.sock")
+    # a user's shell has XDG_RUNTIME_DIR but the system daemon lives in /run/otbot: both are tried
+    assert socket_candidates({"XDG_RUNTIME_DIR": "/run/user/1000"}) == [
+        Path("/run/otbot/control.sock"), Path("/run/user/1000/otbot/control.sock")]
+    # --config's daemon.socket.path (relative to the file) comes before the defaults
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text("daemon:\n  socket:\n    path: run/ctl.sock\n")
+    with pytest.raises(SystemExit) as e:
+        main(["ctl", "--config", str(cfg), "status"])
+    assert e.value.code == 1
+    assert capsys.readouterr().err.strip() == f"otbot ctl: no daemon at {tmp_path / 'run' / 'ctl.sock'} (no such socket)"

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -78,18 +77,14 @@ def register(subparsers) -> None:
 
 def socket_path(args: argparse.Namespace) -> Path:
     """--socket, else the configuration's daemon.socket.path, else the first existing default."""
-    from otbot_hw.runtime.daemon_config import SOCKET_NAME, load_daemon_config
+    from otbot_hw.runtime.daemon_config import load_daemon_config, socket_candidates
 
     if args.socket is not None:
         return args.socket
     configured = load_daemon_config(args.config).socket.path
     if configured is not None:
         return configured
-    env = os.environ
-    candidates = [Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / SOCKET_NAME] if env.get("RUNTIME_DIRECTORY") else []
-    candidates.append(Path("/run/otbot") / SOCKET_NAME)
-    if env.get("XDG_RUNTIME_DIR"):
-        candidates.append(Path(env["XDG_RUNTIME_DIR"]) / "otbot" / SOCKET_NAME)
+    candidates = socket_candidates()
     return next((c for c in candidates if c.exists()), candidates[0])
 
 

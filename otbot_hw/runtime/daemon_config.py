@@ -35,6 +35,18 @@ def default_socket_path(environ: dict | None = None) -> Path:
     return default_runtime_dir(environ) / SOCKET_NAME
 
 
+def socket_candidates(environ: dict | None = None) -> list[Path]:
+    """Where a client looks for the daemon's socket when told nowhere: the service's runtime
+    directory when the client runs inside it, the system daemon's ``/run/otbot``, then a user's
+    daemon under ``$XDG_RUNTIME_DIR`` (a client's environment is not the daemon's)."""
+    env = os.environ if environ is None else environ
+    out = [default_runtime_dir({"RUNTIME_DIRECTORY": env["RUNTIME_DIRECTORY"]})] if env.get("RUNTIME_DIRECTORY") else []
+    out.append(default_runtime_dir({}))
+    if env.get("XDG_RUNTIME_DIR"):
+        out.append(default_runtime_dir({"XDG_RUNTIME_DIR": env["XDG_RUNTIME_DIR"]}))
+    return [d / SOCKET_NAME for d in out]
+
+
 @dataclass(frozen=True)
 class ControlSocketConfig:
     """path (None: ``default_socket_path()``); allowed_users / allowed_groups: names or numeric ids
