@@ -482,3 +482,33 @@ def test_daemon_config_errors_name_the_key():
                        ({"sockets": {}}, "unknown key(s) ['sockets']")]:
         with pytest.raises(ParameterError, match=words.replace("[", r"\[").replace("]", r"\]").replace("(", r"\(").replace(")", r"\)")):
             daemon_config_from_dict(bad, "robot.yaml")
+
+
+def test_a_handler_may_close_the_server_and_its_reply_still_goes_out(sockdir):
+    class Closing(FakeHandler):
+        server = None
+
+        def shutdown(self, *, peer):
+            self._record("shutdown", peer)
+            self.server.close()  # from the dispatch thread, as a daemon's shutdown may
+            return {"bye": True}
+
+    h = Closing(slow={"hold": 0.3})
+    server, _ = serve(sockdir, handler=h)
+    h.server = server
+    c1 = ControlClient(server.path)
+    results = {}
+    t = threading.Thread(target=lambda: results.setdefault("hold", c1.request("hold")))
+    t.start()
+    time.sleep(0.05)
+    with ControlClient(server.path) as c2:
+        assert c2.request("shutdown") == {"bye": True}  # queued behind hold, answered after it
+    t.join(3)
+    c1.close()
+    assert results["hold"] == {"accepted": "hold"}
+    deadline = time.monotonic() + 3
+    while server.path.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not server.path.exists()
+    assert not any(th.is_alive() for th in server._threads if th is not threading.current_thread())
+    assert h.commands() == ["hold", "shutdown"]

@@ -26,6 +26,7 @@ import grp
 import itertools
 import json
 import logging
+import math
 import os
 import pwd
 import queue
@@ -129,7 +130,8 @@ class CommandHandler(Protocol):
     ``CommandRefused`` to refuse in the current state; any other exception is an ``internal``
     error (logged). ``status`` must satisfy ``control_protocol.STATUS_REQUIRED``. ``estop`` is
     called from the I/O thread (see the module docstring); every other method from the dispatch
-    thread, one at a time."""
+    thread, one at a time. A method may call ``ControlServer.close()`` (``shutdown`` does): the
+    requests already queued are still carried out and every reply, its own included, goes out."""
 
     def status(self, *, peer: Peer) -> dict: ...
     def enable(self, *, peer: Peer) -> dict: ...
@@ -278,6 +280,8 @@ class ControlServer:
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._stop = threading.Event()
+        self._dispatch_done = False
+        self._deadline = math.inf
         self._threads: list[threading.Thread] = []
         self._listener: socket.socket | None = None
         self._inode: tuple[int, int] | None = None
@@ -297,16 +301,22 @@ class ControlServer:
         return self
 
     def close(self, timeout: float = 2.0) -> None:
-        """Stop serving and remove the socket file (only if it is still ours). Safe to call from
-        a handler (it does not wait for the calling thread)."""
+        """Stop serving and remove the socket file (only if it is still ours). New connections and
+        requests are no longer taken; requests already queued are carried out and their replies
+        sent (within ``timeout`` s), so a handler may call this, e.g. from ``shutdown``, and its
+        own reply still goes out. It does not wait for the thread it is called from."""
         if self._stop.is_set():
             return
         self._stop.set()
-        self._dispatch.put(None)
+        self._deadline = time.monotonic() + timeout
+        self._dispatch.put(None)  # after everything queued
         self._wake()
+        if threading.current_thread() in self._threads:
+            return  # called by the handler: the threads finish once its reply is out
         for t in self._threads:
-            if t is not threading.current_thread():
-                t.join(timeout)
+            t.join(timeout + 0.5)
+
+    def _remove_socket_file(self) -> None:
         try:
             st = self.path.lstat()
             if (st.st_dev, st.st_ino) == self._inode:
@@ -329,7 +339,7 @@ class ControlServer:
     # -- I/O thread ------------------------------------------------------------------------
     def _io_loop(self) -> None:
         try:
-            while not self._stop.is_set():
+            while not self._finished():
                 for key, events in self._sel.select(timeout=0.5):
                     if key.data == "listen":
                         self._accept()
@@ -357,6 +367,7 @@ class ControlServer:
             self._sel.close()
             if self._listener is not None:
                 self._listener.close()
+            self._remove_socket_file()
             self._wake_r.close()
 
     def _accept(self) -> None:
@@ -465,8 +476,26 @@ class ControlServer:
         if not conn.outbuf and conn.closing:
             self._drop(cid)
             return
-        want = selectors.EVENT_READ | (selectors.EVENT_WRITE if conn.outbuf else 0)
-        self._sel.modify(conn.sock, want, cid)
+        self._interest(cid, conn)
+
+    def _interest(self, cid: int, conn: _Connection) -> None:
+        """Read while serving, write while replies are pending; nothing once closing and idle
+        (so a closing server does not spin on sockets it no longer reads)."""
+        want = (0 if self._stop.is_set() else selectors.EVENT_READ) | (selectors.EVENT_WRITE if conn.outbuf else 0)
+        registered = self._registered(conn)
+        if want and registered:
+            self._sel.modify(conn.sock, want, cid)
+        elif want:
+            self._sel.register(conn.sock, want, cid)
+        elif registered:
+            self._sel.unregister(conn.sock)
+
+    def _registered(self, conn: _Connection) -> bool:
+        try:
+            self._sel.get_key(conn.sock)
+            return True
+        except KeyError:
+            return False
 
     def _drop(self, cid: int) -> None:
         conn = self._conns.pop(cid, None)
@@ -485,12 +514,28 @@ class ControlServer:
                 conn.inbuf.clear()
                 conn.started = None
 
+    def _finished(self) -> bool:
+        """Closing, and every queued reply is written (or the close timeout has passed)."""
+        if not self._stop.is_set():
+            return False
+        if self._listener is not None and self._listener.fileno() >= 0:
+            self._sel.unregister(self._listener)
+            self._listener.close()  # no new connections: clients now get "connection refused"
+            for cid, conn in list(self._conns.items()):
+                self._interest(cid, conn)
+        pending = any(c.outbuf for c in self._conns.values())
+        return (self._dispatch_done and not pending) or time.monotonic() > self._deadline
+
     def _deliver_replies(self) -> None:
         while True:
             try:
-                cid, data = self._replies.get_nowait()
+                item = self._replies.get_nowait()
             except queue.Empty:
                 return
+            if item is None:  # the dispatch thread has finished
+                self._dispatch_done = True
+                continue
+            cid, data = item
             conn = self._conns.get(cid)
             if conn is not None:  # a client that left before its reply: the reply is dropped
                 conn.in_flight -= 1
@@ -500,7 +545,9 @@ class ControlServer:
     def _dispatch_loop(self) -> None:
         while True:
             item = self._dispatch.get()
-            if item is None or self._stop.is_set():
+            if item is None:
+                self._replies.put(None)
+                self._wake()
                 return
             cid, req, peer = item
             self._replies.put((cid, self._call(req, peer)))
