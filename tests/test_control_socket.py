@@ -512,3 +512,25 @@ def test_a_handler_may_close_the_server_and_its_reply_still_goes_out(sockdir):
     assert not server.path.exists()
     assert not any(th.is_alive() for th in server._threads if th is not threading.current_thread())
     assert h.commands() == ["hold", "shutdown"]
+
+
+def test_a_client_that_floods_and_never_reads_does_not_make_the_server_spin(sockdir):
+    server, h = serve(sockdir, max_request=4096)
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.setblocking(False)
+    s.connect(str(server.path))
+    try:
+        try:
+            for _ in range(64):
+                s.send(b"x" * 65536)  # never a newline, never reads the reply
+        except (BlockingIOError, BrokenPipeError, ConnectionResetError):
+            pass
+        cpu0 = sum(os.times()[:2])
+        time.sleep(0.5)
+        used = sum(os.times()[:2]) - cpu0
+        with ControlClient(server.path) as c:
+            assert c.request("status")["mode"] == "idle"
+    finally:
+        s.close()
+        server.close()
+    assert used < 0.15, f"the server used {used:.2f} s of CPU in 0.5 s while one client flooded it"

@@ -479,9 +479,10 @@ class ControlServer:
         self._interest(cid, conn)
 
     def _interest(self, cid: int, conn: _Connection) -> None:
-        """Read while serving, write while replies are pending; nothing once closing and idle
-        (so a closing server does not spin on sockets it no longer reads)."""
-        want = (0 if self._stop.is_set() else selectors.EVENT_READ) | (selectors.EVENT_WRITE if conn.outbuf else 0)
+        """Read while serving, write while replies are pending; no reading from a connection
+        being closed or once the server is closing (so it never spins on unread sockets)."""
+        reading = not (self._stop.is_set() or conn.closing)
+        want = (selectors.EVENT_READ if reading else 0) | (selectors.EVENT_WRITE if conn.outbuf else 0)
         registered = self._registered(conn)
         if want and registered:
             self._sel.modify(conn.sock, want, cid)
