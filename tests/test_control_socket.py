@@ -520,11 +520,18 @@ def test_a_client_that_floods_and_never_reads_does_not_make_the_server_spin(sock
     s.setblocking(False)
     s.connect(str(server.path))
     try:
-        try:
-            for _ in range(64):
-                s.send(b"x" * 65536)  # never a newline, never reads the reply
-        except (BlockingIOError, BrokenPipeError, ConnectionResetError):
-            pass
+        # replies it never reads fill its receive buffer and the server's output queue, then a
+        # line too long: the server must close it without reading on (its data stay unread)
+        pending = b"x\n" * 6000 + b"y" * 200_000
+        deadline = time.monotonic() + 3
+        while pending and time.monotonic() < deadline:
+            try:
+                pending = pending[s.send(pending):]
+            except BlockingIOError:
+                time.sleep(0.01)
+            except (BrokenPipeError, ConnectionResetError):
+                break
+        time.sleep(0.1)
         cpu0 = sum(os.times()[:2])
         time.sleep(0.5)
         used = sum(os.times()[:2]) - cpu0
