@@ -24,7 +24,7 @@ from otbot_hw.model.kinematics import constraint_jacobian  # noqa: E402
 from otbot_hw.params import nominal  # noqa: E402
 from otbot_hw.robot import Fault  # noqa: E402
 from otbot_hw.runtime.telemetry import (  # noqa: E402
-    TelemetrySample, TelemetryServer, chassis_in_platform, parse_host_port, wrap_angle)
+    TelemetryError, TelemetrySample, TelemetryServer, chassis_in_platform, parse_host_port, wrap_angle)
 
 TOPICS = {"/tf", "/otbot/log", "/otbot/joints", "/otbot/torques", "/otbot/tracking_error", "/otbot/estimate",
           "/otbot/status"}
@@ -229,3 +229,8 @@ def test_host_port():
     for bad in ("host:port", ":80", "h:70000", "[::1"):
         with pytest.raises(ValueError, match="telemetry address"):
             parse_host_port(bad)
+
+
+def test_a_taken_port_is_one_sentence(telemetry):
+    with pytest.raises(TelemetryError, match=f"cannot serve telemetry on 127.0.0.1:{telemetry.port}: .*in use"):
+        TelemetryServer(port=telemetry.port)

@@ -67,6 +67,10 @@ _SCHEMAS: dict[str, tuple[str, dict]] = {
 }
 
 
+class TelemetryError(RuntimeError):
+    """The telemetry server cannot start (port in use, unknown host); the message says which."""
+
+
 @dataclass(frozen=True)
 class TelemetrySample:
     """One loop cycle as telemetry sees it. t: loop time (s); joint_pos (3,) rad, joint_vel (3,)
@@ -198,8 +202,12 @@ class TelemetryServer:
             name=name_, encoding="jsonschema", data=_json_bytes(schema)), message_encoding="json")
             for topic, (name_, schema) in _SCHEMAS.items()}
         self.listener = _Listener()
-        self.server = foxglove.start_server(name=name, host=host, port=port, capabilities=[], services=None,
-                                            server_listener=self.listener, context=self.context)
+        try:
+            self.server = foxglove.start_server(name=name, host=host, port=port, capabilities=[], services=None,
+                                                server_listener=self.listener, context=self.context)
+        except RuntimeError as exc:  # FoxgloveError: port in use, unknown host
+            raise TelemetryError(f"cannot serve telemetry on {host}:{port}: "
+                                 f"{str(exc).removeprefix('FoxgloveError: ')}") from None
         self.host = host
         self.port = self.server.port
         self.state = _State()
