@@ -285,7 +285,8 @@ class ControlServer:
         self._threads: list[threading.Thread] = []
         self._listener: socket.socket | None = None
         self._inode: tuple[int, int] | None = None
-        self.counters = {"connections": 0, "requests": 0, "errors": 0, "refused_clients": 0}
+        #: what the server has seen; ``polls`` counts wake-ups of the I/O thread (about 2/s when idle)
+        self.counters = {"connections": 0, "requests": 0, "errors": 0, "refused_clients": 0, "polls": 0}
 
     # -- life cycle --------------------------------------------------------------------------
     def start(self) -> "ControlServer":
@@ -340,6 +341,7 @@ class ControlServer:
     def _io_loop(self) -> None:
         try:
             while not self._finished():
+                self.counters["polls"] += 1
                 for key, events in self._sel.select(timeout=0.5):
                     if key.data == "listen":
                         self._accept()
