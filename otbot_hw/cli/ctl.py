@@ -92,7 +92,7 @@ def request_args(args: argparse.Namespace) -> dict:
     cmd = args.ctl_command
     if cmd == "track":
         t = args.target
-        is_file = "/" in t or t.lower().endswith(".csv") or Path(t).exists()
+        is_file = "/" in t or t.lower().endswith(".csv")
         return {"target": str(Path(t).resolve()) if is_file else t}
     if cmd == "velocity":
         return {"vx": args.vx, "vy": args.vy, "wz": args.wz}
