@@ -1,0 +1,187 @@
+"""``otbot ctl``: command the on-robot daemon over its control socket (``docs/daemon.md``).
+
+Exit codes: 0 done; 2 bad input (arguments, or the daemon's reply says the request was bad:
+``control_protocol.BAD_INPUT_CODES``); 1 for everything that is not the caller's input: no daemon
+at the socket, not allowed, refused in the daemon's state, internal failure. A missing daemon is
+a failure to carry out a well-formed command, not bad input, hence 1.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from otbot_hw.cli import CliError
+
+_SUPPRESS = argparse.SUPPRESS
+
+
+def _common(p: argparse.ArgumentParser, top: bool) -> None:
+    p.add_argument("--socket", type=Path, default=None if top else _SUPPRESS,
+                   help="control socket of the daemon (default: daemon.socket.path of --config, else the first "
+                        "existing of $RUNTIME_DIRECTORY/control.sock, /run/otbot/control.sock, "
+                        "$XDG_RUNTIME_DIR/otbot/control.sock)")
+    p.add_argument("--config", type=Path, default=None if top else _SUPPRESS,
+                   help="hardware configuration whose daemon.socket.path to use (default config/robot.yaml)")
+    p.add_argument("--timeout", type=float, default=5.0 if top else _SUPPRESS,
+                   help="seconds to wait for the daemon's reply (default 5)")
+    p.add_argument("--json", action="store_true", default=False if top else _SUPPRESS,
+                   help="print the daemon's reply (its result) as one JSON object")
+
+
+def _finite(name: str, unit: str):
+    def conv(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number in {unit}, got {text!r}") from None
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"{name} must be finite, got {text!r}")
+        return v
+    return conv
+
+
+def register(subparsers) -> None:
+    from otbot_hw.runtime.control_protocol import COMMANDS, RECORD_ACTIONS
+
+    p = subparsers.add_parser(
+        "ctl", help="command the on-robot daemon (status, enable, track, velocity, estop, ...)",
+        description="Send one command to the running daemon (otbot daemon) over its Unix control socket and "
+                    "print the reply. status is open to every local user who can reach the socket; the other "
+                    "commands need a user or group allowed by daemon.socket in config/robot.yaml. Units: "
+                    "velocities in m/s and rad/s (the platform twist x_dot, y_dot, alpha_dot in the ground "
+                    "frame B), poses in m and rad, times in s. Exit 0 done, 2 bad input, 1 not done (no "
+                    "daemon, not allowed, refused, failed).")
+    _common(p, top=True)
+    sub = p.add_subparsers(dest="ctl_command", metavar="COMMAND")
+    sub.required = True
+    for name, (_, what) in COMMANDS.items():
+        c = sub.add_parser(name, help=what, description=what[:1].upper() + what[1:] + ".")
+        _common(c, top=False)
+        if name == "track":
+            c.add_argument("target", metavar="NAME|FILE",
+                           help="a scenario (corridor, corridor-smooth, figure8, planned) or a trajectory CSV "
+                                "(otbot plan --out; t in s, x, y in m, alpha in rad)")
+        elif name == "velocity":
+            c.add_argument("vx", type=_finite("VX", "m/s"), metavar="VX", help="x_dot, m/s (ground frame B)")
+            c.add_argument("vy", type=_finite("VY", "m/s"), metavar="VY", help="y_dot, m/s (ground frame B)")
+            c.add_argument("wz", type=_finite("WZ", "rad/s"), metavar="WZ", help="alpha_dot, rad/s")
+        elif name == "excite":
+            c.add_argument("path", metavar="FILE", help="torque sequence: a recording (.mcap; its /otbot/command "
+                                                        "torques in N m) or a CSV (t in s, tau_r, tau_l, tau_p in N m)")
+        elif name == "record":
+            c.add_argument("action", choices=RECORD_ACTIONS, help="start or stop the session recording")
+    p.set_defaults(func=ctl)
+
+
+def socket_path(args: argparse.Namespace) -> Path:
+    """--socket, else the configuration's daemon.socket.path, else the first existing default."""
+    from otbot_hw.runtime.daemon_config import load_daemon_config, socket_candidates
+
+    if args.socket is not None:
+        return args.socket
+    configured = load_daemon_config(args.config).socket.path
+    if configured is not None:
+        return configured
+    candidates = socket_candidates()
+    return next((c for c in candidates if c.exists()), candidates[0])
+
+
+def request_args(args: argparse.Namespace) -> dict:
+    cmd = args.ctl_command
+    if cmd == "track":
+        t = args.target
+        is_file = "/" in t or t.lower().endswith(".csv")
+        return {"target": str(Path(t).resolve()) if is_file else t}
+    if cmd == "velocity":
+        return {"vx": args.vx, "vy": args.vy, "wz": args.wz}
+    if cmd == "excite":
+        return {"path": str(Path(args.path).resolve())}
+    if cmd == "record":
+        return {"action": args.action}
+    return {}
+
+
+def _fail(message: str) -> None:
+    print(f"otbot ctl: {message}", file=sys.stderr)
+    raise SystemExit(1)
+
+
+def ctl(args: argparse.Namespace) -> dict:
+    from otbot_hw.runtime.control_protocol import BAD_INPUT_CODES
+    from otbot_hw.runtime.control_socket import ControlClient, ControlError, DaemonUnreachable
+
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        raise CliError(f"--timeout must be a number of seconds > 0, got {args.timeout}")
+    cmd = args.ctl_command
+    path = socket_path(args)
+    try:
+        with ControlClient(path, timeout=args.timeout) as client:
+            result = client.request(cmd, request_args(args))
+    except DaemonUnreachable as exc:
+        _fail(str(exc))
+    except ControlError as exc:
+        if exc.code in BAD_INPUT_CODES:
+            raise CliError(f"{cmd}: {exc}") from None
+        _fail(f"{cmd} {exc.code}: {exc}")
+    result = result if result is not None else {}
+    if not args.json:
+        print(format_status(result) if cmd == "status" else format_reply(cmd, result))
+    return result
+
+
+def _num(v, fmt: str = "{:.4f}") -> str:
+    return fmt.format(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else "?"
+
+
+def format_fault(f) -> str:
+    if isinstance(f, dict):
+        where = f.get("device", "?") + (f" (node {f['node']})" if f.get("node") is not None else "")
+        code = f" 0x{f['code']:04X}" if isinstance(f.get("code"), int) else ""
+        return f"{where}: {f.get('kind', 'fault')}{code}: {f.get('meaning', '')}".rstrip(": ")
+    return str(f)
+
+
+def format_status(s: dict) -> str:
+    """The ``status`` result as aligned lines (SI units; ms for loop timing, mm/mrad for errors)."""
+    lines = [("mode", str(s.get("mode", "?")))]
+    loop = s.get("loop")
+    if isinstance(loop, dict):
+        per, jit = loop.get("period") or {}, loop.get("jitter") or {}
+        ms = lambda v: _num(v * 1e3 if isinstance(v, (int, float)) else v, "{:.3f}")  # noqa: E731
+        lines.append(("loop", f"{_num(loop.get('rate'), '{:.1f}')} Hz: period p50 {ms(per.get('p50'))} ms, "
+                              f"p99 {ms(per.get('p99'))} ms; jitter p99 {ms(jit.get('p99'))} ms, max "
+                              f"{ms(jit.get('max'))} ms; overruns {loop.get('overruns', '?')} in "
+                              f"{loop.get('cycles', '?')} cycles"))
+    pose = s.get("pose")
+    if isinstance(pose, dict):
+        std = pose.get("std") or [None] * 3
+        lines.append(("pose", f"x {_num(pose.get('x'))} ± {_num(std[0])} m, y {_num(pose.get('y'))} ± "
+                              f"{_num(std[1])} m, alpha {_num(pose.get('alpha'))} ± {_num(std[2])} rad"))
+    else:
+        lines.append(("pose", "no estimate"))
+    err = s.get("tracking_error")
+    if isinstance(err, dict):
+        k = lambda v: _num(v * 1e3 if isinstance(v, (int, float)) else v, "{:.1f}")  # noqa: E731
+        lines.append(("tracking", f"error x {k(err.get('x'))} mm, y {k(err.get('y'))} mm, "
+                                  f"alpha {k(err.get('alpha'))} mrad"))
+    faults = s.get("faults") or []
+    lines.append(("faults", "none" if not faults else format_fault(faults[0])))
+    lines += [("", format_fault(f)) for f in faults[1:]]
+    drives = s.get("drive_states") or {}
+    lines.append(("drives", ", ".join(f"{k} {v}" for k, v in drives.items()) or "none reported"))
+    rec = s.get("recording")
+    if isinstance(rec, dict) and rec.get("path"):
+        size = rec.get("bytes")
+        extra = [f"{rec['samples']} samples" if "samples" in rec else None,
+                 f"{size / 2 ** 20:.1f} MiB" if isinstance(size, (int, float)) else None]
+        lines.append(("recording", f"{rec['path']}" + (f" ({', '.join(e for e in extra if e)})" if any(extra) else "")))
+    else:
+        lines.append(("recording", "off"))
+    return "\n".join(f"{k:<10} {v}" for k, v in lines)
+
+
+def format_reply(cmd: str, result: dict) -> str:
+    extra = ", ".join(f"{k} {v}" for k, v in result.items()) if isinstance(result, dict) else str(result)
+    return f"{cmd}: ok" + (f" ({extra})" if extra else "")

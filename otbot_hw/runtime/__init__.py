@@ -1,0 +1,1 @@
+"""The runtime: loop runner and on-robot daemon parts."""

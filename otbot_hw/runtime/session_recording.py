@@ -1,0 +1,162 @@
+"""A recording session that spans files: the daemon records all day, in the project's format
+(``otbot_hw.recording``), rotating by size or by time.
+
+Files are ``<dir>/<session>-<index>.mcap`` (index 000, 001, ...); each is a complete recording
+of its own (metadata, channels, samples), with ``session`` metadata {id, index, previous file,
+rate} so the pieces can be found and put back in order. Sample times run on across the files of
+a session (the loop's time), so concatenating them gives the whole session. The latest event of
+each kind in ``carry_kinds`` (the mode) is repeated at the start of the next file, so every
+file says what the robot was doing.
+
+Durability: ``RecordingWriter`` flushes every ``rate * flush_interval`` samples and this class
+also flushes when ``flush_interval`` s of sample time have passed since the last flush (a slower
+loop), so a process killed at any instant loses at most ``flush_interval`` (<= 1 s) of samples;
+events are flushed as they are written. Files closed by rotation or ``close()`` are complete;
+the one open at a crash loads as a truncated recording (``read_recording``).
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any, Iterable
+
+from otbot_hw.recording import TOPIC_COMMAND, TOPIC_EVENTS, RecordingError, RecordingWriter
+
+
+def new_session_id() -> str:
+    """UTC start time and pid, e.g. ``20260510T143000Z-1234``: sorts by time, unique per process."""
+    return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + f"-{os.getpid()}"
+
+
+class SessionRecording:
+    """Streams samples and events into rotating files; the same calls as ``RecordingWriter``
+    (``write_sample``, ``write_event``, ``flush``, ``close``), so the loop's recorder can write
+    into either. ``rate`` Hz: the loop rate (sets the flush period in samples); ``rotate_size``
+    bytes and ``rotate_time`` s (of sample time) per file; ``flush_interval`` s (<= 1)."""
+
+    def __init__(self, directory: str | Path, metadata: dict[str, Any], topics: Iterable[str] = (), *,
+                 rate: float, rotate_size: int = 512 * 2 ** 20, rotate_time: float = 3600.0,
+                 flush_interval: float = 1.0, session_id: str | None = None,
+                 carry_kinds: tuple[str, ...] = ("mode",)):
+        if not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f"rate must be a number of Hz > 0, got {rate}")
+        if not 0 < flush_interval <= 1.0:
+            raise ValueError(f"flush_interval must be in (0, 1] s, got {flush_interval}")
+        if not (rotate_size > 0 and rotate_time > 0):
+            raise ValueError(f"rotate_size and rotate_time must be > 0, got {rotate_size}, {rotate_time}")
+        self.directory = Path(directory)
+        try:
+            self.directory.mkdir(mode=0o750, parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RecordingError(f"{self.directory}: cannot create the recording folder: {exc.strerror}") from None
+        self.metadata = dict(metadata)
+        self.topics = tuple(dict.fromkeys([*topics, TOPIC_EVENTS]))
+        self.rate = float(rate)
+        self.rotate_size = int(rotate_size)
+        self.rotate_time = float(rotate_time)
+        self.flush_interval = float(flush_interval)
+        self.flush_every = max(1, int(self.rate * self.flush_interval))
+        self.session_id = session_id or new_session_id()
+        self.carry_kinds = tuple(carry_kinds)
+        self.files: list[Path] = []
+        self.samples = 0
+        self._carried: dict[str, tuple[str, dict]] = {}
+        self._writer: RecordingWriter | None = None
+        self._file_t0: float | None = None
+        self._flushed_t: float | None = None
+        self._size = 0
+        self._closed = False
+        self._carry_pending = False
+        self._open_next()
+
+    # -- files -------------------------------------------------------------------------------
+    @property
+    def path(self) -> Path:
+        """The file being written."""
+        return self.files[-1]
+
+    def _open_next(self) -> None:
+        index = len(self.files)
+        path = self.directory / f"{self.session_id}-{index:03d}.mcap"
+        if path.exists():
+            raise RecordingError(f"{path}: already exists; a session never overwrites a recording")
+        meta = {**self.metadata, "session": {"id": self.session_id, "index": index, "rate": self.rate,
+                                             "previous": self.files[-1].name if self.files else None}}
+        try:
+            self._writer = RecordingWriter(path, meta, self.topics, flush_every=self.flush_every)
+        except OSError as exc:
+            raise RecordingError(f"{path}: cannot write: {exc.strerror}") from None
+        self.files.append(path)
+        self._file_t0 = None
+        self._size = 0
+
+    def rotate(self, t: float | None = None) -> Path:
+        """Close the current file and start the next one now; carried events are repeated at
+        ``t`` (s; default: the next sample's time). Returns the new file's path."""
+        self._writer.close()
+        self._open_next()
+        if t is not None:
+            self._carry(t)
+        else:
+            self._carry_pending = True
+        return self.path
+
+    def _carry(self, t: float) -> None:
+        self._carry_pending = False
+        for kind, (text, extra) in self._carried.items():
+            self._writer.write_event(t, kind, text, **extra)
+
+    # -- the RecordingWriter calls -----------------------------------------------------------
+    def write_sample(self, messages: dict[str, dict[str, Any]]) -> None:
+        """One sample (``RecordingWriter.write_sample``); rotates first when the current file has
+        reached ``rotate_size`` bytes or spans ``rotate_time`` s."""
+        t = float(messages[TOPIC_COMMAND]["t"])
+        if self._file_t0 is not None and (t - self._file_t0 >= self.rotate_time or self._size >= self.rotate_size):
+            self.rotate(t)
+        w = self._writer
+        w.write_sample(messages)
+        self.samples += 1
+        if self._file_t0 is None:
+            self._file_t0 = t
+            self._flushed_t = t
+        if self._carry_pending:
+            self._carry(t)
+        if w.samples % self.flush_every == 0:  # RecordingWriter has just flushed
+            self._flushed_t = t
+            self._size = self.path.stat().st_size
+        elif t - self._flushed_t >= self.flush_interval:
+            w.flush()
+            self._flushed_t = t
+            self._size = self.path.stat().st_size
+
+    def write_event(self, t: float, kind: str, text: str, **extra: Any) -> None:
+        """A sparse event (``RecordingWriter.write_event``; flushed at once)."""
+        self._writer.write_event(t, kind, text, **extra)
+        if kind in self.carry_kinds:
+            self._carried[kind] = (text, extra)
+
+    def flush(self) -> None:
+        self._writer.flush()
+
+    def close(self) -> None:
+        """Finish the current file (summary and footer). Safe to call twice."""
+        if not self._closed:
+            self._closed = True
+            self._writer.close()
+
+    def status(self) -> dict:
+        """For the daemon's ``status``: session id, current file, its index and size (bytes), total samples."""
+        try:
+            size = self.path.stat().st_size
+        except OSError:
+            size = None
+        return {"session": self.session_id, "path": str(self.path), "index": len(self.files) - 1,
+                "files": len(self.files), "samples": self.samples, "bytes": size, "closed": self._closed}
+
+    def __enter__(self) -> "SessionRecording":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
