@@ -217,7 +217,8 @@ def _leaf_parsers():
 @pytest.mark.parametrize("name", [n for n, _ in _leaf_parsers()])
 def test_unknown_option_names_the_subcommand_usage(name, otbot_cli):
     needs = {"identify": ["chassis", "--sim"], "imu parse": ["capture.bin"], "plan": ["--out", "p.csv"],
-             "track": ["corridor", "--sim"]}
+             "track": ["corridor", "--sim"], "ctl track": ["corridor-smooth"], "ctl velocity": ["0", "0", "0"],
+             "ctl excite": ["/tmp/x.csv"], "ctl record": ["start"]}
     rc, out, err = otbot_cli([*name.split(), *needs.get(name, []), "--no-such-option"])
     assert_one_line_error(rc, out, err, "unrecognized arguments: --no-such-option")
     assert f"; usage: otbot {name} [-h]" in err and "usage: otbot [-h] COMMAND" not in err
