@@ -58,6 +58,8 @@ class ExperimentSpec:
     rate: float = 100.0
     report: dict[str, str] = field(default_factory=dict)
     description: str = ""
+    #: a torque sequence (samples, 3) N m replacing the constant ``torque`` (a designed excitation)
+    profile: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
     def samples(self) -> int:
@@ -65,6 +67,8 @@ class ExperimentSpec:
 
     def torques(self) -> np.ndarray:
         """(N, 3) N m held for 1/rate s each."""
+        if self.profile is not None:
+            return np.array(self.profile, dtype=float)
         return np.tile(np.asarray(self.torque, dtype=float), (self.samples, 1))
 
     def symbol(self, name: str) -> str:
