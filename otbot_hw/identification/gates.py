@@ -1,12 +1,14 @@
 """Quality gates of one identification step: pass, or redo with the reason in words.
 
-A step passes when all four hold:
+A step passes when all five hold:
 
 * **converged**: the fit's own verdict (optimizer converged, no estimate on a bound,
   residual RMS of every channel within 1.5 sigma of its noise, ``prediction_error``);
-* **fit**: every channel's fit percent, 100 (1 - ||y - y_pred|| / ||y - mean y||), is at
-  least ``min_fit_percent``: the experiment moved the channel well above its noise and the
-  model explains that motion (the reason says which of the two failed);
+* **fit**: every channel's fit percent, 100 (1 - ||y - y_pred|| / ||y - mean y||), reaches
+  what residuals of ``fit_noise_factor`` times the channel's noise sigma would give (the
+  model explains the channel down to its noise);
+* **excitation**: the best-moved channel of every run allows a fit of at least
+  ``min_fit_percent`` (the robot moved well above the sensor noise);
 * **Cramer-Rao**: each parameter's std is within a factor ``crb_factor`` of its Cramer-Rao
   bound, computed from the model at the estimate and the *stated* sensor noise (the
   recording's ``noise`` metadata): a std far above the bound means the residuals are
