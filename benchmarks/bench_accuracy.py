@@ -14,8 +14,9 @@ their fixtures (``simulated_recording``) and identified by ``identify_session``:
    earlier steps' covariance propagated) and *joint* (one fit of all recordings, the default).
 2. **Gates.** How often each step passes its quality gates (a correct model and white noise:
    nearly always; a false "redo" costs a rerun).
-3. **Designed excitation.** The chassis and platform experiments designed once (on the nominal
-   robot, unloaded: the design cannot know the robot or the load) against the paper's constant
+3. **Designed excitation.** The chassis and platform experiments designed once on the nominal
+   robot, kept within the limits on the corners of the prior (``design.prior_scenarios``: the
+   design cannot know the robot or the load), against the paper's constant
    torques at equal duration, both within ``ExperimentLimits``: mean reported sigma of each, the
    ratio (the measured sigma reduction), the within-3-sigma fraction of the designed sessions and
    the largest fraction of each limit reached on the true robots.
@@ -49,7 +50,7 @@ def column(trials: list[dict], name: str, key: str) -> np.ndarray:
 
 
 def honesty_table(trials: list[dict]) -> str:
-    lines = ["| parameter | truth range | " + " | ".join(f"{h}: within 3 sigma | {h}: mean sigma | {h}: RMS error / sigma"
+    lines = ["| parameter | truth range | " + " | ".join(f"{h}: within 3 sigma | {h}: mean sigma | {h}: RMS of error/sigma"
                                                      for h, _, _ in HOW) + " |",
              "|---|---|" + "---|" * (3 * len(HOW))]
     for n in SESSION_PARAMS:
@@ -60,7 +61,7 @@ def honesty_table(trials: list[dict]) -> str:
         for _, val, sd in HOW:
             err = column(trials, n, val) - truth
             s = column(trials, n, sd)
-            row += f" {100 * within(err, s):.0f} % | {s.mean():.3g} | {np.sqrt(np.mean(err ** 2)) / s.mean():.2f} |"
+            row += f" {100 * within(err, s):.0f} % | {s.mean():.3g} | {np.sqrt(np.mean((err / s) ** 2)):.2f} |"
         lines.append(row)
     return "\n".join(lines)
 

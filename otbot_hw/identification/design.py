@@ -12,7 +12,11 @@ the squared std relative to what the paper's experiment of the same duration giv
 quantity, the std of every parameter, where a D-optimal design, -log det F, may buy a
 large gain on one parameter with a loss on another; in trials SLSQP also ended
 D-optimal designs outside the limits), subject to the ``ExperimentLimits`` on the predicted motion (wheel speed, pivot speed,
-platform speed, travel with the stop), checked on every sample window. The Fisher
+platform speed, travel with the stop), checked on every sample window and on every robot
+of ``prior_scenarios`` (the corners of the prior ``RobotSpread``: the robot is not known
+before it is identified, and an informative excitation is one whose motion is sensitive
+to the parameters, so a design kept within the limits on the nominal robot only went 2.5
+times past the travel limit on robots 20 % lighter). The Fisher
 information is J^T Sigma^-1 J of the step's output channels for the stated sensor
 noise (``identification.experiments.paper_noise``), J by central differences on the
 compiled model. Minimiser: scipy's SLSQP from the paper's torques (scaled into the
@@ -46,6 +50,52 @@ from otbot_hw.sensors import NoiseModel
 DESIGNABLE = ("chassis", "platform")
 WINDOW = 5  # samples per constraint window (the peak within each window is constrained)
 MARGIN = 0.05  # default: the design keeps each quantity below (1 - margin) of its limit on the model
+
+
+@dataclass(frozen=True)
+class RobotSpread:
+    """How far the robot may be from the design parameters: a prior, for designing and for studies.
+
+    scale: masses, inertias and frictions within +- this fraction; com_shift: the chassis' centre
+    of mass moved up to this many m in x and y; load_mass (kg), load_radius (m), load_inertia
+    (kg m^2): the load on the platform (platform step).
+    """
+
+    scale: float = 0.2
+    com_shift: float = 0.05
+    load_mass: tuple[float, float] = (20.0, 300.0)
+    load_radius: float = 0.35
+    load_inertia: tuple[float, float] = (0.0, 5.0)
+
+
+def prior_scenarios(step: str, params: OtbotParams, spread: RobotSpread | None = None) -> list[OtbotParams]:
+    """Robots at the corners of the prior on which a design must keep to the limits.
+
+    Chassis and platform steps: the design robot, and every combination of masses/inertias/
+    frictions all at (1 -+ scale) with the chassis' centre of mass moved diagonally by com_shift
+    (the lighter the robot, the faster it goes); a light robot with heavy inertias and the reverse.
+    Platform step also: those robots unloaded (the design point) and the lightest and heaviest
+    loads at the edge of load_radius in four directions.
+    """
+    sp = spread or RobotSpread()
+    out = [params]
+
+    def scaled(m: float, i: float, dx: float = 0.0, dy: float = 0.0) -> OtbotParams:
+        return params.replace(m_c=params.m_c * m, I_c=params.I_c * i, I_a=params.I_a * i, I_p=params.I_p * i,
+                              b_w=params.b_w * m, b_p=params.b_p * m, x_B=params.x_B + dx, y_B=params.y_B + dy)
+
+    c = sp.com_shift
+    for f in (1.0 - sp.scale, 1.0 + sp.scale):
+        for dx, dy in ((c, c), (c, -c), (-c, c), (-c, -c)):
+            out.append(scaled(f, f, dx, dy))
+    out += [scaled(1.0 - sp.scale, 1.0 + sp.scale), scaled(1.0 + sp.scale, 1.0 - sp.scale)]
+    if step == "platform":
+        light = scaled(1.0 - sp.scale, 1.0 - sp.scale)
+        r = sp.load_radius
+        for m in sp.load_mass:
+            for x, y in ((r, 0.0), (0.0, r), (-r, 0.0), (0.0, -r)):
+                out.append(light.with_load(m, x, y, sp.load_inertia[0]))
+    return out
 
 
 def knot_torques(knots: np.ndarray, samples: int, rate: float, spacing: float) -> np.ndarray:
@@ -112,8 +162,8 @@ class DesignedExcitation:
     knot_spacing: float
     crb: dict[str, float]
     paper_crb: dict[str, float]
-    margins: dict[str, float]
-    paper_margins: dict[str, float]
+    margins: dict[str, float]        # largest fraction of each limit over the scenario robots
+    paper_margins: dict[str, float]  # the same for the paper's excitation
     limits: ExperimentLimits
     design_params: dict[str, float]
     objective: float
@@ -140,9 +190,9 @@ class _Problem:
     """Objective and constraints of one design, cached per knot vector."""
 
     def __init__(self, spec: ExperimentSpec, params: OtbotParams, limits: ExperimentLimits, spacing: float,
-                 ref: dict[str, float], noise: NoiseModel, margin: float):
+                 ref: dict[str, float], noise: NoiseModel, margin: float, scenarios: list[OtbotParams]):
         self.spec, self.params, self.limits, self.spacing = spec, params, limits, spacing
-        self.margin = margin
+        self.margin, self.scenarios = margin, scenarios
         self.ref, self.noise = ref, noise
         self.n_knots = int(round(spec.duration / spacing)) + 1
         self._key: bytes | None = None
@@ -162,16 +212,27 @@ class _Problem:
         return float(np.mean(r)) if np.all(r > 0) else 1e6
 
     def constraints(self, x: np.ndarray) -> np.ndarray:
-        """1 - margin - (peak of each limited quantity in each sample window) / limit (>= 0: within the limits)."""
+        """1 - margin - (peak of each limited quantity in each sample window) / limit, on every scenario robot
+        (>= 0: within the limits)."""
         U = self.torques(x)
-        q, qd = predicted_motion(self.spec, U, self.params)
-        fr = motion_fractions(q, qd, _held(U), self.limits)
         out = []
-        for k in ("wheel_speed", "pivot_speed", "platform_speed", "travel_radius"):
-            v = fr[k]
-            w = np.pad(v, (0, (-len(v)) % WINDOW), mode="edge").reshape(-1, WINDOW).max(axis=1)
-            out.append(1.0 - self.margin - w)
+        for robot in self.scenarios:
+            q, qd = predicted_motion(self.spec, U, robot)
+            fr = motion_fractions(q, qd, _held(U), self.limits)
+            for k in ("wheel_speed", "pivot_speed", "platform_speed", "travel_radius"):
+                v = fr[k]
+                w = np.pad(v, (0, (-len(v)) % WINDOW), mode="edge").reshape(-1, WINDOW).max(axis=1)
+                out.append(1.0 - self.margin - w)
         return np.concatenate(out)
+
+    def worst_margins(self, U: np.ndarray) -> dict[str, float]:
+        """Largest fraction of each limit over the scenario robots."""
+        out: dict[str, float] = {}
+        for robot in self.scenarios:
+            q, qd = predicted_motion(self.spec, U, robot)
+            for k, v in motion_margins(q, qd, _held(U), self.limits).items():
+                out[k] = max(out.get(k, 0.0), v)
+        return out
 
 
 def paper_torques(step: str, duration: float | None = None, rate: float = 100.0) -> np.ndarray:
@@ -184,13 +245,16 @@ def paper_torques(step: str, duration: float | None = None, rate: float = 100.0)
 def design_excitation(step: str, params: OtbotParams, limits: ExperimentLimits | None = None,
                       duration: float | None = None, knot_spacing: float = 0.5,
                       starts: int = 2, seed: int = 0, maxiter: int = 150, noise: NoiseModel | None = None,
-                      margin: float = MARGIN, progress=None) -> DesignedExcitation:
+                      margin: float = MARGIN, spread: RobotSpread | None = None, robust: bool = True,
+                      progress=None) -> DesignedExcitation:
     """Torques for the ``step`` experiment that minimise its Cramer-Rao bound within ``limits``.
 
     params: the robot at which to design (earlier steps' estimates; for the platform step a
     guess of the loaded platform); duration: s (default the paper's, so the comparison is at
     equal duration); knot_spacing: s between torque knots; margin: fraction of each limit kept free
-    on the design model (the robot may be lighter than designed for). Raises ``IdentificationError`` when
+    on the design model; spread, robust: keep to the limits on every robot of ``prior_scenarios``
+    (robust, default: the design point is a guess, and a lighter robot goes faster) or on the
+    design robot only. Raises ``IdentificationError`` when
     no start meets the limits.
     """
     t0 = time.perf_counter()
@@ -205,11 +269,11 @@ def design_excitation(step: str, params: OtbotParams, limits: ExperimentLimits |
     spec = dataclasses.replace(base, duration=duration)
     paper_u = paper_torques(step, duration, spec.rate)
     ref = crb(spec, paper_u, params, noise)
-    q, qd = predicted_motion(spec, paper_u, params)
-    paper_margins = motion_margins(q, qd, _held(paper_u), limits)
     if not 0 <= margin < 1:
         raise IdentificationError(f"margin must be a fraction in [0, 1), got {margin}")
-    prob = _Problem(spec, params, limits, knot_spacing, ref, noise, margin)
+    scenarios = prior_scenarios(step, params, spread) if robust else [params]
+    prob = _Problem(spec, params, limits, knot_spacing, ref, noise, margin, scenarios)
+    paper_margins = prob.worst_margins(paper_u)
     rng = np.random.default_rng(seed)
     x_paper = np.tile(np.asarray(base.torque) / max(np.max(np.abs(base.torque)), limits.torque), (prob.n_knots, 1))
     inits = [x_paper.ravel()] + [rng.uniform(-0.6, 0.6, prob.n_knots * 3) for _ in range(max(0, starts - 1))]
@@ -243,8 +307,7 @@ def design_excitation(step: str, params: OtbotParams, limits: ExperimentLimits |
         raise IdentificationError(f"no {step} excitation within the limits was found: {limits.to_dict()}")
     x = best[1]
     U = prob.torques(x)
-    q, qd = predicted_motion(spec, U, params)
-    margins = motion_margins(q, qd, _held(U), limits)
+    margins = prob.worst_margins(U)
     bad = violations(margins, limits, tol=1e-3)
     if bad:
         raise IdentificationError(f"designed {step} excitation violates its limits: {'; '.join(bad)}")

@@ -17,26 +17,15 @@ the std of each way of reporting it. ``benchmarks/bench_accuracy.py`` aggregates
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
 
 from otbot_hw.experiment_limits import ExperimentLimits, motion_margins
+from otbot_hw.identification.design import RobotSpread
 from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, STEPS, ExperimentSpec, simulate_experiment
 from otbot_hw.identification.uncertainty import LOADED_STEPS, SESSION_PARAMS
 from otbot_hw.params import OtbotParams, nominal
-
-
-@dataclass(frozen=True)
-class RobotSpread:
-    """How far simulated robots are from nominal: scale +- fraction, com_shift m, load kg / m / kg m^2."""
-
-    scale: float = 0.2
-    com_shift: float = 0.05
-    load_mass: tuple[float, float] = (20.0, 300.0)
-    load_radius: float = 0.35
-    load_inertia: tuple[float, float] = (0.0, 5.0)
 
 
 def perturbed_robot(seed: int, base: OtbotParams | None = None,
