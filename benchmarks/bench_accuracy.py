@@ -139,6 +139,47 @@ def plot(folder: Path, trials: list[dict]) -> list[str]:
     return [str(path)]
 
 
+def plot_designs(folder: Path, designs: list) -> list[str]:
+    """Designed and paper torques, and the pivot's path on the prior's corner robots (PNG)."""
+    from otbot_hw.identification.design import paper_torques, predicted_motion, prior_scenarios
+    from otbot_hw.plots import _plt
+
+    plt = _plt()
+    folder.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(len(designs), 3, figsize=(14, 4 * len(designs)), squeeze=False)
+    for row, d in zip(axes, designs):
+        t = np.arange(len(d.torques)) / d.spec.rate
+        for j, name in enumerate(("tau_r", "tau_l", "tau_p")):
+            row[0].plot(t, d.torques[:, j], color=f"C{j}", label=f"{name} designed")
+            row[0].plot(t, paper_torques(d.step, d.spec.duration)[:, j], color=f"C{j}", ls="--", lw=0.8)
+        row[0].set_title(f"{d.step}: torques (dashed: paper)", fontsize=9)
+        row[0].set_xlabel("t (s)")
+        row[0].set_ylabel("N m")
+        row[0].legend(fontsize=7)
+        for k, (label, U) in enumerate((("designed", d.torques), ("paper", paper_torques(d.step, d.spec.duration)))):
+            ax = row[1 + k]
+            for robot in prior_scenarios(d.step, base_robot(d)):
+                q, _ = predicted_motion(d.spec, U, robot)
+                ax.plot(q[:, 0], q[:, 1], lw=0.7)
+            circ = plt.Circle((0, 0), d.limits.travel_radius, fill=False, ls="--", color="k")
+            ax.add_patch(circ)
+            ax.set_aspect("equal")
+            ax.set_title(f"{d.step}, {label}: pivot path on the prior's corner robots (dashed: free area)",
+                         fontsize=8)
+            ax.set_xlabel("x (m)")
+    fig.tight_layout()
+    path = folder / "designed_excitation.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return [str(path)]
+
+
+def base_robot(d):
+    from otbot_hw.params import OtbotParams
+
+    return OtbotParams(**d.design_params)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=50, help="robots (seeds) per configuration (default 50)")
@@ -159,7 +200,11 @@ def main(argv=None) -> int:
     if not args.no_design:
         t0 = time.perf_counter()
         d_c = design_excitation("chassis", nominal(), progress=print)
+        if args.plot:
+            print(f"plot: {plot_designs(args.plot, [d_c])[0]}", flush=True)
         d_p = design_excitation("platform", nominal(), knot_spacing=0.25, progress=print)
+        if args.plot:
+            print(f"plot: {plot_designs(args.plot, [d_c, d_p])[0]}", flush=True)
         design_time = time.perf_counter() - t0
         designs = {"chassis": d_c.to_dict(), "platform": d_p.to_dict()}
         specs = {"chassis": d_c.spec, "platform": d_p.spec}
