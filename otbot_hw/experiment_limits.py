@@ -33,7 +33,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from otbot_hw.params import DEFAULT_CONFIG_DIR, ParameterError, read_entry, read_yaml
+from otbot_hw.params import ParameterError, read_entry, read_yaml
 
 SECTION = "experiment_limits"
 #: key -> unit in the configuration file

@@ -81,6 +81,10 @@ def test_known_parameter_std_widens_what_depends_on_it():
     assert weighed.std["m_c"] > 1.5 * exact.std["m_c"]
     assert weighed.std["I_a"] == pytest.approx(exact.std["I_a"], rel=1e-6)
     assert weighed.std["m_p0"] == pytest.approx(0.5)
+    # without a platform step the working platform is the unloaded one, with the identified I_p0
+    p = exact.params()
+    assert p.I_p == pytest.approx(exact.values["I_p0"]) and p.std["I_p"] == pytest.approx(exact.std["I_p0"])
+    assert p.m_p == nominal().m_p and exact.parameters()["I_p"]["std"] == pytest.approx(exact.std["I_p0"])
 
 
 def test_session_bad_input():

@@ -38,7 +38,7 @@ from otbot_hw.identification.gates import GateLimits, StepGates, check_fit, chec
 from otbot_hw.identification.prediction_error import FitResult
 from otbot_hw.identification.steps import StepResult, identify_step
 from otbot_hw.identification.uncertainty import (KNOWN_PARAMS, LOADED_STEPS, SESSION_PARAMS, STEP_PARAMS,
-                                                 JointCovariance, SessionModel, add_known_uncertainty, joint_fit,
+                                                 UNLOADED_PLATFORM, JointCovariance, SessionModel, add_known_uncertainty, joint_fit,
                                                  propagate_step, robot_params, session_vector)
 from otbot_hw.params import UNITS, OtbotParams, ParameterError
 
@@ -110,7 +110,11 @@ class SessionResult:
     @property
     def std(self) -> dict[str, float]:
         held = self.covariance.std()
-        return {n: held.get(n, 0.0) for n in self.values}
+        out = {n: held.get(n, 0.0) for n in self.values}
+        if not self.loaded:  # no platform step: the working platform is the unloaded one
+            for n, u in UNLOADED_PLATFORM.items():
+                out[n] = out.get(u, 0.0)
+        return out
 
     @property
     def passed(self) -> bool:
@@ -127,14 +131,8 @@ class SessionResult:
 
     def params(self) -> OtbotParams:
         """The working parameter set (loaded platform when the platform step ran) with std."""
-        return robot_params(self.values, self.template, loaded=True, std=self._std_for_file())
-
-    def _std_for_file(self) -> dict[str, float]:
-        std = self.std
-        out = {n: s for n, s in std.items() if s > 0}
-        if not self.loaded and "I_p0" in out:  # the unloaded platform is the working one
-            out["I_p"] = out["I_p0"]
-        return out
+        return robot_params(self.values, self.template, loaded=True,
+                            std={n: s for n, s in self.std.items() if s > 0})
 
     def save_params(self, path: str | Path) -> None:
         """Write ``params.yaml`` (layout of ``config/otbot.yaml``, each identified entry with its std)."""
@@ -309,6 +307,8 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
         cov = add_known_uncertainty(jcov, carried, SessionModel(loaded_names), experiments_all, values)
     elif method == "joint":
         used = "propagate"
+    if "platform" not in steps:  # the working platform is the unloaded one
+        values.update({n: values[u] for n, u in UNLOADED_PLATFORM.items()})
     try:
         robot_params(values, params_start)
     except ParameterError as exc:

@@ -50,9 +50,9 @@ STEP_PARAMS: dict[str, tuple[str, ...]] = {
 #: Steps whose platform carries the load (all others run with the unloaded platform).
 LOADED_STEPS = ("platform",)
 #: The paper model's platform names filled from the unloaded platform in unloaded runs.
-_UNLOADED = {"m_p": "m_p0", "I_p": "I_p0", "x_F": "x_F0", "y_F": "y_F0"}
+UNLOADED_PLATFORM = {"m_p": "m_p0", "I_p": "I_p0", "x_F": "x_F0", "y_F": "y_F0"}
 #: Typical magnitudes of every session name (finite-difference steps, fit scaling).
-_SCALE = {**TYPICAL_SCALE, **{u: TYPICAL_SCALE[n] for n, u in _UNLOADED.items()}}
+_SCALE = {**TYPICAL_SCALE, **{u: TYPICAL_SCALE[n] for n, u in UNLOADED_PLATFORM.items()}}
 
 
 def session_vector(unloaded: OtbotParams, loaded: OtbotParams | None = None) -> dict[str, float]:
@@ -71,8 +71,8 @@ def robot_params(values: Mapping[str, float], template: OtbotParams, loaded: boo
     ``std`` (session symbols) becomes the parameter set's std, the unloaded platform's I_p0
     reported as I_p when ``loaded`` is False.
     """
-    names = [n for n in PARAM_NAMES if n not in _UNLOADED] + list(_UNLOADED)
-    src = {n: (n if loaded or n not in _UNLOADED else _UNLOADED[n]) for n in names}
+    names = [n for n in PARAM_NAMES if n not in UNLOADED_PLATFORM] + list(UNLOADED_PLATFORM)
+    src = {n: (n if loaded or n not in UNLOADED_PLATFORM else UNLOADED_PLATFORM[n]) for n in names}
     out_std = {n: float(std[s]) for n, s in src.items() if std and s in std}
     return template.replace(**{n: float(values[s]) for n, s in src.items()}, std=out_std)
 
@@ -90,7 +90,7 @@ class SessionModel:
         self.loaded = frozenset(loaded_experiments)
         self._inner = OtbotModel()
         idx = {n: i for i, n in enumerate(self.names)}
-        self._map_unloaded = np.array([idx[_UNLOADED.get(n, n)] for n in PARAM_NAMES])
+        self._map_unloaded = np.array([idx[UNLOADED_PLATFORM.get(n, n)] for n in PARAM_NAMES])
         self._map_loaded = np.array([idx[n] for n in PARAM_NAMES])
 
     def paper_vectors(self, thetas: np.ndarray, experiment) -> np.ndarray:
