@@ -61,6 +61,11 @@ class ExperimentSpec:
     #: a torque sequence (samples, 3) N m replacing the constant ``torque`` (a designed excitation)
     profile: np.ndarray | None = field(default=None, compare=False, repr=False)
 
+    def __post_init__(self) -> None:
+        if self.profile is not None and np.shape(self.profile) != (self.samples, 3):
+            raise ValueError(f"{self.step}: torque profile must have shape ({self.samples}, 3) for "
+                             f"{self.duration} s at {self.rate} Hz, got {np.shape(self.profile)}")
+
     @property
     def samples(self) -> int:
         return int(round(self.duration * self.rate))
