@@ -116,6 +116,13 @@ def time_table(sets: dict[str, list[dict]], design_time: float) -> str:
     return "\n".join(lines)
 
 
+def save(plt, fig, path: Path) -> str:
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return str(path)
+
+
 def plot(folder: Path, trials: list[dict]) -> list[str]:
     from otbot_hw.plots import _plt
 
@@ -132,11 +139,7 @@ def plot(folder: Path, trials: list[dict]) -> list[str]:
         ax.set_title(n, fontsize=9)
     axes[0, 0].legend(fontsize=7)
     fig.suptitle("error / reported sigma over seeds (dashed: +-3; clipped at +-12)")
-    fig.tight_layout()
-    path = folder / "session_error_sigma.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [str(path)]
+    return [save(plt, fig, folder / "session_error_sigma.png")]
 
 
 def plot_designs(folder: Path, designs: list) -> list[str]:
@@ -167,11 +170,7 @@ def plot_designs(folder: Path, designs: list) -> list[str]:
             ax.set_title(f"{d.step}, {label}: pivot path on the prior's corner robots (dashed: free area)",
                          fontsize=8)
             ax.set_xlabel("x (m)")
-    fig.tight_layout()
-    path = folder / "designed_excitation.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return [str(path)]
+    return [save(plt, fig, folder / "designed_excitation.png")]
 
 
 def base_robot(d):
