@@ -25,7 +25,8 @@ checks Y pi against ``dynamics.inverse_dynamics``.
 known, from the measured signals only: wheel and pivot encoder angles and rates
 (smoothed, Savitzky-Golay), the smoothed IMU pivot acceleration (B'') for x_dd, y_dd, and the
 derivative of the smoothed encoder rates for the angular accelerations. Samples
-near a torque step are left out (the smoothing blurs the jump there).
+near a torque step (a change of more than 20 % of the largest torque within one
+sample) are left out (the smoothing blurs the jump there).
 """
 from __future__ import annotations
 
@@ -39,6 +40,7 @@ from otbot_hw.identification.errors import IdentificationError
 PI_NAMES: tuple[str, ...] = ("m_c", "m_c*x_B", "m_c*y_B", "J_c", "m_p", "m_p*x_F", "m_p*y_F", "J_p",
                              "I_a", "b_w", "b_p")
 BODY_SLICES = {"chassis": slice(0, 4), "platform": slice(4, 8)}
+STEP_FRACTION = 0.2  # torque change within one sample, relative to the largest torque, that counts as a step
 
 
 def base_parameters(values) -> np.ndarray:
@@ -156,7 +158,10 @@ def motion_from_sensors(rec, l1: float, l2: float, r: float, window: float = 0.5
     qdd[:, 3:] = phidd
     U = np.asarray(rec.torque, dtype=float)
     usable = np.ones(n, dtype=bool)
-    jumps = np.nonzero(np.any(np.abs(np.diff(U, axis=0)) > 1e-9, axis=1))[0]
+    # a step: a change within one sample of more than STEP_FRACTION of the largest torque (a ramp of a
+    # designed excitation is smooth enough for the filter)
+    jump_tol = max(STEP_FRACTION * float(np.max(np.abs(U))), 1e-9)
+    jumps = np.nonzero(np.any(np.abs(np.diff(U, axis=0)) > jump_tol, axis=1))[0]
     half = w // 2
     for j in jumps:
         usable[max(0, j - half):j + half + 2] = False

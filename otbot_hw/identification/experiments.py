@@ -58,6 +58,13 @@ class ExperimentSpec:
     rate: float = 100.0
     report: dict[str, str] = field(default_factory=dict)
     description: str = ""
+    #: a torque sequence (samples, 3) N m replacing the constant ``torque`` (a designed excitation)
+    profile: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.profile is not None and np.shape(self.profile) != (self.samples, 3):
+            raise ValueError(f"{self.step}: torque profile must have shape ({self.samples}, 3) for "
+                             f"{self.duration} s at {self.rate} Hz, got {np.shape(self.profile)}")
 
     @property
     def samples(self) -> int:
@@ -65,6 +72,8 @@ class ExperimentSpec:
 
     def torques(self) -> np.ndarray:
         """(N, 3) N m held for 1/rate s each."""
+        if self.profile is not None:
+            return np.array(self.profile, dtype=float)
         return np.tile(np.asarray(self.torque, dtype=float), (self.samples, 1))
 
     def symbol(self, name: str) -> str:
