@@ -1,0 +1,127 @@
+"""Compiled (numba) hot path of the pose EKF: the IMU prediction and the gated Kalman update.
+
+numpy spends most of a step of an 11-state filter in call overhead (tens of small arrays per step,
+~1 us each), not in arithmetic; these kernels do the same algebra on caller-owned arrays in place
+(``benchmarks/estimation.py`` measures both). The filter's logic -- which update when, gates,
+re-anchoring, faults -- stays in ``otbot_hw.estimation.ekf``. State order as there.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP = range(11)
+
+
+@njit(cache=True)
+def all_finite(a) -> bool:
+    for v in a.ravel():
+        if not math.isfinite(v):
+            return False
+    return True
+
+
+@njit(cache=True)
+def predict_imu(x, P, fx, fy, w_new, new_gyro, dt, hold, accel_var, gyro_var, bg_walk2, ba_walk2, F, Q):
+    """Strapdown step in place: x_dd, y_dd = R(alpha_mid)(f'' - b_a), alpha by the trapezoid of the
+    previous rate and the new gyro reading less b_g (or the previous rate when no new reading).
+    ``hold``: the IMU sample period (s) -- the reading's noise is spread over the steps it drives.
+    F and Q are (11, 11) work arrays; on return they hold the step's transition and process noise."""
+    bg = x[BG]
+    va0 = x[VA]
+    va1 = w_new - bg if new_gyro else va0
+    am = x[A] + 0.25 * (va0 + va1) * dt
+    c, s = math.cos(am), math.sin(am)
+    gx, gy = fx - x[BAX], fy - x[BAY]
+    ax, ay = c * gx - s * gy, s * gx + c * gy
+    dax, day = -ay, ax
+    h2 = 0.5 * dt * dt
+    F[:, :] = 0.0
+    Q[:, :] = 0.0
+    for i in range(11):
+        F[i, i] = 1.0
+    F[X, VX] = dt
+    F[Y, VY] = dt
+    F[X, A] = h2 * dax
+    F[Y, A] = h2 * day
+    F[VX, A] = dt * dax
+    F[VY, A] = dt * day
+    F[X, BAX] = -h2 * c
+    F[X, BAY] = h2 * s
+    F[Y, BAX] = -h2 * s
+    F[Y, BAY] = -h2 * c
+    F[VX, BAX] = -dt * c
+    F[VX, BAY] = dt * s
+    F[VY, BAX] = -dt * s
+    F[VY, BAY] = -dt * c
+    x[X] += x[VX] * dt + h2 * ax
+    x[Y] += x[VY] * dt + h2 * ay
+    x[VX] += ax * dt
+    x[VY] += ay * dt
+    qv = accel_var * dt * max(hold, dt)
+    Q[X, X] = Q[Y, Y] = qv * 0.25 * dt * dt
+    Q[X, VX] = Q[VX, X] = Q[Y, VY] = Q[VY, Y] = qv * 0.5 * dt
+    Q[VX, VX] = Q[VY, VY] = qv
+    if new_gyro:
+        F[A, VA] = 0.5 * dt
+        F[A, BG] = -0.5 * dt
+        F[VA, VA] = 0.0
+        F[VA, BG] = -1.0
+        Q[A, A] = 0.25 * dt * dt * gyro_var
+        Q[A, VA] = Q[VA, A] = 0.5 * dt * gyro_var
+        Q[VA, VA] = gyro_var
+        x[A] += 0.5 * (va0 + va1) * dt
+        x[VA] = va1
+    else:
+        F[A, VA] = dt
+        x[A] += va0 * dt
+    Q[BG, BG] = bg_walk2 * dt
+    Q[BAX, BAX] = Q[BAY, BAY] = ba_walk2 * dt
+    P[:, :] = F @ P @ F.T + Q
+
+
+@njit(cache=True)
+def gated_update(x, P, nu, H, R, gate, force, update_accel_bias):
+    """Kalman update in place unless the squared Mahalanobis distance of ``nu`` exceeds ``gate`` (and
+    ``force`` is False). Without ``update_accel_bias`` the accelerometer biases are considered
+    (Schmidt-Kalman: zero gain, covariance kept consistent). Returns (nis, accepted)."""
+    PHt = P @ H.T
+    S = H @ PHt + R
+    Sinv = np.linalg.inv(S)
+    d2 = nu @ (Sinv @ nu)
+    if not (d2 <= gate or force):
+        return d2, False
+    K = PHt @ Sinv
+    if not update_accel_bias:
+        K[BAX, :] = 0.0
+        K[BAY, :] = 0.0
+    x += K @ nu
+    Ak = K @ PHt.T
+    Pn = P - Ak - Ak.T + K @ S @ K.T
+    P[:, :] = 0.5 * (Pn + Pn.T)
+    return d2, True
+
+
+@njit(cache=True)
+def joint_rates(x, phi_p, l1, l2, r, H, nu, phid):
+    """Innovation of the joint rates phi_dot - M_IIK(alpha - phi_p) p_dot into ``nu`` (3,) and its
+    Jacobian into ``H`` (3, 11) (paper §2.3.2)."""
+    th = x[A] - phi_p
+    c, s = math.cos(th), math.sin(th)
+    n = 1.0 / (r * l1)
+    m00, m01 = n * (l1 * c - l2 * s), n * (l2 * c + l1 * s)
+    m10, m11 = n * (l1 * c + l2 * s), n * (-l2 * c + l1 * s)
+    m20, m21 = s / l1, -c / l1
+    vx, vy, va = x[VX], x[VY], x[VA]
+    H[:, :] = 0.0
+    H[0, VX], H[0, VY] = m00, m01
+    H[1, VX], H[1, VY] = m10, m11
+    H[2, VX], H[2, VY], H[2, VA] = m20, m21, 1.0
+    H[0, A] = n * ((-l1 * s - l2 * c) * vx + (-l2 * s + l1 * c) * vy)
+    H[1, A] = n * ((-l1 * s + l2 * c) * vx + (l2 * s + l1 * c) * vy)
+    H[2, A] = (c * vx + s * vy) / l1
+    nu[0] = phid[0] - (m00 * vx + m01 * vy)
+    nu[1] = phid[1] - (m10 * vx + m11 * vy)
+    nu[2] = phid[2] - (m20 * vx + m21 * vy + va)
