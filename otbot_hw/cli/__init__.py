@@ -14,7 +14,7 @@ import sys
 from typing import Sequence
 
 #: Subcommand modules under otbot_hw.cli, in --help order.
-SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "imu", "track", "plan", "run", "plant")
+SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "imu", "track", "plan", "run", "plant", "estimate")
 
 
 class CliError(Exception):

@@ -79,28 +79,100 @@ def predict_imu(x, P, fx, fy, w_new, new_gyro, dt, hold, accel_var, gyro_var, bg
         x[A] += va0 * dt
     Q[BG, BG] = bg_walk2 * dt
     Q[BAX, BAX] = Q[BAY, BAY] = ba_walk2 * dt
-    P[:, :] = F @ P @ F.T + Q
+    FP = np.zeros((11, 11))
+    for i in range(11):
+        for k in range(11):
+            f = F[i, k]
+            if f != 0.0:
+                for j in range(11):
+                    FP[i, j] += f * P[k, j]
+    for i in range(11):
+        for j in range(i, 11):
+            acc = Q[i, j]
+            for k in range(11):
+                f = F[j, k]
+                if f != 0.0:
+                    acc += FP[i, k] * f
+            P[i, j] = acc
+            P[j, i] = acc
+
+
+@njit(cache=True)
+def _inverse(S):
+    """Inverse of a symmetric positive 1x1, 2x2 or 3x3 matrix (cofactors; no LAPACK to compile)."""
+    m = S.shape[0]
+    out = np.empty((m, m))
+    if m == 1:
+        out[0, 0] = 1.0 / S[0, 0]
+    elif m == 2:
+        d = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+        out[0, 0], out[1, 1] = S[1, 1] / d, S[0, 0] / d
+        out[0, 1], out[1, 0] = -S[0, 1] / d, -S[1, 0] / d
+    else:
+        a, b, c = S[0, 0], S[0, 1], S[0, 2]
+        d, e, f = S[1, 0], S[1, 1], S[1, 2]
+        g, h, i = S[2, 0], S[2, 1], S[2, 2]
+        A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+        det = a * A + b * B + c * C
+        out[0, 0], out[1, 0], out[2, 0] = A / det, B / det, C / det
+        out[0, 1], out[1, 1], out[2, 1] = -(b * i - c * h) / det, (a * i - c * g) / det, -(a * h - b * g) / det
+        out[0, 2], out[1, 2], out[2, 2] = (b * f - c * e) / det, -(a * f - c * d) / det, (a * e - b * d) / det
+    return out
 
 
 @njit(cache=True)
 def gated_update(x, P, nu, H, R, gate, force, update_accel_bias):
-    """Kalman update in place unless the squared Mahalanobis distance of ``nu`` exceeds ``gate`` (and
-    ``force`` is False). Without ``update_accel_bias`` the accelerometer biases are considered
-    (Schmidt-Kalman: zero gain, covariance kept consistent). Returns (nis, accepted)."""
-    PHt = P @ H.T
-    S = H @ PHt + R
-    Sinv = np.linalg.inv(S)
-    d2 = nu @ (Sinv @ nu)
+    """Kalman update in place unless the squared Mahalanobis distance of ``nu`` (m <= 3 values) exceeds
+    ``gate`` (and ``force`` is False). Without ``update_accel_bias`` the accelerometer biases are
+    considered (Schmidt-Kalman: zero gain; covariance P+ = P - K H P - P H^T K^T + K S K^T, valid for any
+    gain). Returns (nis, accepted)."""
+    n, m = P.shape[0], H.shape[0]
+    PHt = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for k in range(n):
+                acc += P[i, k] * H[j, k]
+            PHt[i, j] = acc
+    S = R.copy()
+    for i in range(m):
+        for j in range(m):
+            acc = 0.0
+            for k in range(n):
+                acc += H[i, k] * PHt[k, j]
+            S[i, j] += acc
+    Sinv = _inverse(S)
+    d2 = 0.0
+    for i in range(m):
+        for j in range(m):
+            d2 += nu[i] * Sinv[i, j] * nu[j]
     if not (d2 <= gate or force):
         return d2, False
-    K = PHt @ Sinv
+    K = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            for k in range(m):
+                K[i, j] += PHt[i, k] * Sinv[k, j]
     if not update_accel_bias:
         K[BAX, :] = 0.0
         K[BAY, :] = 0.0
-    x += K @ nu
-    Ak = K @ PHt.T
-    Pn = P - Ak - Ak.T + K @ S @ K.T
-    P[:, :] = 0.5 * (Pn + Pn.T)
+    for i in range(n):
+        acc = 0.0
+        for j in range(m):
+            acc += K[i, j] * nu[j]
+        x[i] += acc
+    KS = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            for k in range(m):
+                KS[i, j] += K[i, k] * S[k, j]
+    for i in range(n):
+        for j in range(i, n):
+            acc = P[i, j]
+            for k in range(m):
+                acc += -K[i, k] * PHt[j, k] - PHt[i, k] * K[j, k] + KS[i, k] * K[j, k]
+            P[i, j] = acc
+            P[j, i] = acc
     return d2, True
 
 
