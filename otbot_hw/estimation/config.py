@@ -22,6 +22,7 @@ from otbot_hw.sensors import NoiseModel
 SECTION = "estimator"
 DEFAULT_FILE = DEFAULT_CONFIG_DIR / "robot.yaml"
 PREDICTIONS = ("imu", "model")
+QUANTIZATIONS = ("floor", "none")
 #: Counts per revolution of the coarsest encoder in config/robot.yaml (the CiA 406 pivot encoder).
 COARSEST_ENCODER_COUNTS = 16384
 
@@ -47,9 +48,13 @@ class EstimatorConfig:
     (prediction ``model`` only). gate_probability: chi-square probability of the Mahalanobis gate.
     standstill_window (s) / standstill_angle (rad): the robot stands when no joint moved more than
     standstill_angle for standstill_window. imu_timeout (s): longest IMU silence before a fault.
+    encoder_quantization: ``floor`` (an angle reading is the lower edge of its count, as the drives and
+    the recording format report it: the EKF uses the count's centre, reading + sqrt(12) sigma / 2) or
+    ``none`` (readings are unbiased).
     """
 
     prediction: str = "imu"
+    encoder_quantization: str = "floor"
     accel_sigma: float = _PAPER.accel
     gyro_sigma: float = _PAPER.gyro
     encoder_rate_sigma: float = _PAPER.enc_rate
@@ -69,8 +74,11 @@ class EstimatorConfig:
         if self.prediction not in PREDICTIONS:
             raise ParameterError(f"{SECTION}.prediction must be one of {', '.join(PREDICTIONS)}, "
                                  f"got {self.prediction!r}")
+        if self.encoder_quantization not in QUANTIZATIONS:
+            raise ParameterError(f"{SECTION}.encoder_quantization must be one of {', '.join(QUANTIZATIONS)}, "
+                                 f"got {self.encoder_quantization!r}")
         for f in dataclasses.fields(self):
-            if f.name == "prediction":
+            if f.name in _WORDS:
                 continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
@@ -103,7 +111,7 @@ class EstimatorConfig:
             key = f"{SECTION}.{name}"
             if name not in known:
                 raise ParameterError(f"{source}: unknown key '{key}' (known: {', '.join(sorted(known))})")
-            if name == "prediction":
+            if name in _WORDS:
                 values[name] = entry
                 continue
             v, _ = read_entry(source, key, entry, UNITS[name])
@@ -131,3 +139,4 @@ UNITS = {
     "standstill_angle": "rad", "imu_timeout": "s",
 }
 _NONNEGATIVE = {"gyro_bias_walk", "accel_bias_walk"}
+_WORDS = {"prediction", "encoder_quantization"}

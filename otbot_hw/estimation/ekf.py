@@ -35,8 +35,11 @@ rejected one is counted and not applied:
   constant: kappa's variance grows by the innovation squared, and the wheel heading re-anchors on alpha.
   The pivot's quantization error e_p is no white noise -- it stays while the pivot reading stays (on
   every straight of the corridor), and a white model would let repeated readings of one quantized angle
-  shrink alpha's variance far below its error -- so it is a state, drawn afresh when the reading
-  changes. The wheels' share renews with every count they roll and is taken as white.
+  shrink alpha's variance far below its error -- so it is a state: drawn afresh when the reading
+  changes, its variance growing with the pivot's own motion while the reading stays. Floored readings are first moved to the centre of their count
+  (``encoder_quantization``), so the error is zero-mean. The wheels' share of the heading's
+  quantization error renews with every count they roll and is taken as white. e_p also enters the
+  chassis heading theta = alpha - phi_p of the joint-rate update.
 * ``zupt`` (3): twist = 0 when no joint moved more than ``standstill_angle`` for ``standstill_window``
   and the gyro agrees; its sigma is the rate that window allows (standstill_angle r / window).
 * ``gyro`` (1), ``accel`` (2): the IMU as measurement (``model`` prediction only).
@@ -144,6 +147,8 @@ class PoseEKF:
         self._prm = params.as_array()
         self.gate = {kind: float(chi2.ppf(cfg.gate_probability, dof)) for kind, dof in UPDATE_KINDS.items()}
         self._var_q = cfg.encoder_angle_sigma ** 2  # an encoder angle's quantization variance (rad^2)
+        #: added to every angle reading: half a count for floored readings (the count's centre)
+        self._half_count = 0.5 * math.sqrt(12) * cfg.encoder_angle_sigma if cfg.encoder_quantization == "floor" else 0.0
         self._R_rates = np.eye(3) * cfg.encoder_rate_sigma ** 2
         self._R_heading = np.array([[2 * self._k ** 2 * self._var_q]])  # the wheels' share, white
         vz = cfg.standstill_angle * self._r / cfg.standstill_window
@@ -184,7 +189,7 @@ class PoseEKF:
             raise EstimatorFault(f"non-finite start time {t}")
         pose = _vector(pose, 3, "pose", t)
         twist = _vector(twist, 3, "twist", t)
-        phi = _vector(joint_pos, 3, "joint_pos", t)
+        phi = _vector(joint_pos, 3, "joint_pos", t) + self._half_count
         std = _vector(INITIAL_POSE_STD if pose_std is None else pose_std, 3, "pose_std", t)
         if np.any(std < 0):
             raise ValueError(f"pose_std must be >= 0, got {std.tolist()}")
@@ -249,7 +254,7 @@ class PoseEKF:
             raise EstimatorFault("step before initialize")
         if not math.isfinite(t):
             raise EstimatorFault(f"non-finite sample time {t}")
-        phi = _vector(joint_pos, 3, "joint_pos", t)
+        phi = _vector(joint_pos, 3, "joint_pos", t) + self._half_count
         phid = _vector(joint_vel, 3, "joint_vel", t)
         dt = t - self._t
         if not dt > 0:
@@ -356,17 +361,17 @@ class PoseEKF:
             self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
 
     def _renew_quantization(self, phi_p: float, dt: float) -> None:
-        """e_p is drawn afresh when the pivot reading changes; while it stays, the error moves only by
-        the pivot's own motion under one count (its rate from the twist, M_IIK's last row)."""
-        P = self.kf.P
+        """e_p is drawn afresh when the pivot reading changes; while the reading stays, the error moves only
+        by the pivot's own motion under it (variance growth (phi_p_dot dt)^2, phi_p_dot from the twist by
+        M_IIK's last row, up to the stationary variance)."""
+        P, x = self.kf.P, self.kf.x
         if phi_p != self._phi_p:
             P[EP, :] = 0.0
             P[:, EP] = 0.0
             P[EP, EP] = self._var_q
-            self.kf.x[EP] = 0.0
+            x[EP] = 0.0
             return
-        x = self.kf.x
-        th = x[A] - phi_p
+        th = x[A] - phi_p + x[EP]
         rate = (math.sin(th) * x[VX] - math.cos(th) * x[VY]) / self._l1 + x[VA]
         P[EP, EP] += min(self._var_q, (rate * dt) ** 2)
 

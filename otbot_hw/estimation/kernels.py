@@ -178,9 +178,10 @@ def gated_update(x, P, nu, H, R, gate, force, update_accel_bias):
 
 @njit(cache=True)
 def joint_rates(x, phi_p, l1, l2, r, H, nu, phid):
-    """Innovation of the joint rates phi_dot - M_IIK(alpha - phi_p) p_dot into ``nu`` (3,) and its
-    Jacobian into ``H`` (3, 11) (paper §2.3.2)."""
-    th = x[A] - phi_p
+    """Innovation of the joint rates phi_dot - M_IIK(theta) p_dot into ``nu`` (3,) and its Jacobian into
+    ``H`` (3, 11) (paper §2.3.2). theta = alpha - phi_p, the pivot angle being the reading ``phi_p`` less
+    its quantization error e_p (a state)."""
+    th = x[A] - phi_p + x[EP]
     c, s = math.cos(th), math.sin(th)
     n = 1.0 / (r * l1)
     m00, m01 = n * (l1 * c - l2 * s), n * (l2 * c + l1 * s)
@@ -194,6 +195,7 @@ def joint_rates(x, phi_p, l1, l2, r, H, nu, phid):
     H[0, A] = n * ((-l1 * s - l2 * c) * vx + (-l2 * s + l1 * c) * vy)
     H[1, A] = n * ((-l1 * s + l2 * c) * vx + (l2 * s + l1 * c) * vy)
     H[2, A] = (c * vx + s * vy) / l1
+    H[0, EP], H[1, EP], H[2, EP] = H[0, A], H[1, A], H[2, A]
     nu[0] = phid[0] - (m00 * vx + m01 * vy)
     nu[1] = phid[1] - (m10 * vx + m11 * vy)
     nu[2] = phid[2] - (m20 * vx + m21 * vy + va)
