@@ -336,7 +336,12 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write PNG plots into DIR")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--markdown", type=Path, default=None, metavar="RESULT.json",
+                    help="print the docs/estimation.md tables of a saved --json result and exit")
     args = ap.parse_args(argv)
+    if args.markdown:
+        print(markdown(json.loads(args.markdown.read_text())))
+        return 0
     params = nominal()
     config = EstimatorConfig.load()  # the estimator section of config/robot.yaml
     result = {"seeds": args.seeds, "rate_hz": RATE_HZ, "config": config.to_dict(), "cases": {}}
@@ -391,6 +396,58 @@ def print_tables(result: dict) -> None:
     for variant, res in result["standstill"].items():
         for name, d in res.items():
             print(f"  {variant:10s} {name:20s} {d['drift_mm']:10.3f} mm  {d['alpha_drift_mrad']:8.3f} mrad")
+
+
+NAMES = {"ekf_imu": "EKF, IMU prediction", "ekf_model": "EKF, model prediction",
+         "imu_dead_reckoning": "IMU dead reckoning (paper)", "wheel_odometry": "wheel odometry"}
+
+
+def markdown(result: dict) -> str:
+    """The tables of docs/estimation.md from a --json result."""
+    n = result["seeds"]
+    out = [f"Pose error, mean over {n} seeds of each run's maximum and rms (position: distance in mm; "
+           f"heading: |alpha error| in mrad):", "",
+           "| scenario | plant | estimator | position max | position rms | heading max | heading rms |",
+           "|---|---|---|---|---|---|---|"]
+    for case, sums in result["cases"].items():
+        scenario, variant = case.split("/")
+        for name, d in sums.items():
+            out.append(f"| {scenario} | {variant.replace('_', ' ')} | {NAMES[name]} | {d['pos_max_mm']:.2f} | "
+                       f"{d['pos_rms_mm']:.2f} | {d['alpha_max_mrad']:.3f} | {d['alpha_rms_mrad']:.3f} |")
+    out += ["", f"Consistency over {n} seeds: time average of the seed-averaged NEES (pose + twist, 6 dof) and of "
+                f"the accepted updates' NIS (joint rates, 3 dof; wheel heading, 1 dof), the two-sided 95 % "
+                f"chi-square bounds of a {n}-run average, the fraction of samples whose average lies inside, and "
+                f"the mean number of gate rejections per run:", "",
+            "| scenario | plant | prediction | NEES (bounds) | inside | NIS rates (bounds) | inside | NIS heading (bounds) "
+            "| rejected per run |", "|---|---|---|---|---|---|---|---|---|"]
+    for case, sums in result["cases"].items():
+        scenario, variant = case.split("/")
+        for name in ("ekf_imu", "ekf_model"):
+            d = sums[name]
+            rej = ", ".join(f"{k} {v:g}" for k, v in d["rejected"].items() if v) or "none"
+            out.append(f"| {scenario} | {variant.replace('_', ' ')} | {name[4:]} | {d['nees_mean']:.2f} "
+                       f"({d['nees_bounds'][0]:.2f}-{d['nees_bounds'][1]:.2f}) | {d['nees_inside']:.2f} | "
+                       f"{d['nis_mean']:.2f} ({d['nis_bounds'][0]:.2f}-{d['nis_bounds'][1]:.2f}) | {d['nis_inside']:.2f} | "
+                       f"{d['nis_heading_mean']:.2f} ({d['nis_heading_bounds'][0]:.2f}-{d['nis_heading_bounds'][1]:.2f}) | "
+                       f"{rej} |")
+    out += ["", "Standstill, 60 s at rest (zero torque): distance of the final pose from the start, mean (max) over "
+                f"{n} seeds:", "", "| gyro | estimator | position drift (mm) | heading drift (mrad) |", "|---|---|---|---|"]
+    for variant, res in result["standstill"].items():
+        for name, d in res.items():
+            out.append(f"| {variant.replace('_', ' ')} | {NAMES[name]} | {d['drift_mm']:.3f} ({d['drift_max_mm']:.3f}) | "
+                       f"{d['alpha_drift_mrad']:.3f} |")
+    sw = result["model_noise_sweep"]
+    out += ["", f"Model prediction under other acceleration-noise densities ({min(n, 5)} seeds; the default is 0.5):",
+            "", "| density ((m/s^2)/sqrt(Hz)) | case | position max (mm) | heading max (mrad) | NEES |",
+            "|---|---|---|---|---|"]
+    for r in sw:
+        out.append(f"| {r['density']:g} | {r['case']} | {r['pos_max_mm']:.2f} | {r['alpha_max_mrad']:.3f} | "
+                   f"{r['nees_mean']:.2f} |")
+    h = result["held_imu"]
+    out += ["", f"Corridor with a 1 kHz loop and a 100 Hz IMU (each reading held for ten samples; {h['seeds']} seeds): "
+                f"position max {h['pos_max_mm']:.2f} mm, heading max {h['alpha_max_mrad']:.3f} mrad, NEES "
+                f"{h['nees_mean']:.2f} (6 dof), {h['seconds']:.2f} s of EKF per 30 s run."]
+    return "\n".join(out)
 
 
 if __name__ == "__main__":

@@ -3,8 +3,9 @@
 Every sensor sigma defaults to the sensor model (``otbot_hw.sensors.NoiseModel.paper()``, paper
 §4.3.2): IMU 13.7e-3 (m/s^2, rad/s) per sample, encoder rates 0.01 rad/s. The sensor model's encoder
 *angles* are exact; a Kalman update cannot use a zero-noise reading, so their sigma defaults to the
-quantization of the coarsest configured encoder (the CiA 406 pivot encoder, 16384 counts per
-revolution: 2 pi / 16384 / sqrt(12) = 1.1e-4 rad). The remaining entries are priors (turn-on biases,
+quantization of the configured encoders (config/robot.yaml): the wheel drives' 4096 counts per motor
+revolution behind a 10:1 gear, 2 pi / 40960 / sqrt(12) = 4.4e-5 rad, and the CiA 406 pivot encoder's
+16384 counts per revolution, 2 pi / 16384 / sqrt(12) = 1.1e-4 rad. The remaining entries are priors (turn-on biases,
 their drift) and choices (gate probability, standstill detection) -- one set for every run, not tuned
 per scenario. Each YAML entry is ``{value, unit}`` like the rest of the file; absent entries keep the
 defaults below.
@@ -23,8 +24,9 @@ SECTION = "estimator"
 DEFAULT_FILE = DEFAULT_CONFIG_DIR / "robot.yaml"
 PREDICTIONS = ("imu", "model")
 QUANTIZATIONS = ("floor", "none")
-#: Counts per revolution of the coarsest encoder in config/robot.yaml (the CiA 406 pivot encoder).
-COARSEST_ENCODER_COUNTS = 16384
+#: Counts per joint revolution of the encoders in config/robot.yaml: wheel drives (4096 x gear 10), pivot (CiA 406).
+WHEEL_ENCODER_COUNTS = 40960
+PIVOT_ENCODER_COUNTS = 16384
 
 _PAPER = NoiseModel.paper()
 
@@ -41,7 +43,7 @@ class EstimatorConfig:
     prediction: ``imu`` (specific force and yaw rate drive the prediction; the choice measured in
     docs/estimation.md) or ``model`` (the dynamic model under the commanded torques drives it; the IMU
     becomes a measurement). accel_sigma (m/s^2) and gyro_sigma (rad/s): white noise per IMU sample;
-    encoder_rate_sigma (rad/s) and encoder_angle_sigma (rad): per encoder sample. gyro_bias_std (rad/s)
+    encoder_rate_sigma (rad/s), wheel_angle_sigma and pivot_angle_sigma (rad): per encoder sample. gyro_bias_std (rad/s)
     and accel_bias_std (m/s^2): prior std of the turn-on biases; gyro_bias_walk (rad/s/sqrt(s)) and
     accel_bias_walk (m/s^2/sqrt(s)): their random walk. model_accel_density ((m/s^2)/sqrt(Hz)) and
     model_angular_density ((rad/s^2)/sqrt(Hz)): white acceleration error of the dynamic model
@@ -49,7 +51,8 @@ class EstimatorConfig:
     standstill_window (s) / standstill_angle (rad): the robot stands when no joint moved more than
     standstill_angle for standstill_window. imu_timeout (s): longest IMU silence before a fault.
     encoder_quantization: ``floor`` (an angle reading is the lower edge of its count, as the drives and
-    the recording format report it: the EKF uses the count's centre, reading + sqrt(12) sigma / 2) or
+    the recording format report it: the EKF uses the count's centre, reading + sqrt(12) sigma / 2 with
+    each joint's angle sigma) or
     ``none`` (readings are unbiased).
     """
 
@@ -58,7 +61,8 @@ class EstimatorConfig:
     accel_sigma: float = _PAPER.accel
     gyro_sigma: float = _PAPER.gyro
     encoder_rate_sigma: float = _PAPER.enc_rate
-    encoder_angle_sigma: float = max(_PAPER.enc_angle, quantization_sigma(COARSEST_ENCODER_COUNTS))
+    wheel_angle_sigma: float = max(_PAPER.enc_angle, quantization_sigma(WHEEL_ENCODER_COUNTS))
+    pivot_angle_sigma: float = max(_PAPER.enc_angle, quantization_sigma(PIVOT_ENCODER_COUNTS))
     gyro_bias_std: float = 0.05
     gyro_bias_walk: float = 1e-4
     accel_bias_std: float = 0.02
@@ -67,7 +71,7 @@ class EstimatorConfig:
     model_angular_density: float = 0.5
     gate_probability: float = 0.9999
     standstill_window: float = 0.2
-    standstill_angle: float = 2 * 2 * math.pi / COARSEST_ENCODER_COUNTS
+    standstill_angle: float = 2 * 2 * math.pi / PIVOT_ENCODER_COUNTS
     imu_timeout: float = 0.5
 
     def __post_init__(self) -> None:
@@ -132,7 +136,8 @@ class EstimatorConfig:
 
 
 UNITS = {
-    "accel_sigma": "m/s^2", "gyro_sigma": "rad/s", "encoder_rate_sigma": "rad/s", "encoder_angle_sigma": "rad",
+    "accel_sigma": "m/s^2", "gyro_sigma": "rad/s", "encoder_rate_sigma": "rad/s", "wheel_angle_sigma": "rad",
+    "pivot_angle_sigma": "rad",
     "gyro_bias_std": "rad/s", "gyro_bias_walk": "rad/s/sqrt(s)", "accel_bias_std": "m/s^2",
     "accel_bias_walk": "m/s^2/sqrt(s)", "model_accel_density": "m/s^2/sqrt(Hz)",
     "model_angular_density": "rad/s^2/sqrt(Hz)", "gate_probability": "1", "standstill_window": "s",

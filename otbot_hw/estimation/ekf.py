@@ -18,7 +18,8 @@ Prediction (``EstimatorConfig.prediction``; the IMU was chosen by measurement, d
 * ``imu``: the specific force in B'' less its bias, rotated by alpha, drives x_dot, y_dot; alpha_dot is
   the newest gyro reading less its bias, alpha the trapezoid of the rates. The reading taken at t_{k-1}
   (just after it, under the command of [t_{k-1}, t_k)) drives the step to t_k; a reading held over
-  several steps (an IMU slower than the loop) keeps driving them, its noise counted once per IMU period.
+  several steps (an IMU slower than the loop) keeps driving them, its noise counted once per IMU period,
+  corrected by the acceleration change the paper's model gives for the torque change since the reading.
 * ``model``: the paper's multiplier-free dynamics (``otbot_hw.model.compiled``) under the commanded
   torque drive the twist, with white acceleration noise; the IMU becomes a measurement (gyro of
   alpha_dot + b_g; accelerometer of R(alpha)^T p_dd + b_a at the previous sample, under the same
@@ -31,8 +32,9 @@ rejected one is counted and not applied:
   the pivot encoder).
 * ``heading`` (1): the wheel heading r/(2 l2)(phi_r - phi_l) + phi_p = alpha - kappa + e_p, the paper's
   holonomic constraint, whose constant kappa only wheel slip moves. Skipped while the joint rates are
-  rejected (the wheels slip). Rejected twice in a row with the rates accepted, the slip has moved the
-  constant: kappa's variance grows by the innovation squared, and the wheel heading re-anchors on alpha.
+  rejected (the wheels slip). Rejected for ``REANCHOR_AFTER`` (two samples at 100 Hz) with the rates
+  accepted, the slip has moved the constant: kappa's variance grows by the innovation squared, and the
+  wheel heading re-anchors on alpha.
   The pivot's quantization error e_p is no white noise -- it stays while the pivot reading stays (on
   every straight of the corridor), and a white model would let repeated readings of one quantized angle
   shrink alpha's variance far below its error -- so it is a state: drawn afresh when the reading
@@ -77,6 +79,8 @@ TWO_PI = 2 * math.pi
 #: Default std of the start pose (m, m, rad): the start defines the frame. Prior std of the twist.
 INITIAL_POSE_STD = (1e-6, 1e-6, 1e-6)
 INITIAL_TWIST_STD = (0.01, 0.01, 0.01)
+#: A wheel heading that disagrees this long (s) while the joint rates agree has moved: re-anchor it.
+REANCHOR_AFTER = 0.02
 #: Finite-difference step of the model Jacobians (rad, m/s, rad/s).
 _FD_STEP = 1e-6
 
@@ -146,11 +150,12 @@ class PoseEKF:
         self._k = params.r / (2 * params.l2)
         self._prm = params.as_array()
         self.gate = {kind: float(chi2.ppf(cfg.gate_probability, dof)) for kind, dof in UPDATE_KINDS.items()}
-        self._var_q = cfg.encoder_angle_sigma ** 2  # an encoder angle's quantization variance (rad^2)
-        #: added to every angle reading: half a count for floored readings (the count's centre)
-        self._half_count = 0.5 * math.sqrt(12) * cfg.encoder_angle_sigma if cfg.encoder_quantization == "floor" else 0.0
+        self._var_q = cfg.pivot_angle_sigma ** 2  # the pivot angle's quantization variance (rad^2)
+        #: added to the angle readings: half a count for floored readings (the count's centre)
+        half = 0.5 * math.sqrt(12) if cfg.encoder_quantization == "floor" else 0.0
+        self._half_count = half * np.array([cfg.wheel_angle_sigma, cfg.wheel_angle_sigma, cfg.pivot_angle_sigma])
         self._R_rates = np.eye(3) * cfg.encoder_rate_sigma ** 2
-        self._R_heading = np.array([[2 * self._k ** 2 * self._var_q]])  # the wheels' share, white
+        self._R_heading = np.array([[2 * self._k ** 2 * cfg.wheel_angle_sigma ** 2]])  # the wheels' share, white
         vz = cfg.standstill_angle * self._r / cfg.standstill_window
         az = cfg.standstill_angle / cfg.standstill_window
         self._R_zupt = np.diag([vz ** 2, vz ** 2, az ** 2])
@@ -173,6 +178,7 @@ class PoseEKF:
         self._H_gyro[0, VA] = self._H_gyro[0, BG] = 1.0
         self._zero2 = np.zeros(2)
         self._zero6 = np.zeros(6)
+        self._zero3 = np.zeros(3)
         self.record_innovations = False
         self.innovations: list[tuple[float, str, float, bool]] = []
         self._t: float | None = None
@@ -213,6 +219,7 @@ class PoseEKF:
         self._still_ref = phi.copy()
         self._still_since = float(t)
         self._acc = self._gyro = None            # newest IMU reading (B'')
+        self._acc_t = self._acc_u = None         # its time, and the torque it was taken under
         self._acc_held = self._gyro_held = None  # the reading that drives the current step
         self._imu_t = None
         self._imu_period = self.period
@@ -221,7 +228,8 @@ class PoseEKF:
         self.updates = dict.fromkeys(UPDATE_KINDS, 0)
         self._nis = dict.fromkeys(UPDATE_KINDS, math.nan)
         self._standstill = False
-        self._heading_streak = 0
+        self._heading_off_since = None  # since when the wheel heading disagrees (rates accepted)
+        self._t_prev = float(t)
         self.innovations = []
         if imu_accel is not None or imu_gyro is not None:
             self._take_imu(float(t), imu_accel, imu_gyro)
@@ -266,6 +274,7 @@ class PoseEKF:
             nis[kind] = math.nan
         # the previous sample's reading drives [t_prev, t); the new one is kept for the next step
         acc_prev, gyro_prev = self._acc, self._gyro
+        held_t, held_u = self._acc_t, self._acc_u
         new_gyro = imu_gyro is not None
         if imu_accel is not None or new_gyro:
             self._take_imu(t, imu_accel, imu_gyro)
@@ -276,12 +285,19 @@ class PoseEKF:
         self._gyro_held = gyro_prev if gyro_prev is not None else self._gyro
         if self.prediction == "imu":
             kf = self.kf
-            kernels.predict_imu(kf.x, kf.P, self._acc_held[0], self._acc_held[1], self._gyro[2], new_gyro, dt,
+            fx, fy = self._acc_held[0], self._acc_held[1]
+            if acc_prev is not None and self._torque is not None:
+                if held_t == self._t:  # taken at the start of this interval: under this interval's torque
+                    if self._acc is acc_prev:
+                        self._acc_u = self._torque
+                elif held_u is not None:  # an older reading still driving: add what the torque changed since
+                    fx, fy = self._held_force_correction(fx, fy, held_u)
+            kernels.predict_imu(kf.x, kf.P, fx, fy, self._gyro[2], new_gyro, dt,
                                 self._imu_period, *self._var, kf.F, kf.Q)
         else:
             self._predict_model(dt)
         self._renew_quantization(float(phi[2]), dt)
-        self._t = float(t)
+        self._t_prev, self._t = self._t, float(t)
         self._phi_p = float(phi[2])
         self._update_encoders(t, phi, phid)
         self._standstill = self._detect_standstill(t, phi)
@@ -330,6 +346,7 @@ class PoseEKF:
             self._imu_period = t - self._imu_t
         self._imu_t = t
         self._acc, self._gyro = a, g
+        self._acc_t, self._acc_u = t, None  # the torque the reading was taken under is known one step later
 
     def _update(self, kind: str, t: float, nu: np.ndarray, H: np.ndarray, R: np.ndarray, force: bool = False) -> bool:
         """Gated update (``kernels.gated_update``); the accelerometer biases move only at standstill."""
@@ -348,22 +365,23 @@ class PoseEKF:
         x = self.kf.x
         kernels.joint_rates(x, phi[2], self._l1, self._l2, self._r, self._H_rates, self._nu3, phid)
         if not self._update("encoders", t, self._nu3, self._H_rates, self._R_rates):
-            self._heading_streak = 0
+            self._heading_off_since = None
             return
         nu = np.array([wrap_angle(self._wheel_heading(phi) - (x[A] - x[KAPPA] + x[EP]))])
         if self._update("heading", t, nu, self._H_heading, self._R_heading):
-            self._heading_streak = 0
+            self._heading_off_since = None
             return
-        self._heading_streak += 1
-        if self._heading_streak >= 2:
+        if self._heading_off_since is None:
+            self._heading_off_since = self._t_prev
+        if t - self._heading_off_since >= REANCHOR_AFTER - 1e-9:
             self.kf.P[KAPPA, KAPPA] += nu[0] * nu[0]
-            self._heading_streak = 0
+            self._heading_off_since = None
             self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
 
     def _renew_quantization(self, phi_p: float, dt: float) -> None:
         """e_p is drawn afresh when the pivot reading changes; while the reading stays, the error moves only
-        by the pivot's own motion under it (variance growth (phi_p_dot dt)^2, phi_p_dot from the twist by
-        M_IIK's last row, up to the stationary variance)."""
+        by the pivot's own motion under it: its variance grows by (phi_p_dot dt)^2 per step (phi_p_dot from
+        the twist by M_IIK's last row; at most one count's variance per step)."""
         P, x = self.kf.P, self.kf.x
         if phi_p != self._phi_p:
             P[EP, :] = 0.0
@@ -389,6 +407,19 @@ class PoseEKF:
             if abs(self._gyro[2] - x[BG]) > 5.0 * math.sqrt(cfg.gyro_sigma ** 2 + P[BG, BG]):
                 return False
         return True
+
+    def _held_force_correction(self, fx: float, fy: float, u_reading: np.ndarray) -> tuple[float, float]:
+        """An IMU slower than the loop: the specific force (B'') of a reading held over several steps, plus
+        the change of the pivot acceleration the torque made since the reading, M_bar^-1 (u - u_reading)
+        from the paper's model (linear in u: only the torque difference enters, so unmodelled forces
+        acting on both cancel)."""
+        x = self.kf.x
+        du = self._torque - u_reading
+        if not du.any():
+            return fx, fy
+        dp = self._model_acceleration(x, du) - self._model_acceleration(x, self._zero3)
+        c, s = math.cos(x[A]), math.sin(x[A])
+        return fx + c * dp[0] + s * dp[1], fy - s * dp[0] + c * dp[1]
 
     # ------------------------------------------------------------------ dynamic-model prediction
     def _model_acceleration(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
