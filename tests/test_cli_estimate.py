@@ -5,20 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from otbot_hw.cli import main
 from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording, write_recording
 from otbot_hw.sensors import NoiseModel
 from otbot_hw.simulation.runs import simulated_recording
-
-
-def run_cli(argv, capsys):
-    try:
-        rc = main(argv)
-    except SystemExit as exc:
-        rc = exc.code
-    out = capsys.readouterr()
-    return rc, out.out, out.err
+from test_cli_simulate import run_cli  # the in-process CLI runner (tests/ is on sys.path under pytest)
 
 
 @pytest.fixture(scope="module")

@@ -254,7 +254,8 @@ class PoseEKF:
 
         joint_pos/joint_vel (3,) rad, rad/s (phi_r, phi_l, phi_p); imu_accel (3,) m/s^2 and imu_gyro
         (3,) rad/s in B'' -- None when this sample brought no NEW IMU reading; torque (3,) N m: the
-        command held on [t_prev, t) (the model prediction needs it; the IMU prediction ignores it).
+        command held on [t_prev, t) (the model prediction needs it; the IMU prediction uses it only to
+        correct a reading held over several steps).
         Raises EstimatorFault on NaN/inf input, t not increasing, IMU silent longer than
         ``imu_timeout``, or a non-finite/non-positive covariance.
         """
