@@ -1,0 +1,511 @@
+"""Extended Kalman filter for the platform pose and twist of Otbot (filterpy ``ExtendedKalmanFilter``).
+
+State (11,), ground frame B unless said otherwise::
+
+    0 x, 1 y (m)            pivot P               6 b_g (rad/s)          gyro z bias
+    2 alpha (rad)           platform heading      7 b_ax, 8 b_ay (m/s^2) accelerometer bias in B''
+    3 x_dot, 4 y_dot (m/s)                        9 kappa (rad)          wheel-heading offset
+    5 alpha_dot (rad/s)                           10 e_p (rad)           pivot encoder quantization error
+
+The filterpy object ``kf`` holds the state ``kf.x``, its covariance ``kf.P`` and the last step's
+transition ``kf.F`` and process noise ``kf.Q``. Its generic predict/update are not used: they neither
+gate nor wrap angles, and numpy's small-matrix overhead makes them slow; the prediction and the gated
+update are compiled kernels (``otbot_hw.estimation.kernels``) working on that state in place
+(``benchmarks/estimation.py`` measures both).
+
+Prediction (``EstimatorConfig.prediction``; the IMU was chosen by measurement, docs/estimation.md):
+
+* ``imu``: the specific force in B'' less its bias, rotated by alpha, drives x_dot, y_dot; alpha_dot is
+  the newest gyro reading less its bias, alpha the trapezoid of the rates. The reading taken at t_{k-1}
+  (just after it, under the command of [t_{k-1}, t_k)) drives the step to t_k; a reading held over
+  several steps (an IMU slower than the loop) keeps driving them, its noise counted once per IMU period,
+  corrected by the acceleration change the paper's model gives for the torque change since the reading.
+* ``model``: the paper's multiplier-free dynamics (``otbot_hw.model.compiled``) under the commanded
+  torque drive the twist, with white acceleration noise; the IMU becomes a measurement (gyro of
+  alpha_dot + b_g; accelerometer of R(alpha)^T p_dd + b_a at the previous sample, under the same
+  command). Also used while no IMU reading has arrived.
+
+Updates, each gated by its squared Mahalanobis distance (chi-square at ``gate_probability``); a
+rejected one is counted and not applied:
+
+* ``encoders`` (3): the joint rates phi_dot = M_IIK(alpha - phi_p) p_dot (paper §2.3.2; phi_p read from
+  the pivot encoder).
+* ``heading`` (1): the wheel heading r/(2 l2)(phi_r - phi_l) + phi_p = alpha - kappa + e_p, the paper's
+  holonomic constraint, whose constant kappa only wheel slip moves. Skipped while the joint rates are
+  rejected (the wheels slip). Rejected for ``REANCHOR_AFTER`` (two samples at 100 Hz) with the rates
+  accepted, the slip has moved the constant: kappa's variance grows by the innovation squared, and the
+  wheel heading re-anchors on alpha.
+  The pivot's quantization error e_p is no white noise -- it stays while the pivot reading stays (on
+  every straight of the corridor), and a white model would let repeated readings of one quantized angle
+  shrink alpha's variance far below its error -- so it is a state: drawn afresh when the reading
+  changes, its variance growing with the pivot's own motion while the reading stays. Floored readings are first moved to the centre of their count
+  (``encoder_quantization``), so the error is zero-mean. The wheels' share of the heading's
+  quantization error renews with every count they roll and is taken as white. e_p also enters the
+  chassis heading theta = alpha - phi_p of the joint-rate update.
+* ``zupt`` (3): twist = 0 when no joint moved more than ``standstill_angle`` for ``standstill_window``
+  and the gyro agrees; its sigma is the rate that window allows (standstill_angle r / window).
+* ``gyro`` (1), ``accel`` (2): the IMU as measurement (``model`` prediction only).
+* ``fix`` (3): an absolute pose with its covariance (``PoseEKF.fix``), alpha residual wrapped.
+
+alpha stays continuous (never wrapped to +-pi, like the recordings); every angle *residual* is wrapped.
+Biases: the gyro z bias is estimated (the wheel heading and joint rates observe it while moving, the
+zero-velocity update at rest). The accelerometer x, y biases are observable only against the wheels'
+velocity -- which wheel slip corrupts in the same way -- so they are estimated at standstill only and
+*considered* otherwise (Schmidt-Kalman: their uncertainty counts, their value is not moved by a moving
+robot's wheels). Not estimated: the gyro x, y and accelerometer z biases, which a planar estimator on
+flat ground never uses.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+from scipy.stats import chi2
+
+from otbot_hw.estimation import kernels
+from otbot_hw.estimation.config import EstimatorConfig
+from otbot_hw.model import compiled
+from otbot_hw.params import OtbotParams
+
+N_STATE = 11
+X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP = range(N_STATE)
+STATE_NAMES = ("x", "y", "alpha", "x_dot", "y_dot", "alpha_dot", "gyro_bias", "accel_bias_x", "accel_bias_y",
+               "kappa", "pivot_quantization")
+#: Update kinds and their dimensions.
+UPDATE_KINDS = {"encoders": 3, "heading": 1, "zupt": 3, "gyro": 1, "accel": 2, "fix": 3}
+TWO_PI = 2 * math.pi
+#: Default std of the start pose (m, m, rad): the start defines the frame. Prior std of the twist.
+INITIAL_POSE_STD = (1e-6, 1e-6, 1e-6)
+INITIAL_TWIST_STD = (0.01, 0.01, 0.01)
+#: A wheel heading that disagrees this long (s) while the joint rates agree has moved: re-anchor it.
+REANCHOR_AFTER = 0.02
+#: Finite-difference step of the model Jacobians (rad, m/s, rad/s).
+_FD_STEP = 1e-6
+
+
+class EstimatorFault(RuntimeError):
+    """NaN or stale sensor data, non-monotonic time, a diverged filter. str() says which, in words."""
+
+
+def wrap_angle(a: float) -> float:
+    """a wrapped into [-pi, pi) (rad)."""
+    return (a + math.pi) % TWO_PI - math.pi
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What the EKF believes at t (s), after using that sample's sensors.
+
+    pose (3,) x, y (m), alpha (rad) of the pivot P / platform in B; twist (3,) m/s, m/s, rad/s;
+    std (6,) their standard deviations; cov (11, 11) the full covariance (state order of the module
+    docstring); gyro_bias (rad/s); standstill: a zero-velocity update was applied; nis: normalized
+    innovation squared of each update kind this step (nan: none); rejected / updates: cumulative gate
+    rejections / accepted updates per kind; accel_bias (2,) m/s^2 in B''.
+    """
+
+    t: float
+    pose: np.ndarray
+    twist: np.ndarray
+    std: np.ndarray
+    cov: np.ndarray
+    gyro_bias: float
+    standstill: bool
+    nis: dict
+    rejected: dict
+    updates: dict
+    accel_bias: np.ndarray = field(default_factory=lambda: np.zeros(2))
+
+
+def _vector(v, n: int, name: str, t) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape != (n,):
+        a = a.reshape(-1)
+        if a.shape != (n,):
+            raise ValueError(f"{name} must have {n} values, got shape {np.shape(v)}")
+    if not kernels.all_finite(a):
+        raise EstimatorFault(f"non-finite {name} at t = {t} s: {a.tolist()}")
+    return a
+
+
+class PoseEKF:
+    """Pose EKF over one robot's encoders and IMU, stepped once per control period.
+
+    ``params``: the robot's geometry (l1, l2, r) and, for the model prediction, its dynamics;
+    ``period``: the nominal step (s; steps may be longer, e.g. after a dropped cycle);
+    ``config``: noise and gates (default ``EstimatorConfig()``). Call ``initialize`` once, then
+    ``step`` every cycle, ``fix`` whenever an absolute pose arrives. ``record_innovations = True``
+    keeps (t, kind, nis, accepted) of every attempted update in ``innovations``.
+    """
+
+    def __init__(self, params: OtbotParams, period: float, config: EstimatorConfig | None = None):
+        if not (period > 0 and math.isfinite(period)):
+            raise ValueError(f"period must be a finite number of seconds > 0, got {period}")
+        self.params = params
+        self.period = float(period)
+        self.config = cfg = config or EstimatorConfig()
+        self.kf = ExtendedKalmanFilter(dim_x=N_STATE, dim_z=3)
+        self._l1, self._l2, self._r = params.l1, params.l2, params.r
+        self._k = params.r / (2 * params.l2)
+        self._prm = params.as_array()
+        self.gate = {kind: float(chi2.ppf(cfg.gate_probability, dof)) for kind, dof in UPDATE_KINDS.items()}
+        self._var_q = cfg.pivot_angle_sigma ** 2  # the pivot angle's quantization variance (rad^2)
+        #: added to the angle readings: half a count for floored readings (the count's centre)
+        half = 0.5 * math.sqrt(12) if cfg.encoder_quantization == "floor" else 0.0
+        self._half_count = half * np.array([cfg.wheel_angle_sigma, cfg.wheel_angle_sigma, cfg.pivot_angle_sigma])
+        self._R_rates = np.eye(3) * cfg.encoder_rate_sigma ** 2
+        self._R_heading = np.array([[2 * self._k ** 2 * cfg.wheel_angle_sigma ** 2]])  # the wheels' share, white
+        vz = cfg.standstill_angle * self._r / cfg.standstill_window
+        az = cfg.standstill_angle / cfg.standstill_window
+        self._R_zupt = np.diag([vz ** 2, vz ** 2, az ** 2])
+        self._R_gyro = np.array([[cfg.gyro_sigma ** 2]])
+        self._R_accel = np.eye(2) * cfg.accel_sigma ** 2
+        self._var = (cfg.accel_sigma ** 2, cfg.gyro_sigma ** 2, cfg.gyro_bias_walk ** 2, cfg.accel_bias_walk ** 2)
+        # work arrays of the hot path
+        self.kf.F = np.eye(N_STATE)
+        self.kf.Q = np.zeros((N_STATE, N_STATE))
+        self._H_rates = np.zeros((3, N_STATE))
+        self._nu3 = np.zeros(3)
+        self._H_heading = np.zeros((1, N_STATE))
+        self._H_heading[0, A] = self._H_heading[0, EP] = 1.0
+        self._H_heading[0, KAPPA] = -1.0
+        self._H_zupt = np.zeros((3, N_STATE))
+        self._H_zupt[0, VX] = self._H_zupt[1, VY] = self._H_zupt[2, VA] = 1.0
+        self._H_fix = np.zeros((3, N_STATE))
+        self._H_fix[0, X] = self._H_fix[1, Y] = self._H_fix[2, A] = 1.0
+        self._H_gyro = np.zeros((1, N_STATE))
+        self._H_gyro[0, VA] = self._H_gyro[0, BG] = 1.0
+        self._zero2 = np.zeros(2)
+        self._zero6 = np.zeros(6)
+        self._zero3 = np.zeros(3)
+        self.record_innovations = False
+        self.innovations: list[tuple[float, str, float, bool]] = []
+        self._t: float | None = None
+        self._estimate: Estimate | None = None
+
+    # ------------------------------------------------------------------ set-up
+    def initialize(self, t: float, pose, joint_pos, twist=(0.0, 0.0, 0.0), pose_std=None, *,
+                   imu_accel=None, imu_gyro=None) -> Estimate:
+        """Start at time t (s) from ``pose`` (x, y m, alpha rad) with std ``pose_std`` (default: exact,
+        the start defines the frame), ``twist`` (std 0.01 m/s, rad/s) and the joint angles ``joint_pos``
+        (3,) rad read then (they anchor the wheel heading). ``imu_accel``/``imu_gyro`` (3,) in B'': a
+        reading taken at t (it drives the first step)."""
+        if not math.isfinite(t):
+            raise EstimatorFault(f"non-finite start time {t}")
+        pose = _vector(pose, 3, "pose", t)
+        twist = _vector(twist, 3, "twist", t)
+        phi = _vector(joint_pos, 3, "joint_pos", t) + self._half_count
+        std = _vector(INITIAL_POSE_STD if pose_std is None else pose_std, 3, "pose_std", t)
+        if np.any(std < 0):
+            raise ValueError(f"pose_std must be >= 0, got {std.tolist()}")
+        cfg = self.config
+        x = np.zeros(N_STATE)
+        x[:3], x[3:6] = pose, twist
+        x[KAPPA] = pose[2] - self._wheel_heading(phi)
+        P = np.zeros((N_STATE, N_STATE))
+        P[[X, Y, A], [X, Y, A]] = np.maximum(std, 1e-9) ** 2
+        P[[VX, VY, VA], [VX, VY, VA]] = np.square(INITIAL_TWIST_STD)
+        P[BG, BG] = cfg.gyro_bias_std ** 2
+        P[BAX, BAX] = P[BAY, BAY] = cfg.accel_bias_std ** 2
+        # kappa comes from the first (quantized) reading: its error is alpha's plus that reading's
+        P[EP, EP] = P[KAPPA, EP] = P[EP, KAPPA] = self._var_q
+        P[KAPPA, KAPPA] = P[A, A] + self._var_q + self._R_heading[0, 0]
+        P[A, KAPPA] = P[KAPPA, A] = P[A, A]
+        self.kf.x = x
+        self.kf.P = P
+        self._t = float(t)
+        self._phi_p = float(phi[2])
+        self._still_ref = phi.copy()
+        self._still_since = float(t)
+        self._acc = self._gyro = None            # newest IMU reading (B'')
+        self._acc_t = self._acc_u = None         # its time, and the torque it was taken under
+        self._acc_held = self._gyro_held = None  # the reading that drives the current step
+        self._imu_t = None
+        self._imu_period = self.period
+        self._torque = None
+        self.rejected = dict.fromkeys(UPDATE_KINDS, 0)
+        self.updates = dict.fromkeys(UPDATE_KINDS, 0)
+        self._nis = dict.fromkeys(UPDATE_KINDS, math.nan)
+        self._standstill = False
+        self._heading_off_since = None  # since when the wheel heading disagrees (rates accepted)
+        self._t_prev = float(t)
+        self.innovations = []
+        if imu_accel is not None or imu_gyro is not None:
+            self._take_imu(float(t), imu_accel, imu_gyro)
+        self._estimate = self._make_estimate()
+        return self._estimate
+
+    @property
+    def estimate(self) -> Estimate:
+        """The latest estimate."""
+        if self._estimate is None:
+            raise EstimatorFault("the estimator was not initialized")
+        return self._estimate
+
+    @property
+    def prediction(self) -> str:
+        """What drives the current prediction: ``imu`` or ``model``."""
+        return "imu" if self.config.prediction == "imu" and self._acc_held is not None else "model"
+
+    # ------------------------------------------------------------------ one cycle
+    def step(self, t: float, joint_pos, joint_vel, imu_accel=None, imu_gyro=None, torque=None) -> Estimate:
+        """Predict from the previous step's time to t, then update with the sensors sampled at t.
+
+        joint_pos/joint_vel (3,) rad, rad/s (phi_r, phi_l, phi_p); imu_accel (3,) m/s^2 and imu_gyro
+        (3,) rad/s in B'' -- None when this sample brought no NEW IMU reading; torque (3,) N m: the
+        command held on [t_prev, t) (the model prediction needs it; the IMU prediction uses it only to
+        correct a reading held over several steps).
+        Raises EstimatorFault on NaN/inf input, t not increasing, IMU silent longer than
+        ``imu_timeout``, or a non-finite/non-positive covariance.
+        """
+        if self._t is None:
+            raise EstimatorFault("step before initialize")
+        if not math.isfinite(t):
+            raise EstimatorFault(f"non-finite sample time {t}")
+        phi = _vector(joint_pos, 3, "joint_pos", t) + self._half_count
+        phid = _vector(joint_vel, 3, "joint_vel", t)
+        dt = t - self._t
+        if not dt > 0:
+            raise EstimatorFault(f"time does not increase: t = {t} s after {self._t} s")
+        if torque is not None:
+            self._torque = _vector(torque, 3, "torque", t)
+        nis = self._nis
+        for kind in nis:
+            nis[kind] = math.nan
+        # the previous sample's reading drives [t_prev, t); the new one is kept for the next step
+        acc_prev, gyro_prev = self._acc, self._gyro
+        held_t, held_u = self._acc_t, self._acc_u
+        new_gyro = imu_gyro is not None
+        if imu_accel is not None or new_gyro:
+            self._take_imu(t, imu_accel, imu_gyro)
+        elif self._imu_t is not None and t - self._imu_t > self.config.imu_timeout:
+            raise EstimatorFault(f"IMU silent for {t - self._imu_t:.3f} s (timeout {self.config.imu_timeout} s) "
+                                 f"at t = {t} s")
+        self._acc_held = acc_prev if acc_prev is not None else self._acc
+        self._gyro_held = gyro_prev if gyro_prev is not None else self._gyro
+        if self.prediction == "imu":
+            kf = self.kf
+            fx, fy = self._acc_held[0], self._acc_held[1]
+            if acc_prev is not None and self._torque is not None:
+                if held_t == self._t:  # taken at the start of this interval: under this interval's torque
+                    if self._acc is acc_prev:
+                        self._acc_u = self._torque
+                elif held_u is not None:  # an older reading still driving: add what the torque changed since
+                    fx, fy = self._held_force_correction(fx, fy, held_u)
+            kernels.predict_imu(kf.x, kf.P, fx, fy, self._gyro[2], new_gyro, dt,
+                                self._imu_period, *self._var, kf.F, kf.Q)
+        else:
+            self._predict_model(dt)
+        self._renew_quantization(float(phi[2]), dt)
+        self._t_prev, self._t = self._t, float(t)
+        self._phi_p = float(phi[2])
+        self._update_encoders(t, phi, phid)
+        self._standstill = self._detect_standstill(t, phi)
+        if self._standstill:
+            self._update("zupt", t, -self.kf.x[3:6], self._H_zupt, self._R_zupt)
+        if self.prediction == "model" and new_gyro:
+            x = self.kf.x
+            self._update("gyro", t, np.array([self._gyro[2] - x[VA] - x[BG]]), self._H_gyro, self._R_gyro)
+        self._check_health(t)
+        self._estimate = self._make_estimate()
+        return self._estimate
+
+    def fix(self, t: float, pose, cov) -> bool:
+        """Absolute pose fix (landmark, motion capture) at the current step's time: pose (3,) x, y (m),
+        alpha (rad, any branch: the residual is wrapped), cov (3, 3) m^2, rad^2. Returns whether the gate
+        accepted it."""
+        if self._t is None:
+            raise EstimatorFault("fix before initialize")
+        if abs(t - self._t) > 1e-9 * max(1.0, abs(t)):
+            raise EstimatorFault(f"fix at t = {t} s, but the estimate is at t = {self._t} s: "
+                                 f"a fix applies at the current step's time")
+        z = _vector(pose, 3, "pose fix", t)
+        Rf = np.asarray(cov, dtype=float).reshape(3, 3)
+        if not kernels.all_finite(Rf):
+            raise EstimatorFault(f"non-finite pose fix covariance at t = {t} s")
+        if not np.allclose(Rf, Rf.T) or np.linalg.eigvalsh(Rf).min() <= 0:
+            raise ValueError("fix covariance must be symmetric positive definite (m^2, rad^2)")
+        nu = z - self.kf.x[:3]
+        nu[2] = wrap_angle(nu[2])
+        ok = self._update("fix", t, nu, self._H_fix, Rf)
+        self._check_health(t)
+        self._estimate = self._make_estimate()
+        return ok
+
+    # ------------------------------------------------------------------ pieces
+    def _wheel_heading(self, phi) -> float:
+        """r/(2 l2)(phi_r - phi_l) + phi_p (rad): alpha less the holonomic constant."""
+        return self._k * (phi[0] - phi[1]) + phi[2]
+
+    def _take_imu(self, t: float, acc, gyro) -> None:
+        if acc is None or gyro is None:
+            raise EstimatorFault(f"IMU sample at t = {t} s lacks {'accel' if acc is None else 'gyro'}")
+        a = _vector(acc, 3, "imu_accel", t)
+        g = _vector(gyro, 3, "imu_gyro", t)
+        if self._imu_t is not None and t > self._imu_t:
+            self._imu_period = t - self._imu_t
+        self._imu_t = t
+        self._acc, self._gyro = a, g
+        self._acc_t, self._acc_u = t, None  # the torque the reading was taken under is known one step later
+
+    def _update(self, kind: str, t: float, nu: np.ndarray, H: np.ndarray, R: np.ndarray, force: bool = False) -> bool:
+        """Gated update (``kernels.gated_update``); the accelerometer biases move only at standstill."""
+        d2, ok = kernels.gated_update(self.kf.x, self.kf.P, nu, H, R, self.gate[kind], force, kind == "zupt")
+        self._nis[kind] = d2
+        if self.record_innovations:
+            self.innovations.append((t, kind, d2, ok))
+        if ok:
+            self.updates[kind] += 1
+        else:
+            self.rejected[kind] += 1
+        return ok
+
+    def _update_encoders(self, t: float, phi: np.ndarray, phid: np.ndarray) -> None:
+        """Joint rates, then the wheel heading (see the module docstring for slip and re-anchoring)."""
+        x = self.kf.x
+        kernels.joint_rates(x, phi[2], self._l1, self._l2, self._r, self._H_rates, self._nu3, phid)
+        if not self._update("encoders", t, self._nu3, self._H_rates, self._R_rates):
+            self._heading_off_since = None
+            return
+        nu = np.array([wrap_angle(self._wheel_heading(phi) - (x[A] - x[KAPPA] + x[EP]))])
+        if self._update("heading", t, nu, self._H_heading, self._R_heading):
+            self._heading_off_since = None
+            return
+        if self._heading_off_since is None:
+            self._heading_off_since = self._t_prev
+        if t - self._heading_off_since >= REANCHOR_AFTER - 1e-9:
+            self.kf.P[KAPPA, KAPPA] += nu[0] * nu[0]
+            self._heading_off_since = None
+            self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
+
+    def _renew_quantization(self, phi_p: float, dt: float) -> None:
+        """e_p is drawn afresh when the pivot reading changes; while the reading stays, the error moves only
+        by the pivot's own motion under it: its variance grows by (phi_p_dot dt)^2 per step (phi_p_dot from
+        the twist by M_IIK's last row; at most one count's variance per step)."""
+        P, x = self.kf.P, self.kf.x
+        if phi_p != self._phi_p:
+            P[EP, :] = 0.0
+            P[:, EP] = 0.0
+            P[EP, EP] = self._var_q
+            x[EP] = 0.0
+            return
+        th = x[A] - phi_p + x[EP]
+        rate = (math.sin(th) * x[VX] - math.cos(th) * x[VY]) / self._l1 + x[VA]
+        P[EP, EP] += min(self._var_q, (rate * dt) ** 2)
+
+    def _detect_standstill(self, t: float, phi: np.ndarray) -> bool:
+        cfg = self.config
+        ref = self._still_ref
+        if max(abs(phi[0] - ref[0]), abs(phi[1] - ref[1]), abs(phi[2] - ref[2])) > cfg.standstill_angle:
+            self._still_ref = phi.copy()
+            self._still_since = t
+            return False
+        if t - self._still_since < cfg.standstill_window - 1e-9:
+            return False
+        if self._gyro is not None:
+            x, P = self.kf.x, self.kf.P
+            if abs(self._gyro[2] - x[BG]) > 5.0 * math.sqrt(cfg.gyro_sigma ** 2 + P[BG, BG]):
+                return False
+        return True
+
+    def _held_force_correction(self, fx: float, fy: float, u_reading: np.ndarray) -> tuple[float, float]:
+        """An IMU slower than the loop: the specific force (B'') of a reading held over several steps, plus
+        the change of the pivot acceleration the torque made since the reading, M_bar^-1 (u - u_reading)
+        from the paper's model (linear in u: only the torque difference enters, so unmodelled forces
+        acting on both cancel)."""
+        x = self.kf.x
+        du = self._torque - u_reading
+        if not du.any():
+            return fx, fy
+        dp = self._model_acceleration(x, du) - self._model_acceleration(x, self._zero3)
+        c, s = math.cos(x[A]), math.sin(x[A])
+        return fx + c * dp[0] + s * dp[1], fy - s * dp[0] + c * dp[1]
+
+    # ------------------------------------------------------------------ dynamic-model prediction
+    def _model_acceleration(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """p_dd (3,) of the paper's model at state s (pose, twist) and the pivot reading under u (N m)."""
+        phi_p = self._phi_p
+        xs = np.empty(12)
+        xs[0:3] = s[0:3]
+        xs[3] = xs[4] = 0.0
+        xs[5] = phi_p
+        xs[6:9] = s[3:6]
+        th = s[2] - phi_p
+        c, si = math.cos(th), math.sin(th)
+        l1, l2, r = self._l1, self._l2, self._r
+        vx, vy, va = s[3], s[4], s[5]
+        xs[9] = ((l1 * c - l2 * si) * vx + (l2 * c + l1 * si) * vy) / (r * l1)
+        xs[10] = ((l1 * c + l2 * si) * vx + (-l2 * c + l1 * si) * vy) / (r * l1)
+        xs[11] = (si * vx - c * vy) / l1 + va
+        return compiled.accelerations(xs, u, self._zero2, self._zero6, self._prm)[:3]
+
+    def _model_jacobian(self, s: np.ndarray, u: np.ndarray):
+        """(p_dd (3,), d p_dd / d (alpha, x_dot, y_dot, alpha_dot) (3, 4)) by forward differences."""
+        f0 = self._model_acceleration(s, u)
+        J = np.empty((3, 4))
+        for j, i in enumerate((A, VX, VY, VA)):
+            sp = s.copy()
+            sp[i] += _FD_STEP
+            J[:, j] = (self._model_acceleration(sp, u) - f0) / _FD_STEP
+        return f0, J
+
+    def _predict_model(self, dt: float) -> None:
+        """Dynamic-model step: p_dd from the multiplier-free dynamics under the held torque; first the
+        accelerometer reading of the previous sample, taken under that same torque, as a measurement."""
+        if self._torque is None:
+            raise EstimatorFault("the model prediction needs the commanded torque (none given yet)")
+        kf, cfg = self.kf, self.config
+        u = self._torque
+        if self._acc_held is not None:
+            self._update_accel(self._t, self._acc_held, u)
+        x = kf.x
+        f0, J = self._model_jacobian(x, u)
+        h2 = 0.5 * dt * dt
+        F = np.eye(N_STATE)
+        F[X, VX] = F[Y, VY] = F[A, VA] = dt
+        cols = [A, VX, VY, VA]
+        F[np.ix_([X, Y, A], cols)] += h2 * J
+        F[np.ix_([VX, VY, VA], cols)] += dt * J
+        x[0:3] += x[3:6] * dt + h2 * f0
+        x[3:6] += f0 * dt
+        Q = np.zeros((N_STATE, N_STATE))
+        for (p, v), q in (((X, VX), cfg.model_accel_density), ((Y, VY), cfg.model_accel_density),
+                          ((A, VA), cfg.model_angular_density)):
+            q2 = q * q
+            Q[p, p] = q2 * dt ** 3 / 3
+            Q[p, v] = Q[v, p] = q2 * dt * dt / 2
+            Q[v, v] = q2 * dt
+        Q[BG, BG] = self._var[2] * dt
+        Q[BAX, BAX] = Q[BAY, BAY] = self._var[3] * dt
+        kf.F, kf.Q = F, Q
+        kf.P = F @ kf.P @ F.T + Q
+
+    def _update_accel(self, t: float, acc: np.ndarray, u: np.ndarray) -> None:
+        """The accelerometer reading at t (under u) as a measurement of R(alpha)^T p_dd + b_a."""
+        x = self.kf.x
+        f0, J = self._model_jacobian(x, u)
+        c, s = math.cos(x[A]), math.sin(x[A])
+        RT = np.array([[c, s], [-s, c]])
+        dRT = np.array([[-s, c], [-c, -s]])
+        H = np.zeros((2, N_STATE))
+        H[:, [A, VX, VY, VA]] = RT @ J[:2]
+        H[:, A] += dRT @ f0[:2]
+        H[0, BAX] = H[1, BAY] = 1.0
+        self._update("accel", t, acc[:2] - (RT @ f0[:2] + x[[BAX, BAY]]), H, self._R_accel)
+
+    # ------------------------------------------------------------------ health and output
+    def _check_health(self, t: float) -> None:
+        x, P = self.kf.x, self.kf.P
+        if not (kernels.all_finite(x) and kernels.all_finite(P)):
+            raise EstimatorFault(f"the filter diverged at t = {t} s: non-finite state or covariance")
+        d = P.diagonal()
+        if d.min() <= 0:
+            raise EstimatorFault(f"the filter diverged at t = {t} s: covariance not positive "
+                                 f"({STATE_NAMES[int(d.argmin())]} variance {d.min():.3g})")
+
+    def _make_estimate(self) -> Estimate:
+        x, P = self.kf.x, self.kf.P
+        return Estimate(t=self._t, pose=x[0:3].copy(), twist=x[3:6].copy(), std=np.sqrt(P.diagonal()[:6]),
+                        cov=P.copy(), gyro_bias=float(x[BG]), standstill=self._standstill, nis=dict(self._nis),
+                        rejected=dict(self.rejected), updates=dict(self.updates), accel_bias=x[7:9].copy())
