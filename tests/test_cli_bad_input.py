@@ -86,6 +86,16 @@ BAD_INPUT = [
     ("sweep", "--local-only --global-start", "not allowed with argument"),
     ("sweep", "--guess m_p=5", "unrecognized arguments: --guess"),
     # --- diagnose (generic input errors only; its own checks are tested with it)
+    # --- estimate
+    ("estimate", "{missing}/a.mcap", "no such file"),
+    ("estimate", "{text}", "not an MCAP recording"),
+    ("estimate", "{folder}", "is a folder"),
+    ("estimate", "{ok} --out {missing}/est.mcap", "does not exist (otbot creates no parent folders)"),
+    ("estimate", "{ok} --prediction kalman", "invalid choice"),
+    # --- ctl (checked before any daemon is asked)
+    ("ctl", "velocity nan 0 0", "VX must be finite"),
+    ("ctl", "velocity 0 0", "the following arguments are required: WZ"),
+    ("ctl", "record pause", "invalid choice"),
     ("diagnose", "{missing}/a.mcap", "no such file"),
     ("diagnose", "{text}", "not an MCAP recording"),
     ("diagnose", "{ok} --report {ok}", "exists and is not a folder"),
@@ -218,7 +228,7 @@ def _leaf_parsers():
 def test_unknown_option_names_the_subcommand_usage(name, otbot_cli):
     needs = {"identify": ["chassis", "--sim"], "imu parse": ["capture.bin"], "plan": ["--out", "p.csv"],
              "track": ["corridor", "--sim"], "ctl track": ["corridor-smooth"], "ctl velocity": ["0", "0", "0"],
-             "ctl excite": ["/tmp/x.csv"], "ctl record": ["start"]}
+             "ctl excite": ["/tmp/x.csv"], "ctl record": ["start"], "estimate": ["x.mcap"]}
     rc, out, err = otbot_cli([*name.split(), *needs.get(name, []), "--no-such-option"])
     assert_one_line_error(rc, out, err, "unrecognized arguments: --no-such-option")
     assert f"; usage: otbot {name} [-h]" in err and "usage: otbot [-h] COMMAND" not in err

@@ -9,7 +9,6 @@ from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording, write_recording
 from otbot_hw.sensors import NoiseModel
 from otbot_hw.simulation.runs import simulated_recording
-from test_cli_simulate import run_cli  # the in-process CLI runner (tests/ is on sys.path under pytest)
 
 
 @pytest.fixture(scope="module")
@@ -24,11 +23,10 @@ def run_file(tmp_path_factory):
     return path, rec
 
 
-def test_out_carries_the_estimate_and_json_compares_with_truth(run_file, tmp_path, capsys):
+def test_out_carries_the_estimate_and_json_compares_with_truth(run_file, tmp_path, otbot_cli):
     path, rec = run_file
     out = tmp_path / "est.mcap"
-    rc, stdout, err = run_cli(["estimate", str(path), "--out", str(out), "--plot", str(tmp_path / "plots"), "--json"],
-                              capsys)
+    rc, stdout, err = otbot_cli(["estimate", str(path), "--out", str(out), "--plot", str(tmp_path / "plots"), "--json"])
     assert rc == 0, err
     r = json.loads(stdout)
     assert r["prediction"] == "imu" and r["initial_pose_source"] == "truth"
@@ -45,45 +43,45 @@ def test_out_carries_the_estimate_and_json_compares_with_truth(run_file, tmp_pat
     assert all(open(p, "rb").read(8) == b"\x89PNG\r\n\x1a\n" for p in r["plots"])
 
 
-def test_without_imu_the_model_prediction_runs_and_says_so(run_file, tmp_path, capsys):
+def test_without_imu_the_model_prediction_runs_and_says_so(run_file, tmp_path, otbot_cli):
     _, rec = run_file
     path = tmp_path / "noimu.mcap"
     write_recording(path, dataclasses.replace(rec, imu_accel=None, imu_gyro=None))
-    rc, stdout, err = run_cli(["estimate", str(path), "--json"], capsys)
+    rc, stdout, err = otbot_cli(["estimate", str(path), "--json"])
     assert rc == 0, err
     r = json.loads(stdout)
     assert r["prediction"] == "model" and "no /otbot/imu" in r["notes"][0]
     assert r["estimation_error"]["max"]["x"] < 5e-3
 
 
-def _one_line_exit_2(argv, capsys, words):
-    rc, stdout, err = run_cli(argv, capsys)
+def _one_line_exit_2(argv, otbot_cli, words):
+    rc, stdout, err = otbot_cli(argv)
     assert rc == 2, (stdout, err)
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in err, err
     assert words in lines[0], lines[0]
 
 
-def test_bad_recordings_exit_2_with_one_line(run_file, tmp_path, capsys):
+def test_bad_recordings_exit_2_with_one_line(run_file, tmp_path, otbot_cli):
     _, rec = run_file
-    _one_line_exit_2(["estimate", str(tmp_path / "missing.mcap")], capsys, "no such file")
+    _one_line_exit_2(["estimate", str(tmp_path / "missing.mcap")], otbot_cli, "no such file")
     nojoints = tmp_path / "nojoints.mcap"
     write_recording(nojoints, dataclasses.replace(rec, joint_pos=None, joint_vel=None))
-    _one_line_exit_2(["estimate", str(nojoints)], capsys, "no /otbot/joints")
+    _one_line_exit_2(["estimate", str(nojoints)], otbot_cli, "no /otbot/joints")
     nan = tmp_path / "nan.mcap"
     bad = dataclasses.replace(rec, joint_vel=rec.joint_vel.copy())
     bad.joint_vel[42, 0] = np.nan
     write_recording(nan, bad)
-    _one_line_exit_2(["estimate", str(nan)], capsys, "sample 42")
+    _one_line_exit_2(["estimate", str(nan)], otbot_cli, "sample 42")
     nan_imu = tmp_path / "nanimu.mcap"
     bad = dataclasses.replace(rec, imu_accel=rec.imu_accel.copy())
     bad.imu_accel[7, 1] = np.inf
     write_recording(nan_imu, bad)
-    _one_line_exit_2(["estimate", str(nan_imu)], capsys, "non-finite imu_accel")
-    _one_line_exit_2(["estimate", str(nan), "--out", str(tmp_path / "nowhere" / "x.mcap")], capsys, "does not exist")
+    _one_line_exit_2(["estimate", str(nan_imu)], otbot_cli, "non-finite imu_accel")
+    _one_line_exit_2(["estimate", str(nan), "--out", str(tmp_path / "nowhere" / "x.mcap")], otbot_cli, "does not exist")
 
 
-def test_non_monotonic_time_exits_2(tmp_path, capsys):
+def test_non_monotonic_time_exits_2(tmp_path, otbot_cli):
     """A file whose sample times go back (written with the plain mcap writer, as another tool would)."""
     from mcap.writer import CompressionType, Writer
 
@@ -101,4 +99,4 @@ def test_non_monotonic_time_exits_2(tmp_path, capsys):
                 w.add_message(channel_id=ids[topic], log_time=k, publish_time=k, sequence=k,
                               data=json.dumps(msg).encode())
         w.finish()
-    _one_line_exit_2(["estimate", str(path)], capsys, "sample times must increase")
+    _one_line_exit_2(["estimate", str(path)], otbot_cli, "sample times must increase")
