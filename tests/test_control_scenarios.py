@@ -7,9 +7,10 @@ import pytest
 from otbot_hw.cli import main
 from otbot_hw.control.gains import gains_from_tstab
 from otbot_hw.control.metrics import Event, event_summary
-from otbot_hw.control.scenarios import FIGURE8_FORCES, corridor_spec, figure8_spec, track
+from otbot_hw.control.scenarios import FIGURE8_FORCES, corridor_spec, figure8_spec
 from otbot_hw.motors import MotorLimits, load_motor_limits
 from otbot_hw.params import nominal
+from otbot_hw.runtime.tracking import track
 from otbot_hw.simulation.simulator import ForceSchedule
 
 T_STAB = 3.0
@@ -156,7 +157,7 @@ def test_cli_controller_and_plant_parameters_may_differ(tmp_path, capsys, paper)
 
 
 def test_planned_scenario_open_loop_collides_closed_loop_tracks(paper):
-    from otbot_hw.control.scenarios import run_scenario
+    from otbot_hw.runtime.tracking import run_scenario
 
     r = run_scenario("planned", paper, load_motor_limits(), robustness=False)
     assert r["planner"]["status"] == "Solve_Succeeded"

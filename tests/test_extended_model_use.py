@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from otbot_hw.cli import main
-from otbot_hw.control.closed_loop import run_closed_loop
+from otbot_hw.runtime.tracking import track_reference
 from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.task_model import reference_state, task_space
 from otbot_hw.control.trajectories import corridor
@@ -97,8 +97,8 @@ def test_controller_with_the_extended_model_cancels_the_effects_in_closed_loop()
     leaves millimetre errors (PD, no integral); the controller that knows the effects removes them."""
     plant = fx.ExtendedModel.paper(P).with_values({"c_w": 0.4, "c_p": 0.3, "g_x": 0.05, "k_r": -0.1})
     ref = corridor(smoothing=1.0)
-    naive = run_closed_loop(ref, ComputedTorqueController(P), plant, rate_hz=500.0, duration=8.0)
-    aware = run_closed_loop(ref, ComputedTorqueController(plant), plant, rate_hz=500.0, duration=8.0)
+    naive = track_reference(ref, ComputedTorqueController(P), plant, rate_hz=500.0, duration=8.0)
+    aware = track_reference(ref, ComputedTorqueController(plant), plant, rate_hz=500.0, duration=8.0)
     e_naive = np.abs(naive.e_p[:, :2]).max()
     e_aware = np.abs(aware.e_p[:, :2]).max()
     assert e_naive > 1e-3
