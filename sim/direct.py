@@ -81,6 +81,7 @@ class DirectSimRobot(Robot):
         self._plant_k = 0        # model steps since the first enable (plant time = k * period)
         self._started = False
         self._truth: np.ndarray | None = None
+        self._truth_f = np.zeros(2)
         self._imu_last = None
         self._zero_f = np.zeros(2)
 
@@ -137,6 +138,7 @@ class DirectSimRobot(Robot):
             pos = np.floor(pos / step + 1e-9) * step
             vel = np.round(vel / step) * step
         self._truth = self.stepper.x.copy()
+        self._truth_f = f
         snap = Snapshot(t=self._cycle * self.period, cycle=self._cycle, host_time=time.monotonic(), joint_pos=pos,
                         joint_vel=vel, joint_torque=u.copy(), imu_accel=acc, imu_gyro=gyro, imu_time=imu_t,
                         drive_states=self._states, faults=tuple(self._faults))
@@ -169,6 +171,10 @@ class DirectSimRobot(Robot):
 
     def truth(self) -> np.ndarray | None:
         return None if self._truth is None else self._truth.copy()
+
+    def truth_force(self) -> np.ndarray:
+        """External pivot force (2,) N, ground frame, held from the last read's sample on."""
+        return np.array(self._truth_f, dtype=float)
 
     # -- drive states ------------------------------------------------------------------------------
     def enable(self) -> None:

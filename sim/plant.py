@@ -224,6 +224,11 @@ class SimulatedBusRobot(CanopenRobot):
                 return np.array(self.plant.truth.x[-1])
             return self.plant.stepper.x.copy()
 
+    def truth_force(self) -> np.ndarray:
+        """External pivot force (2,) N, ground frame, held from the last read's SYNC on."""
+        with self.plant.lock:
+            return np.array(self.plant.truth.f[-1], dtype=float) if self.plant.truth.f else np.zeros(2)
+
 
 @contextmanager
 def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, tpdo_timeout: float | None = 1.0,

@@ -28,6 +28,10 @@ def register(sub) -> None:
     p.add_argument("--config", type=Path, default=None, help="hardware configuration (default config/robot.yaml)")
     p.add_argument("--rate", type=positive_float("--rate"), default=None, help="control (SYNC) rate, Hz")
     p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor")
+    p.add_argument("--plant-params", type=Path, default=None,
+                   help="the robot to simulate: a parameter YAML or a diagnosed-model file with 'effects' (default "
+                        "config/otbot.yaml); with effects the extended model is stepped and its sensor effects appear "
+                        "in the encoder and IMU samples")
     p.add_argument("--noise", choices=("paper", "none"), default="paper")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-imu", action="store_true", help="no simulated IMU")
@@ -37,13 +41,15 @@ def register(sub) -> None:
 
 def run(args: argparse.Namespace) -> None:
     from drivers.config import load_robot_config
+    from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.sensors import NoiseModel
     from sim.plant import serve
 
+    model = ExtendedModel.load(args.plant_params)
     cfg = load_robot_config(args.config)
     if args.rate is not None:
         cfg = cfg.replace_bus(control_rate=args.rate)
     noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
     serve(cfg, transport=args.transport, channel=args.channel, with_imu=not args.no_imu,
-          fixture=args.fixture, noise=noise, seed=args.seed)
+          fixture=args.fixture, noise=noise, seed=args.seed, params=model)
     return None

@@ -92,12 +92,13 @@ class LoopResult:
     u_traj: np.ndarray | None = None
     u_corr: np.ndarray | None = None
     feedback: str | None = None
+    robot_faults: tuple = ()
 
 
 class _Columns:
     """Per-sample rows kept in memory (to build the ``Recording`` and the run's summaries)."""
 
-    NAMES = ("t", "torque", "requested", "u_traj", "u_corr", "pos", "vel", "acc", "gyro", "truth", "pose",
+    NAMES = ("t", "torque", "requested", "u_traj", "u_corr", "pos", "vel", "acc", "gyro", "truth", "force", "pose",
              "twist", "std", "bias", "ref_p", "ref_pd", "ref_pdd")
 
     def __init__(self):
@@ -106,6 +107,7 @@ class _Columns:
 
 
 _NAN3 = np.full(3, np.nan)
+_ZERO2 = np.zeros(2)
 
 
 class LoopRunner:
@@ -136,6 +138,7 @@ class LoopRunner:
         self.writer: RecordingWriter | None = None
         self.events: list[dict] = []
         self.fault: Violation | None = None
+        self.robot_faults: tuple = ()
         self._cols = _Columns()
         self._k = 0
         self._held: ControlStep | None = None
@@ -144,6 +147,7 @@ class LoopRunner:
         self._last_est: StateEstimate | None = None
         self._has_truth = None
         self._has_imu = robot.has_imu
+        self._truth_force = getattr(robot, "truth_force", None)  # simulated robots: the pivot force
         self._periods: list[float] = []
         self._compute: list[float] = []
         self._t_last_read = None
@@ -218,6 +222,7 @@ class LoopRunner:
             self._has_truth = self.robot.truth() is not None
         fault = None
         if s.faults:
+            self.robot_faults = tuple(s.faults)
             fault = Violation("robot", s.t, "; ".join(map(str, s.faults)))
         est = None
         if self.feedback is not None and fault is None:
@@ -307,6 +312,7 @@ class LoopRunner:
         truth = self.robot.truth() if self._has_truth else None
         if self._has_truth:
             c.truth.append(truth)
+            c.force.append(self._truth_force() if self._truth_force is not None else _ZERO2)
         if TOPIC_ESTIMATE in self._topics:
             e = est if est is not None else self._last_est
             c.pose.append(e.pose)
@@ -328,7 +334,8 @@ class LoopRunner:
         if self._has_imu:
             msg[TOPIC_IMU] = {"t": t, "accel": acc.tolist(), "gyro": gyro.tolist()}
         if truth is not None:
-            msg[TOPIC_TRUTH] = {"t": t, "q": truth[:6].tolist(), "qd": truth[6:].tolist()}
+            msg[TOPIC_TRUTH] = {"t": t, "q": truth[:6].tolist(), "qd": truth[6:].tolist(),
+                                "force": c.force[-1].tolist()}
         if TOPIC_ESTIMATE in self._topics:
             msg[TOPIC_ESTIMATE] = {"t": t, "pose": c.pose[-1].tolist(), "twist": c.twist[-1].tolist(),
                                    "std": c.std[-1].tolist(), "gyro_bias": float(c.bias[-1])}
@@ -402,6 +409,7 @@ class LoopRunner:
         if c.truth:
             x = arr(c.truth, 12)
             rec.truth_q, rec.truth_qd = x[:, :6].copy(), x[:, 6:].copy()
+            rec.truth_force = arr(c.force, 2)
         if c.pose:
             rec.estimate_pose, rec.estimate_twist = arr(c.pose, 3), arr(c.twist, 3)
             rec.estimate_std, rec.estimate_gyro_bias = arr(c.std, 6), np.array(c.bias, dtype=float)
@@ -410,4 +418,5 @@ class LoopRunner:
         return LoopResult(recording=rec, completed=self.fault is None, stats=st, fault=self.fault,
                           saturation=self.supervisor.limiter.report(), requested=arr(c.requested, 3),
                           u_traj=arr(c.u_traj, 3), u_corr=arr(c.u_corr, 3),
-                          feedback=self.feedback.name if self.feedback is not None else None)
+                          feedback=self.feedback.name if self.feedback is not None else None,
+                          robot_faults=self.robot_faults)

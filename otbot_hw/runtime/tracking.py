@@ -226,8 +226,9 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
     kw = dict(backend=backend, feedback=feedback, plant=plant, effects=effects, safety=safety)
     run = track(spec, params, limits, gains, "nominal", progress=progress, path=path, metadata=metadata, **kw)
     result.update(summarize(spec, run, limits, params))
-    result["feedback"] = feedback
-    result["bus"] = backend.name
+    result["feedback"] = feedback if isinstance(feedback, str) else getattr(feedback, "name", str(feedback))
+    result["bus"] = {"sim": None, "bus sim": "sim", "bus config": "config"}.get(backend.name)
+    result["backend"] = backend.describe()
     result["estimation_error"] = run.estimation_error()
     result["loop"] = run.loop.stats.to_dict()
     result["wall_time_s"] = run.wall_time_s
