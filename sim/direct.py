@@ -46,15 +46,16 @@ class DirectSimRobot(Robot):
     ``plant``: ``OtbotParams`` (the paper's model) or ``ExtendedModel`` (with effects; default: nominal
     parameters); ``period`` s per sample; ``x0`` (12,) initial state (rolling-angle coordinates for an
     extended model); ``fixture`` floor, stand or locked; ``noise`` and ``seed``: sensor noise;
-    ``imu_rate`` Hz (None: no IMU); ``encoder_counts``: counts per joint revolution (3,) for the
-    encoders' quantization (None: none); ``limits``: motor torque limits (None: no clamp);
+    ``imu_rate`` Hz (None: no IMU); ``encoder_counts``: counts per joint revolution (3,) the angles
+    are floored to (None: exact); ``rate_step``: resolution (3,) rad/s the rates are rounded to (None:
+    exact); ``limits``: motor torque limits (None: no clamp);
     ``torque_step`` N m: the drives' torque resolution (None: exact); ``forces``: pivot forces.
     """
 
     def __init__(self, plant=None, period: float = 0.001, x0=None, fixture: str = "floor",
                  noise: NoiseModel | None = None, seed: int | None = 0, imu_rate: float | None = 100.0,
-                 encoder_counts=None, limits: MotorLimits | None = None, torque_step: float | None = None,
-                 forces: ForceSchedule | None = None):
+                 encoder_counts=None, rate_step=None, limits: MotorLimits | None = None,
+                 torque_step: float | None = None, forces: ForceSchedule | None = None):
         if not (period > 0 and math.isfinite(period)):
             raise ValueError(f"period must be > 0 s, got {period}")
         if imu_rate is not None and not imu_rate > 0:
@@ -70,6 +71,7 @@ class DirectSimRobot(Robot):
         self.rng = np.random.default_rng(seed)
         self.imu_rate = None if imu_rate is None else float(imu_rate)
         self.counts = None if encoder_counts is None else np.asarray(encoder_counts, dtype=float).reshape(3)
+        self.rate_step = None if rate_step is None else np.asarray(rate_step, dtype=float).reshape(3)
         self.limits = limits
         self._max = None if limits is None else np.asarray(limits.max_torque, dtype=float).tolist()
         self.torque_step = torque_step
@@ -136,7 +138,8 @@ class DirectSimRobot(Robot):
         if self.counts is not None:
             step = 2 * np.pi / self.counts
             pos = np.floor(pos / step + 1e-9) * step
-            vel = np.round(vel / step) * step
+        if self.rate_step is not None:
+            vel = np.round(vel / self.rate_step) * self.rate_step
         self._truth = self.stepper.x.copy()
         self._truth_f = f
         snap = Snapshot(t=self._cycle * self.period, cycle=self._cycle, host_time=time.monotonic(), joint_pos=pos,

@@ -44,8 +44,8 @@ def encoder_resolution(config) -> tuple[float, float, float]:
 @dataclass
 class DirectBackend:
     """``sim``: ``DirectSimRobot`` at ``rate`` Hz with ``noise``/``seed``, IMU at ``imu_rate`` Hz
-    (None: no IMU), encoder resolution ``encoder_counts`` (None: exact), motor ``limits`` (None: no
-    clamp) and torque resolution ``torque_step`` N m (None: exact). ``ideal()``: exact sensors,
+    (None: no IMU), encoder resolution ``encoder_counts`` (counts per joint revolution) and
+    ``rate_step`` (rad/s) (None: exact), motor ``limits`` (None: no clamp) and torque resolution ``torque_step`` N m (None: exact). ``ideal()``: exact sensors,
     no noise (model studies, the control benchmarks)."""
 
     rate: float = 1000.0
@@ -53,6 +53,7 @@ class DirectBackend:
     seed: int | None = 0
     imu_rate: float | None = 100.0
     encoder_counts: tuple | None = None
+    rate_step: tuple | None = None
     limits: MotorLimits | None = None
     torque_step: float | None = None
     name: str = "sim"
@@ -63,10 +64,12 @@ class DirectBackend:
     def from_config(cls, config, rate: float, noise: NoiseModel | None = None, seed: int | None = 0,
                     with_imu: bool = True) -> "DirectBackend":
         """The direct back end with the sensors and drives of a hardware configuration: encoder
-        resolution, IMU rate, motor limits, the drives' torque resolution (one per-mille of rated torque)."""
+        resolution (angles from the drives' motor encoders and the pivot encoder, rates from the drives'
+        0x606C unit), IMU rate, motor limits, the drives' torque resolution (one per-mille of rated torque)."""
         return cls(rate=rate, noise=noise, seed=seed,
                    imu_rate=float(config.imu.rate_hz) if (with_imu and config.imu is not None) else None,
-                   encoder_counts=encoder_resolution(config), limits=config.limits,
+                   encoder_counts=encoder_resolution(config),
+                   rate_step=tuple(d.rad_s_per_velocity_unit for d in config.drives), limits=config.limits,
                    torque_step=min(d.joint_torque_per_permille for d in config.drives))
 
     @property
@@ -79,7 +82,7 @@ class DirectBackend:
 
         robot = DirectSimRobot(plant, period=1.0 / self.rate, x0=x0, fixture=fixture, noise=self.noise,
                                seed=self.seed, imu_rate=self.imu_rate, encoder_counts=self.encoder_counts,
-                               limits=self.limits, torque_step=self.torque_step, forces=forces)
+                               rate_step=self.rate_step, limits=self.limits, torque_step=self.torque_step, forces=forces)
         try:
             yield robot
         finally:

@@ -56,7 +56,7 @@ class SafetyConfig:
     max_pivot_rate: float | None = 10.0
     max_speed: float | None = 2.0
     max_turn_rate: float | None = 10.0
-    workspace: tuple[float, float, float, float] | None = None  # x_min, x_max, y_min, y_max (m)
+    workspace: tuple[float, float, float, float] | None = (-50.0, 50.0, -50.0, 50.0)  # x_min, x_max, y_min, y_max (m)
     max_position_error: float | None = 0.3
     max_heading_error: float | None = 0.3
     max_position_std: float | None = 0.1

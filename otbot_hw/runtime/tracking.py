@@ -145,8 +145,8 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
         fb = make_feedback(feedback, law.params, period, x0[:3]) if isinstance(feedback, str) else feedback
         sup = Supervisor(limits, safety, period, realtime=backend.realtime,
                          on_saturation=(lambda e: progress(
-                             f"saturation: {e.motor} at t = {e.t_start:.3f} s (requested {e.peak_request:.1f} N m, "
-                             f"limit {e.limit:g})")) if progress else None)
+                             f"saturation: {e.motor} at t = {e.t_start - (controller.origin or 0.0):.3f} s (requested "
+                             f"{e.peak_request:.1f} N m, limit {e.limit:g})")) if progress else None)
         runner = LoopRunner(robot, controller, sup, fb, path=path, metadata=meta, realtime=backend.realtime,
                             progress=progress if (progress is not None and T > LONG_RUN_S) else None,
                             progress_every=10.0)
