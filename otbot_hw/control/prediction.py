@@ -42,6 +42,15 @@ def task_state_vector(p, pd, phi_p, prm):
     return x
 
 
+@njit(cache=True)
+def predict_paper(p, pd, phi_p, u, dt, substeps, prm):
+    """State (12,) ``dt`` s after (p, pd, phi_p) under torques u, the paper's model (one compiled call)."""
+    x = task_state_vector(p, pd, phi_p, prm)
+    U = np.empty((1, 3))
+    U[0, 0], U[0, 1], U[0, 2] = u[0], u[1], u[2]
+    return compiled.rk4_zoh(x, U, np.zeros((1, 2)), dt, substeps, prm, compiled.FLOOR)[1]
+
+
 class TaskStatePredictor:
     """Predict (p, p_dot, phi_p) ``dt`` s ahead under a held command, with the controller's model.
 
@@ -65,11 +74,11 @@ class TaskStatePredictor:
         """(p, p_dot, phi_p) after ``dt`` s (default: the period) under torques u (3,) N m."""
         h = self.dt if dt is None else float(dt)
         sub = self._substeps if dt is None else default_substeps(h)
-        x = task_state_vector(p, p_dot, float(phi_p), self._prm)
-        self._U[0] = u
         if self.eff is None:
-            x1 = compiled.rk4_zoh(x, self._U, self._F, h, sub, self._prm, compiled.FLOOR)[1]
+            x1 = predict_paper(p, p_dot, float(phi_p), u, h, sub, self._prm)
         else:
+            x = task_state_vector(p, p_dot, float(phi_p), self._prm)
+            self._U[0] = u
             tau0 = fx.actuated_torque(self._U[0], self.eff)
             x1 = fx.ext_rk4_zoh(x, tau0, self._U, self._F, h, sub, self._prm, self.eff, compiled.FLOOR)[0][1]
         return x1[0:3], x1[6:9], float(x1[5])

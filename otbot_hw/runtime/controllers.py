@@ -129,8 +129,7 @@ class TrackingController:
             h = t - feedback.t
             p, pd, phi = self.predictor.predict(p, pd, phi, feedback.u_held,
                                                 None if abs(h - self.period) < 1e-12 else h)
-        out = self.law.update_fast(np.ascontiguousarray(p, dtype=float), np.ascontiguousarray(pd, dtype=float),
-                                   float(phi), ref.p, ref.pd, ref.pdd)
+        out = self.law.update_fast(p, pd, float(phi), ref.p, ref.pd, ref.pdd)
         return ControlStep(out[0].copy(), ref, out[1].copy(), out[2].copy())
 
 

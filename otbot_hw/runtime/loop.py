@@ -285,6 +285,8 @@ class LoopRunner:
             topics.append(TOPIC_REFERENCE)
         self._topics = set(topics)
         meta = {"source": "loop", "sample_period": self.period, "realtime": self.realtime, **self.metadata}
+        if self._has_imu and getattr(self.robot, "imu_rate", None):
+            meta.setdefault("imu_rate", float(self.robot.imu_rate))
         if self.feedback is not None:
             meta.setdefault("feedback", self.feedback.name)
         self.metadata = meta

@@ -138,7 +138,7 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
     x0 = x0 if x0 is not None else rest_state(reference.sample(np.zeros(1))[0][0])
     T = reference.duration if duration is None else float(duration)
     sim = backend.has_truth
-    meta = {"bus": backend.describe(), **(metadata or {})}
+    meta = {"backend": backend.describe(), **(metadata or {})}
     with backend.open(plant if sim else None, x0=x0 if sim else None, forces=forces if sim else None) as robot:
         period = robot.period
         controller = TrackingController(law, reference, period, predict=predict)
