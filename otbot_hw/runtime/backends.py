@@ -94,8 +94,20 @@ class DirectBackend:
                 "torque_step": self.torque_step}
 
 
+class _ConfiguredRate:
+    """The control rate (Hz) and period (s) of the hardware configuration's bus."""
+
+    @property
+    def rate(self) -> float:
+        return self.config.bus.control_rate
+
+    @property
+    def period(self) -> float:
+        return self.config.bus.period
+
+
 @dataclass
-class BusSimBackend:
+class BusSimBackend(_ConfiguredRate):
     """``bus sim``: the drivers over virtual CAN to the simulated plant in this process, at the
     configuration's control rate (``config.bus.control_rate``)."""
 
@@ -106,14 +118,6 @@ class BusSimBackend:
     name: str = "bus sim"
     realtime: bool = False
     has_truth: bool = True
-
-    @property
-    def rate(self) -> float:
-        return self.config.bus.control_rate
-
-    @property
-    def period(self) -> float:
-        return self.config.bus.period
 
     @contextmanager
     def open(self, plant, x0=None, forces=None, fixture: str = "floor"):
@@ -130,7 +134,7 @@ class BusSimBackend:
 
 
 @dataclass
-class BusConfigBackend:
+class BusConfigBackend(_ConfiguredRate):
     """``bus config``: ``CanopenRobot`` on the configured bus and IMU port (``imu_port`` overrides
     it); ``lockstep``: the other end is a simulated plant (SYNCs back to back, IMU sample awaited per
     SYNC) instead of a real robot paced in real time."""
@@ -145,14 +149,6 @@ class BusConfigBackend:
     @property
     def realtime(self) -> bool:
         return not self.lockstep
-
-    @property
-    def rate(self) -> float:
-        return self.config.bus.control_rate
-
-    @property
-    def period(self) -> float:
-        return self.config.bus.period
 
     @contextmanager
     def open(self, plant=None, x0=None, forces=None, fixture: str = "floor"):
