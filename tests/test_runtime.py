@@ -457,3 +457,47 @@ def test_bad_safety_configuration_names_the_key(tmp_path, capsys):
             SafetyConfig.load(f)
     assert SafetyConfig.load(CFG.path) == SafetyConfig()                 # the file documents the defaults
     assert SafetyConfig.from_dict({"max_speed": {"value": None, "unit": "m/s"}}).max_speed is None
+
+
+def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(monkeypatch, tmp_path, capsys):
+    """``otbot plant --plant-params`` (a heavier platform) as its own process behind slcan; ``otbot run
+    --bus config --lockstep`` sees the heavier robot's encoders; ``otbot track FILE.csv --bus config``
+    tracks it with EKF feedback (the stand-in) and reports errors of the estimated pose (no truth)."""
+    import subprocess
+
+    heavy = P.replace(m_p=1.5 * P.m_p, I_p=1.5 * P.I_p)
+    hfile = tmp_path / "heavy.yaml"
+    heavy.save(hfile)
+    cfg = tmp_path / "robot.yaml"
+    text = CFG.path.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}")
+    text = text.replace("tpdo_timeout: {value: 0.05, unit: s}", "tpdo_timeout: {value: 1.0, unit: s}")
+    cfg.write_text(text.replace("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}"))
+    for eds in CFG.path.parent.glob("*.eds"):
+        (tmp_path / eds.name).write_text(eds.read_text())
+    traj = tmp_path / "step.csv"
+    traj.write_text("t,x,y,alpha\n0,0,0,0\n1,0.05,0,0\n2,0.2,0.05,0\n")
+    code = "import sys; from otbot_hw.cli import main; sys.exit(main())"
+    for step in ("run", "track"):
+        proc = subprocess.Popen([sys.executable, "-c", code, "plant", "--noise", "none", "--plant-params", str(hfile)],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        try:
+            info = json.loads(proc.stdout.readline())
+            bus = ["--bus", "config", "--config", str(cfg), "--interface", "slcan", "--channel", info["can_channel"],
+                   "--imu-port", info["imu_port"], "--lockstep", "--json"]
+            if step == "run":
+                assert main(["run", "--torques", "6,-10,6", "--duration", "0.3", *bus]) == 0
+                res = json.loads(capsys.readouterr().out)
+                expect = simulate(heavy, np.tile([6.0, -10.0, 6.0], (30, 1)), 0.01).x[-1, 3:5]
+                np.testing.assert_allclose(res["phi"][:2], expect, atol=2 * np.pi / 40960 + 1e-9)
+            else:
+                calls = []
+                monkeypatch.setitem(sys.modules, "otbot_hw.estimation", _fake_estimation(calls))
+                assert main(["track", str(traj), *bus, "--params", str(hfile)]) == 0
+                res = json.loads(capsys.readouterr().out)
+                assert res["bus"] == "config" and res["feedback"] == "ekf" and res["true_pose_known"] is False
+                assert res["estimation_error"] is None and "robustness_skipped" in res
+                assert res["max_abs_error"]["x"] < 5e-3 and res["loop"]["realtime"] is False
+                assert len(calls) == res["loop"]["cycles"]
+        finally:
+            proc.stdin.close()
+            assert proc.wait(timeout=20) == 0
