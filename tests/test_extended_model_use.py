@@ -122,7 +122,7 @@ def test_diagnosed_model_file_feeds_simulate_and_track(tmp_path, capsys):
     s = json.loads(capsys.readouterr().out)
     assert s["effects"]["c_r"] == pytest.approx(m.get("c_w")) and s["max_constraint_residual"] < 1e-8
     assert main(["track", "corridor-smooth", "--sim", "--feedback", "truth", "--no-robustness", "--params", str(out),
-                 "--json"]) == 0
+                 "--rate", "250", "--json"]) == 0
     t = json.loads(capsys.readouterr().out)
     assert t["compensated_effects"]["c_r"] == pytest.approx(m.get("c_w"))
     assert max(t["max_abs_error"][k] for k in ("x", "y")) < 1e-3

@@ -501,3 +501,27 @@ def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(mo
         finally:
             proc.stdin.close()
             assert proc.wait(timeout=20) == 0
+
+
+def test_controllers_swap_between_cycles_and_a_new_reference_starts_at_its_first_command():
+    """The daemon's use: start, cycle open loop, then swap to tracking a hold of the current pose
+    without a jump: the swap is a recorded mode event, the new reference starts where the robot is."""
+    from otbot_hw.control.trajectories import SampledTrajectory
+
+    robot = DirectSimRobot(P, period=0.01, imu_rate=None)
+    runner = LoopRunner(robot, OpenLoopTorques(np.tile([3.0, 3.0, 0.0], (1, 1)), 0.01), Supervisor(LIMITS), TruthFeedback(),
+                        record_reference=True)
+    runner.start()
+    for _ in range(30):
+        assert runner.cycle()
+    here = robot.truth()[:3]
+    hold = SampledTrajectory(np.array([0.0, 1.0]), np.tile(here, (2, 1)))
+    runner.set_controller(TrackingController(corridor_law(), hold, 0.01), "hold")
+    for _ in range(150):
+        assert runner.cycle()
+    runner.close()
+    rec = runner.result().recording
+    assert [e["text"] for e in rec.events if e["kind"] == "mode"][-1] == "hold"
+    assert np.isnan(rec.reference_p[30]).all()                           # open loop: no reference
+    np.testing.assert_allclose(rec.reference_p[31], here)               # the hold starts where the robot was
+    assert np.abs(rec.truth_qd[-1, :2]).max() < 0.02 < np.abs(rec.truth_qd[30, :2]).max()

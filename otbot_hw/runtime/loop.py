@@ -37,7 +37,7 @@ from otbot_hw.control.computed_torque import TaskState
 from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS,
                                 TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter)
 from otbot_hw.robot import Robot, RobotError, Snapshot
-from otbot_hw.runtime.controllers import ControlStep, Controller, Feedback
+from otbot_hw.runtime.controllers import ControlStep, Controller, Feedback, Reference
 from otbot_hw.runtime.feedback import FeedbackUnavailable, StateEstimate
 from otbot_hw.runtime.supervisor import Supervisor, Violation
 
@@ -108,6 +108,7 @@ class _Columns:
 
 _NAN3 = np.full(3, np.nan)
 _ZERO2 = np.zeros(2)
+_NO_REFERENCE = Reference(_NAN3, _NAN3, _NAN3)
 
 
 class LoopRunner:
@@ -116,13 +117,18 @@ class LoopRunner:
 
     ``path``: MCAP recording to stream (None: in memory only); ``metadata``: extra recording metadata;
     ``realtime``: pace against the wall clock; ``progress(text)``: called about every
-    ``progress_every`` s of robot time; ``stop_at_end``: quick-stop after the last cycle.
+    ``progress_every`` s of robot time; ``stop_at_end``: quick-stop after the last cycle;
+    ``record_reference``: record ``/otbot/reference`` (NaN while no controller gives one); default:
+    when the first command comes with a reference.
+
+    Between ``start()`` and ``close()`` a caller may drive the cycles itself (``cycle()``, a daemon)
+    and swap the controller between them (``set_controller``); ``result()`` then gives what ran.
     """
 
     def __init__(self, robot: Robot, controller: Controller, supervisor: Supervisor, feedback=None,
                  path: str | Path | None = None, metadata: dict | None = None, realtime: bool = False,
                  progress: Callable[[str], None] | None = None, progress_every: float = 1.0,
-                 stop_at_end: bool = True):
+                 stop_at_end: bool = True, record_reference: bool | None = None):
         self.robot = robot
         self.controller = controller
         self.supervisor = supervisor
@@ -133,6 +139,7 @@ class LoopRunner:
         self.progress = progress
         self.progress_every = progress_every
         self.stop_at_end = stop_at_end
+        self.record_reference = record_reference
         self.period = float(robot.period)
         self.stats = LoopStats(self.period, realtime)
         self.writer: RecordingWriter | None = None
@@ -155,7 +162,6 @@ class LoopRunner:
         self._t_wall0 = None
         self._next_progress = progress_every
         self._total = None
-        self._last_ref = None
         self._user_saturation = supervisor.limiter.on_saturation
         supervisor.limiter.on_saturation = self._on_saturation
 
@@ -281,7 +287,7 @@ class LoopRunner:
             topics.append(TOPIC_TRUTH)
         if est is not None:
             topics.append(TOPIC_ESTIMATE)
-        if ref is not None:
+        if self.record_reference or (self.record_reference is None and ref is not None):
             topics.append(TOPIC_REFERENCE)
         self._topics = set(topics)
         meta = {"source": "loop", "sample_period": self.period, "realtime": self.realtime, **self.metadata}
@@ -322,11 +328,10 @@ class LoopRunner:
             c.std.append(e.std)
             c.bias.append(e.gyro_bias)
         if TOPIC_REFERENCE in self._topics:
-            r = ref if ref is not None else self._last_ref
+            r = ref if ref is not None else _NO_REFERENCE  # e.g. open loop before a tracking controller
             c.ref_p.append(r.p)
             c.ref_pd.append(r.pd)
             c.ref_pdd.append(r.pdd)
-            self._last_ref = r
         if self.writer is None:
             return
         t = s.t
