@@ -167,7 +167,7 @@ def run(args: argparse.Namespace) -> dict:
         result = run_scenario(args.scenario, params, limits, t_stab=tstab, robustness=not args.no_robustness,
                               plot_dir=args.plot, animate=args.animate, progress=say, error_bounds=eb, spec=spec,
                               plant=plant, effects=effects, backend=backend, feedback=args.feedback, safety=safety,
-                              path=args.out, metadata=meta)
+                              path=args.out, metadata=meta, config_path=args.config)
         if effects is not None:
             result["compensated_effects"] = model.active_effects()
     except TrajectoryError as exc:

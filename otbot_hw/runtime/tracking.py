@@ -28,7 +28,7 @@ from otbot_hw.motors import MotorLimits
 from otbot_hw.params import OtbotParams
 from otbot_hw.runtime.backends import DirectBackend
 from otbot_hw.runtime.controllers import OpenLoopTorques, TrackingController
-from otbot_hw.runtime.feedback import EkfFeedback, TruthFeedback
+from otbot_hw.runtime.feedback import EkfFeedback, TruthFeedback, load_ekf
 from otbot_hw.runtime.loop import LoopResult, LoopRunner
 from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor
 from otbot_hw.simulation.simulator import ForceSchedule, rest_state
@@ -107,14 +107,17 @@ class TrackingRun:
                    saturation=sat)
 
 
-def make_feedback(kind: str | None, params, period: float, start_pose):
-    """The feedback source by name: "ekf" (``EkfFeedback``, the controller's parameters), "truth", or None."""
+def make_feedback(kind: str | None, params, period: float, start_pose, config_path=None):
+    """The feedback source by name: "ekf" (``EkfFeedback`` with the controller's parameters and the
+    ``estimator:`` section of the hardware configuration ``config_path``, default config/robot.yaml),
+    "truth", or None."""
     if kind is None:
         return None
     if kind == "truth":
         return TruthFeedback()
     if kind == "ekf":
-        return EkfFeedback(params, period, start_pose)
+        _, EstimatorConfig, _ = load_ekf()
+        return EkfFeedback(params, period, start_pose, EstimatorConfig.load(config_path))
     raise ValueError(f"unknown feedback {kind!r} (ekf, truth)")
 
 
@@ -123,7 +126,7 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
                     duration: float | None = None, safety: SafetyConfig | None = None,
                     progress: Callable[[str], None] | None = None, path: str | Path | None = None,
                     metadata: dict | None = None, predict: bool = True,
-                    rate_hz: float | None = None) -> TrackingRun:
+                    rate_hz: float | None = None, config_path=None) -> TrackingRun:
     """Track a ``DesiredTrajectory`` with the computed-torque ``law`` through the loop runner.
 
     ``plant``: the simulated robot (``OtbotParams`` or ``ExtendedModel``; default the law's
@@ -131,7 +134,8 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
     ``backend``: default ``DirectBackend(rate_hz)`` (default 1 kHz, exact sensors); ``feedback``: "truth", "ekf" or a
     feedback object (``start``/``step`` -> ``StateEstimate``); ``x0``: start state (default rest at
     p_d(0), chassis heading 0); ``duration`` s (default the reference's); ``safety``: the supervisor's
-    limits (default ``SafetyConfig()``); ``path``: MCAP recording; ``predict``: see ``TrackingController``."""
+    limits (default ``SafetyConfig()``); ``path``: MCAP recording; ``predict``: see ``TrackingController``;
+    ``config_path``: the hardware YAML whose ``estimator:`` section configures the EKF."""
     backend = backend or DirectBackend(rate=rate_hz or 1000.0)
     plant = plant if plant is not None else law.model
     limits = limits if limits is not None else MotorLimits(np.full(3, 1e9))
@@ -142,7 +146,7 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
     with backend.open(plant if sim else None, x0=x0 if sim else None, forces=forces if sim else None) as robot:
         period = robot.period
         controller = TrackingController(law, reference, period, predict=predict)
-        fb = make_feedback(feedback, law.params, period, x0[:3]) if isinstance(feedback, str) else feedback
+        fb = make_feedback(feedback, law.params, period, x0[:3], config_path) if isinstance(feedback, str) else feedback
         sup = Supervisor(limits, safety, period, realtime=backend.realtime,
                          on_saturation=(lambda e: progress(
                              f"saturation: {e.motor} at t = {e.t_start - (controller.origin or 0.0):.3f} s (requested "
@@ -159,7 +163,7 @@ def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: G
           forces: ForceSchedule | None | str = "spec", progress: Callable[[str], None] | None = None,
           plant=None, effects: np.ndarray | None = None, safety: SafetyConfig | None = None,
           path: str | Path | None = None, metadata: dict | None = None, predict: bool = True,
-          rate_hz: float | None = None) -> TrackingRun:
+          rate_hz: float | None = None, config_path=None) -> TrackingRun:
     """Track ``spec`` once with the controller believing ``params`` (see ``controller_params``) and
     ``variant``'s plant; ``effects``: an effect vector the controller compensates; the rest as
     ``track_reference``."""
@@ -171,7 +175,8 @@ def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: G
     meta = {"scenario": spec.name, "variant": variant, **(metadata or {})}
     return track_reference(spec.reference, ComputedTorqueController(ctrl, gains), plant_v, limits, backend, feedback,
                            x0=spec.x0, forces=spec.forces if forces == "spec" else forces, safety=safety,
-                           progress=progress, path=path, metadata=meta, predict=predict, rate_hz=rate_hz)
+                           progress=progress, path=path, metadata=meta, predict=predict, rate_hz=rate_hz,
+                           config_path=config_path)
 
 
 def replay_torques(torques, times, plant, x0, rate_hz: float, duration: float):
@@ -202,7 +207,7 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
                  error_bounds=None, progress: Callable[[str], None] | None = None,
                  spec: ScenarioSpec | None = None, plant=None, effects: np.ndarray | None = None,
                  backend=None, feedback: str = "truth", safety: SafetyConfig | None = None,
-                 path: str | Path | None = None, metadata: dict | None = None) -> dict:
+                 path: str | Path | None = None, metadata: dict | None = None, config_path=None) -> dict:
     """Run scenario ``name`` (or a CSV path, or a prebuilt ``spec``); returns the JSON summary
     (see ``otbot track --help``). ``backend`` default: ``DirectBackend(rate_hz)`` (exact sensors);
     robustness and isolated-force reruns use the same back end when it is a simulator, and are
@@ -223,7 +228,7 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
             say(f"feasibility: {v['motor']} may exceed {v['limit_Nm']:g} N m on "
                 f"[{v['t_start']:.2f}, {v['t_end']:.2f}] s (bound {v['bound_Nm']:.1f} N m)")
     say(f"closed loop on {backend.name} at {backend.rate:g} Hz, feedback {feedback}, {spec.reference.duration:.1f} s ...")
-    kw = dict(backend=backend, feedback=feedback, plant=plant, effects=effects, safety=safety)
+    kw = dict(backend=backend, feedback=feedback, plant=plant, effects=effects, safety=safety, config_path=config_path)
     run = track(spec, params, limits, gains, "nominal", progress=progress, path=path, metadata=metadata, **kw)
     result.update(summarize(spec, run, limits, params))
     result["feedback"] = feedback if isinstance(feedback, str) else getattr(feedback, "name", str(feedback))
