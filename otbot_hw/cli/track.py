@@ -179,7 +179,7 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
     if not result["completed"]:
         where = f"; recording up to the fault: {args.out}" if args.out else ""
-        if not args.json:
+        if not args.json and "max_abs_error" in result:
             _print_human(result)
         _fail(result, f"stopped by fault: {result['fault']['kind']} at t = {result['fault']['t']:.3f} s: "
                       f"{result['fault']['text']}{where}", args.json)

@@ -88,8 +88,10 @@ class TrackingRun:
         rec = res.recording
         start = 0 if origin is None else int(np.searchsorted(rec.t, origin - 0.5 * period))
         end = len(rec)
-        if end - start < 1:
-            raise RuntimeError("the loop stopped before the reference started: nothing tracked")
+        if res.recording.reference_p is None:  # stopped before the first sample (e.g. enabling failed)
+            z3, z12 = np.zeros((0, 3)), np.zeros((0, 12))
+            return cls(t=np.zeros(0), x=z12, u_cmd=z3, u=z3, u_traj=z3, u_corr=z3, p_ref=z3, pd_ref=z3,
+                       rate_hz=1.0 / period, loop=res, has_truth=False, saturation=list(res.saturation))
         sl = slice(start, end)
         has_truth = rec.truth_q is not None
         if has_truth:
@@ -230,6 +232,10 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
     say(f"closed loop on {backend.name} at {backend.rate:g} Hz, feedback {feedback}, {spec.reference.duration:.1f} s ...")
     kw = dict(backend=backend, feedback=feedback, plant=plant, effects=effects, safety=safety, config_path=config_path)
     run = track(spec, params, limits, gains, "nominal", progress=progress, path=path, metadata=metadata, **kw)
+    if len(run.t) < 2:  # stopped before it tracked anything
+        return {**result, "completed": False, "fault": run.loop.fault.to_dict() if run.loop.fault else None,
+                "feedback": result.get("feedback", feedback if isinstance(feedback, str) else None),
+                "loop": run.loop.stats.to_dict(), "recording": str(path) if path is not None else None}
     result.update(summarize(spec, run, limits, params))
     result["feedback"] = feedback if isinstance(feedback, str) else getattr(feedback, "name", str(feedback))
     result["bus"] = {"sim": None, "bus sim": "sim", "bus config": "config"}.get(backend.name)
