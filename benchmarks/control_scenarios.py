@@ -15,9 +15,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from otbot_hw.control.scenarios import SCENARIOS, run_scenario  # noqa: E402
+from otbot_hw.control.scenarios import SCENARIOS  # noqa: E402
 from otbot_hw.motors import load_motor_limits  # noqa: E402
 from otbot_hw.params import nominal  # noqa: E402
+from otbot_hw.runtime.tracking import run_scenario  # noqa: E402
 
 
 def fmt_settle(events) -> str:

@@ -34,13 +34,12 @@ import canopen
 import numpy as np
 
 from drivers.config import RobotConfig
-from drivers.robot import STANDARD_FRAMES_ONLY, imu_due
-from otbot_hw.model import compiled
-from otbot_hw.model.fixtures import fixture_code
+from drivers.robot import STANDARD_FRAMES_ONLY, CanopenRobot, imu_due
 from otbot_hw.params import OtbotParams, nominal
-from otbot_hw.sensors import NoiseModel, imu_ideal
+from otbot_hw.sensors import NoiseModel
+from otbot_hw.simulation.sensing import StepperSensors
+from otbot_hw.simulation.simulator import ForceSchedule, make_stepper
 from sim.canopen_slaves import SimulatedDrive, SimulatedEncoder
-from otbot_hw.simulation.simulator import ForceSchedule, Stepper
 
 
 @dataclass
@@ -56,24 +55,29 @@ class TruthLog:
 class Plant:
     """The simulated robot on ``network`` (a connected ``canopen.Network``).
 
+    ``params``: the robot to simulate, ``OtbotParams`` (the paper's model) or an ``ExtendedModel``
+    (a parameter or diagnosed-model file with ``effects``: the extended model is stepped and its
+    sensor effects appear in the encoder and IMU samples); default the nominal parameters.
     ``imu``: an object with ``publish(accel_sensor (3,), gyro_sensor (3,))`` (``sim.imu.SimulatedIMU``)
     or None; ``noise``: sensor noise (IMU accel/gyro sigma; joint angle and rate sigma added before
     the drives and the encoder quantize); ``position_offsets``: each drive's 0x6064 at phi = 0 (counts).
     """
 
-    def __init__(self, network: canopen.Network, config: RobotConfig, params: OtbotParams | None = None,
+    def __init__(self, network: canopen.Network, config: RobotConfig, params=None,
                  fixture: str = "floor", forces: ForceSchedule | None = None, x0: np.ndarray | None = None,
                  noise: NoiseModel | None = None, seed: int | None = 0, imu=None,
                  position_offsets=(0, 0, 0), supported_modes: int | None = None):
         self.config = config
-        self.params = params or nominal()
+        self.model = params if params is not None else nominal()
+        self.params: OtbotParams = getattr(self.model, "params", self.model)
         self.period = config.bus.period
         self.drives = [SimulatedDrive(network, dc, off, supported_modes)
                        for dc, off in zip(config.drives, position_offsets)]
         self.encoder = (SimulatedEncoder(network, config.pivot_encoder)
                         if config.pivot_encoder.source == "encoder" else None)
         self.nodes = [*self.drives, *([self.encoder] if self.encoder else [])]
-        self.stepper = Stepper(self.params, self.period, x0, fixture)
+        self.stepper = make_stepper(self.model, self.period, x0, fixture)
+        self.sensors = StepperSensors(self.stepper, self.period)
         self.fixture = fixture
         self.forces = forces
         self.noise = noise or NoiseModel()
@@ -81,9 +85,6 @@ class Plant:
         self.imu = imu
         self.mounting = config.imu.mounting if config.imu is not None else np.eye(3)
         self.imu_rate = float(config.imu.rate_hz) if config.imu is not None else 1.0 / self.period
-        self._prm = self.params.as_array()
-        self._code = fixture_code(fixture)
-        self._gen = np.zeros(6)
         self.started = False
         self.k = 0
         self.syncs = 0
@@ -103,8 +104,11 @@ class Plant:
 
     def _warm_up(self) -> None:
         """Compile (or load from numba's cache) the model functions now, not inside the first SYNC."""
-        Stepper(self.params, self.period, self.stepper.x, self.fixture).step(np.zeros(3))
-        compiled.derivative(self.stepper.x, np.zeros(3), np.zeros(2), self._gen, self._prm, self._code)
+        st = make_stepper(self.model, self.period, self.stepper.x, self.fixture)
+        probe = StepperSensors(st, self.period)
+        probe.imu(0.0, np.zeros(3), np.zeros(2))
+        probe.joints(np.zeros(3))
+        st.step(np.zeros(3))
 
     @property
     def t(self) -> float:
@@ -121,11 +125,11 @@ class Plant:
             n.stop()
 
     def imu_reading(self, x: np.ndarray, u: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """IMU specific force (3,) m/s^2 and rate (3,) rad/s in B'' with noise, at state x under u, f."""
-        qdd = compiled.derivative(x, u, f, self._gen, self._prm, self._code)[6:]
-        acc, gyro = imu_ideal(x[None, :], qdd[None, :])
-        acc = acc[0] + self.noise.accel * self.rng.standard_normal(3)
-        gyro = gyro[0] + self.noise.gyro * self.rng.standard_normal(3)
+        """IMU specific force (3,) m/s^2 and rate (3,) rad/s in B'' (the extended model's IMU frame) with
+        noise, at the current state x of the stepper under u, f (``otbot_hw.simulation.sensing``)."""
+        acc, gyro = self.sensors.imu(self.t, u, f)
+        acc = acc + self.noise.accel * self.rng.standard_normal(3)
+        gyro = gyro + self.noise.gyro * self.rng.standard_normal(3)
         return acc, gyro
 
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
@@ -143,13 +147,16 @@ class Plant:
             if self.imu is not None and imu_due(sync_index, self.period, self.imu_rate):
                 acc, gyro = self.imu_reading(x, u, f)
                 self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)
+            elif self.imu is not None and self.sensors.latency > 0:
+                self.sensors.imu(self.t, u, f)  # keeps the history the IMU latency interpolates in
+            pos, vel = self.sensors.joints(u)
             rate_noise = self.noise.enc_rate * self.rng.standard_normal(3) if self.noise.enc_rate else np.zeros(3)
             angle_noise = self.noise.enc_angle * self.rng.standard_normal(3) if self.noise.enc_angle else np.zeros(3)
             for j, d in enumerate(self.drives):
-                d.sample(x[3 + j] + angle_noise[j], x[9 + j] + rate_noise[j])
+                d.sample(pos[j] + angle_noise[j], vel[j] + rate_noise[j])
                 d.send_tpdos()
             if self.encoder is not None:
-                self.encoder.sample(x[5] + angle_noise[2])
+                self.encoder.sample(pos[2] + angle_noise[2])
                 self.encoder.send_tpdos()
             if self.started:
                 self.truth.t.append(self.t)
@@ -203,6 +210,26 @@ def open_sim_imu(config: RobotConfig):
     return pub, drv
 
 
+class SimulatedBusRobot(CanopenRobot):
+    """``CanopenRobot`` talking to a ``Plant`` in this process: everything goes over the bus as with a
+    real robot; only ``truth()`` looks behind it, at the plant's state at the last read's SYNC."""
+
+    def __init__(self, plant: Plant, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.plant = plant
+
+    def truth(self) -> np.ndarray | None:
+        with self.plant.lock:  # the SYNC handler holds it until the state of that SYNC is logged
+            if self.plant.truth.x:
+                return np.array(self.plant.truth.x[-1])
+            return self.plant.stepper.x.copy()
+
+    def truth_force(self) -> np.ndarray:
+        """External pivot force (2,) N, ground frame, held from the last read's SYNC on."""
+        with self.plant.lock:
+            return np.array(self.plant.truth.f[-1], dtype=float) if self.plant.truth.f else np.zeros(2)
+
+
 @contextmanager
 def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, tpdo_timeout: float | None = 1.0,
                     heartbeat_consumer: float | None = 1.0, **plant_kwargs):
@@ -216,8 +243,6 @@ def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, t
     """
     from dataclasses import replace
 
-    from drivers.robot import CanopenRobot
-
     config = config.replace_bus(interface="virtual", channel=f"otbot-sim-{uuid.uuid4().hex[:12]}")
     if tpdo_timeout is not None:
         config = config.replace_bus(tpdo_timeout=max(tpdo_timeout, config.bus.tpdo_timeout))
@@ -230,8 +255,8 @@ def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, t
     if with_imu and config.imu is not None:
         pub, drv = imu_pair if imu_pair is not None else open_sim_imu(config)
     vp = VirtualPlant(config, imu=pub, **plant_kwargs)
-    robot = CanopenRobot(config, bus=can.Bus(interface="virtual", channel=config.bus.channel), imu=drv,
-                         imu_lockstep=True)
+    robot = SimulatedBusRobot(vp.plant, config, bus=can.Bus(interface="virtual", channel=config.bus.channel), imu=drv,
+                              imu_lockstep=True)
     try:
         robot.open()
         yield robot, vp.plant

@@ -16,9 +16,9 @@ from drivers.busload import bus_load, frame_bits
 from drivers.config import load_robot_config
 from drivers.faults import DriverError
 from drivers.robot import CanopenRobot, open_imu
-from drivers.runs import run_torques
 from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording
+from otbot_hw.runtime.openloop import run_torques
 from otbot_hw.sensors import NoiseModel, encoders_ideal, imu_sigma
 from sim.plant import simulated_robot
 from otbot_hw.simulation.runs import simulated_recording
@@ -117,7 +117,7 @@ def test_torques_through_the_drivers_drive_the_plant_like_the_pure_simulation():
     u = np.array([6.0, -10.0, 6.0])
     with simulated_robot(CFG, with_imu=False, noise=NoiseModel(),
                          position_offsets=(2 ** 31 - 5000, -(2 ** 31) + 7, 123)) as (robot, plant):
-        res = run_torques(robot, np.tile(u, (n, 1)), dt, truth=plant.truth)
+        res = run_torques(robot, np.tile(u, (n, 1)))
         assert res.completed
         raw = plant.drives[0].values[(0x6064, 0)]
     assert raw < 0  # the right wheel's 32-bit counter wrapped during the run
@@ -138,8 +138,8 @@ def test_bench_fixtures_and_external_force_match_the_pure_simulation(fixture):
     U = np.column_stack([np.linspace(-3, 5, n), np.full(n, 2.0), np.linspace(4, -4, n)])
     U = np.round(U / 0.02) * 0.02  # whole per-mille steps, so the drives apply exactly these torques
     with simulated_robot(CFG, with_imu=False, fixture=fixture) as (robot, plant):
-        res = run_torques(robot, U, dt, truth=plant.truth)
-        assert res.completed, res.faults
+        res = run_torques(robot, U)
+        assert res.completed, res.fault
     traj = simulate(nominal(), U, dt, fixture=fixture)
     np.testing.assert_allclose(res.recording.truth_q, traj.q, atol=1e-12)
     np.testing.assert_allclose(res.recording.joint_pos, expected_joints(traj.x)[0], atol=1e-9)
@@ -150,8 +150,8 @@ def test_pivot_force_schedule_is_applied_in_plant_time():
     n, dt = 50, CFG.bus.period
     forces = ForceSchedule([PivotForce(start=0.1, duration=0.2, fx=20.0, fy=-5.0)])
     with simulated_robot(CFG, with_imu=False, forces=forces) as (robot, plant):
-        res = run_torques(robot, np.zeros((n, 3)), dt, truth=plant.truth)
-        assert res.completed, res.faults
+        res = run_torques(robot, np.zeros((n, 3)))
+        assert res.completed, res.fault
     traj = simulate(nominal(), np.zeros((n, 3)), dt, forces=forces)
     np.testing.assert_allclose(res.recording.truth_q, traj.q, atol=1e-12)
     assert abs(traj.q[-1, 0]) > 1e-3  # the push moved the robot
@@ -166,8 +166,8 @@ def test_pivot_angle_from_the_pivot_drive_when_configured():
     n = 30
     with simulated_robot(cfg, with_imu=False) as (robot, plant):
         assert robot.encoder is None and plant.encoder is None
-        res = run_torques(robot, np.tile([0.0, 0.0, 4.0], (n, 1)), cfg.bus.period, truth=plant.truth)
-        assert res.completed, res.faults
+        res = run_torques(robot, np.tile([0.0, 0.0, 4.0], (n, 1)))
+        assert res.completed, res.fault
     traj = simulate(nominal(), np.tile([0.0, 0.0, 4.0], (n, 1)), cfg.bus.period)
     np.testing.assert_allclose(res.recording.joint_pos, encoders_ideal(traj.x, 40960)[0], atol=1e-9)
 
@@ -183,7 +183,7 @@ def test_bus_recording_matches_the_pure_simulation_recording(tmp_path):
     u = np.tile([6.0, -10.0, 6.0], (n, 1))
     path = tmp_path / "bus.mcap"
     with simulated_robot(CFG, noise=NoiseModel.paper(), seed=3) as (robot, plant):
-        run = run_torques(robot, u, dt, path=path, metadata={"experiment": "chassis"}, truth=plant.truth)
+        run = run_torques(robot, u, path=path, metadata={"experiment": "chassis"})
     assert run.completed
     bus = read_recording(path)
     pure = simulated_recording(nominal(), u, dt, NoiseModel())  # noiseless reference
@@ -202,7 +202,7 @@ def test_bus_recording_matches_the_pure_simulation_recording(tmp_path):
         r = got - ref
         assert np.all(np.abs(r.mean(axis=0)) < 4 * sigma / np.sqrt(len(r)) + 1e-3)
         assert np.all(np.abs(r.std(axis=0) / sigma - 1) < 0.15)
-    assert bus.metadata["experiment"] == "chassis" and bus.metadata["source"] == "bus"
+    assert bus.metadata["experiment"] == "chassis" and bus.metadata["source"] == "loop"
     # Chassis identification end-to-end over the bus, against the same fit on a pure simulation.
     from otbot_hw.identification.steps import identify_step
 
@@ -273,7 +273,7 @@ def test_plant_in_another_process_over_slcan_on_a_pty():
         n = 60
         with robot:
             robot.open()
-            res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (n, 1)), cfg.bus.period)
+            res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (n, 1)))
         assert res.completed
         traj = simulate(nominal(), np.tile([6.0, -10.0, 6.0], (n, 1)), cfg.bus.period)
         np.testing.assert_allclose(res.recording.joint_pos, expected_joints(traj.x)[0], atol=1e-9)
@@ -302,7 +302,7 @@ def test_socketcan_transport_where_the_kernel_has_it():
         json.loads(proc.stdout.readline())
         with CanopenRobot(cfg) as robot:
             robot.open()
-            res = run_torques(robot, np.tile([1.0, 1.0, 1.0], (20, 1)), cfg.bus.period)
+            res = run_torques(robot, np.tile([1.0, 1.0, 1.0], (20, 1)))
         assert res.completed
     finally:
         proc.stdin.close()
@@ -378,8 +378,8 @@ def test_velocity_unit_of_the_drives_is_configurable():
     cfg = replace(CFG, drives=drives)
     n = 40
     with simulated_robot(cfg, with_imu=False) as (robot, plant):
-        res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (n, 1)), cfg.bus.period, truth=plant.truth)
-        assert res.completed, res.faults
+        res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (n, 1)))
+        assert res.completed, res.fault
     qd = np.array(plant.truth.x)[:n + 1, 9:12]
     # 0.1 rpm at the motor = 2 pi / 600 / 10 rad/s at the joint: rounding error at most half of it.
     err = np.abs(res.recording.joint_vel - qd)

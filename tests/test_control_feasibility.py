@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from otbot_hw.control.closed_loop import rest_state, run_closed_loop
+from otbot_hw.runtime.tracking import track_reference
+from otbot_hw.simulation.simulator import rest_state
 from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.feasibility import (
     ErrorBounds, check_feasibility, reference_states,
@@ -86,7 +87,7 @@ def test_interval_bound_contains_applied_torques(params, rng):
         e0 = rng.uniform(-0.6, 0.6, 3) * np.array(eb.position)
         x0 = rest_state(e0, heading=rng.uniform(-0.02, 0.02))
         fs = ForceSchedule([PivotForce(rng.uniform(1, 6), 0.5, *rng.uniform(-40, 40, 2))])
-        run = run_closed_loop(ref, ComputedTorqueController(params, gains), params, rate_hz=1000.0, x0=x0, forces=fs)
+        run = track_reference(ref, ComputedTorqueController(params, gains), params, rate_hz=1000.0, x0=x0, forces=fs)
         k = np.round(rep.t[:-1] * 1000).astype(int)
         ep, ev = run.e_p[k], run.e_v[k]
         dphi = np.abs(run.x[k, 5] - rep.reference_state[:-1, 5])
@@ -127,7 +128,7 @@ def test_bound_covers_the_torque_at_velocity_steps(params):
     limits = MotorLimits(np.array([40.0, 40.0, 40.0]))
     rep = check_feasibility(ref, params, gains, limits, ErrorBounds.default())
     assert [s["t"] for s in rep.velocity_steps] == pytest.approx([0, 5, 10, 15, 20, 25])
-    run = run_closed_loop(ref, ComputedTorqueController(params, gains), params, rate_hz=1000.0)
+    run = track_reference(ref, ComputedTorqueController(params, gains), params, rate_hz=1000.0)
     for s in rep.velocity_steps:
         i = int(round(s["t"] / 0.01))
         k = int(round(s["t"] * 1000))

@@ -2,7 +2,6 @@
 import numpy as np
 import pytest
 
-from otbot_hw.control.closed_loop import rest_state, run_closed_loop
 from otbot_hw.control.computed_torque import ComputedTorqueController, TaskState
 from otbot_hw.control.gains import Gains, axis_gains, gains_from_tstab
 from otbot_hw.control.limiter import TorqueLimiter
@@ -11,6 +10,10 @@ from otbot_hw.control.trajectories import PolylineTrajectory, SampledTrajectory,
 from otbot_hw.model.kinematics import inverse_kinematics_matrix
 from otbot_hw.model.task_space import task_space_model
 from otbot_hw.motors import MotorLimits
+from otbot_hw.runtime.feedback import StateEstimate
+from otbot_hw.runtime.supervisor import SafetyConfig
+from otbot_hw.runtime.tracking import track_reference
+from otbot_hw.simulation.simulator import rest_state
 
 
 def test_gains_from_tstab_paper_values():
@@ -58,7 +61,7 @@ def test_exact_model_tracks_smooth_trajectory_to_numerical_precision(params):
     ref = PolylineTrajectory([(0, 0), (1.5, 0), (1.5, 1.5), (0, 1.5)], speed=0.6, smoothing=1.0, alpha=0.2)
     errs = []
     for rate in (500.0, 1000.0):
-        run = run_closed_loop(ref, ComputedTorqueController(params), params, rate_hz=rate)
+        run = track_reference(ref, ComputedTorqueController(params), params, rate_hz=rate)
         errs.append((np.abs(run.e_p).max(), np.abs(run.e_v).max()))
     assert errs[1][0] < 3e-5 and errs[1][1] < 1e-4          # m (and rad), m/s
     assert 1.8 < errs[0][0] / errs[1][0] < 2.2               # first order in the hold period
@@ -71,7 +74,7 @@ def test_initial_error_decays_with_designed_poles(params):
     ref = SampledTrajectory(np.array([0.0, 4.0]), np.zeros((2, 3)))  # rest at the origin
     e0 = np.array([0.05, -0.08, 0.03])
     x0 = rest_state(e0, heading=0.3)
-    run = run_closed_loop(ref, ComputedTorqueController(params, gains), params, rate_hz=1000.0, x0=x0)
+    run = track_reference(ref, ComputedTorqueController(params, gains), params, rate_hz=1000.0, x0=x0)
     t = run.t
     for i in range(3):
         s1, s2 = gains.poles()[i]
@@ -88,7 +91,9 @@ def test_wrong_parameters_still_converge(params):
     """20 % platform error: errors stay small and vanish at rest (the law is robust)."""
     plant = params
     ctrl = params.replace(m_p=0.8 * params.m_p, I_p=0.8 * params.I_p, m_c=1.1 * params.m_c)
-    run = run_closed_loop(figure_eight(duration=10.0, hold=4.0), ComputedTorqueController(ctrl), plant)
+    fast = SafetyConfig(max_speed=2.0)  # this figure-8 reaches 1.5 m/s, the default speed limit
+    run = track_reference(figure_eight(duration=10.0, hold=4.0), ComputedTorqueController(ctrl), plant, safety=fast)
+    assert run.completed, run.loop.fault
     assert np.abs(run.e_p[:, :2]).max() < 0.02
     assert np.abs(run.e_p[-1, :2]).max() < 1e-3
 
@@ -112,21 +117,24 @@ def test_limiter_clamps_and_reports_every_episode():
 
 
 def test_loop_uses_any_feedback_source_and_tells_it_the_torques(params):
-    """The law only sees what the feedback source reports: a biased estimator biases the robot."""
-    applied = []
+    """The law only sees what the feedback source reports: a biased estimator biases the robot; the
+    source is told, each cycle, the command that acted over the last period."""
+    told = []
 
     class Biased:
-        def __init__(self, stepper):
-            self.stepper = stepper
+        name, faults = "biased", ()
 
-        def read(self, t):
-            s = TaskState.from_state(self.stepper.x)
-            return TaskState(p=s.p + np.array([0.01, 0.0, 0.0]), p_dot=s.p_dot, phi_p=s.phi_p)
+        def start(self, s, robot):
+            return self.step(s, robot, None)
 
-        def command(self, u, t):
-            applied.append((t, u.copy()))
+        def step(self, s, robot, u_prev):
+            told.append((s.t, None if u_prev is None else u_prev.copy()))
+            x = robot.truth()
+            return StateEstimate(s.t, x[:3] + np.array([0.01, 0.0, 0.0]), x[6:9], np.zeros(6), float(x[5]))
 
     ref = SampledTrajectory(np.array([0.0, 3.0]), np.zeros((2, 3)))
-    run = run_closed_loop(ref, ComputedTorqueController(params), params, rate_hz=500.0, feedback=Biased)
-    assert len(applied) == len(run.t) - 1 and np.allclose(applied[7][1], run.u[7])
-    assert run.x[-1, 0] == pytest.approx(-0.01, abs=1e-3)  # settles where the estimate says x = 0
+    run = track_reference(ref, ComputedTorqueController(params), params, rate_hz=500.0, feedback=Biased())
+    rec = run.loop.recording
+    assert len(told) == len(rec.t)
+    np.testing.assert_allclose(told[8][1], rec.torque[7])     # cycle 8 is told the command of sample 7
+    assert run.x[-1, 0] == pytest.approx(-0.01, abs=1e-3)    # settles where the estimate says x = 0

@@ -45,10 +45,10 @@ def test_planner_returns_collision_free_rest_to_rest_plan(tiny):
 def test_planned_states_are_dynamically_consistent_up_to_collocation_error(tiny, params):
     """Replaying the planned torques open loop drifts (the plan is only collocation-consistent),
     but the start of the motion agrees with the plan."""
-    from otbot_hw.control.closed_loop import run_open_loop
+    from otbot_hw.runtime.tracking import replay_torques
 
     prob, res = tiny
-    t, X, _ = run_open_loop(res.u[:-1], res.t[:-1], params, res.x[0], rate_hz=500.0, duration=res.t[-1])
+    t, X = replay_torques(res.u[:-1], res.t[:-1], params, res.x[0], rate_hz=500.0, duration=res.t[-1])
     P = res.trajectory().sample(t)[0]
     err = np.hypot(X[:, 0] - P[:, 0], X[:, 1] - P[:, 1])
     first = err[t <= res.t[1]].max()   # after one collocation interval: small

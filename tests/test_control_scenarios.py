@@ -7,9 +7,10 @@ import pytest
 from otbot_hw.cli import main
 from otbot_hw.control.gains import gains_from_tstab
 from otbot_hw.control.metrics import Event, event_summary
-from otbot_hw.control.scenarios import FIGURE8_FORCES, corridor_spec, figure8_spec, track
+from otbot_hw.control.scenarios import FIGURE8_FORCES, corridor_spec, figure8_spec
 from otbot_hw.motors import MotorLimits, load_motor_limits
 from otbot_hw.params import nominal
+from otbot_hw.runtime.tracking import track
 from otbot_hw.simulation.simulator import ForceSchedule
 
 T_STAB = 3.0
@@ -82,7 +83,7 @@ def test_force_on_pivot_is_rejected_within_tstab(paper):
 
 
 def test_cli_track_json(capsys):
-    assert main(["track", "corridor", "--sim", "--json", "--no-robustness", "--rate", "500"]) == 0
+    assert main(["track", "corridor", "--sim", "--feedback", "truth", "--json", "--no-robustness", "--rate", "500"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["max_abs_error"]) >= {"x", "y", "alpha"} and set(out["rms_error"]) >= {"x", "y", "alpha"}
     assert set(out["peak_torque"]) == {"right_wheel", "left_wheel", "pivot"}
@@ -101,16 +102,16 @@ def test_cli_track_json(capsys):
 def test_cli_track_bad_input(tmp_path, capsys):
     assert main(["track", "corridor"]) == 2
     assert "--sim" in capsys.readouterr().err
-    assert main(["track", "nowhere.csv", "--sim"]) == 2
+    assert main(["track", "nowhere.csv", "--sim", "--feedback", "truth"]) == 2
     bad = tmp_path / "bad.csv"
     bad.write_text("t,x,y,alpha\n0,0,0,0\n1,nan,0,0\n")
-    assert main(["track", str(bad), "--sim", "--json"]) == 2
+    assert main(["track", str(bad), "--sim", "--feedback", "truth", "--json"]) == 2
     assert "line 3, column x" in capsys.readouterr().err
-    assert main(["track", "corridor", "--sim", "--tstab", "0"]) == 2
+    assert main(["track", "corridor", "--sim", "--feedback", "truth", "--tstab", "0"]) == 2
     robot = tmp_path / "robot.yaml"
     robot.write_text("motors:\n" + "".join(f"  {m}: {{max_torque: {{value: 2.0, unit: N m}}}}\n"
                                            for m in ("right_wheel", "left_wheel", "pivot")))
-    assert main(["track", "corridor-smooth", "--sim", "--strict", "--robot", str(robot)]) == 2
+    assert main(["track", "corridor-smooth", "--sim", "--feedback", "truth", "--strict", "--robot", str(robot)]) == 2
     err = capsys.readouterr().err
     assert "infeasible trajectory" in err and "N m limit from t =" in err
 
@@ -121,7 +122,7 @@ def test_cli_plan_writes_a_trackable_csv(tmp_path, capsys):
                  "--intervals", "20", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["status"] == "Solve_Succeeded" and out.exists()
-    assert main(["track", str(out), "--sim", "--json", "--no-robustness", "--rate", "500"]) == 0
+    assert main(["track", str(out), "--sim", "--feedback", "truth", "--json", "--no-robustness", "--rate", "500"]) == 0
     tr = json.loads(capsys.readouterr().out)
     assert tr["collisions"] == [] and "collisions" in tr["open_loop"]     # obstacles travel in the CSV
     assert tr["max_abs_error"]["x"] < 1e-3 and tr["max_abs_error"]["y"] < 1e-3
@@ -146,7 +147,7 @@ def test_plots_and_animation_are_written(tmp_path, paper):
 def test_cli_controller_and_plant_parameters_may_differ(tmp_path, capsys, paper):
     wrong = tmp_path / "ctrl.yaml"
     paper.replace(m_p=0.8 * paper.m_p, I_p=0.8 * paper.I_p).save(wrong)
-    args = ["track", "corridor-smooth", "--sim", "--json", "--no-robustness", "--rate", "250"]
+    args = ["track", "corridor-smooth", "--sim", "--feedback", "truth", "--json", "--no-robustness", "--rate", "250"]
     assert main(args) == 0
     exact = json.loads(capsys.readouterr().out)["max_abs_error"]["x"]
     from otbot_hw.params import DEFAULT_PARAMS_FILE
@@ -156,7 +157,7 @@ def test_cli_controller_and_plant_parameters_may_differ(tmp_path, capsys, paper)
 
 
 def test_planned_scenario_open_loop_collides_closed_loop_tracks(paper):
-    from otbot_hw.control.scenarios import run_scenario
+    from otbot_hw.runtime.tracking import run_scenario
 
     r = run_scenario("planned", paper, load_motor_limits(), robustness=False)
     assert r["planner"]["status"] == "Solve_Succeeded"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from otbot_hw.cli import main
-from otbot_hw.control.closed_loop import run_closed_loop
+from otbot_hw.runtime.tracking import track_reference
 from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.task_model import reference_state, task_space
 from otbot_hw.control.trajectories import corridor
@@ -97,8 +97,8 @@ def test_controller_with_the_extended_model_cancels_the_effects_in_closed_loop()
     leaves millimetre errors (PD, no integral); the controller that knows the effects removes them."""
     plant = fx.ExtendedModel.paper(P).with_values({"c_w": 0.4, "c_p": 0.3, "g_x": 0.05, "k_r": -0.1})
     ref = corridor(smoothing=1.0)
-    naive = run_closed_loop(ref, ComputedTorqueController(P), plant, rate_hz=500.0, duration=8.0)
-    aware = run_closed_loop(ref, ComputedTorqueController(plant), plant, rate_hz=500.0, duration=8.0)
+    naive = track_reference(ref, ComputedTorqueController(P), plant, rate_hz=500.0, duration=8.0)
+    aware = track_reference(ref, ComputedTorqueController(plant), plant, rate_hz=500.0, duration=8.0)
     e_naive = np.abs(naive.e_p[:, :2]).max()
     e_aware = np.abs(aware.e_p[:, :2]).max()
     assert e_naive > 1e-3
@@ -121,7 +121,8 @@ def test_diagnosed_model_file_feeds_simulate_and_track(tmp_path, capsys):
     assert main(["simulate", "--params", str(out), "--duration", "0.5", "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["effects"]["c_r"] == pytest.approx(m.get("c_w")) and s["max_constraint_residual"] < 1e-8
-    assert main(["track", "corridor-smooth", "--sim", "--no-robustness", "--params", str(out), "--json"]) == 0
+    assert main(["track", "corridor-smooth", "--sim", "--feedback", "truth", "--no-robustness", "--params", str(out),
+                 "--rate", "250", "--json"]) == 0
     t = json.loads(capsys.readouterr().out)
     assert t["compensated_effects"]["c_r"] == pytest.approx(m.get("c_w"))
     assert max(t["max_abs_error"][k] for k in ("x", "y")) < 1e-3

@@ -4,8 +4,8 @@
    noise sigma = ND sqrt(SR) = 13.7e-3): MCAP recording and plots;
 2. chassis identification (paper step 2) from that recording;
 3. the same experiment through the CANopen drivers (simulated robot on virtual CAN);
-4. the paper's narrow corridor tracked in closed loop by the computed-torque controller
-   (plots in ``corridor/``).
+4. the paper's narrow corridor tracked by the computed-torque controller over the simulated CAN
+   bus, fed by the pose EKF on the encoders and IMU (recording and plots in ``corridor/``).
 
 Every file written is announced on stdout (text mode) or listed in the JSON.
 """
@@ -33,8 +33,9 @@ def register(sub) -> None:
                     "I_c in kg m^2, x_B, y_B in m) from that recording, plot in identification/; (3) the same "
                     "experiment through the CANopen drivers against the simulated robot on a virtual CAN bus: "
                     "chassis_bus.mcap and plots in chassis_bus/; (4) the paper's narrow corridor (five 3 m "
-                    "segments at 0.6 m/s) tracked in closed loop at 1 kHz: errors in mm and rad, settle times "
-                    "in s per event, plots in corridor/. Runs in about 10 s.",
+                    "segments at 0.6 m/s) tracked over the simulated CAN bus at the bus's control rate with "
+                    "EKF feedback: tracking errors of the true pose and estimation errors (estimate - truth) in "
+                    "mm and rad, settle times in s per event, recording and plots in corridor/.",
     )
     p.add_argument("--out-dir", type=Path, default=Path("otbot-demo"), metavar="DIR",
                    help="output folder, created if missing (its parent must exist); default otbot-demo")
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> dict:
     result["identification"] = demo_stage(rec, params, out, quiet)
     from otbot_hw.cli.run import bus_demo
     result["bus_run"] = bus_demo(out, args.seed, quiet, reference=rec)
-    result["corridor"] = _corridor(out, params, quiet)
+    result["corridor"] = _corridor(out, params, quiet, args.seed)
     return result
 
 
@@ -101,31 +102,71 @@ def saturation_line(saturation: list[dict], events: list[dict], rate_hz: float) 
     return head + "; not all at the reference's velocity steps: see 'saturation' in --json for when"
 
 
-def _corridor(out: Path, params, quiet: bool) -> dict:
-    """The paper's corridor with the computed-torque controller (closed loop, 1 kHz)."""
-    from otbot_hw.control.scenarios import demo_corridor
-    from otbot_hw.motors import load_motor_limits
+def _corridor(out: Path, params, quiet: bool, seed: int = 0) -> dict:
+    """The paper's corridor tracked over the simulated CAN bus by the loop runner, fed by the pose EKF
+    on the encoders and IMU (by the simulator's true state, with a printed note, where the EKF is not
+    installed); recording and plots in ``corridor/``."""
+    from drivers.config import load_robot_config
+    from otbot_hw.runtime.backends import BusSimBackend
+    from otbot_hw.runtime.feedback import FeedbackUnavailable, load_ekf
+    from otbot_hw.runtime.supervisor import SafetyConfig
+    from otbot_hw.runtime.tracking import run_scenario
+    from otbot_hw.sensors import NoiseModel
 
-    progress("[demo] 4/4 corridor: computed-torque tracking, five 3 m segments at 0.6 m/s, 1 kHz", not quiet)
+    cfg = load_robot_config()
+    feedback = "ekf"
+    note = None
+    try:
+        load_ekf()
+    except FeedbackUnavailable as exc:
+        feedback = "truth"
+        note = f"{exc}: the controller is fed the simulator's true state instead"
+        progress(f"[demo] note: {note}", True)
+    progress(f"[demo] 4/4 corridor: computed-torque tracking over the simulated CAN bus at {cfg.bus.control_rate:g} Hz, "
+             f"feedback {feedback}, five 3 m segments at 0.6 m/s", not quiet)
 
     def say(m: str) -> None:
         # per-episode saturation and feasibility notices are summed up in one line after the run
         if not m.startswith(("saturation:", "feasibility:")):
             progress(f"[demo] {m}")
 
-    res = demo_corridor(out / "corridor", params, load_motor_limits(), progress=None if quiet else say)
+    folder = out / "corridor"
+    folder.mkdir(parents=True, exist_ok=True)
+    res = run_scenario("corridor", params, cfg.limits, robustness=False, plot_dir=folder,
+                       progress=None if quiet else say,
+                       backend=BusSimBackend(cfg, NoiseModel.paper(), seed), feedback=feedback,
+                       safety=SafetyConfig.load(), path=folder / "corridor.mcap",
+                       metadata={"command": "otbot demo", "noise": NoiseModel.paper().to_dict(), "seed": seed})
+    keep = ("rate_hz", "max_abs_error", "rms_error", "estimation_error", "peak_torque", "events", "saturation",
+            "min_wall_clearance_m", "plots", "wall_time_s", "feedback", "bus", "backend", "loop", "recording",
+            "completed", "fault")
+    res = {k: res[k] for k in keep if k in res}
+    if note:
+        res["note"] = note
+    if not res["completed"]:
+        raise RuntimeError(f"corridor stopped by fault: {res['fault']}")
     if not quiet:
         e = res["max_abs_error"]
-        print(f"[demo] corridor: max |error| x {e['x'] * 1e3:.1f} mm, y {e['y'] * 1e3:.1f} mm, "
-              f"alpha {e['alpha']:.1e} rad" + (f"; footprint to the walls >= {res['min_wall_clearance_m'] * 1e3:.0f} mm"
-                                               if "min_wall_clearance_m" in res else ""))
+        print(f"[demo] corridor over the bus, feedback {feedback}: tracking error of the true pose, max |e_x| "
+              f"{e['x'] * 1e3:.1f} mm, max |e_y| {e['y'] * 1e3:.1f} mm, max |e_alpha| {e['alpha']:.1e} rad"
+              + (f"; footprint to the walls >= {res['min_wall_clearance_m'] * 1e3:.0f} mm"
+                 if "min_wall_clearance_m" in res else ""))
+        ee = res.get("estimation_error")
+        if feedback == "truth":
+            print("[demo] estimation error: none to report (the controller was fed the true state)")
+        elif ee is not None:
+            m, r = ee["max"], ee["rms"]
+            print(f"[demo] estimation error (estimate - truth): max |x| {m['x'] * 1e3:.2f} mm, max |y| "
+                  f"{m['y'] * 1e3:.2f} mm, max |alpha| {m['alpha']:.1e} rad; rms x {r['x'] * 1e3:.2f} mm, "
+                  f"y {r['y'] * 1e3:.2f} mm, alpha {r['alpha']:.1e} rad")
         print("[demo] corridor settle times (until the errors stay below 2 % of the event's peak): "
               + ", ".join(f"{ev['kind']} at t = {ev['t']:g} s: "
                           + (f"{ev['settle_time_s']:.2f} s" if ev["settle_time_s"] is not None else "not settled")
                           for ev in res["events"]))
-        line = saturation_line(res["saturation"], res["events"], res["rate_hz"])
+        line = saturation_line(res["saturation"], res["events"], res.get("rate_hz", cfg.bus.control_rate))
         if line:
             print(f"[demo] corridor: {line}")
+        print(f"[demo] recording: {res['recording']}")
         for p in res["plots"]:
             print(f"[demo] plot: {p}")
     return res

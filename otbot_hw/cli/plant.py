@@ -34,6 +34,10 @@ def register(sub) -> None:
                    help="control (SYNC) rate in Hz: one model step per SYNC (default: bus.control_rate of the config)")
     p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor",
                    help="bench fixture: floor, stand (chassis held, wheels free), locked (chassis and wheels held)")
+    p.add_argument("--plant-params", type=Path, default=None,
+                   help="the robot to simulate: a parameter YAML or a diagnosed-model file with 'effects' (default "
+                        "config/otbot.yaml); with effects the extended model is stepped and its sensor effects appear "
+                        "in the encoder and IMU samples")
     p.add_argument("--noise", choices=("paper", "none"), default="paper",
                    help="sensor noise: the paper's IMU and encoder-rate sigmas (default), or none")
     p.add_argument("--seed", type=seed, default=0, help="noise seed, an integer >= 0 (default 0)")
@@ -58,13 +62,15 @@ def check_socketcan(channel: str) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
+    from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.sensors import NoiseModel
     from sim.plant import serve
 
+    model = ExtendedModel.load(args.plant_params)
     cfg = bus_config(args.config, args.rate)
     if args.transport == "socketcan":
         check_socketcan(args.channel)
     noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
     serve(cfg, transport=args.transport, channel=args.channel, with_imu=not args.no_imu,
-          fixture=args.fixture, noise=noise, seed=args.seed)
+          fixture=args.fixture, noise=noise, seed=args.seed, params=model)
     return None

@@ -10,13 +10,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
-from otbot_hw.cli.checks import bus_config, duration, output_file, output_folder, rate, sample_count, seed
+from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
+from otbot_hw.cli.checks import duration, output_file, output_folder, sample_count
 
 
 def register(sub) -> None:
@@ -24,30 +24,23 @@ def register(sub) -> None:
         "run",
         help="apply torques through the CANopen drivers (simulated or real robot) and record",
         description="Enable the three CiA 402 drives, apply constant joint torques (N m) for --duration s "
-                    "at --rate Hz (one SYNC per period), record joint angles (rad) and rates (rad/s) from the "
-                    "drives and the pivot encoder and the IMU's specific force (m/s^2) and rate (rad/s) in the "
-                    "platform frame, then quick-stop. Exit code 1 if a drive, encoder or IMU fault stops the run.",
+                    "at --rate Hz (one SYNC per period) through the loop runner (open-loop torque controller, "
+                    "safety supervisor: motor limits and joint-rate limits of the configuration), record joint "
+                    "angles (rad) and rates (rad/s) from the drives and the pivot encoder and the IMU's specific "
+                    "force (m/s^2) and rate (rad/s) in the platform frame, then quick-stop. Exit code 1 if a drive, "
+                    "encoder or IMU fault or a safety limit stops the run.",
     )
     p.add_argument("--bus", choices=("sim", "config"), default="sim",
                    help="sim: simulated robot in this process (virtual CAN); config: the bus of --config")
-    p.add_argument("--config", type=Path, default=None, help="hardware configuration (default config/robot.yaml)")
     p.add_argument("--torques", default="6,-10,6", help="tau_r,tau_l,tau_p in N m (default 6,-10,6)")
     p.add_argument("--duration", type=duration, default=3.0, help="s (default 3)")
-    p.add_argument("--rate", type=rate, default=None,
-                   help="control (SYNC) rate in Hz (default: bus.control_rate of the config)")
     p.add_argument("--fixture", choices=("floor", "stand", "locked"), default="floor",
                    help="bench fixture: floor, stand (chassis held, wheels free), locked (chassis and wheels "
                         "held); simulated with --bus sim, declared (recorded in the metadata) with --bus config")
-    p.add_argument("--noise", choices=("paper", "none"), default="paper",
-                   help="simulated sensor noise (--bus sim): the paper's IMU/encoder-rate sigmas, or none")
-    p.add_argument("--seed", type=seed, default=0, help="simulated noise seed, an integer >= 0 (default 0)")
-    p.add_argument("--no-imu", action="store_true", help="run without the IMU")
-    p.add_argument("--interface", default=None, help="override bus.interface (python-can name), --bus config")
-    p.add_argument("--channel", default=None, help="override bus.channel, --bus config")
-    p.add_argument("--imu-port", default=None, help="override imu.port, --bus config")
-    p.add_argument("--lockstep", action="store_true",
-                   help="--bus config talks to a simulated plant (otbot plant): send SYNCs back to back instead "
-                        "of every 1/rate s, and wait for the IMU sample of each SYNC")
+    p.add_argument("--plant-params", type=Path, default=None,
+                   help="--bus sim: the robot to simulate, a parameter YAML or a diagnosed-model file with 'effects' "
+                        "(default config/otbot.yaml)")
+    add_bus_options(p, "default: bus.control_rate of the config")
     p.add_argument("--out", type=Path, default=None, metavar="RUN.mcap",
                    help="MCAP recording to write (its folder must exist)")
     p.add_argument("--plot", type=Path, default=None, metavar="DIR",
@@ -64,32 +57,23 @@ def _fail(result: dict, message: str, as_json: bool):
 
 
 def run(args: argparse.Namespace) -> dict:
-    from drivers.busload import bus_load
+    from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.robot import RobotError
-    from drivers.robot import CanopenRobot, open_imu
-    from drivers.runs import run_torques
-    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
+    from otbot_hw.runtime.openloop import run_torques, saturated_samples
+    from otbot_hw.runtime.supervisor import SafetyConfig
 
     quiet = args.json
     output_file(args.out, "--out")
     output_folder(args.plot, "--plot")
-    cfg = bus_config(args.config, args.rate)
     tau = parse_vector(args.torques, 3, "--torques")
+    if args.plant_params is not None and args.bus != "sim":
+        raise CliError("--plant-params sets the simulated robot (--bus sim); the configured bus runs the robot "
+                       "that is there")
+    cfg, load = bus_config(args, args.rate, quiet, "run")
     n = sample_count(args.duration, cfg.bus.control_rate)
-    if args.bus == "sim":
-        cfg = cfg.replace_bus(interface="virtual", channel="otbot-sim")
-    else:
-        import can
-
-        if args.interface is not None and args.interface not in can.VALID_INTERFACES:
-            raise CliError(f"--interface must be a python-can interface ({', '.join(sorted(can.VALID_INTERFACES))}), "
-                           f"got {args.interface!r}")
-        kw = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v is not None}
-        if kw:
-            cfg = cfg.replace_bus(**kw)
-    load = bus_load(cfg)
-    if load.warning():
-        progress(f"[run] warning: {load.warning()}", True)
+    plant = ExtendedModel.load(args.plant_params) if args.plant_params is not None else None
+    safety = SafetyConfig.load(args.config)
     torques = np.tile(tau, (n, 1))
     meta = {"bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
@@ -97,44 +81,42 @@ def run(args: argparse.Namespace) -> dict:
             "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture,
             "source": "robot" if args.bus == "config" else "bus-simulation"}
     with_imu = cfg.imu is not None and not args.no_imu
-    imu = None
     if args.bus == "config" and with_imu:
         from drivers.imu import ImuFault
+        from drivers.robot import open_imu
 
-        try:  # a port that cannot be opened is bad input (exit 2), as in `otbot imu read`
-            imu = open_imu(cfg.imu, port=args.imu_port, configure=False)
+        try:  # a port that cannot be opened is bad input (exit 2), as in `otbot imu read`; checked before the bus
+            open_imu(cfg.imu, port=args.imu_port, configure=False).close()
         except ImuFault as exc:
             raise CliError(str(exc)) from None
     progress(f"[run] {args.bus} bus ({cfg.bus.interface}:{cfg.bus.channel}), tau = {tau} N m for "
              f"{args.duration:g} s at {cfg.bus.control_rate:g} Hz", not quiet)
-    wall = time.perf_counter()
+    say = None if quiet else (lambda m: progress(f"[run] {m}"))
+    if args.bus == "sim":
+        noise = noise_model(args)
+        meta.update(noise=noise.to_dict(), seed=args.seed)
+        backend = BusSimBackend(cfg, noise, args.seed, with_imu)
+        model = plant if plant is not None else ExtendedModel.load(None)
+        meta["params"] = model.params.to_dict()
+        if model.active_effects():
+            meta["effects"] = model.active_effects()
+    else:
+        backend = BusConfigBackend(cfg, args.imu_port, args.lockstep, with_imu)
+        model = None
     try:
-        if args.bus == "sim":
-            from sim.plant import simulated_robot
-
-            noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
-            meta.update(noise=noise.to_dict(), seed=args.seed)
-            with simulated_robot(cfg, with_imu=with_imu, fixture=args.fixture, noise=noise,
-                                 seed=args.seed) as (robot, plant):
-                meta["params"] = plant.params.to_dict()
-                res = run_torques(robot, torques, cfg.bus.period, args.out, meta, truth=plant.truth,
-                                  progress=None if quiet else (lambda m: progress(f"[run] {m}")))
-        else:
-            if imu is not None:
-                imu.configure(output=cfg.imu.output, rate_hz=cfg.imu.rate_hz)
-            robot = CanopenRobot(cfg, imu=imu, realtime=not args.lockstep, imu_lockstep=args.lockstep)
-            with robot:
-                robot.open()
-                res = run_torques(robot, torques, cfg.bus.period, args.out, meta,
-                                  progress=None if quiet else (lambda m: progress(f"[run] {m}")))
+        opened = backend.open(model, fixture=args.fixture) if args.bus == "sim" else backend.open()
+        with opened as robot:
+            res = run_torques(robot, torques, cfg.limits, safety, args.out, meta, realtime=backend.realtime,
+                              progress=say)
     except RobotError as exc:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
+    except OSError as exc:
+        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
     except Exception as exc:
         if type(exc).__name__ == "ImuFault":
             _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)
         raise
-    wall = time.perf_counter() - wall
     rec = res.recording
     result = {
         "completed": res.completed, "bus": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
@@ -143,19 +125,22 @@ def run(args: argparse.Namespace) -> dict:
         "phi": rec.joint_pos[-1].tolist() if len(rec) else None,
         "phi_dot": rec.joint_vel[-1].tolist() if len(rec) else None,
         "torque_commanded": rec.torque[-1].tolist() if len(rec) else None,
-        "saturated_samples": int(res.saturated.any(axis=1).sum()),
+        "saturated_samples": int(saturated_samples(res, cfg.limits).sum()),
         "imu": bool(rec.imu_accel is not None),
         "recording": str(args.out) if args.out else None,
-        "faults": [f.to_dict() for f in res.faults],
+        "faults": [f.to_dict() for f in res.robot_faults],
+        "fault": res.fault.to_dict() if res.fault is not None else None,
         "busload": {"bits_per_cycle": load.bits_per_cycle, "max_rate": load.max_rate, "load": load.load},
-        "wall_time": wall,
+        "loop": res.stats.to_dict(),
+        "wall_time": res.stats.wall_time,
     }
     if args.bus == "sim" and rec.truth_q is not None and len(rec):
         result["q_final"] = rec.truth_q[-1].tolist()
     if args.plot is not None and len(rec) > 1:
         result["plots"] = write_run_plots(args.plot, rec)
     if not res.completed:
-        _fail(result, "stopped by fault: " + "; ".join(map(str, res.faults)), args.json)
+        _fail(result, f"stopped by fault: {res.fault}" + (f"; recording up to the fault: {args.out}" if args.out else ""),
+              args.json)
     if not quiet:
         print(f"[run] {len(rec)} samples, final phi = " + ", ".join(f"{v:.4f}" for v in result["phi"]) + " rad")
         if result["saturated_samples"]:
@@ -191,30 +176,31 @@ def write_run_plots(folder: Path, rec) -> list[str]:
 
 def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) -> dict:
     """``otbot demo`` part: the paper's chassis experiment (6, -10, 6 N m, 3 s, 100 Hz) through the
-    CANopen drivers against the simulated robot on a virtual CAN bus, IMU on a pseudo-terminal.
+    CANopen drivers against the simulated robot on a virtual CAN bus, IMU on a pseudo-terminal, run by
+    the loop runner with an open-loop torque controller.
 
     Writes ``chassis_bus.mcap`` and plots into ``out_dir``; with ``reference`` (the pure-simulation
     recording of the same experiment) reports how far the bus readings are from its ground truth.
     """
     from drivers.config import load_robot_config
-    from drivers.runs import run_torques
     from otbot_hw.cli.simulate import write_plots
+    from otbot_hw.params import nominal
     from otbot_hw.plots import plot_series
+    from otbot_hw.runtime.backends import BusSimBackend
+    from otbot_hw.runtime.openloop import run_torques
     from otbot_hw.sensors import NoiseModel
-    from sim.plant import simulated_robot
 
     cfg = load_robot_config()
     progress("[demo] 3/4 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
     path = out_dir / "chassis_bus.mcap"
-    wall = time.perf_counter()
-    with simulated_robot(cfg, noise=NoiseModel.paper(), seed=seed) as (robot, plant):
-        res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (300, 1)), cfg.bus.period, path,
+    params = nominal()
+    with BusSimBackend(cfg, NoiseModel.paper(), seed).open(params) as robot:
+        res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (300, 1)), cfg.limits, None, path,
                           {"experiment": "chassis (paper §4.3.2) over CAN", "source": "bus-simulation",
-                           "noise": NoiseModel.paper().to_dict(), "seed": seed}, truth=plant.truth)
-        params = plant.params
-    wall = time.perf_counter() - wall
+                           "noise": NoiseModel.paper().to_dict(), "seed": seed, "params": params.to_dict()})
+    wall = res.stats.wall_time
     if not res.completed:
-        raise RuntimeError("bus demo stopped by fault: " + "; ".join(map(str, res.faults)))
+        raise RuntimeError(f"bus demo stopped by fault: {res.fault}")
     rec = res.recording
     err = rec.joint_pos - rec.truth_q[:, 3:6]
     plots = write_plots(out_dir / "chassis_bus", rec, params, "Chassis experiment over CAN")

@@ -1,11 +1,16 @@
-"""``otbot track``: computed-torque tracking of a scenario or a CSV trajectory (simulated robot)."""
+"""``otbot track``: computed-torque tracking of a scenario or a CSV trajectory through the loop runner,
+on the in-process simulated robot (``--sim``), the simulated robot over CAN (``--bus sim``) or the
+configured bus (``--bus config``), fed by the EKF or (simulators only) the true state."""
 from __future__ import annotations
 
 import argparse
+import json
+import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
-from otbot_hw.cli.checks import output_file, output_folder, rate
+from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
+from otbot_hw.cli.checks import output_file, output_folder
 
 _TIMES = "Settle times: seconds until the position and velocity errors stay below 2 % of the event's peak"
 
@@ -13,27 +18,35 @@ _TIMES = "Settle times: seconds until the position and velocity errors stay belo
 def register(sub) -> None:
     p = sub.add_parser(
         "track",
-        help="track a trajectory with the computed-torque controller (closed loop, simulated robot)",
+        help="track a trajectory with the computed-torque controller (closed loop on a simulated or real robot)",
         description="Closed-loop tracking with the computed-torque law u = M_bar (p_dd_d - K_p e_p - K_v e_v) "
-                    "+ C_bar p_dot on the simulated robot. SCENARIO is corridor, corridor-smooth, figure8, "
-                    "planned or a trajectory CSV (columns t [s], x, y [m], alpha [rad], optional x_dot, y_dot "
-                    "[m/s], alpha_dot [rad/s], tau_r, tau_l, tau_p [N m]). Errors are reported in m, rad, "
-                    "m/s, rad/s; torques in N m against the limits of config/robot.yaml. " + _TIMES + ".",
+                    "+ C_bar p_dot, through the loop runner (read -> estimate -> supervise -> control -> limit -> "
+                    "write). SCENARIO is corridor, corridor-smooth, figure8, planned or a trajectory CSV (columns t "
+                    "[s], x, y [m], alpha [rad], optional x_dot, y_dot [m/s], alpha_dot [rad/s], tau_r, tau_l, tau_p "
+                    "[N m]). Back end: --sim (in-process simulated robot, no bus, lockstep), --bus sim (the simulated "
+                    "robot behind the CANopen drivers on virtual CAN, lockstep) or --bus config (the configured bus: "
+                    "the real robot, or an otbot plant process). Errors are reported in m, rad, m/s, rad/s (of the true "
+                    "pose where the back end knows it); torques in N m against the motor limits; estimation errors "
+                    "(estimate - truth) in m and rad. " + _TIMES + ". Exit 1 if a fault stops the run (drive, encoder, "
+                    "IMU, estimator, or a safety limit of config/robot.yaml); the recording up to the fault is kept.",
     )
     p.add_argument("scenario", help="corridor | corridor-smooth | figure8 | planned | FILE.csv")
-    p.add_argument("--sim", action="store_true", help="run against the simulated robot (required: the only "
-                   "plant available to this command)")
+    p.add_argument("--sim", action="store_true", help="the in-process simulated robot (direct back end, no bus)")
+    p.add_argument("--bus", choices=("sim", "config"), default=None,
+                   help="sim: the simulated robot over the CANopen drivers (virtual CAN, in this process); "
+                        "config: the bus of --config")
+    p.add_argument("--feedback", choices=("ekf", "truth"), default="ekf",
+                   help="state fed to the controller: the pose EKF on encoders and IMU (default), or the "
+                        "simulator's true state (--sim and --bus sim only)")
     p.add_argument("--params", type=Path, default=None,
-                   help="parameter YAML for plant and controller (default config/otbot.yaml; an identified file "
-                        "works; a diagnosed model from otbot diagnose --out adds its 'effects', which the controller "
-                        "compensates by feedforward: friction, slope, drag, torque-gain errors)")
+                   help="parameter YAML for the controller (and the simulated robot unless --plant-params; default "
+                        "config/otbot.yaml; an identified file works; a diagnosed model from otbot diagnose --out adds "
+                        "its 'effects', which the controller compensates by feedforward)")
     p.add_argument("--plant-params", type=Path, default=None,
-                   help="parameter YAML of the simulated robot when it differs from the controller's --params "
-                        "(e.g. --params identified.yaml --plant-params config/otbot.yaml); may hold 'effects' "
-                        "(missing physics the simulated robot has)")
-    p.add_argument("--robot", type=Path, default=None, help="hardware YAML with motor limits (default config/robot.yaml)")
+                   help="the robot to simulate (--sim, --bus sim) when it differs from the controller's --params: a "
+                        "parameter YAML or a diagnosed-model file with 'effects' (missing physics the simulated robot has)")
+    add_bus_options(p, "default 1000 for --sim, the configuration's bus.control_rate over a bus")
     p.add_argument("--tstab", default="3", help="stabilization time T_stab in s, one value or x,y,alpha (default 3)")
-    p.add_argument("--rate", type=rate, default=1000.0, help="control rate in Hz (default 1000)")
     p.add_argument("--error-bounds", default=None, metavar="EX,EY,EA,EVX,EVY,EVA",
                    help="feasibility-check error bounds: |e_p| in m, m, rad and |e_v| in m/s, m/s, rad/s "
                         "(default 0.02,0.02,0.01,0.05,0.05,0.02)")
@@ -41,6 +54,7 @@ def register(sub) -> None:
                    help="refuse (exit 2) a trajectory whose torque bound can exceed a motor limit")
     p.add_argument("--no-robustness", action="store_true",
                    help="skip the robustness reruns (platform params 20 %% off, unmodelled friction)")
+    p.add_argument("--out", type=Path, default=None, metavar="RUN.mcap", help="record the run (project MCAP format)")
     p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write PNG plots into DIR")
     p.add_argument("--animate", type=Path, default=None, metavar="OUT.gif", help="write a GIF animation")
     add_json_flag(p)
@@ -57,62 +71,144 @@ def parse_tstab(text: str):
     return vals[0] if len(vals) == 1 else vals
 
 
+def backend_name(args) -> str:
+    """"sim", "bus sim" or "bus config" from --sim / --bus; CliError when none or both."""
+    if args.sim and args.bus is not None:
+        raise CliError("choose one back end: --sim or --bus sim|config, not both")
+    if not args.sim and args.bus is None:
+        raise CliError("choose a back end: --sim (in-process simulated robot), --bus sim (simulated robot over CAN) "
+                       "or --bus config (the configured bus)")
+    return "sim" if args.sim else f"bus {args.bus}"
+
+
+def check_feedback(kind: str, feedback: str) -> None:
+    """--feedback truth needs a simulator; --feedback ekf needs otbot_hw.estimation. CliError otherwise."""
+    from otbot_hw.runtime.feedback import FeedbackUnavailable, load_ekf
+
+    if feedback == "truth" and kind == "bus config":
+        raise CliError("--feedback truth needs a back end that knows the true state (--sim or --bus sim); "
+                       "the configured bus has none: use --feedback ekf")
+    if feedback == "ekf":
+        try:
+            load_ekf()
+        except FeedbackUnavailable as exc:
+            raise CliError(f"--feedback ekf: {exc}; use --feedback truth on a simulated back end") from None
+
+
+def make_backend(kind: str, args, quiet: bool):
+    """The back end of ``kind`` configured from the command line."""
+    from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend, DirectBackend
+
+    if kind == "sim":
+        from drivers.config import load_robot_config
+
+        cfg = load_robot_config(args.config)
+        return DirectBackend.from_config(cfg, args.rate or 1000.0, noise_model(args), args.seed, not args.no_imu)
+    cfg, _ = bus_config(args, args.rate, quiet, "track")
+    if kind == "bus sim":
+        return BusSimBackend(cfg, noise_model(args), args.seed, not args.no_imu)
+    return BusConfigBackend(cfg, args.imu_port, args.lockstep, not args.no_imu)
+
+
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.cli import parse_vector
     from otbot_hw.control.feasibility import ErrorBounds, check_feasibility
     from otbot_hw.control.gains import gains_from_tstab
-    from otbot_hw.control.scenarios import SCENARIOS, build_spec, run_scenario
+    from otbot_hw.control.scenarios import SCENARIOS, build_spec
     from otbot_hw.control.trajectories import TrajectoryError
-    from otbot_hw.motors import load_motor_limits
     from otbot_hw.model.effects import ExtendedModel
+    from otbot_hw.motors import load_motor_limits
+    from otbot_hw.robot import RobotError
+    from otbot_hw.runtime.supervisor import SafetyConfig
+    from otbot_hw.runtime.tracking import run_scenario
 
-    if not args.sim:
-        raise CliError("only the simulated robot is available: add --sim")
+    kind = backend_name(args)
+    if args.plant_params is not None and kind == "bus config":
+        raise CliError("--plant-params sets the simulated robot (--sim, --bus sim); the configured bus runs the "
+                       "robot that is there")
+    check_feedback(kind, args.feedback)
     if args.scenario not in SCENARIOS and not Path(args.scenario).exists():
         raise CliError(f"unknown scenario {args.scenario!r}: use {', '.join(SCENARIOS)} or an existing CSV file")
     output_file(args.animate, "--animate", suffix=".gif")
     output_folder(args.plot, "--plot")
+    output_file(args.out, "--out")
     tstab = parse_tstab(args.tstab)
     model = ExtendedModel.load(args.params)
     params = model.params
     effects = model.eff if model.active_effects() else None
     plant = ExtendedModel.load(args.plant_params) if args.plant_params is not None else (
         model if effects is not None else None)
-    limits = load_motor_limits(args.robot)
+    limits = load_motor_limits(args.config)
     eb = None
     if args.error_bounds is not None:
         v = parse_vector(args.error_bounds, 6, "--error-bounds")
         if any(x < 0 for x in v):
             raise CliError("--error-bounds must be >= 0")
         eb = ErrorBounds(tuple(v[:3]), tuple(v[3:]))
-    say = (lambda m: progress(f"[track] {m}"))
+    say = (lambda m: progress(f"[track] {m}", not args.json))
     try:
         spec = build_spec(args.scenario, params, limits, say)
         if args.strict:
             rep = check_feasibility(spec.reference, params, gains_from_tstab(tstab), limits, eb)
-            if args.strict and not rep.feasible:
+            if not rep.feasible:
                 v = rep.violations[0]
                 raise CliError(f"infeasible trajectory: {v['motor']} torque bound {v['bound_Nm']:.1f} N m exceeds "
                                f"the {v['limit_Nm']:g} N m limit from t = {v['t_start']:.2f} s to {v['t_end']:.2f} s "
                                f"({len(rep.violations)} violation(s))")
-        result = run_scenario(args.scenario, params, limits, t_stab=tstab, rate_hz=args.rate,
-                              robustness=not args.no_robustness, plot_dir=args.plot, animate=args.animate,
-                              progress=say, error_bounds=eb, spec=spec, plant=plant, effects=effects)
+        safety = SafetyConfig.load(args.config)
+        backend = make_backend(kind, args, args.json)
+        meta = {"params": params.to_dict(), "command": "otbot track"}
+        if plant is not None:
+            meta["plant"] = plant.to_dict() if hasattr(plant, "to_dict") else None
+        if kind != "bus config":
+            meta.update(noise=noise_model(args).to_dict(), seed=args.seed)
+        result = run_scenario(args.scenario, params, limits, t_stab=tstab, robustness=not args.no_robustness,
+                              plot_dir=args.plot, animate=args.animate, progress=say, error_bounds=eb, spec=spec,
+                              plant=plant, effects=effects, backend=backend, feedback=args.feedback, safety=safety,
+                              path=args.out, metadata=meta, config_path=args.config)
         if effects is not None:
             result["compensated_effects"] = model.active_effects()
     except TrajectoryError as exc:
         raise CliError(str(exc)) from None
+    except RobotError as exc:
+        _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
+              f"error: {exc}", args.json)
+    except OSError as exc:
+        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+    if not result["completed"]:
+        where = f"; recording up to the fault: {args.out}" if args.out else ""
+        if not args.json and "max_abs_error" in result:
+            _print_human(result)
+        _fail(result, f"stopped by fault: {result['fault']['kind']} at t = {result['fault']['t']:.3f} s: "
+                      f"{result['fault']['text']}{where}", args.json)
     if not args.json:
         _print_human(result)
     return result
 
 
+def _fail(result: dict, message: str, as_json: bool):
+    if as_json:
+        print(json.dumps(result, allow_nan=False, default=str))
+    print(f"otbot track: {message}", file=sys.stderr)
+    raise SystemExit(1)
+
+
 def _print_human(r: dict) -> None:
-    print(f"scenario {r['scenario']}: {r['duration_s']:.1f} s at {r['rate_hz']:g} Hz")
+    be = r.get("backend", {})
+    print(f"scenario {r['scenario']}: {r['duration_s']:.1f} s at {r['rate_hz']:g} Hz on {be.get('mode', '?')}, "
+          f"feedback {r.get('feedback')}")
+    what = "true pose" if r.get("true_pose_known", True) else "estimated pose (no ground truth on this back end)"
+    print(f"  tracking errors of the {what}:")
     for key in ("max_abs_error", "rms_error"):
         e = r[key]
         print(f"  {key}: x {e['x'] * 1e3:.3f} mm, y {e['y'] * 1e3:.3f} mm, alpha {e['alpha']:.2e} rad; "
               f"x_dot {e['x_dot'] * 1e3:.2f} mm/s, y_dot {e['y_dot'] * 1e3:.2f} mm/s")
+    ee = r.get("estimation_error")
+    if ee is not None:
+        for k in ("max", "rms"):
+            e = ee[k]
+            print(f"  estimation error (estimate - truth), {k}: x {e['x'] * 1e3:.3f} mm, y {e['y'] * 1e3:.3f} mm, "
+                  f"alpha {e['alpha']:.2e} rad")
     for m, v in r["peak_torque"].items():
         print(f"  peak torque {m}: {v['peak_Nm']:.2f} N m (limit {v['limit_Nm']:g})")
     for ev in r["events"]:
@@ -122,15 +218,23 @@ def _print_human(r: dict) -> None:
         print(f"  saturation episodes: {len(r['saturation'])}")
     if "feasibility" in r:
         print(f"  feasibility: {'ok' if r['feasibility']['feasible'] else 'limits can be exceeded'}")
-    for k in ("open_loop",):
-        if k in r:
-            print(f"  open loop (planned torques replayed): final position error "
-                  f"{r[k]['final_position_error_m']:.3f} m" + (f", {len(r[k]['collisions'])} collision(s)"
-                                                              if "collisions" in r else ""))
+    if "open_loop" in r:
+        print(f"  open loop (planned torques replayed): final position error "
+              f"{r['open_loop']['final_position_error_m']:.3f} m" + (f", {len(r['open_loop']['collisions'])} collision(s)"
+                                                                       if "collisions" in r["open_loop"] else ""))
     if "collisions" in r:
         print(f"  closed loop collisions: {len(r['collisions'])}")
     for v, s in r.get("robustness", {}).items():
         e = s["max_abs_error"]
         print(f"  robustness {v}: max |e| x {e['x'] * 1e3:.2f} mm, y {e['y'] * 1e3:.2f} mm, alpha {e['alpha']:.2e} rad")
+    lp = r.get("loop") or {}
+    if lp.get("cycles") and lp.get("period_p50") is not None:
+        print(f"  loop: {lp['cycles']} cycles, {lp['robot_time']:.2f} s robot time in {lp['wall_time']:.2f} s wall "
+              f"({lp['realtime_factor']:.1f}x real time), period p50/p99 {lp['period_p50'] * 1e3:.3f}/"
+              f"{lp['period_p99'] * 1e3:.3f} ms, {lp['overruns']} overrun(s)")
+    if r.get("recording"):
+        print(f"  recording: {r['recording']}")
+    if r.get("fault"):
+        print(f"  FAULT: {r['fault']['kind']} at t = {r['fault']['t']:.3f} s: {r['fault']['text']}")
     for p in r.get("plots", []):
         print(f"  plot: {p}")

@@ -8,10 +8,11 @@ One concept per module:
 * ``computed_torque`` — the control law and the feedback interface (``TaskState``)
 * ``limiter``         — run-time torque saturation that reports every episode
 * ``trajectories``    — desired trajectories p_d(t) with derivatives, CSV format
-* ``closed_loop``     — fixed-rate read -> update -> write loop against the simulator
+* ``prediction``      — the task state one period ahead (the loop's sample delay compensated)
 * ``metrics``         — tracking errors, peaks and settle times of events
 * ``interval``        — small interval arithmetic used by ``feasibility``
 * ``feasibility``     — interval bound of the torques for given error bounds (§5.3)
 * ``planner``         — direct-collocation planner (CasADi + IPOPT)
-* ``scenarios``       — the paper's test cases (§5.4) with summaries and plots
+* ``scenarios``       — the paper's test cases (§5.4) and the figures of a run; the runs go through
+  the loop runner (``otbot_hw.runtime.tracking``)
 """

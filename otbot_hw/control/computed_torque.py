@@ -7,14 +7,12 @@ with e_p = p - p_d, e_v = p_dot - p_dot_d, p = (x, y, alpha) (m, m, rad) in the 
 frame and u = (tau_r, tau_l, tau_p) (N m). M_bar and C_bar are evaluated at the fed-back
 alpha, phi_p and p_dot (compiled closed form, ``task_model``).
 
-Feedback comes through ``TaskState`` — whatever produces it (ground truth in simulation
-now, the EKF later) implements ``FeedbackSource.read(t)``.
+Feedback comes through ``TaskState``; the loop runner (``otbot_hw.runtime``) builds it from the
+EKF's estimate or a simulator's ground truth.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
-
 import numpy as np
 
 from otbot_hw.control.gains import Gains, gains_from_tstab
@@ -37,16 +35,6 @@ class TaskState:
         """From the simulator state x = (q, q_dot) (12,)."""
         return cls(p=np.ascontiguousarray(x[0:3], dtype=float), p_dot=np.ascontiguousarray(x[6:9], dtype=float),
                    phi_p=float(x[5]))
-
-
-class FeedbackSource(Protocol):
-    """Anything that can report the robot's task state at time t (s): ground truth, an EKF, ...
-
-    A source that needs the applied torques (an EKF's prediction step) may also define
-    ``command(u, t)``: the loop calls it with the torques (N m) actually applied from t on.
-    """
-
-    def read(self, t: float) -> TaskState: ...
 
 
 @dataclass(frozen=True)
@@ -96,6 +84,15 @@ class ComputedTorqueController:
             self._out[1] += cmd - self._out[0]
             self._out[0] = cmd
         return self._out
+
+    @property
+    def model(self):
+        """The controller's belief: ``OtbotParams``, or an ``ExtendedModel`` when it compensates effects."""
+        if self._eff is None:
+            return self.params
+        from otbot_hw.model.effects import ExtendedModel
+
+        return ExtendedModel(self.params, self._eff)
 
     @property
     def compensates(self) -> dict[str, float]:

@@ -8,6 +8,7 @@ optional ``on_saturation`` callback fires when an episode starts.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -38,6 +39,7 @@ class TorqueLimiter:
     def __init__(self, limits: MotorLimits, on_saturation: Callable[[SaturationEpisode], None] | None = None):
         self.limits = limits
         self._max = np.asarray(limits.max_torque, dtype=float)
+        self._maxl = self._max.tolist()
         self.on_saturation = on_saturation
         self.episodes: list[SaturationEpisode] = []
         self._open: list[SaturationEpisode | None] = [None, None, None]
@@ -46,11 +48,14 @@ class TorqueLimiter:
     def apply(self, u: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(torques within the limits (3,) N m, mask (3,) of the clamped motors) for the command at t (s)."""
         u = np.asarray(u, dtype=float)
-        if not np.all(np.isfinite(u)):
+        ul = u.tolist()
+        if not all(map(math.isfinite, ul)):
             raise ValueError(f"limiter: non-finite torque command {u} at t = {t:.4f} s")
+        m = self._maxl
+        if (abs(ul[0]) <= m[0] and abs(ul[1]) <= m[1] and abs(ul[2]) <= m[2]
+                and self._open[0] is None and self._open[1] is None and self._open[2] is None):
+            return u, np.zeros(3, bool)  # the common case, on plain floats (runs every control cycle)
         mask = np.abs(u) > self._max
-        if not mask.any() and self._open == [None, None, None]:
-            return u, mask
         out = np.clip(u, -self._max, self._max)
         if mask.any():
             self.saturated_ticks += 1

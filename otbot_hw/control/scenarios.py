@@ -1,4 +1,7 @@
-"""The paper's test cases (§5.4) in closed-loop simulation, with summaries and plots.
+"""The paper's test cases (§5.4): what to track, and the figures of a tracking run.
+
+The runs themselves go through the one loop runner (``otbot_hw.runtime.tracking``: ``track``,
+``run_scenario``) on any back end.
 
 * ``corridor``        — five 3 m segments at 0.6 m/s with 90 deg turns, alpha = 0, from rest,
   ending at (9, 0) m and held 5 s (velocity jumps at start, corners and stop).
@@ -25,10 +28,6 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from otbot_hw.control.closed_loop import ClosedLoopRun, rest_state, run_closed_loop, run_open_loop
-from otbot_hw.control.computed_torque import ComputedTorqueController
-from otbot_hw.control.gains import Gains, gains_from_tstab
-from otbot_hw.control.limiter import TorqueLimiter
 from otbot_hw.control.metrics import Event, error_summary, event_summary, fraction_within, peak_torques
 from otbot_hw.control.trajectories import DesiredTrajectory, PolylineTrajectory, corridor, figure_eight, load_csv
 from otbot_hw.motors import MOTORS, MotorLimits
@@ -170,29 +169,6 @@ def controller_params(params: OtbotParams, variant: str,
     raise ValueError(f"unknown variant {variant!r} (nominal, payload, friction)")
 
 
-def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: Gains,
-          variant: str = "nominal", rate_hz: float = 1000.0, forces: ForceSchedule | None | str = "spec",
-          progress: Callable[[str], None] | None = None, plant=None,
-          effects: np.ndarray | None = None) -> ClosedLoopRun:
-    """Closed-loop run of ``spec`` with the controller believing ``params`` (see ``controller_params``).
-
-    ``plant``: ``OtbotParams`` or an ``ExtendedModel`` (default: ``params``); ``effects``: an effect
-    vector the controller compensates (``ComputedTorqueController`` on an ``ExtendedModel``)."""
-    from otbot_hw.model.effects import ExtendedModel
-
-    plant, ctrl = controller_params(params, variant, plant)
-    if effects is not None:
-        ctrl = ExtendedModel(ctrl, effects)
-    lim = TorqueLimiter(limits, on_saturation=(lambda e: progress(
-        f"saturation: {e.motor} at t = {e.t_start:.3f} s (requested {e.peak_request:.1f} N m, "
-        f"limit {e.limit:g})")) if progress else None)
-    fs = spec.forces if forces == "spec" else forces
-    x0 = spec.x0 if spec.x0 is not None else rest_state(spec.reference.sample(np.zeros(1))[0][0])
-    long_run = progress is not None and spec.reference.duration > LONG_RUN_S
-    return run_closed_loop(spec.reference, ComputedTorqueController(ctrl, gains), plant, limiter=lim,
-                           rate_hz=rate_hz, x0=x0, forces=fs, progress=progress if long_run else None)
-
-
 def collisions(q: np.ndarray, t: np.ndarray, obstacles, footprint: float) -> list[dict]:
     """Contacts of the platform footprint (radius, m) with circular obstacles (cx, cy, r) m:
     one entry per contact episode with its start time and deepest penetration (m)."""
@@ -216,7 +192,7 @@ def goal_overshoot(ref: PolylineTrajectory, xy: np.ndarray) -> float:
     return float(max(0.0, np.max((xy - ref.waypoints[-1]) @ d)))
 
 
-def summarize(spec: ScenarioSpec, run: ClosedLoopRun, limits: MotorLimits, params: OtbotParams) -> dict:
+def summarize(spec: ScenarioSpec, run, limits: MotorLimits, params: OtbotParams) -> dict:
     out = {"duration_s": float(run.t[-1]), "rate_hz": run.rate_hz}
     out.update(error_summary(run.e_p, run.e_v))
     out["fraction_within"] = fraction_within(run.e_p, run.e_v)
@@ -231,85 +207,3 @@ def summarize(spec: ScenarioSpec, run: ClosedLoopRun, limits: MotorLimits, param
     if spec.walls:
         out["min_wall_clearance_m"] = wall_clearance(run.x[:, :2], spec.walls, params.radius)
     return out
-
-
-def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: float | Sequence[float] = 3.0,
-                 rate_hz: float = 1000.0, robustness: bool = True, plot_dir: Path | None = None,
-                 animate: Path | None = None, check_feasibility: bool = True,
-                 error_bounds=None, progress: Callable[[str], None] | None = None,
-                 spec: ScenarioSpec | None = None, plant=None, effects: np.ndarray | None = None) -> dict:
-    """Run scenario ``name`` (or a CSV path, or a prebuilt ``spec``); returns the JSON summary
-    (see ``otbot track --help``). ``plant`` and ``effects``: see ``track``."""
-    say = progress or (lambda m: None)
-    gains = gains_from_tstab(t_stab)
-    spec = spec or build_spec(name, params, limits, progress)
-    result: dict = {"scenario": spec.name, "gains": gains.to_dict(), **spec.info}
-    if check_feasibility:
-        from otbot_hw.control.feasibility import ErrorBounds, check_feasibility as feas
-
-        say("torque-feasibility check (interval bound) ...")
-        rep = feas(spec.reference, params, gains, limits, error_bounds or ErrorBounds.default(),
-                   heading0=0.0 if spec.x0 is None else float(spec.x0[2] - spec.x0[5]))
-        result["feasibility"] = rep.to_dict()
-        for v in rep.violations[:10]:
-            say(f"feasibility: {v['motor']} may exceed {v['limit_Nm']:g} N m on "
-                f"[{v['t_start']:.2f}, {v['t_end']:.2f}] s (bound {v['bound_Nm']:.1f} N m)")
-    say(f"closed loop at {rate_hz:g} Hz, {spec.reference.duration:.1f} s ...")
-    run = track(spec, params, limits, gains, "nominal", rate_hz, progress=progress, plant=plant, effects=effects)
-    result.update(summarize(spec, run, limits, params))
-    result["wall_time_s"] = run.wall_time_s
-    if spec.name == "figure8":
-        for ev, f in zip(result["events"], FIGURE8_FORCES):
-            iso = track(spec, params, limits, gains, "nominal", rate_hz, forces=ForceSchedule([f]), plant=plant,
-                        effects=effects)
-            e = event_summary(iso.t, iso.e_p, iso.e_v, [Event(f.start, ev["kind"], f.start + f.duration)])[0]
-            ev["settle_time_isolated_s"] = e["settle_time_s"]
-    open_loop = None
-    if spec.open_loop_torques is not None:
-        # replayed for the length of the plan (its torques end there)
-        say("open-loop replay of the planned torques ...")
-        t, X, _ = run_open_loop(spec.open_loop_torques, spec.open_loop_times, plant or params,
-                                spec.x0 if spec.x0 is not None else rest_state(spec.reference.sample(np.zeros(1))[0][0]),
-                                rate_hz=rate_hz, duration=getattr(spec.reference, "end", spec.reference.duration))
-        P, PD, _ = spec.reference.sample(t)
-        open_loop = (t, X, P)
-        ol = error_summary(X[:, :3] - P, X[:, 6:9] - PD)
-        if spec.obstacles:
-            ol["collisions"] = collisions(X[:, :3], t, spec.obstacles, params.radius)
-        ol["final_position_error_m"] = float(np.hypot(*(X[-1, :2] - P[-1, :2])))
-        result["open_loop"] = ol
-        for c in ol.get("collisions", []):
-            say(f"open loop collides with obstacle {c['obstacle']} at t = {c['t_start']:.2f} s "
-                f"(penetration {1000 * c['max_penetration_m']:.0f} mm)")
-    if robustness:
-        result["robustness"] = {}
-        for variant in ("payload", "friction"):
-            say(f"robustness variant: {variant} ...")
-            r = track(spec, params, limits, gains, variant, rate_hz, plant=plant, effects=effects)
-            s = summarize(spec, r, limits, params)
-            result["robustness"][variant] = {k: s[k] for k in ("max_abs_error", "rms_error", "fraction_within", "peak_torque",
-                                                                "events", "goal_overshoot_m") if k in s}
-            if "collisions" in s:
-                result["robustness"][variant]["collisions"] = s["collisions"]
-            result["robustness"][variant]["growth_vs_nominal"] = {
-                k: (s["max_abs_error"][k] / result["max_abs_error"][k]) if result["max_abs_error"][k] > 0 else None
-                for k in ("x", "y", "alpha", "x_dot", "y_dot", "alpha_dot")}
-    if plot_dir is not None:
-        from otbot_hw.control.plots import scenario_plots
-
-        result["plots"] = scenario_plots(Path(plot_dir), spec, run, params, limits, open_loop)
-    if animate is not None:
-        from otbot_hw.control.plots import animate_run
-
-        say(f"writing animation {animate} ...")
-        result["animation"] = str(animate_run(Path(animate), spec, run, params))
-    return result
-
-
-def demo_corridor(out_dir: Path, params: OtbotParams, limits: MotorLimits,
-                  progress: Callable[[str], None] | None = None) -> dict:
-    """The corridor scenario for ``otbot demo``: closed loop at 1 kHz, plots, no robustness reruns."""
-    res = run_scenario("corridor", params, limits, robustness=False, plot_dir=Path(out_dir), progress=progress)
-    keep = ("rate_hz", "max_abs_error", "rms_error", "peak_torque", "events", "saturation", "min_wall_clearance_m",
-            "plots", "wall_time_s")
-    return {k: res[k] for k in keep}

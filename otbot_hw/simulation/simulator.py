@@ -185,7 +185,7 @@ class Stepper:
     def step(self, u: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
         """Apply torques u (3,) N m and pivot force f (2,) N for one interval; return the new state."""
         U = np.asarray(u, dtype=float).reshape(1, 3)
-        if not np.all(np.isfinite(U)):
+        if not all(map(math.isfinite, U[0].tolist())):
             raise ValueError(f"torques must be finite, got {u}")
         F = np.zeros((1, 2)) if f is None else np.asarray(f, dtype=float).reshape(1, 2)
         self.x = compiled.rk4_zoh(self.x, U, F, self.dt, self._substeps, self._prm, self._code)[1]
@@ -239,7 +239,9 @@ class ExtendedStepper(Stepper):
 
     ``step(u, f)`` takes the *commanded* torques; the drives' gain, saturation and current lag act on
     them. x (12,) holds rolling angles for the wheels (equal to the wheel angles without a radius
-    asymmetry); ``tau`` is the torque the drives deliver at the end of the last step (N m).
+    asymmetry); ``tau`` is the torque the drives deliver at the end of the last step (N m);
+    ``slip`` (2,) rad the wheel slip accumulated since the start (what the wheel encoders read on
+    top of the rolling angles, ``effects.sensor_outputs``).
     """
 
     def __init__(self, model, dt: float, x0: np.ndarray | None = None, fixture: str = "floor",
@@ -247,16 +249,26 @@ class ExtendedStepper(Stepper):
         super().__init__(model.params, dt, x0, fixture, substeps)
         self.eff = np.asarray(model.eff, dtype=float)
         self.tau = np.zeros(3)
+        self.slip = np.zeros(2)
 
     def step(self, u: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
         U = np.asarray(u, dtype=float).reshape(1, 3)
-        if not np.all(np.isfinite(U)):
+        if not all(map(math.isfinite, U[0].tolist())):
             raise ValueError(f"torques must be finite, got {u}")
         F = np.zeros((1, 2)) if f is None else np.asarray(f, dtype=float).reshape(1, 2)
-        X, TAU, _ = fx.ext_rk4_zoh(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code)
+        X, TAU, S = fx.ext_rk4_zoh(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code)
         self.x, self.tau = X[1], TAU[1]
+        self.slip = self.slip + S[1]  # the slip rate does not depend on the slip: the steps add up
         self.t += self.dt
         return self.x
+
+
+def rest_state(p, heading: float = 0.0) -> np.ndarray:
+    """State (12,) at rest with the pivot at p = (x, y, alpha) (m, m, rad) and chassis heading theta (rad)."""
+    x0 = np.zeros(12)
+    x0[:3] = p
+    x0[5] = p[2] - heading
+    return x0
 
 
 def make_stepper(plant, dt: float, x0: np.ndarray | None = None, fixture: str = "floor") -> Stepper:

@@ -1,0 +1,174 @@
+"""Back ends behind the ``Robot`` seam, chosen by name (python-can's "interface by configuration" idea).
+
+=============  ======================================================================================
+name           robot
+=============  ======================================================================================
+``sim``        ``sim.direct.DirectSimRobot``: the model stepped in this process, no bus, lockstep
+``bus sim``    ``sim.plant.SimulatedBusRobot``: the CANopen drivers over python-can's virtual bus to
+               the simulated drives/encoder/IMU (``sim.plant.Plant``) in this process, lockstep
+``bus config`` ``drivers.robot.CanopenRobot`` on the configured bus (the real robot, or an
+               ``otbot plant`` process), paced in real time unless ``lockstep``
+=============  ======================================================================================
+
+The two simulated back ends take the robot to simulate (``OtbotParams`` or an ``ExtendedModel``
+with effects), its start state and pivot forces per run, and know the ground truth. Only this
+package and ``otbot_hw.cli`` import ``sim`` and ``drivers`` (``tests/test_layering.py``).
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from otbot_hw.motors import MotorLimits
+from otbot_hw.sensors import NoiseModel
+
+BACKENDS = ("sim", "bus sim", "bus config")
+
+
+def encoder_resolution(config) -> tuple[float, float, float]:
+    """Counts per joint revolution of (phi_r, phi_l, phi_p) in a hardware configuration
+    (``drivers.config.RobotConfig``): motor counts times gear for the wheels; the pivot from the
+    CiA 406 encoder's 0x6001 (its EDS default) times its gear, or from the pivot drive."""
+    wheels = [d.counts_per_rev * d.gear_ratio for d in config.drives]
+    enc = config.pivot_encoder
+    if enc.source == "encoder":
+        import canopen
+
+        od = canopen.import_od(str(enc.eds), enc.node_id)
+        pivot = float(od[0x6001].default) * enc.gear_ratio
+    else:
+        pivot = wheels[2]
+    return (wheels[0], wheels[1], pivot)
+
+
+@dataclass
+class DirectBackend:
+    """``sim``: ``DirectSimRobot`` at ``rate`` Hz with ``noise``/``seed``, IMU at ``imu_rate`` Hz
+    (None: no IMU), encoder resolution ``encoder_counts`` (counts per joint revolution) and
+    ``rate_step`` (rad/s) (None: exact), motor ``limits`` (None: no clamp) and torque resolution ``torque_step`` N m (None: exact). ``ideal()``: exact sensors,
+    no noise (model studies, the control benchmarks)."""
+
+    rate: float = 1000.0
+    noise: NoiseModel | None = None
+    seed: int | None = 0
+    imu_rate: float | None = 100.0
+    encoder_counts: tuple | None = None
+    rate_step: tuple | None = None
+    limits: MotorLimits | None = None
+    torque_step: float | None = None
+    name: str = "sim"
+    realtime: bool = False
+    has_truth: bool = True
+
+    @classmethod
+    def from_config(cls, config, rate: float, noise: NoiseModel | None = None, seed: int | None = 0,
+                    with_imu: bool = True) -> "DirectBackend":
+        """The direct back end with the sensors and drives of a hardware configuration: encoder
+        resolution (angles from the drives' motor encoders and the pivot encoder, rates from the drives'
+        0x606C unit), IMU rate, motor limits, the drives' torque resolution (one per-mille of rated torque)."""
+        return cls(rate=rate, noise=noise, seed=seed,
+                   imu_rate=float(config.imu.rate_hz) if (with_imu and config.imu is not None) else None,
+                   encoder_counts=encoder_resolution(config),
+                   rate_step=tuple(d.rad_s_per_velocity_unit for d in config.drives), limits=config.limits,
+                   torque_step=min(d.joint_torque_per_permille for d in config.drives))
+
+    @property
+    def period(self) -> float:
+        return 1.0 / self.rate
+
+    @contextmanager
+    def open(self, plant, x0=None, forces=None, fixture: str = "floor"):
+        from sim.direct import DirectSimRobot
+
+        robot = DirectSimRobot(plant, period=1.0 / self.rate, x0=x0, fixture=fixture, noise=self.noise,
+                               seed=self.seed, imu_rate=self.imu_rate, encoder_counts=self.encoder_counts,
+                               rate_step=self.rate_step, limits=self.limits, torque_step=self.torque_step, forces=forces)
+        try:
+            yield robot
+        finally:
+            robot.close()
+
+    def describe(self) -> dict:
+        return {"mode": self.name, "rate": self.rate, "imu_rate": self.imu_rate,
+                "encoder_counts": list(self.encoder_counts) if self.encoder_counts else None,
+                "torque_step": self.torque_step}
+
+
+class _ConfiguredRate:
+    """The control rate (Hz) and period (s) of the hardware configuration's bus."""
+
+    @property
+    def rate(self) -> float:
+        return self.config.bus.control_rate
+
+    @property
+    def period(self) -> float:
+        return self.config.bus.period
+
+
+@dataclass
+class BusSimBackend(_ConfiguredRate):
+    """``bus sim``: the drivers over virtual CAN to the simulated plant in this process, at the
+    configuration's control rate (``config.bus.control_rate``)."""
+
+    config: object  # drivers.config.RobotConfig
+    noise: NoiseModel | None = None
+    seed: int | None = 0
+    with_imu: bool = True
+    name: str = "bus sim"
+    realtime: bool = False
+    has_truth: bool = True
+
+    @contextmanager
+    def open(self, plant, x0=None, forces=None, fixture: str = "floor"):
+        from sim.plant import simulated_robot
+
+        kw = {"params": plant, "x0": x0, "forces": forces, "fixture": fixture, "noise": self.noise or NoiseModel(),
+              "seed": self.seed}
+        with simulated_robot(self.config, with_imu=self.with_imu, **kw) as (robot, _plant):
+            yield robot
+
+    def describe(self) -> dict:
+        b = self.config.bus
+        return {"mode": self.name, "interface": "virtual", "rate": b.control_rate, "bitrate": b.bitrate}
+
+
+@dataclass
+class BusConfigBackend(_ConfiguredRate):
+    """``bus config``: ``CanopenRobot`` on the configured bus and IMU port (``imu_port`` overrides
+    it); ``lockstep``: the other end is a simulated plant (SYNCs back to back, IMU sample awaited per
+    SYNC) instead of a real robot paced in real time."""
+
+    config: object  # drivers.config.RobotConfig
+    imu_port: str | None = None
+    lockstep: bool = False
+    with_imu: bool = True
+    name: str = "bus config"
+    has_truth: bool = False
+
+    @property
+    def realtime(self) -> bool:
+        return not self.lockstep
+
+    @contextmanager
+    def open(self, plant=None, x0=None, forces=None, fixture: str = "floor"):
+        from drivers.robot import CanopenRobot, open_imu
+
+        if plant is not None or forces is not None:
+            raise ValueError("the configured bus runs the robot that is there: no plant parameters or forces")
+        imu = open_imu(self.config.imu, port=self.imu_port) if (self.with_imu and self.config.imu is not None) else None
+        robot = CanopenRobot(self.config, imu=imu, realtime=False, imu_lockstep=self.lockstep)
+        with robot:
+            robot.open()
+            yield robot
+
+    def describe(self) -> dict:
+        b = self.config.bus
+        return {"mode": self.name, "interface": b.interface, "channel": b.channel, "rate": b.control_rate,
+                "bitrate": b.bitrate, "lockstep": self.lockstep}
+
+
+def with_bus_overrides(config, interface: str | None = None, channel: str | None = None):
+    """``config`` with the bus interface/channel replaced where given."""
+    kw = {k: v for k, v in (("interface", interface), ("channel", channel)) if v is not None}
+    return config.replace_bus(**kw) if kw else config
