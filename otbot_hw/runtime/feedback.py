@@ -94,7 +94,9 @@ class EkfFeedback:
 
     def start(self, snapshot: Snapshot, robot: Robot) -> StateEstimate:
         self._imu_time = snapshot.imu_time
-        est = self.ekf.initialize(snapshot.t, self.initial_pose, snapshot.joint_pos, pose_std=self.initial_std)
+        # the start sample's IMU reading (taken with the first command acting) drives the first interval
+        est = self.ekf.initialize(snapshot.t, self.initial_pose, snapshot.joint_pos, pose_std=self.initial_std,
+                                  imu_accel=snapshot.imu_accel, imu_gyro=snapshot.imu_gyro)
         return self._record(est, snapshot)
 
     def step(self, snapshot: Snapshot, robot: Robot, u_prev) -> StateEstimate:
