@@ -61,7 +61,8 @@ ESTIMATORS = ("ekf_imu", "ekf_model", "imu_dead_reckoning", "wheel_odometry")
 def closed_loop(name: str, rate_hz: float = RATE_HZ):
     """(U (N, 3) N m, F (N, 2) N, x0 (12,), dt) of scenario ``name`` tracked on the true state."""
     from otbot_hw.control.gains import gains_from_tstab
-    from otbot_hw.control.scenarios import build_spec, track
+    from otbot_hw.control.scenarios import build_spec
+    from otbot_hw.runtime.tracking import track
     from otbot_hw.motors import load_motor_limits
 
     params = nominal()

@@ -367,8 +367,9 @@ def _fake_estimation(calls, fail_at=None):
             return Estimate(t, self.pose.copy(), pd.copy(), np.full(6, 1e-3), np.eye(6), rejected={"wheels": 0},
                             updates={"wheels": len(calls)})
 
-        def initialize(self, t, pose, joint_pos, twist=(0.0, 0.0, 0.0), pose_std=None):
-            calls.append(("init", t, None, None))
+        def initialize(self, t, pose, joint_pos, twist=(0.0, 0.0, 0.0), pose_std=None, *, imu_accel=None,
+                       imu_gyro=None):
+            calls.append(("init", t, None if imu_accel is None else np.asarray(imu_accel, float), None))
             self.pose, self.t, self.theta = np.asarray(pose, float), t, float(pose[2] - joint_pos[2])
             return self._est(t)
 
@@ -404,6 +405,7 @@ def test_ekf_feedback_follows_the_estimator_contract(monkeypatch, tmp_path, caps
     assert run.completed and run.loop.feedback == "ekf"
     rec = run.loop.recording
     assert calls[0][0] == "init" and all(c[0] == "step" for c in calls[1:]) and len(calls) == len(rec)
+    np.testing.assert_array_equal(calls[0][2], rec.imu_accel[0])     # the start sample's IMU reading drives step 1
     fresh = [k for k, c in enumerate(calls[1:], 1) if c[2]]
     assert fresh == list(range(4, len(rec), 4))                       # IMU only when it brought a new sample
     for k in (5, 50):
@@ -435,7 +437,7 @@ def test_ekf_feedback_follows_the_estimator_contract(monkeypatch, tmp_path, caps
     (["run", "--bus", "config", "--plant-params", "config/otbot.yaml"], "--plant-params"),
     (["run", "--bus", "sim", "--plant-params", "nowhere.yaml"], "nowhere.yaml"),
     (["run", "--bus", "sim", "--torques", "1,2"], "--torques"),
-    (["run", "--bus", "sim", "--duration", "0.001"], "shorter than one control period"),
+    (["run", "--bus", "sim", "--duration", "0.001"], "shorter than one period"),
     (["run", "--bus", "sim", "--rate", "3000.5"], "--rate"),
 ])
 def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):

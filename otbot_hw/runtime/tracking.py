@@ -39,7 +39,8 @@ class TrackingRun:
     """A tracking run in reference time. t (N+1,) s; x (N+1, 12) the true state (q, q_dot) where the
     back end knows it, else the estimate's pose/twist with the encoders' joints; per sample k < N:
     u_cmd (law output before limiting), u (commanded), u_traj, u_corr (N, 3) N m; reference p_ref,
-    pd_ref (N+1, 3); estimate est_pose, est_twist (N+1, 3) (None in open loop); ``loop``: the runner's
+    pd_ref (N+1, 3); estimate est_pose, est_twist (N+1, 3) (None in open loop); f (N, 2) N the pivot
+    forces held with u where the back end knows them (else None); ``loop``: the runner's
     result (recording in robot time, stats, fault)."""
 
     t: np.ndarray
@@ -56,6 +57,7 @@ class TrackingRun:
     est_pose: np.ndarray | None = None
     est_twist: np.ndarray | None = None
     saturation: list = field(default_factory=list)
+    f: np.ndarray | None = None
 
     @property
     def e_p(self) -> np.ndarray:
@@ -106,7 +108,7 @@ class TrackingRun:
                    rate_hz=1.0 / period, loop=res, has_truth=has_truth,
                    est_pose=None if rec.estimate_pose is None else rec.estimate_pose[sl],
                    est_twist=None if rec.estimate_twist is None else rec.estimate_twist[sl],
-                   saturation=sat)
+                   saturation=sat, f=None if rec.truth_force is None else rec.truth_force[cmd])
 
 
 def make_feedback(kind: str | None, params, period: float, start_pose, config_path=None):
