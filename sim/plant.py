@@ -19,6 +19,11 @@ SYNC count only, never on wall time, and runs as fast as the master sends SYNCs.
 Transports: ``VirtualPlant`` (python-can ``virtual`` interface, same process), ``serve``
 (a plant in its own process behind an slcan adapter emulated on a pseudo-terminal, or on a
 socketcan interface).
+
+The operator channel: what a person at the bench does to the robot (change the fixture, fix or
+remove a load) is ``Plant.operator("fixture stand")`` in this process, and the same line on the
+standard input of ``serve`` (``otbot plant``), which answers each with one JSON line
+(``OPERATOR_HELP``; the bench procedure's ``--yes`` uses it on the simulated robot).
 """
 from __future__ import annotations
 
@@ -62,6 +67,10 @@ class Plant:
     or None; ``noise``: sensor noise (IMU accel/gyro sigma; joint angle and rate sigma added before
     the drives and the encoder quantize); ``position_offsets``: each drive's 0x6064 at phi = 0 (counts).
     """
+
+    #: the load an operator fixed on the platform ({mass, x, y, inertia}), and the robot without it
+    load: dict | None = None
+    unloaded_model = None
 
     def __init__(self, network: canopen.Network, config: RobotConfig, params=None,
                  fixture: str = "floor", forces: ForceSchedule | None = None, x0: np.ndarray | None = None,
@@ -115,6 +124,68 @@ class Plant:
         """Plant time, s (0 at the first SYNC with all drives enabled)."""
         return self.k * self.period
 
+    # -- the operator channel: what a person at the bench does to the robot --------------------------
+    def operator(self, command: str) -> dict:
+        """Do what an operator at the bench would: ``command`` is one line (``OPERATOR_COMMANDS``):
+
+        * ``fixture floor|stand|locked``: put the robot on the floor, on the stand (chassis held,
+          wheels free) or lock its wheels;
+        * ``load KG@X,Y[,I]``: fix a load of KG kg at (X, Y) m in the platform frame (own inertia
+          I kg m^2) on the platform (replacing any load); ``unload``: take it off;
+        * ``status``: report the fixture, the load and the robot's parameters.
+
+        A person handles the robot at rest: every change stops it (joint rates zero; the joint
+        angles, what the encoders count, are kept). Returns a JSON-ready reply (``error`` for a
+        command it does not know or cannot do); thread-safe against the SYNC handler."""
+        words = command.split()
+        if not words:
+            return {"error": "empty operator command (" + OPERATOR_HELP + ")"}
+        verb, args = words[0], words[1:]
+        with self.lock:
+            try:
+                if verb == "fixture" and len(args) == 1:
+                    self._set_up(fixture=args[0])
+                elif verb == "load" and len(args) == 1:
+                    self._set_up(load=parse_load(args[0]))
+                elif verb == "unload" and not args:
+                    self._set_up(load=None)
+                elif verb != "status" or args:
+                    return {"error": f"unknown operator command {command.strip()!r} ({OPERATOR_HELP})"}
+            except ValueError as exc:
+                return {"error": f"{command.strip()}: {exc}"}
+            return {"fixture": self.fixture, "load": self.load, "params": self.params.to_dict()}
+
+    def _set_up(self, fixture: str | None = None, load="keep") -> None:
+        """Rebuild the stepper for a new fixture and/or load (None: no load), the robot at rest."""
+        from otbot_hw.model.fixtures import FIXTURES
+        from otbot_hw.params import ParameterError
+
+        fixture = self.fixture if fixture is None else fixture
+        if fixture not in FIXTURES:
+            raise ValueError(f"unknown fixture {fixture!r} (known: {', '.join(FIXTURES)})")
+        if self.unloaded_model is None:
+            self.unloaded_model = self.model
+        if load != "keep":
+            base = self.unloaded_model
+            try:
+                params = getattr(base, "params", base).with_load(*load) if load else getattr(base, "params", base)
+            except ParameterError as exc:
+                raise ValueError(str(exc)) from None
+            self.model = type(base)(params, base.eff) if hasattr(base, "eff") else params
+            self.params = params
+            self.load = dict(zip(("mass", "x", "y", "inertia"), load)) if load else None
+        old = self.stepper
+        x0 = old.x.copy()
+        x0[6:] = 0.0  # handled by a person: at rest
+        st = make_stepper(self.model, self.period, x0, fixture)
+        for attr in ("slip", "tau"):  # the extended model's wheel slip (encoder offset) and drive torque
+            if hasattr(old, attr) and hasattr(st, attr):
+                setattr(st, attr, getattr(old, attr) * (0.0 if attr == "tau" else 1.0))
+        st.t = old.t
+        self.stepper = st
+        self.sensors = StepperSensors(st, self.period)
+        self.fixture = fixture
+
     def power_on(self) -> None:
         """Boot every slave (boot-up message, PRE-OPERATIONAL, heartbeat)."""
         for n in self.nodes:
@@ -167,6 +238,25 @@ class Plant:
                 self.k += 1
             elif all(d.state == "OPERATION ENABLED" for d in self.drives):
                 self.started = True
+
+
+OPERATOR_COMMANDS = ("fixture", "load", "unload", "status")
+OPERATOR_HELP = "fixture floor|stand|locked, load KG@X,Y[,I], unload, status"
+
+
+def parse_load(text: str) -> tuple[float, float, float, float]:
+    """'KG@X,Y[,I]' -> (mass kg, x m, y m, own inertia kg m^2); ValueError naming what is wrong."""
+    kg, sep, pos = text.partition("@")
+    parts = pos.split(",")
+    try:
+        vals = [float(kg), *(float(v) for v in parts)]
+    except ValueError:
+        vals = []
+    if not sep or len(parts) not in (2, 3) or len(vals) != len(parts) + 1 or not all(np.isfinite(vals)):
+        raise ValueError(f"a load looks like KG@X,Y or KG@X,Y,I (finite numbers), got {text!r}")
+    if vals[0] < 0 or (len(vals) == 4 and vals[3] < 0):
+        raise ValueError(f"load mass and inertia must be >= 0, got {text!r}")
+    return vals[0], vals[1], vals[2], vals[3] if len(vals) == 4 else 0.0
 
 
 class VirtualPlant:
@@ -298,7 +388,10 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
     out.write(json.dumps(info) + "\n")
     out.flush()
     try:
-        sys.stdin.read()  # until the parent closes our stdin
+        for line in sys.stdin:  # operator commands, one per line, until the parent closes our stdin
+            if line.strip():
+                out.write(json.dumps(plant.operator(line)) + "\n")
+                out.flush()
     except KeyboardInterrupt:
         pass
     finally:
