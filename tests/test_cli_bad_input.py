@@ -245,7 +245,8 @@ def test_every_option_has_help_and_no_literal_percent_signs(name):
 
 def test_demo_help_describes_every_stage():
     text = " ".join(dict(_leaf_parsers())["demo"].format_help().split())
-    for stage in ("chassis experiment", "identification", "CANopen drivers", "narrow corridor"):
+    for stage in ("chassis experiment", "identification", "CANopen drivers", "bench identification procedure",
+                  "narrow corridor"):
         assert stage in text, stage
 
 

@@ -163,7 +163,7 @@ def run(args: argparse.Namespace) -> dict:
     model = None
     if args.bus == "sim":
         model = ExtendedModel.load(args.sim_params)
-        load = parse_load(sim_load_text) if sim_load_text else None
+        load = parse_load(sim_load_text, "--sim-load") if sim_load_text else None
         sim = SimulatedRobot(model.params, load, model.active_effects())
         try:
             sim.loaded
@@ -172,6 +172,10 @@ def run(args: argparse.Namespace) -> dict:
     folder = args.resume or args.session or Path(time.strftime("otbot-bench-%Y%m%d-%H%M%S"))
     if args.resume is None:
         output_folder(folder, "--session")
+        if folder.is_dir() and any(folder.iterdir()):
+            what = "a session already" if (folder / "session.json").is_file() else "files"
+            raise CliError(f"--session {folder}: the folder holds {what}; continue a session with --resume {folder}, "
+                           "or name a new folder")
     return _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_text, with_imu, say, quiet)
 
 
@@ -224,7 +228,8 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
             session.begin_invocation({"bus_log": session.rel(log_path), "bus": args.bus,
                                       **({"seed": meta["seed"]} if "seed" in meta else {})})
             plant = getattr(robot, "plant", None)
-            operator = (AutomaticOperator if args.yes else PromptOperator)(plant, sim_load_text, say=progress)
+            operator = (AutomaticOperator(plant, sim_load_text, say=say) if args.yes else
+                        PromptOperator(plant, sim_load_text, say=progress))
             say(f"[bench] session {session.path}: steps {', '.join(settings.steps)}, {settings.excitation} excitation, "
                 f"{args.bus} bus")
             proc = BenchProcedure(robot, settings, session, operator, realtime=backend.realtime, progress=say, sim=sim,

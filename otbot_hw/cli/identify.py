@@ -57,21 +57,23 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def parse_load(text: str | None):
-    """'KG@X,Y[,I]' -> (mass, x, y, inertia) or None."""
+def parse_load(text: str | None, option: str = "--load"):
+    """'KG@X,Y[,I]' -> (mass, x, y, inertia) or None; errors name ``option``."""
     if not text:
         return None
     if "@" not in text:
-        raise CliError(f"--load must look like KG@X,Y or KG@X,Y,I, got {text!r}")
+        raise CliError(f"{option} must look like KG@X,Y or KG@X,Y,I, got {text!r}")
     kg, pos = text.split("@", 1)
-    mass = parse_vector(kg, 1, "--load mass")[0]
+    mass = parse_vector(kg, 1, f"{option} mass")[0]
     parts = pos.split(",")
-    vals = parse_vector(pos, len(parts), "--load position") if len(parts) in (2, 3) else None
+    vals = parse_vector(pos, len(parts), f"{option} position") if len(parts) in (2, 3) else None
     if vals is None:
-        raise CliError(f"--load position needs X,Y or X,Y,I, got {pos!r}")
+        raise CliError(f"{option} position needs X,Y or X,Y,I, got {pos!r}")
     if mass < 0:
-        raise CliError(f"--load mass must be >= 0 kg, got {mass}")
+        raise CliError(f"{option} mass must be >= 0 kg, got {mass}")
     inertia = vals[2] if len(vals) == 3 else 0.0
+    if inertia < 0:
+        raise CliError(f"{option} inertia must be >= 0 kg m^2, got {inertia}")
     return mass, vals[0], vals[1], inertia
 
 

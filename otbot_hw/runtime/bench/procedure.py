@@ -47,6 +47,7 @@ from otbot_hw.params import OtbotParams
 from otbot_hw.recording import read_recording
 from otbot_hw.robot import Robot, RobotError
 from otbot_hw.runtime.bench import checks as chk
+from otbot_hw.runtime.bench.operator import NoOperator
 from otbot_hw.runtime.bench.excitation import (PROBE, ExcitationController, brake_gains, predicted_margins,
                                                probe_torques, step_spec)
 from otbot_hw.runtime.bench.session import SessionFolder
@@ -320,7 +321,11 @@ class BenchProcedure:
             attempt = self.session.new_attempt(step)
             n = attempt["attempt"]
             self.say(f"[bench] step {step}, attempt {n}: {bs.fixture}" + (", loaded" if bs.loaded else ""))
-            self.operator.set_up(step, bs.instructions(self.s.limits), bs.fixture, bs.loaded)
+            try:
+                self.operator.set_up(step, bs.instructions(self.s.limits), bs.fixture, bs.loaded)
+            except NoOperator as exc:
+                self.session.set_status(step, "failed", attempt, [str(exc)])
+                raise BenchError(step, str(exc)) from None
             while True:
                 found = self.preflight(step, attempt)
                 attempt["checks"] = [c.to_dict() for c in found]
@@ -330,7 +335,11 @@ class BenchProcedure:
                 failed = [c for c in found if not c.passed]
                 if not failed:
                     break
-                if not self.operator.retry(step, failed, bs.fixture, bs.loaded):
+                try:
+                    again = self.operator.retry(step, failed, bs.fixture, bs.loaded)
+                except NoOperator:  # nobody answered: the checks' verdict is the error
+                    again = False
+                if not again:
                     self.session.set_status(step, "failed", attempt, [str(c) for c in failed])
                     raise BenchError(step, "; ".join(f"{c.name}: {c}" for c in failed))
             res, U = self.excite(step, attempt)

@@ -1,0 +1,187 @@
+"""otbot bench over the simulated CANopen bus: a session that identifies a loaded robot, a wrong fixture
+caught by the sensors before the excitation, an abort by the safety supervisor that leaves a loadable
+recording and a session that resumes (on the same robot only), and the plant's operator channel."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+import yaml
+
+from otbot_hw.identification.uncertainty import SESSION_PARAMS
+from otbot_hw.params import OtbotParams, nominal
+from otbot_hw.recording import read_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+LOAD = (60.0, 0.2, -0.15, 1.0)
+
+
+@pytest.fixture(scope="module")
+def floor_session(tmp_path_factory):
+    """chassis and platform steps of a robot carrying LOAD, --yes: the simulated operator sets it up."""
+    from otbot_hw.cli import main
+
+    folder = tmp_path_factory.mktemp("bench") / "session"
+    out = io.StringIO()
+    import contextlib
+
+    with contextlib.redirect_stdout(out):
+        rc = main(["bench", "--yes", "--json", "--steps", "chassis,platform", "--session", str(folder),
+                   "--sim-load", "{:g}@{:g},{:g},{:g}".format(*LOAD), "--seed", "3"])
+    return rc, json.loads(out.getvalue()), folder
+
+
+def test_floor_steps_identify_the_loaded_robot_through_the_bus(floor_session):
+    rc, d, folder = floor_session
+    assert rc == 0 and d["passed"]
+    assert list(d["steps"]) == ["chassis", "platform"]
+    for name, step in d["steps"].items():
+        assert step["status"] == "passed" and step["converged"] is True
+        assert all(k.startswith(name) and v > 80 for k, v in step["fit"].items()) and len(step["fit"]) == 3
+        checks = {c["name"]: c["passed"] for c in step["checks"]}
+        assert checks == dict.fromkeys(("drives", "imu", "at_rest", "limits", "fixture", "settled", "saturation",
+                                        "clipping"), True)
+        rec = read_recording(folder / step["accepted_recording"])  # project format, what the drivers reported
+        assert rec.metadata["fixture"] == "floor" and rec.metadata["bench"]["step"] == name
+        assert rec.estimate_pose is not None  # the EKF ran for the supervisor's speed and free-area checks
+        for r in step["check_recordings"]:
+            assert len(read_recording(folder / r)) > 10
+    # the truth merges the load into the working platform; the estimates meet it within 4 reported std
+    loaded = nominal().with_load(*LOAD)
+    assert d["truth"]["m_p"] == pytest.approx(loaded.m_p) and d["truth"]["x_F"] == pytest.approx(loaded.x_F)
+    assert set(d["parameters"]) == set(SESSION_PARAMS)
+    for n in ("m_c", "I_c", "x_B", "y_B", "m_p", "I_p", "x_F", "y_F"):
+        p = d["parameters"][n]
+        assert p["std"] > 0 and abs(p["value"] - d["truth"][n]) <= 4 * p["std"], (n, p, d["truth"][n])
+    for n in ("I_a", "b_w", "b_p"):  # steps not run keep the start values (the nominal file, no std)
+        assert d["parameters"][n] == {"value": getattr(nominal(), n), "std": 0.0}
+    assert d["diagnosis"]["verdict"] and {"unloaded", "loaded"} <= set(d["diagnosis"])
+    # params.yaml is what otbot track / diagnose --params load: the loaded working robot with std
+    p = OtbotParams.load(d["params_file"])
+    assert p.m_p == pytest.approx(d["parameters"]["m_p"]["value"]) and p.std["m_p"] == pytest.approx(
+        d["parameters"]["m_p"]["std"])
+    # the raw bus log holds both directions: SYNC and RPDOs sent, TPDOs received
+    frames = list(can.BLFReader(str(folder / d["bus_logs"][0])))
+    sent = {m.arbitration_id for m in frames if not m.is_rx}
+    got = {m.arbitration_id for m in frames if m.is_rx}
+    assert 0x80 in sent and {0x201, 0x202, 0x203} <= sent and {0x181, 0x182, 0x183, 0x184} <= got
+    assert sum(m.arbitration_id == 0x80 for m in frames) >= 2 * 400  # at least the two excitations' SYNCs
+    md = Path(d["report"]).read_text()
+    for f in d["report_files"][1:]:
+        assert Path(f).read_bytes()[:8] == PNG_MAGIC and Path(f).name in md
+
+
+def _bench(otbot_cli, *argv):
+    rc, out, err = otbot_cli(["bench", *argv])
+    return rc, out, err
+
+
+def test_wrong_fixture_is_caught_before_the_excitation_and_the_session_resumes(tmp_path, otbot_cli, monkeypatch):
+    folder = tmp_path / "s"
+    # interactive: the person puts the robot on the floor instead of the stand, then gives up (input ends)
+    monkeypatch.setattr(sys, "stdin", io.StringIO("fixture floor\n\n"))
+    rc, out, err = _bench(otbot_cli, "--steps", "wheel", "--session", str(folder), "--no-diagnose")
+    assert rc == 2 and out == "" and "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("otbot bench: error: step wheel: fixture:") and "not held on the stand" in last
+    assert "lift the robot onto the stand" in last and str(folder) in last
+    manifest = json.loads((folder / "session.json").read_text())
+    (att,) = manifest["steps"]["wheel"]["attempts"]
+    assert att["status"] == "failed" and att["recording"] is None  # no excitation torque was applied
+    assert [Path(r).name for r in att["check_recordings"]] == ["wheel-1-rest.mcap", "wheel-1-probe.mcap",
+                                                               "wheel-1-settle.mcap"]
+    # resumed with --yes: the simulated operator puts it on the stand; attempt numbers go on
+    monkeypatch.setattr(sys, "stdin", io.StringIO(""))
+    rc, out, err = _bench(otbot_cli, "--resume", str(folder), "--yes", "--json", "--no-diagnose")
+    assert rc == 0, err
+    d = json.loads(out)
+    assert d["steps"]["wheel"]["accepted_recording"] == "wheel-2.mcap" and d["steps"]["wheel"]["attempts"] == 2
+    assert len(d["bus_logs"]) == 2 and all((folder / b).stat().st_size > 0 for b in d["bus_logs"])
+
+
+def _wide_config(tmp_path: Path) -> Path:
+    data = yaml.safe_load((ROOT / "config" / "robot.yaml").read_text())
+    for sec in ("drives", "pivot_encoder"):
+        data[sec]["eds"] = str(ROOT / "config" / data[sec]["eds"])
+    data["safety"]["max_wheel_rate"]["value"] = 100.0
+    path = tmp_path / "robot-wide.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_abort_keeps_the_recording_and_resumes_on_the_same_robot_only(tmp_path, otbot_cli):
+    light = nominal().replace(b_w=0.09)  # half the friction: 6 N m spins a free wheel past 60 rad/s in 0.3 s
+    robot = tmp_path / "light.yaml"
+    light.save(robot)
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--steps", "wheel", "--yes", "--no-diagnose", "--session", str(folder),
+                          "--sim-params", str(robot), "--json")
+    assert rc == 1 and "Traceback" not in err
+    assert json.loads(out)["completed"] is False
+    line = err.strip().splitlines()[-1]
+    assert "step wheel: the run was stopped: joint_rate" in line and "right wheel turns at" in line
+    assert f"--resume {folder}" in line
+    rec = read_recording(folder / "wheel-1.mcap")  # loadable, up to and including the sample that broke the limit
+    assert 20 < len(rec) < 50 and abs(rec.joint_vel[-1, 0]) > 60.0 >= np.abs(rec.joint_vel[:-1, 0]).max()
+    assert [e["kind"] for e in rec.events].count("fault") == 1
+    assert json.loads((folder / "session.json").read_text())["steps"]["wheel"]["status"] == "aborted"
+    # another robot (the nominal one) cannot continue this session
+    rc, out, err = _bench(otbot_cli, "--resume", str(folder), "--yes", "--no-diagnose")
+    assert rc == 2 and "was recorded on another robot" in err and "--sim-params" in err
+    # the same robot with a wheel-rate limit that admits it: the session continues and identifies it
+    rc, out, err = _bench(otbot_cli, "--resume", str(folder), "--yes", "--no-diagnose", "--json",
+                          "--sim-params", str(robot), "--config", str(_wide_config(tmp_path)))
+    assert rc == 0, err
+    d = json.loads(out)
+    assert d["steps"]["wheel"]["accepted_recording"] == "wheel-2.mcap"
+    for n in ("I_a", "b_w"):
+        p = d["parameters"][n]
+        assert abs(p["value"] - getattr(light, n)) <= 4 * p["std"], (n, p)
+
+
+def test_plant_process_takes_operator_commands_on_stdin():
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "plant", "--no-imu"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        info = json.loads(proc.stdout.readline())
+        assert info["can_interface"] == "slcan"
+        replies = []
+        for cmd in ("fixture stand", "load 5@0.1,0,0", "fixture moon", "unload"):
+            proc.stdin.write(cmd + "\n")
+            proc.stdin.flush()
+            replies.append(json.loads(proc.stdout.readline()))
+        proc.stdin.close()
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert replies[0]["fixture"] == "stand" and replies[0]["load"] is None
+    assert replies[1]["load"] == {"mass": 5.0, "x": 0.1, "y": 0.0, "inertia": 0.0}
+    assert replies[1]["params"]["platform"]["m_p"]["value"] == pytest.approx(nominal().m_p + 5.0)
+    assert "unknown fixture 'moon'" in replies[2]["error"] and replies[3]["load"] is None
+
+
+def test_clipped_and_saturated_recordings_are_named():
+    from otbot_hw.runtime.bench.checks import clipping_check, saturation_check
+    from otbot_hw.simulation.runs import simulated_recording
+    from otbot_hw.sensors import NoiseModel
+
+    U = np.tile([6.0, -10.0, 6.0], (100, 1))
+    rec = simulated_recording(nominal(), U, 0.01, NoiseModel.paper(), seed=1)
+    assert clipping_check(rec, 101).passed and saturation_check(rec, U).passed
+    peak = 0.8 * np.abs(rec.imu_gyro[:, 2]).max()
+    rec.imu_gyro[:, 2] = np.clip(rec.imu_gyro[:, 2], -peak, peak)  # a gyro with too small a range
+    c = clipping_check(rec, 101)
+    assert not c.passed and c.message.startswith("clipped: omega_z sits at")
+    rec.torque[:, 1] = np.clip(rec.torque[:, 1], -8.0, 8.0)  # drives that deliver at most 8 N m
+    s = saturation_check(rec, U)
+    assert not s.passed and "applied -8.00 N m where -10.00 N m was commanded on left wheel" in s.message
