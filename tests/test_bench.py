@@ -13,7 +13,6 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-import yaml
 
 from otbot_hw.identification.uncertainty import SESSION_PARAMS
 from otbot_hw.params import OtbotParams, nominal
@@ -107,14 +106,17 @@ def test_wrong_fixture_is_caught_before_the_excitation_and_the_session_resumes(t
     assert len(d["bus_logs"]) == 2 and all((folder / b).stat().st_size > 0 for b in d["bus_logs"])
 
 
-def _wide_config(tmp_path: Path) -> Path:
-    data = yaml.safe_load((ROOT / "config" / "robot.yaml").read_text())
-    for sec in ("drives", "pivot_encoder"):
-        data[sec]["eds"] = str(ROOT / "config" / data[sec]["eds"])
-    data["safety"]["max_wheel_rate"]["value"] = 100.0
-    path = tmp_path / "robot-wide.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
+def _config(folder: Path, **replace: str) -> Path:
+    """config/robot.yaml (and its EDS files) copied into ``folder`` with text replaced (old -> new)."""
+    src = ROOT / "config" / "robot.yaml"
+    text = src.read_text()
+    for old, new in replace.values():
+        assert old in text, old
+        text = text.replace(old, new)
+    for eds in src.parent.glob("*.eds"):
+        (folder / eds.name).write_text(eds.read_text())
+    (folder / "robot.yaml").write_text(text)
+    return folder / "robot.yaml"
 
 
 def test_abort_keeps_the_recording_and_resumes_on_the_same_robot_only(tmp_path, otbot_cli):
@@ -138,7 +140,8 @@ def test_abort_keeps_the_recording_and_resumes_on_the_same_robot_only(tmp_path, 
     assert rc == 2 and "was recorded on another robot" in err and "--sim-params" in err
     # the same robot with a wheel-rate limit that admits it: the session continues and identifies it
     rc, out, err = _bench(otbot_cli, "--resume", str(folder), "--yes", "--no-diagnose", "--json",
-                          "--sim-params", str(robot), "--config", str(_wide_config(tmp_path)))
+                          "--sim-params", str(robot), "--config", str(_config(tmp_path, rate=(
+                              "max_wheel_rate: {value: 60.0", "max_wheel_rate: {value: 100.0"))))
     assert rc == 0, err
     d = json.loads(out)
     assert d["steps"]["wheel"]["accepted_recording"] == "wheel-2.mcap"
@@ -147,27 +150,45 @@ def test_abort_keeps_the_recording_and_resumes_on_the_same_robot_only(tmp_path, 
         assert abs(p["value"] - getattr(light, n)) <= 4 * p["std"], (n, p)
 
 
-def test_plant_process_takes_operator_commands_on_stdin():
+def test_plant_process_takes_operator_commands_and_the_bench_runs_on_it_over_slcan(tmp_path):
+    """``otbot plant`` told by its operator channel (stdin) to put the robot on the stand; ``otbot bench
+    --bus config`` then runs the wheel step on it over the emulated slcan adapter, as on a real bus."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "plant", "--no-imu"], stdin=subprocess.PIPE,
+    # lockstep with another process on a loaded machine: bus timeouts with room (as tests/test_bus_cli.py)
+    cfg = _config(tmp_path, slcan=("  options: {}", "  options: {sleep_after_open: 0}"),
+                  tpdo=("tpdo_timeout: {value: 0.05, unit: s}", "tpdo_timeout: {value: 1.0, unit: s}"),
+                  hb=("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}"))
+    proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "plant"], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         info = json.loads(proc.stdout.readline())
-        assert info["can_interface"] == "slcan"
         replies = []
-        for cmd in ("fixture stand", "load 5@0.1,0,0", "fixture moon", "unload"):
+        for cmd in ("load 5@0.1,0,0", "fixture moon", "unload", "fixture stand"):
             proc.stdin.write(cmd + "\n")
             proc.stdin.flush()
             replies.append(json.loads(proc.stdout.readline()))
+        bench = subprocess.run([sys.executable, "-m", "otbot_hw", "bench", "--bus", "config", "--lockstep", "--config", str(cfg),
+                                "--interface", "slcan", "--channel", info["can_channel"], "--imu-port",
+                                info["imu_port"], "--steps", "wheel", "--yes", "--no-diagnose", "--json",
+                                "--session", str(tmp_path / "s")], capture_output=True, text=True, env=env,
+                               timeout=120)
         proc.stdin.close()
         assert proc.wait(timeout=20) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert replies[0]["fixture"] == "stand" and replies[0]["load"] is None
-    assert replies[1]["load"] == {"mass": 5.0, "x": 0.1, "y": 0.0, "inertia": 0.0}
-    assert replies[1]["params"]["platform"]["m_p"]["value"] == pytest.approx(nominal().m_p + 5.0)
-    assert "unknown fixture 'moon'" in replies[2]["error"] and replies[3]["load"] is None
+    assert replies[0]["load"] == {"mass": 5.0, "x": 0.1, "y": 0.0, "inertia": 0.0}
+    assert replies[0]["params"]["platform"]["m_p"]["value"] == pytest.approx(nominal().m_p + 5.0)
+    assert "unknown fixture 'moon'" in replies[1]["error"] and replies[2]["load"] is None
+    assert replies[3]["fixture"] == "stand"
+    assert bench.returncode == 0, bench.stderr[-2000:]
+    d = json.loads(bench.stdout)
+    assert "truth" not in d and d["robot"]["bus"] == "config"  # a configured bus: who the robot is, from 0x1018
+    assert d["robot"]["nodes"]["pivot_encoder"] == {"node_id": 4, "vendor": 0, "product": 0x4F45, "revision": 0x10000,
+                                                    "serial": 1}
+    for n in ("I_a", "b_w"):
+        p = d["parameters"][n]
+        assert abs(p["value"] - getattr(nominal(), n)) <= 4 * p["std"], (n, p)
 
 
 def test_clipped_and_saturated_recordings_are_named():

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -165,10 +166,10 @@ def run(args: argparse.Namespace) -> dict:
         model = ExtendedModel.load(args.sim_params)
         load = parse_load(sim_load_text, "--sim-load") if sim_load_text else None
         sim = SimulatedRobot(model.params, load, model.active_effects())
-        try:
-            sim.loaded
-        except Exception as exc:
-            raise CliError(f"--sim-load {sim_load_text}: {exc}") from None
+        if load is not None and math.hypot(load[1], load[2]) > model.params.radius:
+            raise CliError(f"--sim-load {sim_load_text}: the load at ({load[1]:g}, {load[2]:g}) m is off the platform "
+                           f"(radius {model.params.radius:g} m)")
+        sim.loaded  # a load the parameters cannot take raises ParameterError (bad input)
     folder = args.resume or args.session or Path(time.strftime("otbot-bench-%Y%m%d-%H%M%S"))
     if args.resume is None:
         output_folder(folder, "--session")
