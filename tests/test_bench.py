@@ -206,3 +206,18 @@ def test_clipped_and_saturated_recordings_are_named():
     rec.torque[:, 1] = np.clip(rec.torque[:, 1], -8.0, 8.0)  # drives that deliver at most 8 N m
     s = saturation_check(rec, U)
     assert not s.passed and "applied -8.00 N m where -10.00 N m was commanded on left wheel" in s.message
+
+
+def test_a_robot_that_does_not_move_is_named_before_the_excitation(tmp_path, otbot_cli):
+    from otbot_hw.model.effects import ExtendedModel
+
+    stuck = tmp_path / "stuck.yaml"  # drives that deliver at most 0.01 N m: nothing turns
+    ExtendedModel.paper(nominal()).with_values({"u_max": 0.01}).save(stuck)
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--steps", "wheel", "--yes", "--no-diagnose", "--session", str(folder),
+                          "--sim-params", str(stuck))
+    assert rc == 2 and out == "" and err.count("\n") >= 1
+    last = err.strip().splitlines()[-1]
+    assert "step wheel: fixture: the right wheel did not turn under 1 N m" in last
+    assert "check that the right wheel's drive delivers torque" in last
+    assert json.loads((folder / "session.json").read_text())["steps"]["wheel"]["status"] == "failed"
