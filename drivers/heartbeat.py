@@ -127,3 +127,31 @@ class HeartbeatConsumer:
         """Seconds since the last heartbeat of ``node_id`` (None before the first)."""
         w = self._watch[node_id]
         return None if w.last is None else time.monotonic() - w.last
+
+
+class HeartbeatProducer:
+    """The master's own heartbeat (CiA 301 §7.2.8.3.2.1): NMT state OPERATIONAL (0x05) on COB-ID
+    0x700 + ``node_id`` every ``period`` s, sent by python-can's periodic-send task (a thread of
+    its own, so it keeps going while the control loop is busy and stops when the process dies).
+    The drives consume it through 0x1016 and apply their abort connection option when it stops."""
+
+    OPERATIONAL = 0x05
+
+    def __init__(self, network, node_id: int, period: float):
+        self.network = network
+        self.node_id = node_id
+        self.period = period
+        self._task = None
+
+    @property
+    def running(self) -> bool:
+        return self._task is not None
+
+    def start(self) -> None:
+        if self._task is None:
+            self._task = self.network.send_periodic(0x700 + self.node_id, [self.OPERATIONAL], self.period)
+
+    def stop(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.stop()

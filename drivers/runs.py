@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_IMU, TOPIC_JOINTS, TOPIC_TRUTH, Recording,
+from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS, TOPIC_TRUTH, Recording,
                                 RecordingWriter)
 from otbot_hw.robot import Fault, Robot
 
@@ -34,12 +34,15 @@ def run_torques(robot: Robot, torques: np.ndarray, period: float, path: str | Pa
     """Enable ``robot``, apply ``torques`` (N, 3) N m one per control period, record, quick-stop.
 
     ``truth``: a ``sim.plant.TruthLog`` of a simulated plant, recorded as ground truth;
-    ``progress(msg)`` is called about every second of robot time. Stops at the first fault.
+    ``progress(msg)`` is called about every second of robot time. Stops at the first fault (the
+    robot has already reacted: drives stopped); the recording then ends with the last sample
+    before the fault and an ``/otbot/events`` fault event per fault.
     """
     torques = np.asarray(torques, dtype=float)
     n = len(torques)
     has_imu = getattr(robot, "imu", None) is not None
-    topics = [TOPIC_JOINTS] + ([TOPIC_IMU] if has_imu else []) + ([TOPIC_TRUTH] if truth is not None else [])
+    topics = ([TOPIC_JOINTS] + ([TOPIC_IMU] if has_imu else []) + ([TOPIC_TRUTH] if truth is not None else [])
+              + [TOPIC_EVENTS])
     meta = {"source": "bus", "sample_period": period, **(metadata or {})}
     writer = RecordingWriter(path, meta, topics=topics) if path is not None else None
     rows: dict[str, list] = {k: [] for k in ("t", "u", "pos", "vel", "acc", "gyro")}
@@ -54,6 +57,10 @@ def run_torques(robot: Robot, torques: np.ndarray, period: float, path: str | Pa
             s = robot.read()
             if s.faults:
                 faults = s.faults
+                if writer is not None:
+                    for f in faults:
+                        writer.write_event(max(0.0, s.t), "fault", str(f), device=f.device, node=f.node,
+                                           fault=f.kind, code=f.code)
                 break
             msg = {TOPIC_COMMAND: {"t": s.t, "torque": cmd.commanded.tolist()},
                    TOPIC_JOINTS: {"t": s.t, "position": s.joint_pos.tolist(), "velocity": s.joint_vel.tolist()}}

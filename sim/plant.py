@@ -16,21 +16,31 @@ The plant's clock starts (t = 0) at the first SYNC after all three drives reache
 ENABLED; before that the robot stands still at x0. The run is deterministic: it depends on the
 SYNC count only, never on wall time, and runs as fast as the master sends SYNCs.
 
+The drives' own watchdogs (master heartbeat, SYNC loss, RPDO deadline) run on wall time in a
+thread of the plant (``check_watchdogs``); an ``Injector`` (``sim.injection``) fires its fault
+from inside the SYNC handler, at plant time. ``report()`` gives each drive's CiA 402 state and
+the bus time at which it stopped producing torque: plant time at SYNCs, plus the wall time elapsed
+since the last SYNC for what happens between SYNCs (watchdogs, NMT).
+
 Transports: ``VirtualPlant`` (python-can ``virtual`` interface, same process), ``serve``
 (a plant in its own process behind an slcan adapter emulated on a pseudo-terminal, or on a
-socketcan interface).
+socketcan interface; ``PlantProcess`` starts one and asks it for its ``report()``).
 """
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import sys
 import threading
+import time
 import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import can
 import canopen
+import logging
 import numpy as np
 
 from drivers.config import RobotConfig
@@ -40,7 +50,37 @@ from otbot_hw.model.fixtures import fixture_code
 from otbot_hw.params import OtbotParams, nominal
 from otbot_hw.sensors import NoiseModel, imu_ideal
 from sim.canopen_slaves import SimulatedDrive, SimulatedEncoder
+from sim.injection import Injection, Injector
 from otbot_hw.simulation.simulator import ForceSchedule, Stepper
+
+
+log = logging.getLogger(__name__)
+
+
+class GatedBus(can.BusABC):
+    """A python-can bus that can be cut (``cut()``): from then on it carries no frame either way,
+    as a CAN controller gone bus-off or a pulled connector."""
+
+    def __init__(self, inner: can.BusABC):
+        self.inner = inner
+        self.is_cut = False
+        super().__init__(channel=getattr(inner, "channel_info", "gated"))
+        self.channel_info = f"gated {getattr(inner, 'channel_info', inner)}"
+
+    def cut(self) -> None:
+        self.is_cut = True
+
+    def send(self, msg: can.Message, timeout=None) -> None:
+        if not self.is_cut:
+            self.inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout):
+        msg = self.inner.recv(timeout)
+        return (None if self.is_cut else msg), False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.inner.shutdown()
 
 
 @dataclass
@@ -64,7 +104,8 @@ class Plant:
     def __init__(self, network: canopen.Network, config: RobotConfig, params: OtbotParams | None = None,
                  fixture: str = "floor", forces: ForceSchedule | None = None, x0: np.ndarray | None = None,
                  noise: NoiseModel | None = None, seed: int | None = 0, imu=None,
-                 position_offsets=(0, 0, 0), supported_modes: int | None = None):
+                 position_offsets=(0, 0, 0), supported_modes: int | None = None, injector: Injector | None = None,
+                 bus_gate=None):
         self.config = config
         self.params = params or nominal()
         self.period = config.bus.period
@@ -90,10 +131,71 @@ class Plant:
         self.malformed_sync = 0
         self.truth = TruthLog()
         self.lock = threading.Lock()
+        self.bus_gate = bus_gate
+        self.injector = injector
+        self._sync_t = 0.0  # bus time of the last SYNC (plant time once started)
+        self._sync_wall = time.monotonic()
+        self._in_sync = False
         self._warm_up()
         for n in self.nodes:
             n.reset_listeners.append(self._on_node_reset)
+        for d in self.drives:
+            d.clock = self.bus_time
+        if injector is not None:
+            injector.check(self)
         network.subscribe(0x80, self._on_sync)
+        self._stop = threading.Event()
+        self._watchdogs = threading.Thread(target=self._watch, name="drive-watchdogs", daemon=True)
+        self._watchdogs.start()
+
+    def bus_time(self) -> float:
+        """Bus time (s): the plant time of the current SYNC inside the SYNC handler; between SYNCs,
+        that of the last SYNC plus the wall time elapsed since it."""
+        if self._in_sync:
+            return self._sync_t
+        return self._sync_t + (time.monotonic() - self._sync_wall)
+
+    def _watch(self) -> None:
+        """The drives' wall-clock watchdogs, checked every tenth of the shortest one (0.5..10 ms)."""
+        while not self._stop.is_set():
+            times = [t for d in self.drives for t in d.watchdog_times()]
+            step = min(0.01, max(0.0005, min(times) / 10)) if times else 0.01
+            if self._stop.wait(step):
+                return
+            now = time.monotonic()
+            for d in self.drives:
+                try:
+                    d.check_watchdogs(now)
+                except Exception:  # noqa: BLE001 - a watchdog must not take the plant down
+                    log.exception("%s: watchdog check failed", d.name)
+
+    def report(self) -> dict:
+        """Each drive's own state: CiA 402 state, applied torque (per-mille), NMT state, when it
+        stopped producing torque (bus time s and host monotonic s; None while it produces torque),
+        the aborts its watchdogs triggered; plant time; the injection, if any."""
+        drives = [{"name": d.name, "node": d.node_id, "state": d.state, "torque_permille": d.applied_permille(),
+                   "nmt": d.node.nmt.state, "silent": d.silent,
+                   "stopped_t": d.stopped_since[0] if d.stopped_since else None,
+                   "stopped_wall": d.stopped_since[1] if d.stopped_since else None,
+                   "aborts": [[code, why, t] for code, why, t in d.aborts]} for d in self.drives]
+        return {"t": self.t, "syncs": self.syncs, "started": self.started, "drives": drives,
+                "injection": self.injector.to_dict() if self.injector is not None else None}
+
+    def all_stopped(self) -> bool:
+        return all(d.stopped_since is not None for d in self.drives)
+
+    def wait_all_stopped(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s (wall) for every drive to stop producing torque by itself."""
+        end = time.monotonic() + timeout
+        while not self.all_stopped():
+            if time.monotonic() > end:
+                return False
+            time.sleep(0.002)
+        return True
+
+    def longest_watchdog(self) -> float:
+        """The longest watchdog time (s) the master configured into any drive (0 if none)."""
+        return max([t for d in self.drives for t in d.watchdog_times()] or [0.0])
 
     def _on_node_reset(self, node, application: bool) -> None:
         """A master (re)starting resets the nodes before its first SYNC: count SYNCs from there, so
@@ -117,6 +219,7 @@ class Plant:
             n.boot()
 
     def stop(self) -> None:
+        self._stop.set()
         for n in self.nodes:
             n.stop()
 
@@ -135,46 +238,63 @@ class Plant:
         with self.lock:
             sync_index = self.syncs
             self.syncs += 1
-            for n in self.nodes:
-                n.latch()
-            u = np.array([d.joint_torque() for d in self.drives])
-            x = self.stepper.x.copy()
-            f = self.forces.at(self.t + 1e-9) if (self.forces is not None and self.started) else np.zeros(2)
-            if self.imu is not None and imu_due(sync_index, self.period, self.imu_rate):
-                acc, gyro = self.imu_reading(x, u, f)
-                self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)
-            rate_noise = self.noise.enc_rate * self.rng.standard_normal(3) if self.noise.enc_rate else np.zeros(3)
-            angle_noise = self.noise.enc_angle * self.rng.standard_normal(3) if self.noise.enc_angle else np.zeros(3)
-            for j, d in enumerate(self.drives):
-                d.sample(x[3 + j] + angle_noise[j], x[9 + j] + rate_noise[j])
-                d.send_tpdos()
-            if self.encoder is not None:
-                self.encoder.sample(x[5] + angle_noise[2])
-                self.encoder.send_tpdos()
-            if self.started:
-                self.truth.t.append(self.t)
-                self.truth.x.append(x)
-                self.truth.u.append(u)
-                self.truth.f.append(f)
-                self.stepper.step(u, f)
-                self.k += 1
-            elif all(d.state == "OPERATION ENABLED" for d in self.drives):
-                self.started = True
+            self._sync_t = self.t if self.started else 0.0
+            self._sync_wall = time.monotonic()
+            self._in_sync = True
+            try:
+                self._step(sync_index)
+            finally:
+                self._in_sync = False
+
+    def _step(self, sync_index: int) -> None:
+        """One SYNC (lock held): latch, inject, torques, IMU, TPDOs, model step."""
+        for n in self.nodes:
+            n.latch()
+        if self.injector is not None:
+            self.injector.on_sync(self)
+        u = np.array([d.joint_torque() for d in self.drives])
+        x = self.stepper.x.copy()
+        f = self.forces.at(self.t + 1e-9) if (self.forces is not None and self.started) else np.zeros(2)
+        if self.imu is not None and imu_due(sync_index, self.period, self.imu_rate):
+            acc, gyro = self.imu_reading(x, u, f)
+            self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)
+        rate_noise = self.noise.enc_rate * self.rng.standard_normal(3) if self.noise.enc_rate else np.zeros(3)
+        angle_noise = self.noise.enc_angle * self.rng.standard_normal(3) if self.noise.enc_angle else np.zeros(3)
+        for j, d in enumerate(self.drives):
+            d.sample(x[3 + j] + angle_noise[j], x[9 + j] + rate_noise[j])
+            d.send_tpdos()
+        if self.encoder is not None:
+            self.encoder.sample(x[5] + angle_noise[2])
+            self.encoder.send_tpdos()
+        if self.started:
+            self.truth.t.append(self.t)
+            self.truth.x.append(x)
+            self.truth.u.append(u)
+            self.truth.f.append(f)
+            self.stepper.step(u, f)
+            self.k += 1
+        elif all(d.state == "OPERATION ENABLED" for d in self.drives):
+            self.started = True
 
 
 class VirtualPlant:
-    """A ``Plant`` on python-can's ``virtual`` interface (channel ``config.bus.channel``), in-process.
+    """A ``Plant`` on python-can's ``virtual`` interface (channel ``config.bus.channel``), in-process,
+    behind a ``GatedBus`` (the ``bus-off`` injection cuts it).
 
     Use as a context manager; the master opens its own virtual bus on the same channel.
     """
 
     def __init__(self, config: RobotConfig, **plant_kwargs):
-        self.bus = can.Bus(interface="virtual", channel=config.bus.channel)
+        self.bus = GatedBus(can.Bus(interface="virtual", channel=config.bus.channel))
         self.network = canopen.Network(self.bus)
         self.network.NOTIFIER_CYCLE = 0.1
         self.network.connect()
         self.bus.set_filters(STANDARD_FRAMES_ONLY)
-        self.plant = Plant(self.network, config, **plant_kwargs)
+        try:
+            self.plant = Plant(self.network, config, bus_gate=self.bus, **plant_kwargs)
+        except Exception:
+            self.network.disconnect()
+            raise
         self.plant.power_on()
 
     def close(self) -> None:
@@ -203,51 +323,97 @@ def open_sim_imu(config: RobotConfig):
     return pub, drv
 
 
+#: Lockstep runs: how long the master waits for the plant's answer to a SYNC (s).
+LOCKSTEP_TIMEOUT = 0.25
+#: Lockstep runs: heartbeat consumer times (both ways) are at least this (s): no real-time deadline
+#: is at stake, and a loaded machine must not trip them.
+LOCKSTEP_HEARTBEAT = 1.0
+
+
 @contextmanager
-def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, tpdo_timeout: float | None = 1.0,
-                    heartbeat_consumer: float | None = 1.0, **plant_kwargs):
+def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, tpdo_timeout: float | None = None,
+                    heartbeat_consumer: float | None = LOCKSTEP_HEARTBEAT, inject: Injection | str | None = None,
+                    process: bool = False, realtime: bool = False, **plant_kwargs):
     """A ``CanopenRobot`` (opened: booted, configured, PDOs running) talking over python-can's
-    ``virtual`` bus to a ``Plant`` in this process, with the simulated IMU on a pseudo-terminal.
+    ``virtual`` bus to a ``Plant`` in this process, with the simulated IMU on a pseudo-terminal;
+    with ``process``, to a plant in its own process (``otbot plant``) over slcan on a pty.
 
-    Yields (robot, plant). The virtual channel is made unique, so runs never hear each other.
-    ``tpdo_timeout`` and ``heartbeat_consumer`` (s) replace the configured ones: the run is in
-    lockstep, so nothing real-time is at stake and a busy machine must not trip the watchdogs;
-    None keeps the configuration's values (fault tests).
+    Yields (robot, plant) (``plant``: the ``Plant``, or the ``PlantProcess``). The virtual channel
+    is made unique, so runs never hear each other. ``tpdo_timeout``: the lockstep wait for the
+    TPDOs of a SYNC (s, default ``LOCKSTEP_TIMEOUT``); ``heartbeat_consumer`` (s): the heartbeat
+    consumer times of both sides are at least this (None keeps the configuration's: fault tests);
+    ``inject``: a fault for the plant to inject (``sim.injection``); ``realtime``: pace SYNCs at
+    the control period with the configured watchdogs (no relaxing). On exit, after ``robot.close()``,
+    with an injection the drives are given their longest watchdog time to stop by themselves, and
+    ``plant.after`` holds the plant's ``report()``.
     """
-    from dataclasses import replace
-
     from drivers.robot import CanopenRobot
 
+    if isinstance(inject, str):
+        inject = Injection.parse(inject)
+    if heartbeat_consumer is not None and not realtime:
+        config = config.relaxed(heartbeat_consumer)
+    lockstep_timeout = tpdo_timeout if tpdo_timeout is not None else LOCKSTEP_TIMEOUT
+    if process:
+        with PlantProcess(config, inject=inject, with_imu=with_imu, **plant_kwargs) as pp:
+            cfg = config.replace_bus(interface="slcan", channel=pp.info["can_channel"],
+                                     options={**config.bus.options, "sleep_after_open": 0})
+            imu = None
+            if with_imu and config.imu is not None and pp.info.get("imu_port"):
+                from drivers.robot import open_imu
+
+                imu = open_imu(config.imu, port=pp.info["imu_port"])
+            robot = CanopenRobot(cfg, imu=imu, imu_lockstep=not realtime, realtime=realtime,
+                                 lockstep_timeout=lockstep_timeout)
+            try:
+                robot.open()
+                yield robot, pp
+            finally:
+                robot.close()
+                pp.after = pp.report(wait_stopped=inject is not None)
+        return
     config = config.replace_bus(interface="virtual", channel=f"otbot-sim-{uuid.uuid4().hex[:12]}")
-    if tpdo_timeout is not None:
-        config = config.replace_bus(tpdo_timeout=max(tpdo_timeout, config.bus.tpdo_timeout))
-    if heartbeat_consumer is not None:
-        config = replace(config, drives=tuple(replace(d, heartbeat_consumer=max(heartbeat_consumer, d.heartbeat_consumer))
-                                              for d in config.drives),
-                         pivot_encoder=replace(config.pivot_encoder, heartbeat_consumer=max(
-                             heartbeat_consumer, config.pivot_encoder.heartbeat_consumer)))
     pub = drv = None
     if with_imu and config.imu is not None:
         pub, drv = imu_pair if imu_pair is not None else open_sim_imu(config)
-    vp = VirtualPlant(config, imu=pub, **plant_kwargs)
-    robot = CanopenRobot(config, bus=can.Bus(interface="virtual", channel=config.bus.channel), imu=drv,
-                         imu_lockstep=True)
+    injector = Injector(inject) if inject is not None else None
+    try:
+        vp = VirtualPlant(config, imu=pub, injector=injector, **plant_kwargs)
+    except Exception:
+        if pub is not None and imu_pair is None:
+            pub.close()
+            drv.close()
+        raise
+    try:
+        robot = CanopenRobot(config, bus=can.Bus(interface="virtual", channel=config.bus.channel), imu=drv,
+                             imu_lockstep=not realtime, realtime=realtime, lockstep_timeout=lockstep_timeout)
+    except Exception:
+        vp.close()
+        if pub is not None:
+            pub.close()
+        raise
     try:
         robot.open()
         yield robot, vp.plant
     finally:
         robot.close()
+        if injector is not None and injector.fired_t is not None:
+            vp.plant.wait_all_stopped(vp.plant.longest_watchdog() + 0.2)
+        vp.plant.after = vp.plant.report()
         vp.close()
         if pub is not None and hasattr(pub, "close"):
             pub.close()
 
 
 def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = None, with_imu: bool = True,
-          out=None, **plant_kwargs) -> None:
-    """Run a plant in this process until stdin closes: ``transport`` "slcan" (adapter emulated on a
-    new pseudo-terminal) or "socketcan" (``channel``, default vcan0). Prints one JSON line with
-    ``can_interface``, ``can_channel`` and ``imu_port`` for the master."""
+          out=None, inject: Injection | None = None, commands=None, **plant_kwargs) -> None:
+    """Run a plant in this process until its command input (default stdin) closes: ``transport``
+    "slcan" (adapter emulated on a new pseudo-terminal) or "socketcan" (``channel``, default
+    vcan0). Prints one JSON line with ``can_interface``, ``can_channel`` and ``imu_port`` for the
+    master; then answers each input line ``report`` with one JSON line (``Plant.report()``).
+    ``inject``: a fault the plant injects at its plant time (``plant-kill`` kills this process)."""
     out = out or sys.stdout
+    commands = commands if commands is not None else sys.stdin
     if transport == "slcan":
         from sim.slcan_adapter import SlcanAdapterBus
 
@@ -258,22 +424,28 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
         info = {"can_interface": "socketcan", "can_channel": channel or "vcan0"}
     else:
         raise ValueError(f"unknown transport {transport!r} (slcan, socketcan)")
+    gate = bus if hasattr(bus, "cut") else None
     imu = None
     if with_imu and config.imu is not None:
         from sim.imu import SimulatedIMU
 
         imu = SimulatedIMU(output=config.imu.output, rate_hz=int(config.imu.rate_hz), mounting=config.imu.mounting)
     info["imu_port"] = imu.port if imu is not None else None
+    info["pid"] = os.getpid()
     network = canopen.Network(bus)
     network.NOTIFIER_CYCLE = 0.1
     network.connect()
     bus.set_filters(STANDARD_FRAMES_ONLY)
-    plant = Plant(network, config, imu=imu, **plant_kwargs)
+    injector = Injector(inject, own_process=True) if inject is not None else None
+    plant = Plant(network, config, imu=imu, injector=injector, bus_gate=gate, **plant_kwargs)
     plant.power_on()
     out.write(json.dumps(info) + "\n")
     out.flush()
     try:
-        sys.stdin.read()  # until the parent closes our stdin
+        for line in commands:  # until the parent closes our input
+            if line.strip() == "report":
+                out.write(json.dumps(plant.report()) + "\n")
+                out.flush()
     except KeyboardInterrupt:
         pass
     finally:
@@ -283,3 +455,102 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
             imu.close()
 
 
+class PlantProcess:
+    """``otbot plant`` (slcan on a pty) as a child process: ``info`` (can_channel, imu_port, pid),
+    ``report()`` (the plant's own ``Plant.report()``, None once the process is gone), ``kill()``.
+
+    ``config`` is passed on by file (``config.path``) with its control rate; keyword arguments:
+    fixture, noise (``NoiseModel``: paper or none), seed."""
+
+    def __init__(self, config: RobotConfig, inject: Injection | None = None, with_imu: bool = True,
+                 fixture: str = "floor", noise: NoiseModel | None = None, seed: int = 0, **unsupported):
+        if unsupported:
+            raise ValueError(f"a plant process cannot take {', '.join(sorted(unsupported))}")
+        from otbot_hw.params import nominal
+
+        noise_name = "paper" if noise is not None and noise.to_dict() == NoiseModel.paper().to_dict() else "none"
+        if noise is not None and noise_name == "none" and noise.to_dict() != NoiseModel().to_dict():
+            raise ValueError("a plant process simulates the paper's noise or none")
+        args = [sys.executable, "-m", "otbot_hw", "plant", "--config", str(config.path),
+                "--rate", repr(config.bus.control_rate), "--fixture", fixture, "--noise", noise_name,
+                "--seed", str(seed)]
+        if not with_imu:
+            args.append("--no-imu")
+        if inject is not None:
+            args += ["--inject", f"{inject.kind}@{inject.at!r}:{inject.device}"]
+        self.injection = inject
+        self.period = config.bus.period
+        self.params = nominal()
+        self.truth = None
+        self.after: dict | None = None
+        self.proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        line = self.proc.stdout.readline()
+        try:
+            self.info = json.loads(line)
+        except ValueError:
+            self.close()
+            raise RuntimeError(f"the plant process did not start (exit code {self.proc.poll()})") from None
+        self._lock = threading.Lock()
+
+    @property
+    def injected_t(self) -> float | None:
+        """Plant time of the injection: for plant-kill the SYNC at which the plant kills itself."""
+        if self.injection is None:
+            return None
+        if self.after is not None and self.after.get("injection") and self.after["injection"]["t"] is not None:
+            return self.after["injection"]["t"]
+        k = int(np.ceil(self.injection.at / self.period - 1e-9))
+        return k * self.period
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def report(self, wait_stopped: bool = False, timeout: float = 2.0) -> dict | None:
+        """The plant's ``report()``; with ``wait_stopped``, polled until every drive has stopped
+        producing torque (at most ``timeout`` s). None once the process is gone."""
+        end = time.monotonic() + timeout
+        while True:
+            rep = self._ask()
+            if rep is None or not wait_stopped or time.monotonic() > end:
+                return rep
+            if all(d["stopped_t"] is not None for d in rep["drives"]):
+                return rep
+            time.sleep(0.01)
+
+    def _ask(self) -> dict | None:
+        with self._lock:
+            if not self.alive():
+                return None
+            try:
+                self.proc.stdin.write("report\n")
+                self.proc.stdin.flush()
+                line = self.proc.stdout.readline()
+            except (OSError, ValueError):
+                return None
+        try:
+            return json.loads(line)
+        except ValueError:
+            return None
+
+    def kill(self) -> None:
+        if self.alive():
+            self.proc.kill()
+        self.proc.wait(timeout=10)
+
+    def close(self) -> int | None:
+        """Close its input (it exits) and wait; returns the exit code (negative: killed by a signal)."""
+        try:
+            self.proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            return self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            return self.proc.wait(timeout=10)
+
+    def __enter__(self) -> "PlantProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -368,7 +368,8 @@ def test_realtime_pacing_sends_one_sync_per_period():
             elapsed = time.monotonic() - t0
         assert elapsed >= 10 * cfg.bus.period * 0.95
         assert np.median(np.diff(stamps)) == pytest.approx(cfg.bus.period, abs=2e-3)
-        assert plant.k == 11 + 1  # the plant stepped once per SYNC (and once for disable on close)
+        assert plant.k == 11 + 2  # the plant stepped once per SYNC (and on close once for the confirmed
+        # quick stop, once for disable)
 
 
 def test_velocity_unit_of_the_drives_is_configurable():

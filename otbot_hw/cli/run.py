@@ -47,6 +47,12 @@ def register(sub) -> None:
     p.add_argument("--lockstep", action="store_true",
                    help="--bus config talks to a simulated plant (otbot plant): send SYNCs back to back instead "
                         "of every 1/rate s, and wait for the IMU sample of each SYNC")
+    p.add_argument("--inject", default=None, metavar="KIND@SECONDS[:DRIVE]",
+                   help="--bus sim: inject a fault at this plant time (s since the drives were enabled): "
+                        "drive-silent, emcy, fault-bit, imu-loss, imu-error ($VNERR), bus-off, plant-kill (runs the "
+                        "plant as its own process over slcan); DRIVE: right_wheel, left_wheel (default) or pivot. "
+                        "--json then gives 'reaction': injected_s, detected_s, all_stopped_s (from the simulated "
+                        "drives' own state), drive_states_after")
     p.add_argument("--out", type=Path, default=None, help="MCAP recording to write")
     p.add_argument("--plot", type=Path, default=None, help="folder for PNG plots of the run")
     add_json_flag(p)
@@ -62,6 +68,7 @@ def _fail(result: dict, message: str, as_json: bool):
 
 def run(args: argparse.Namespace) -> dict:
     from drivers.busload import bus_load
+    from drivers.faults import DeviceConfigError
     from otbot_hw.robot import RobotError
     from drivers.cia402 import interpolation_period
     from drivers.config import load_robot_config
@@ -81,6 +88,18 @@ def run(args: argparse.Namespace) -> dict:
     n = int(round(args.duration * cfg.bus.control_rate))
     if n < 1:
         raise CliError(f"--duration {args.duration} s is shorter than one control period ({cfg.bus.period:g} s)")
+    inject = None
+    if args.inject is not None:
+        from sim.injection import Injection
+
+        if args.bus != "sim":
+            raise CliError("--inject needs --bus sim (faults are injected into the simulated robot)")
+        try:
+            inject = Injection.parse(args.inject)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+        if inject.kind.startswith("imu") and (cfg.imu is None or args.no_imu):
+            raise CliError(f"--inject {inject.kind}: the run has no IMU")
     if args.bus == "sim":
         cfg = cfg.replace_bus(interface="virtual", channel="otbot-sim")
     else:
@@ -111,8 +130,12 @@ def run(args: argparse.Namespace) -> dict:
 
             noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
             meta.update(noise=noise.to_dict(), seed=args.seed)
-            with simulated_robot(cfg, with_imu=with_imu, fixture=args.fixture, noise=noise,
-                                 seed=args.seed) as (robot, plant):
+            if inject is not None:
+                meta["inject"] = str(inject)
+            with simulated_robot(cfg, with_imu=with_imu, fixture=args.fixture, noise=noise, seed=args.seed,
+                                 inject=inject, process=inject is not None and inject.kind == "plant-kill") as (
+                                     robot, plant):
+                _warn(robot, quiet)
                 meta["params"] = plant.params.to_dict()
                 res = run_torques(robot, torques, cfg.bus.period, args.out, meta, truth=plant.truth,
                                   progress=None if quiet else (lambda m: progress(f"[run] {m}")))
@@ -121,8 +144,11 @@ def run(args: argparse.Namespace) -> dict:
             robot = CanopenRobot(cfg, imu=imu, realtime=not args.lockstep, imu_lockstep=args.lockstep)
             with robot:
                 robot.open()
+                _warn(robot, quiet)
                 res = run_torques(robot, torques, cfg.bus.period, args.out, meta,
                                   progress=None if quiet else (lambda m: progress(f"[run] {m}")))
+    except DeviceConfigError:
+        raise  # the devices cannot run as configured: bad input, exit 2
     except RobotError as exc:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
@@ -145,12 +171,21 @@ def run(args: argparse.Namespace) -> dict:
         "faults": [f.to_dict() for f in res.faults],
         "busload": {"bits_per_cycle": load.bits_per_cycle, "max_rate": load.max_rate, "load": load.load},
         "wall_time": wall,
+        "warnings": list(robot.warnings),
+        "close_problems": list(robot.close_report),
     }
+    if inject is not None:
+        from sim.injection import reaction
+
+        injected = plant.injected_t if hasattr(plant, "injected_t") else plant.injector.fired_t
+        result["reaction"] = reaction(inject, injected, robot.fault_times(), plant.after, cfg.bus.period)
     if args.bus == "sim" and rec.truth_q is not None and len(rec):
         result["q_final"] = rec.truth_q[-1].tolist()
     if args.plot is not None and len(rec) > 1:
         result["plots"] = write_run_plots(args.plot, rec)
     if not res.completed:
+        if not quiet and "reaction" in result:
+            _print_reaction(result["reaction"])
         _fail(result, "stopped by fault: " + "; ".join(map(str, res.faults)), args.json)
     if not quiet:
         print(f"[run] {len(rec)} samples, final phi = " + ", ".join(f"{v:.4f}" for v in result["phi"]) + " rad")
@@ -161,6 +196,20 @@ def run(args: argparse.Namespace) -> dict:
         for p in result.get("plots", []):
             print(f"[run] plot: {p}")
     return result
+
+
+def _warn(robot, quiet: bool) -> None:
+    """What the devices cannot do that the loop would use, said once."""
+    for w in getattr(robot, "warnings", []):
+        progress(f"[run] warning: {w}", not quiet)
+
+
+def _print_reaction(r: dict) -> None:
+    def t(v):
+        return "never" if v is None else f"{v:.3f} s"
+
+    print(f"[run] injected {r['kind']} at {t(r['injected_s'])}, detected at {t(r['detected_s'])}, every drive "
+          f"stopped (own state) at {t(r['all_stopped_s'])}; drives after the run: {r['drive_states_after']}")
 
 
 def write_run_plots(folder: Path, rec) -> list[str]:
