@@ -51,9 +51,16 @@ TORQUE_MODES = {"CYCLIC SYNCHRONOUS TORQUE": OperationMode.CYCLIC_SYNCHRONOUS_TO
 
 
 def plan_drive_pdos(od, node_id: int, device: str):
-    """The PDO plan of a drive with dictionary ``od`` (``drivers.mapping.plan_pdos``)."""
-    from drivers.mapping import plan_pdos
+    """Check that dictionary ``od`` describes a drive the loop can command in torque and plan its
+    PDOs (``drivers.mapping.plan_pdos``); ``PlanError`` naming the missing object or capability."""
+    from drivers.mapping import PlanError, plan_pdos
 
+    modes = supported_torque_modes(od)
+    if modes == []:
+        raise PlanError(f"{device}: {no_torque_mode(od[0x6502].default)}")
+    if 0x6060 not in od:
+        raise PlanError(f"{device}: the object dictionary has no {object_name(0x6060)}: the torque mode cannot be "
+                        "selected")
     return plan_pdos(od, node_id, device, RX_NEEDS, TX_NEEDS, RPDO_LAYOUT, TPDO_LAYOUT)
 
 
@@ -131,13 +138,13 @@ class CiA402Drive(CanopenDevice):
         self._pos_tpdo: int | None = None
         self._fill: dict[int, int] = {}  # values of RPDO objects the loop does not command
         # Refuse, before any bus traffic, what the dictionary cannot do.
-        self.static_plan = self.plan_pdos(RX_NEEDS, TX_NEEDS, RPDO_LAYOUT, TPDO_LAYOUT)
-        modes = supported_torque_modes(self.node.object_dictionary)
-        if modes == []:
-            raise self.config_error(no_torque_mode(self.node.object_dictionary[0x6502].default))
-        if not self.has(0x6060):
-            raise self.config_error(f"the object dictionary has no {object_name(0x6060)}: the torque mode cannot "
-                                    "be selected")
+        from drivers.mapping import PlanError
+
+        try:
+            self.static_plan = plan_drive_pdos(self.node.object_dictionary, self.node_id,
+                                               f"{self.name} (node {self.node_id})")
+        except PlanError as exc:
+            raise self.config_error(str(exc).split(": ", 1)[1]) from None
 
     # -- setup -----------------------------------------------------------------------------------
     def configure(self) -> None:
@@ -155,7 +162,7 @@ class CiA402Drive(CanopenDevice):
             if (index, sub) == (0x6072, 0):
                 self.max_permille = min(self.max_permille, int(value))
                 what += f"; the driver limits target torque to {int(value)} per-mille itself"
-            self.notes.append(f"{self.name}: no {object_name(index)}:{sub:02X} in the object dictionary: {what}")
+            self.notes.append(f"no {object_name(index, sub)} in the object dictionary: {what}")
         if self.has(0x60C2, 1) and self.has(0x60C2, 2):
             value, index = interpolation_period(self.period)
             self.sdo_write(0x60C2, 1, value)
@@ -166,8 +173,8 @@ class CiA402Drive(CanopenDevice):
                 raise self.config_error(f"drive reports rated torque 0x6076 = {rated:g} N m, config "
                                         f"'drives.rated_torque' says {c.rated_torque:g} N m")
         else:
-            self.notes.append(f"{self.name}: no {object_name(0x6076)} in the object dictionary: per-mille taken "
-                              f"of 'drives.rated_torque' = {c.rated_torque:g} N m")
+            self.notes.append(f"no {object_name(0x6076)} in the object dictionary: per-mille taken of "
+                              f"'drives.rated_torque' = {c.rated_torque:g} N m")
         self.rated_torque = c.rated_torque
         if self.has(0x608F, 1) and self.has(0x608F, 2):
             inc, revs = self.sdo_read(0x608F, 1), self.sdo_read(0x608F, 2)
@@ -219,7 +226,8 @@ class CiA402Drive(CanopenDevice):
         if rpdo is None:
             return
         ms = int(math.ceil(self.cfg.rpdo_timeout * self.period * 1000 - 1e-9)) if self.paced else 0
-        self.sdo_write_if_present(0x1400 + rpdo - 1, 5, ms, "the drive does not watch its RPDO deadline")
+        self.sdo_write_if_present(0x1400 + rpdo - 1, 5, ms, "the drive does not watch its RPDO deadline (event "
+                                                            "timer)")
 
     def select_torque_mode(self) -> int:
         """Write 0x6060 = cyclic synchronous torque where the drive supports it, else profile torque;
@@ -231,7 +239,7 @@ class CiA402Drive(CanopenDevice):
                 raise self.config_error(no_torque_mode(bits))
         else:
             candidates = list(TORQUE_MODES.values())
-            self.notes.append(f"{self.name}: no {object_name(0x6502)}: torque modes tried in turn")
+            self.notes.append(f"no {object_name(0x6502)}: torque modes tried in turn")
         self.sdo_write(0x6071, 0, 0)
         for k, mode in enumerate(candidates):
             try:
@@ -246,7 +254,7 @@ class CiA402Drive(CanopenDevice):
             if shown != mode:
                 raise self.config_error(f"mode of operation {mode} written, drive shows {shown} (0x6061)")
         else:
-            self.notes.append(f"{self.name}: no {object_name(0x6061)}: the mode of operation is not confirmed")
+            self.notes.append(f"no {object_name(0x6061)}: the mode of operation is not confirmed")
         return mode
 
     # -- units -----------------------------------------------------------------------------------

@@ -106,7 +106,7 @@ class CanopenDevice:
             raise DeviceConfigError(str(exc), (Fault(name, node_id, "config", str(exc)),)) from None
         self.node = self.node_class(node_id, od)
         network.add_node(self.node)
-        self.notes: list[str] = []  # what this device cannot do that the loop would use, said once
+        self.notes: list[str] = []  # what this device cannot do that the loop would use (said once)
         self.plan: mapping.Plan | None = None
         self.tracker = tracker
         self.on_fault = on_fault
@@ -165,14 +165,14 @@ class CanopenDevice:
         try:
             return self._sdo_var(index, subindex).raw
         except (SdoAbortedError, SdoCommunicationError, KeyError, ValueError, struct.error) as exc:
-            f = self.fault("config", f"SDO read of {mapping.object_name(index)}:{subindex:02X} failed: {exc}")
+            f = self.fault("config", f"SDO read of {mapping.object_name(index, subindex)} failed: {exc}")
             raise (DriverError if isinstance(exc, SdoCommunicationError) else DeviceConfigError)(str(f), (f,)) from None
 
     def sdo_write(self, index: int, subindex: int, value) -> None:
         try:
             self._sdo_var(index, subindex).raw = value
         except (SdoAbortedError, SdoCommunicationError, KeyError, ValueError, OverflowError, struct.error) as exc:
-            f = self.fault("config", f"SDO write of {value!r} to {mapping.object_name(index)}:{subindex:02X} failed: "
+            f = self.fault("config", f"SDO write of {value!r} to {mapping.object_name(index, subindex)} failed: "
                                      f"{exc}")
             raise (DriverError if isinstance(exc, SdoCommunicationError) else DeviceConfigError)(str(f), (f,)) from None
 
@@ -181,8 +181,7 @@ class CanopenDevice:
         if self.has(index, subindex):
             self.sdo_write(index, subindex, value)
             return True
-        self.notes.append(f"{self.name}: no {mapping.object_name(index)}:{subindex:02X} in the object dictionary: "
-                          f"{what}")
+        self.notes.append(f"no {mapping.object_name(index, subindex)} in the object dictionary: {what}")
         return False
 
     def sdo_call(self, fn, what: str):

@@ -38,10 +38,11 @@ OBJECT_NAMES = {0x6040: "controlword", 0x6071: "target torque", 0x6041: "statusw
                 0x1006: "communication cycle period", 0x6007: "abort connection option code"}
 
 
-def object_name(index: int) -> str:
-    """'0x6071 target torque' (the CiA name where known)."""
+def object_name(index: int, sub: int | None = None) -> str:
+    """'0x6071 target torque', '0x1016:01 consumer heartbeat time' (the CiA name where known)."""
     name = OBJECT_NAMES.get(index)
-    return f"0x{index:04X} {name}" if name else f"0x{index:04X}"
+    where = f"0x{index:04X}" + (f":{sub:02X}" if sub is not None else "")
+    return f"{where} {name}" if name else where
 
 
 @dataclass(frozen=True)
@@ -77,7 +78,7 @@ class PdoPlan:
 class Plan:
     rx: PdoPlan
     tx: PdoPlan
-    notes: list[str] = field(default_factory=list)  # what was left out, said once
+    notes: list[str] = field(default_factory=list)  # what was left out (said once, without the device)
 
 
 class PlanError(ValueError):
@@ -136,7 +137,7 @@ def plan_pdos(od, node_id: int, device: str, needs_rx: list[Need], needs_tx: lis
                 if n.required:
                     raise PlanError(f"{device}: the object dictionary has no {object_name(n.index)}, which the "
                                     f"loop needs ({'received' if direction == RX else 'sent'} every cycle)")
-                plan.notes.append(f"{device}: no {object_name(n.index)} in the object dictionary: not read")
+                plan.notes.append(f"no {object_name(n.index)} in the object dictionary: not read")
                 continue
             wanted.append((n.index, 0, len(var)))
         slots = _slots(od, direction, node_id)
@@ -180,10 +181,10 @@ def plan_pdos(od, node_id: int, device: str, needs_rx: list[Need], needs_tx: lis
         for w in remaining:
             need = next(n for n in needs if n.index == w[0])
             fixed = ", ".join(f"{direction}{no}" for no in sorted(slots) if slots[no]["fixed"]) or "none"
-            msg = (f"{device}: {object_name(w[0])} fits in no {direction} (fixed mappings: {fixed}; no configurable "
+            msg = (f"{object_name(w[0])} fits in no {direction} (fixed mappings: {fixed}; no configurable "
                    f"{direction} with room)")
             if need.required:
-                raise PlanError(msg)
+                raise PlanError(f"{device}: {msg}")
             plan.notes.append(msg + ": not read")
         for no in out.pdos:
             out.cob_ids[no] = slots[no]["cob_id"]
@@ -207,7 +208,7 @@ def configure_pdos(device, plan: Plan, trans_type: int = 1) -> list[str]:
             if planned is None:
                 if slot["cob_fixed"]:
                     if slot["cob_default"] is not None and not slot["cob_default"] & PDO_NOT_VALID:
-                        notes.append(f"{device.name}: {direction}{no} cannot be disabled (COB-ID read-only)")
+                        notes.append(f"{direction}{no} cannot be disabled (COB-ID read-only)")
                     continue
                 cur = device.sdo_read(comm0 + no - 1, 1)
                 if not cur & PDO_NOT_VALID:

@@ -64,6 +64,17 @@ NMT_STOP = 0x02
 OFF_BUS_KINDS = ("heartbeat", "stale", "nmt", "bus")
 
 
+def grouped_notes(devices) -> list[str]:
+    """Each device note once, with the devices it concerns: 'right_wheel, left_wheel: no 0x6076 ...'."""
+    who: dict[str, list[str]] = {}
+    for dev in devices:
+        for note in dev.notes:
+            names = who.setdefault(note, [])
+            if dev.name not in names:
+                names.append(dev.name)
+    return [f"{', '.join(names)}: {note}" for note, names in who.items()]
+
+
 def open_imu(cfg, port: str | None = None, configure: bool = True):
     """Open the serial IMU of ``cfg`` (``drivers.imu.ImuConfig``; ``port`` overrides cfg.port)
     and, with ``configure``, set its output type and rate with register writes."""
@@ -185,7 +196,7 @@ class CanopenRobot(Robot):
         except Exception:
             self.close()
             raise
-        self.warnings = [n for dev in self.devices for n in dev.notes]
+        self.warnings = grouped_notes(self.devices)
         self._safety = threading.Thread(target=self._safety_loop, name="fault-reaction", daemon=True)
         self._safety.start()
         return self

@@ -384,13 +384,16 @@ def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, t
             pub.close()
             drv.close()
         raise
+    master_bus = can.Bus(interface="virtual", channel=config.bus.channel)
     try:
-        robot = CanopenRobot(config, bus=can.Bus(interface="virtual", channel=config.bus.channel), imu=drv,
-                             imu_lockstep=not realtime, realtime=realtime, lockstep_timeout=lockstep_timeout)
+        robot = CanopenRobot(config, bus=master_bus, imu=drv, imu_lockstep=not realtime, realtime=realtime,
+                             lockstep_timeout=lockstep_timeout)
     except Exception:
+        master_bus.shutdown()
         vp.close()
         if pub is not None:
             pub.close()
+            drv.close()
         raise
     try:
         robot.open()
