@@ -91,6 +91,22 @@ def open_imu(cfg, port: str | None = None, configure: bool = True):
     return imu
 
 
+class ReceiveErrors(can.Listener):
+    """Turns an error of the bus's receive thread (adapter unplugged, pty closed) into a ``bus``
+    fault, instead of a dead thread and a traceback; throttles the retries."""
+
+    def __init__(self, robot: "CanopenRobot"):
+        self.robot = robot
+
+    def on_message_received(self, msg) -> None:
+        pass
+
+    def on_error(self, exc: Exception) -> None:
+        if self.robot._open:
+            self.robot._add_fault(Fault("bus", None, "bus", f"cannot receive: {exc}"))
+        time.sleep(0.05)
+
+
 class CanopenRobot(Robot):
     """The robot over CANopen: three ``CiA402Drive`` s, the ``CiA406Encoder`` (unless phi_p comes
     from the pivot drive), heartbeat consumer and producer, and an optional IMU object
@@ -177,6 +193,8 @@ class CanopenRobot(Robot):
             b = self.config.bus
             raise DriverError(f"cannot open CAN bus {b.interface}:{b.channel} ({b.bitrate} bit/s): {exc}") from None
         self.network.bus.set_filters(STANDARD_FRAMES_ONLY)
+        if self.network.notifier is not None:
+            self.network.notifier.add_listener(ReceiveErrors(self))
         self._open = True
         try:
             self.master_heartbeat.start()

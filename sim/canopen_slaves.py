@@ -545,7 +545,10 @@ class SimulatedDrive(SimulatedNode):
                     self._tripped.add("heartbeat")
                     self.abort_connection(0x8130, f"heartbeat of the master (node {self._master[0]}) lost for "
                                                   f"{now - self._master_seen:.3f} s")
-            if not self.operational or self.state != "OPERATION ENABLED":
+            if self.state != "OPERATION ENABLED":
+                return
+            if not self.operational:  # left OPERATIONAL by itself (no NMT command seen)
+                self.abort_connection(0x8100, f"NMT state {self.node.nmt.state} while OPERATION ENABLED")
                 return
             cycle = (self.od_value(0x1006, 0, 0) or 0) * 1e-6
             if cycle and self._last_sync is not None and "sync" not in self._tripped:
