@@ -22,6 +22,9 @@ from otbot_hw.robot import Fault
 
 log = logging.getLogger(__name__)
 
+NMT_START = 0x01
+NMT_STOP = 0x02
+NMT_ENTER_PRE_OPERATIONAL = 0x80
 NMT_RESET_COMMUNICATION = 0x82
 
 
@@ -82,6 +85,22 @@ def pdo_put(var, value) -> None:
     var.pdo_parent.data[off:off + len(data)] = data
 
 
+def guard_length(network, can_id: int, callback, length: int, on_bad: Callable[[], None]) -> None:
+    """Let ``callback``, already subscribed to ``can_id`` on ``network``, see only frames of
+    ``length`` bytes (canopen's handlers unpack fixed layouts and raise on short frames); the others
+    go to ``on_bad()``."""
+    subs = network.subscribers.get(can_id, [])
+    for i, cb in enumerate(subs):
+        if cb == callback:
+            def guarded(cid, data, timestamp, cb=cb):
+                if len(data) == length:
+                    cb(cid, data, timestamp)
+                else:
+                    on_bad()
+
+            subs[i] = guarded
+
+
 def pdo_bytes(pdo_map) -> int:
     """Length in bytes of a mapped PDO."""
     return (pdo_map.length + 7) // 8
@@ -113,9 +132,11 @@ class CanopenDevice:
         self.malformed = 0  # ignored frames from this node (wrong length)
         self._bootup = threading.Event()
         network.subscribe(0x700 + node_id, self._on_heartbeat_frame)
-        # Length checks run before canopen's own handlers (which raise on short frames; the
-        # network's listener logs and drops those).
-        network.subscribers.setdefault(0x80 + node_id, []).insert(0, self._check_emcy_length)
+        # canopen's own handlers see only frames of the length CiA 301 gives them (they would raise
+        # on others); frames of another length are counted and ignored.
+        for cob, cb, n in ((0x80 + node_id, self.node.emcy.on_emcy, 8), (0x700 + node_id, self.node.nmt.on_heartbeat, 1),
+                           (0x580 + node_id, self.node.sdo.on_response, 8), (0, self.node.nmt.on_command, 2)):
+            guard_length(network, cob, cb, n, self._count_malformed)
         self.node.emcy.add_callback(self._on_emcy)
         self.tpdos: list[int] = []  # numbers of the TPDOs this driver mapped (expected on every SYNC)
         self._hooked: set[int] = set()
@@ -133,7 +154,7 @@ class CanopenDevice:
     def reset_and_wait_bootup(self, timeout: float) -> None:
         """NMT reset communication, then wait up to ``timeout`` s for the boot-up message."""
         self._bootup.clear()
-        self.node.nmt.send_command(NMT_RESET_COMMUNICATION)
+        self.nmt_command(NMT_RESET_COMMUNICATION)
         if not self._bootup.wait(timeout):
             f = Fault(self.name, self.node_id, "boot",
                       f"no boot-up message within {timeout:g} s after NMT reset communication "
@@ -239,13 +260,17 @@ class CanopenDevice:
 
     def start(self) -> None:
         """NMT start: PDOs flow from now on."""
-        self.node.nmt.state = "OPERATIONAL"
+        self.nmt_command(NMT_START)
+
+    def _count_malformed(self) -> None:
+        self.malformed += 1
+
+    def nmt_command(self, code: int) -> None:
+        """Send NMT command ``code`` to this node (straight onto the bus: canopen's NMT bookkeeping
+        fails on states a garbled heartbeat reported)."""
+        self.network.send_message(0, bytes([code, self.node_id]))
 
     # -- EMCY ------------------------------------------------------------------------------------
-    def _check_emcy_length(self, can_id: int, data: bytes, timestamp: float) -> None:
-        if len(data) != 8:
-            self.malformed += 1
-
     def _on_emcy(self, entry: EmcyError) -> None:
         if entry.code & 0xFF00 == 0:
             return  # error reset / no error

@@ -38,7 +38,7 @@ import numpy as np
 from drivers.cia402 import STOPPED_STATES, CiA402Drive
 from drivers.cia406 import CiA406Encoder
 from drivers.config import RobotConfig
-from drivers.device import CycleTracker, wait_until
+from drivers.device import NMT_ENTER_PRE_OPERATIONAL, NMT_STOP, CycleTracker, wait_until
 from drivers.faults import DriverError
 from drivers.heartbeat import HeartbeatConsumer, HeartbeatProducer
 from otbot_hw.robot import Command, Fault, Robot, RobotError, RobotFault, Snapshot
@@ -59,7 +59,6 @@ STANDARD_FRAMES_ONLY = [{"can_id": 0, "can_mask": 0, "extended": False}]
 
 #: Errors a python-can bus raises when it cannot carry a frame (bus off, adapter gone).
 BUS_ERRORS = (can.CanError, OSError, ValueError, AttributeError)
-NMT_STOP = 0x02
 #: Fault kinds after which a node cannot confirm anything over PDOs.
 OFF_BUS_KINDS = ("heartbeat", "stale", "nmt", "bus")
 
@@ -236,9 +235,16 @@ class CanopenRobot(Robot):
         problems += self.problems
         self._open = False
         self._wake.set()
+        if not any(f.kind == "bus" for f in self.faults):
+            for d in self.drives:  # a master that leaves in order is not a lost master
+                if d.has(0x1016, 1):
+                    try:
+                        d.sdo_write(0x1016, 1, 0)
+                    except RobotError as exc:
+                        problems.append(f"{d.name} (node {d.node_id}): heartbeat consumer not switched off: {exc}")
         for dev in self.devices:
             try:
-                dev.node.nmt.state = "PRE-OPERATIONAL"
+                dev.nmt_command(NMT_ENTER_PRE_OPERATIONAL)
             except Exception as exc:  # noqa: BLE001
                 problems.append(f"{dev.name} (node {dev.node_id}): NMT PRE-OPERATIONAL not sent: {exc}")
         try:
@@ -497,7 +503,7 @@ class CanopenRobot(Robot):
                 why = ("off the bus" if d.node_id in self._off_bus()
                        else f"no quick stop confirmed within {n_max} periods")
                 try:
-                    d.node.nmt.send_command(NMT_STOP)
+                    d.nmt_command(NMT_STOP)
                     rec["escalated"].append(d.name)
                     msg = f"{d.name} (node {d.node_id}): {why}: NMT STOP sent (the drive applies 0x6007)"
                 except Exception as exc:  # noqa: BLE001

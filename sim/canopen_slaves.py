@@ -69,6 +69,10 @@ class SimulatedNode:
         self._od_cache: dict[tuple[int, int], object] = {}  # stored (non-live) values; cleared on writes
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
+        # SDO requests are 8 bytes, NMT commands 2 (CiA 301): canopen's server would raise on others;
+        # a silent node hears neither
+        self._intercept(self.node.sdo.rx_cobid, self.node.sdo.on_request, 8)
+        self._intercept(0, self.node.nmt.on_command, 2)
         network.subscribe(0, self._on_nmt)
         self.lock = threading.RLock()
         self._pdo_dirty = True
@@ -85,6 +89,18 @@ class SimulatedNode:
     @property
     def node_id(self) -> int:
         return self.node.id
+
+    def _intercept(self, can_id: int, callback, length: int) -> None:
+        def guarded(cid, data, timestamp):
+            if self.silent:
+                return
+            if len(data) != length:
+                self.malformed += 1
+                return
+            callback(cid, data, timestamp)
+
+        subs = self.network.subscribers.get(can_id, [])
+        subs[subs.index(callback)] = guarded
 
     @property
     def operational(self) -> bool:
@@ -202,11 +218,6 @@ class SimulatedNode:
         SDO answer, EMCY) and hears nothing (no SYNC, RPDO, NMT, heartbeat)."""
         self.silent = True
         self.node.nmt.stop_heartbeat()
-        for cob, cb in ((self.node.sdo.rx_cobid, self.node.sdo.on_request), (0, self.node.nmt.on_command)):
-            try:
-                self.network.unsubscribe(cob, cb)
-            except (KeyError, ValueError):
-                pass
 
     def stop(self) -> None:
         self.node.nmt.stop_heartbeat()

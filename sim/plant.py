@@ -356,15 +356,7 @@ def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, t
     lockstep_timeout = tpdo_timeout if tpdo_timeout is not None else LOCKSTEP_TIMEOUT
     if process:
         with PlantProcess(config, inject=inject, with_imu=with_imu, **plant_kwargs) as pp:
-            cfg = config.replace_bus(interface="slcan", channel=pp.info["can_channel"],
-                                     options={**config.bus.options, "sleep_after_open": 0})
-            imu = None
-            if with_imu and config.imu is not None and pp.info.get("imu_port"):
-                from drivers.robot import open_imu
-
-                imu = open_imu(config.imu, port=pp.info["imu_port"])
-            robot = CanopenRobot(cfg, imu=imu, imu_lockstep=not realtime, realtime=realtime,
-                                 lockstep_timeout=lockstep_timeout)
+            robot = pp.robot(config, with_imu=with_imu, realtime=realtime, lockstep_timeout=lockstep_timeout)
             try:
                 robot.open()
                 yield robot, pp
@@ -446,9 +438,15 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
     out.flush()
     try:
         for line in commands:  # until the parent closes our input
-            if line.strip() == "report":
-                out.write(json.dumps(plant.report()) + "\n")
-                out.flush()
+            words = line.split()
+            if words == ["report"]:
+                reply = plant.report()
+            elif len(words) == 3 and words[0] == "flood":
+                reply = send_flood(bus, flood_frames(config, int(words[1]), int(words[2])))
+            else:
+                reply = {"error": f"unknown command {line.strip()!r} (report, flood N SEED)"}
+            out.write(json.dumps(reply) + "\n")
+            out.flush()
     except KeyboardInterrupt:
         pass
     finally:
@@ -456,6 +454,41 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
         network.disconnect()
         if imu is not None and hasattr(imu, "close"):
             imu.close()
+
+
+def device_cob_ids(config: RobotConfig) -> list[int]:
+    """The COB-IDs of every CANopen device of ``config`` (CiA 301 predefined connection set):
+    EMCY, four TPDOs and RPDOs, SDO both ways, heartbeat."""
+    out = []
+    for n in config.node_ids():
+        out += [0x80 + n, *(0x180 + 0x100 * k + n for k in range(4)), *(0x200 + 0x100 * k + n for k in range(4)),
+                0x580 + n, 0x600 + n, 0x700 + n]
+    return out
+
+
+def flood_frames(config: RobotConfig, n: int, seed: int = 0) -> list[can.Message]:
+    """``n`` random frames on the devices' COB-IDs: random length 0..8 and data, as a faulty or
+    hostile node would send them."""
+    rng = np.random.default_rng(seed)
+    ids = device_cob_ids(config)
+    out = []
+    for _ in range(n):
+        length = int(rng.integers(0, 9))
+        out.append(can.Message(arbitration_id=int(rng.choice(ids)), is_extended_id=False,
+                               data=bytes(rng.integers(0, 256, length, dtype=np.uint8))))
+    return out
+
+
+def send_flood(bus, frames) -> int:
+    """Send ``frames`` on ``bus`` back to back; returns how many went out."""
+    sent = 0
+    for m in frames:
+        try:
+            bus.send(m)
+            sent += 1
+        except (can.CanError, OSError):
+            pass
+    return sent
 
 
 class PlantProcess:
@@ -495,6 +528,25 @@ class PlantProcess:
             raise RuntimeError(f"the plant process did not start (exit code {self.proc.poll()})") from None
         self._lock = threading.Lock()
 
+    def robot(self, config: RobotConfig, with_imu: bool = True, realtime: bool = False,
+              lockstep_timeout: float = LOCKSTEP_TIMEOUT):
+        """A ``CanopenRobot`` (not yet opened) on this plant's slcan port and IMU pty, in lockstep
+        unless ``realtime``."""
+        from drivers.robot import CanopenRobot, open_imu
+
+        cfg = config.replace_bus(interface="slcan", channel=self.info["can_channel"],
+                                 options={**config.bus.options, "sleep_after_open": 0})
+        imu = None
+        if with_imu and config.imu is not None and self.info.get("imu_port"):
+            imu = open_imu(config.imu, port=self.info["imu_port"])
+        return CanopenRobot(cfg, imu=imu, imu_lockstep=not realtime, realtime=realtime,
+                            lockstep_timeout=lockstep_timeout)
+
+    def flood(self, frames: int, seed: int = 0) -> int:
+        """Make the plant's side of the bus send ``frames`` random frames on the devices' COB-IDs
+        (``flood_frames``); returns how many it sent."""
+        return int(self._ask(f"flood {int(frames)} {int(seed)}") or 0)
+
     @property
     def injected_t(self) -> float | None:
         """Plant time of the injection: for plant-kill the SYNC at which the plant kills itself."""
@@ -520,12 +572,12 @@ class PlantProcess:
                 return rep
             time.sleep(0.01)
 
-    def _ask(self) -> dict | None:
+    def _ask(self, command: str = "report"):
         with self._lock:
             if not self.alive():
                 return None
             try:
-                self.proc.stdin.write("report\n")
+                self.proc.stdin.write(command + "\n")
                 self.proc.stdin.flush()
                 line = self.proc.stdout.readline()
             except (OSError, ValueError):
