@@ -67,6 +67,7 @@ class SimulatedNode:
         network.add_node(self.node)
         self.values: dict[tuple[int, int], object] = {}
         self._od_cache: dict[tuple[int, int], object] = {}  # stored (non-live) values; cleared on writes
+        self._guards: list = []
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         # SDO requests are 8 bytes, NMT commands 2 (CiA 301): canopen's server would raise on others;
@@ -101,6 +102,7 @@ class SimulatedNode:
 
         subs = self.network.subscribers.get(can_id, [])
         subs[subs.index(callback)] = guarded
+        self._guards.append(guarded)
 
     @property
     def operational(self) -> bool:
@@ -221,6 +223,21 @@ class SimulatedNode:
 
     def stop(self) -> None:
         self.node.nmt.stop_heartbeat()
+
+    def detach(self) -> None:
+        """Leave the network for good (a plant being replaced): no heartbeat, no subscription left."""
+        self.stop()
+        owners = {id(o) for o in (self, self.node, self.node.sdo, self.node.nmt, self.node.emcy,
+                                  *self.node.tpdo.map.values(), *self.node.rpdo.map.values())}
+        guards = {id(g) for g in self._guards}
+        for can_id in list(self.network.subscribers):
+            keep = [cb for cb in self.network.subscribers[can_id]
+                    if id(getattr(cb, "__self__", None)) not in owners and id(cb) not in guards]
+            if keep:
+                self.network.subscribers[can_id] = keep
+            else:
+                del self.network.subscribers[can_id]
+        self.network.nodes.pop(self.node.id, None)
 
     # -- PDO -------------------------------------------------------------------------------------
     def _reload_pdos(self) -> None:

@@ -107,6 +107,7 @@ class Plant:
                  position_offsets=(0, 0, 0), supported_modes: int | None = None, injector: Injector | None = None,
                  bus_gate=None):
         self.config = config
+        self.network = network
         self.params = params or nominal()
         self.period = config.bus.period
         self.drives = [SimulatedDrive(network, dc, off, supported_modes)
@@ -223,6 +224,16 @@ class Plant:
         for n in self.nodes:
             n.stop()
 
+    def detach(self) -> None:
+        """Leave the network for good (``serve``'s restart puts a new plant in its place)."""
+        self.stop()
+        try:
+            self.network.unsubscribe(0x80, self._on_sync)
+        except (KeyError, ValueError):
+            pass
+        for n in self.nodes:
+            n.detach()
+
     def imu_reading(self, x: np.ndarray, u: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """IMU specific force (3,) m/s^2 and rate (3,) rad/s in B'' with noise, at state x under u, f."""
         qdd = compiled.derivative(x, u, f, self._gen, self._prm, self._code)[6:]
@@ -327,7 +338,7 @@ def open_sim_imu(config: RobotConfig):
 LOCKSTEP_TIMEOUT = 0.25
 #: Lockstep runs: heartbeat consumer times (both ways) are at least this (s): no real-time deadline
 #: is at stake, and a loaded machine must not trip them.
-LOCKSTEP_HEARTBEAT = 1.0
+LOCKSTEP_HEARTBEAT = 0.5
 
 
 @contextmanager
@@ -420,20 +431,30 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
     else:
         raise ValueError(f"unknown transport {transport!r} (slcan, socketcan)")
     gate = bus if hasattr(bus, "cut") else None
-    imu = None
-    if with_imu and config.imu is not None:
-        from sim.imu import SimulatedIMU
-
-        imu = SimulatedIMU(output=config.imu.output, rate_hz=int(config.imu.rate_hz), mounting=config.imu.mounting)
-    info["imu_port"] = imu.port if imu is not None else None
-    info["pid"] = os.getpid()
     network = canopen.Network(bus)
     network.NOTIFIER_CYCLE = 0.1
     network.connect()
     bus.set_filters(STANDARD_FRAMES_ONLY)
-    injector = Injector(inject, own_process=True) if inject is not None else None
-    plant = Plant(network, config, imu=imu, injector=injector, bus_gate=gate, **plant_kwargs)
-    plant.power_on()
+    info["pid"] = os.getpid()
+    imu = None
+
+    def new_plant(injection):
+        """A fresh plant (new slaves, robot at rest, IMU on a new pty when the last one was cut)."""
+        nonlocal imu
+        if with_imu and config.imu is not None and (imu is None or imu.closed):
+            from sim.imu import SimulatedIMU
+
+            imu = SimulatedIMU(output=config.imu.output, rate_hz=int(config.imu.rate_hz),
+                               mounting=config.imu.mounting)
+        info["imu_port"] = imu.port if imu is not None else None
+        if gate is not None:
+            gate.is_cut = False
+        injector = Injector(injection, own_process=True) if injection is not None else None
+        p = Plant(network, config, imu=imu, injector=injector, bus_gate=gate, **plant_kwargs)
+        p.power_on()
+        return p
+
+    plant = new_plant(inject)
     out.write(json.dumps(info) + "\n")
     out.flush()
     try:
@@ -443,8 +464,16 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
                 reply = plant.report()
             elif len(words) == 3 and words[0] == "flood":
                 reply = send_flood(bus, flood_frames(config, int(words[1]), int(words[2])))
+            elif words[:1] == ["restart"] and len(words) <= 2:
+                plant.detach()
+                try:
+                    plant = new_plant(Injection.parse(words[1]) if len(words) == 2 else None)
+                    reply = dict(info)
+                except ValueError as exc:
+                    plant = new_plant(None)
+                    reply = {"error": str(exc), **info}
             else:
-                reply = {"error": f"unknown command {line.strip()!r} (report, flood N SEED)"}
+                reply = {"error": f"unknown command {line.strip()!r} (report, flood N SEED, restart [KIND@S])"}
             out.write(json.dumps(reply) + "\n")
             out.flush()
     except KeyboardInterrupt:
@@ -541,6 +570,17 @@ class PlantProcess:
             imu = open_imu(config.imu, port=self.info["imu_port"])
         return CanopenRobot(cfg, imu=imu, imu_lockstep=not realtime, realtime=realtime,
                             lockstep_timeout=lockstep_timeout)
+
+    def restart(self, inject: Injection | None = None) -> dict:
+        """Replace the plant in the process by a fresh one (new slaves, robot at rest) with the
+        fault ``inject``; returns the new ``info`` (the IMU pty changes if the last one was cut)."""
+        reply = self._ask("restart" + (f" {inject.kind}@{inject.at!r}:{inject.device}" if inject else ""))
+        if not reply or "error" in reply:
+            raise RuntimeError(f"plant restart failed: {reply}")
+        self.info = reply
+        self.injection = inject
+        self.after = None
+        return reply
 
     def flood(self, frames: int, seed: int = 0) -> int:
         """Make the plant's side of the bus send ``frames`` random frames on the devices' COB-IDs
