@@ -141,6 +141,7 @@ class CanopenRobot(Robot):
         self._cycle_lock = threading.RLock()  # one SYNC cycle at a time
         self._faults: list[Fault] = []
         self._fault_t: dict[Fault, float] = {}
+        self._fault_sync: dict[Fault, float] = {}
         self.drives = [CiA402Drive(self.network, dc, self.period, self.tracker, self._add_fault)
                        for dc in config.drives]
         for d in self.drives:
@@ -168,6 +169,7 @@ class CanopenRobot(Robot):
         self._armed = False  # drives may hold power: a fault must stop them
         self._cycle = 0  # SYNCs since enable(): bus time = cycle * period
         self._sync_t = 0.0
+        self._sync_index = -1  # SYNCs sent since open(), minus one: the index of the last one
         self._sync_wall = time.monotonic()
         self._next = None
         self._open = False
@@ -235,9 +237,10 @@ class CanopenRobot(Robot):
         problems += self.problems
         self._open = False
         self._wake.set()
+        off = self._off_bus()
         if not any(f.kind == "bus" for f in self.faults):
             for d in self.drives:  # a master that leaves in order is not a lost master
-                if d.has(0x1016, 1):
+                if d.has(0x1016, 1) and d.node_id not in off:
                     try:
                         d.sdo_write(0x1016, 1, 0)
                     except RobotError as exc:
@@ -281,6 +284,8 @@ class CanopenRobot(Robot):
                 return
             self._faults.append(f)
             self._fault_t[f] = self._sync_t if at_sync else self._bus_time(f.time)
+            gap = 0.0 if at_sync else max(0.0, f.time - self._sync_wall) / self.period
+            self._fault_sync[f] = self._sync_index + gap
             if self._open and self._armed:
                 self._reaction_pending = True
                 for d in self.drives:
@@ -301,6 +306,13 @@ class CanopenRobot(Robot):
         """Bus time (s since enabling, see ``_bus_time``) at which each active fault was detected."""
         with self._lock:
             return {f: self._fault_t[f] for f in self._faults}
+
+    def fault_syncs(self) -> dict[Fault, float]:
+        """When each active fault was detected, as the index of the SYNC since ``open()`` (a fault
+        found between SYNCs: the last index plus the elapsed wall time in periods). A simulated
+        plant counts the same SYNCs from the master's boot, so this is the clock both sides share."""
+        with self._lock:
+            return {f: self._fault_sync[f] for f in self._faults}
 
     def _safety_loop(self) -> None:
         while True:
@@ -347,6 +359,7 @@ class CanopenRobot(Robot):
         t_sync = time.monotonic()
         self._sync_t = self._cycle * self.period
         self._sync_wall = t_sync
+        self._sync_index = self._syncs
         self._syncs += 1
         self._cycle += 1
         try:
@@ -556,6 +569,7 @@ class CanopenRobot(Robot):
             with self._lock:
                 self._faults.clear()
                 self._fault_t.clear()
+                self._fault_sync.clear()
                 self._misses.clear()
                 self.problems.clear()
                 for d in self.drives:

@@ -111,13 +111,22 @@ class Injector:
                 "t": self.fired_t, "wall": self.fired_wall}
 
 
-def reaction(injection: Injection, injected_t: float | None, fault_times: dict, plant_report: dict | None,
+def reaction(injection: Injection, injected_t: float | None, robot, plant_report: dict | None,
              period: float) -> dict:
     """The ``reaction`` block: when the fault was injected (plant time, s), detected by the master
-    (bus time of its first fault), and when every simulated drive's own state showed zero torque
+    (``robot``: its first fault), and when every simulated drive's own state showed zero torque
     and not OPERATION ENABLED (null if never, or unknown because the plant is gone), with each
-    drive's CiA 402 state after the run (``plant_report``: ``Plant.report()``)."""
-    after = [t for t in fault_times.values() if injected_t is None or t >= injected_t - 1e-9]
+    drive's CiA 402 state after the run (``plant_report``: ``Plant.report()``).
+
+    Times are plant time (s since the drives were enabled) on the SYNC grid both sides count; what
+    happens between SYNCs (EMCY, watchdogs) adds the wall time since the last SYNC. Without a
+    plant report, the master's own cycle count stands in for the plant's."""
+    start = (plant_report or {}).get("start_sync")
+    if start is not None:
+        times = [(s - start) * period for s in robot.fault_syncs().values()]
+    else:
+        times = list(robot.fault_times().values())
+    after = [t for t in times if injected_t is None or t >= injected_t - 1e-9]
     detected = min(after) if after else None
     drives = (plant_report or {}).get("drives") or []
     stops = {d["name"]: d["stopped_t"] for d in drives}

@@ -134,14 +134,15 @@ class Plant:
         self.lock = threading.Lock()
         self.bus_gate = bus_gate
         self.injector = injector
-        self._sync_t = 0.0  # bus time of the last SYNC (plant time once started)
+        self._sync_index = -1  # index of the last SYNC since the nodes' last reset (the master's boot)
         self._sync_wall = time.monotonic()
         self._in_sync = False
+        self.start_sync: int | None = None  # index of the SYNC at which the plant time is 0
         self._warm_up()
         for n in self.nodes:
             n.reset_listeners.append(self._on_node_reset)
         for d in self.drives:
-            d.clock = self.bus_time
+            d.clock = self.sync_stamp
         if injector is not None:
             injector.check(self)
         network.subscribe(0x80, self._on_sync)
@@ -149,12 +150,19 @@ class Plant:
         self._watchdogs = threading.Thread(target=self._watch, name="drive-watchdogs", daemon=True)
         self._watchdogs.start()
 
-    def bus_time(self) -> float:
-        """Bus time (s): the plant time of the current SYNC inside the SYNC handler; between SYNCs,
-        that of the last SYNC plus the wall time elapsed since it."""
+    def sync_stamp(self) -> float:
+        """The bus clock, in SYNCs: the index of the current SYNC inside the SYNC handler; between
+        SYNCs, that of the last one plus the wall time elapsed since it, in periods. The master
+        counts the same SYNCs from its boot (``CanopenRobot.fault_syncs``)."""
         if self._in_sync:
-            return self._sync_t
-        return self._sync_t + (time.monotonic() - self._sync_wall)
+            return float(self._sync_index)
+        return self._sync_index + (time.monotonic() - self._sync_wall) / self.period
+
+    def to_time(self, stamp: float | None) -> float | None:
+        """Plant time (s) of a ``sync_stamp`` (None before the plant started)."""
+        if stamp is None or self.start_sync is None:
+            return None
+        return (stamp - self.start_sync) * self.period
 
     def _watch(self) -> None:
         """The drives' wall-clock watchdogs, checked every tenth of the shortest one (0.5..10 ms)."""
@@ -176,11 +184,11 @@ class Plant:
         the aborts its watchdogs triggered; plant time; the injection, if any."""
         drives = [{"name": d.name, "node": d.node_id, "state": d.state, "torque_permille": d.applied_permille(),
                    "nmt": d.node.nmt.state, "silent": d.silent,
-                   "stopped_t": d.stopped_since[0] if d.stopped_since else None,
+                   "stopped_t": self.to_time(d.stopped_since[0]) if d.stopped_since else None,
                    "stopped_wall": d.stopped_since[1] if d.stopped_since else None,
-                   "aborts": [[code, why, t] for code, why, t in d.aborts]} for d in self.drives]
-        return {"t": self.t, "syncs": self.syncs, "started": self.started, "drives": drives,
-                "injection": self.injector.to_dict() if self.injector is not None else None}
+                   "aborts": [[code, why, self.to_time(t)] for code, why, t in d.aborts]} for d in self.drives]
+        return {"t": self.t, "syncs": self.syncs, "started": self.started, "start_sync": self.start_sync,
+                "drives": drives, "injection": self.injector.to_dict() if self.injector is not None else None}
 
     def all_stopped(self) -> bool:
         return all(d.stopped_since is not None for d in self.drives)
@@ -249,7 +257,7 @@ class Plant:
         with self.lock:
             sync_index = self.syncs
             self.syncs += 1
-            self._sync_t = self.t if self.started else 0.0
+            self._sync_index = sync_index
             self._sync_wall = time.monotonic()
             self._in_sync = True
             try:
@@ -286,6 +294,7 @@ class Plant:
             self.k += 1
         elif all(d.state == "OPERATION ENABLED" for d in self.drives):
             self.started = True
+            self.start_sync = sync_index + 1
 
 
 class VirtualPlant:

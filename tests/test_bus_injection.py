@@ -104,7 +104,7 @@ def _matrix_run(pp: PlantProcess, kind: str) -> tuple[dict, list]:
         robot.open()
         res = run_torques(robot, np.tile([4.0, -4.0, 2.0], (30, 1)), PERIOD)
     pp.after = pp.report(wait_stopped=True, timeout=1.0)
-    return reaction(Injection(kind, AT), pp.injected_t, robot.fault_times(), pp.after, PERIOD), list(res.faults)
+    return reaction(Injection(kind, AT), pp.injected_t, robot, pp.after, PERIOD), list(res.faults)
 
 
 def test_fault_matrix_with_the_plant_as_its_own_process_over_slcan():

@@ -30,15 +30,20 @@ def run_cycles(robot, n, u=(3.0, -3.0, 2.0)):
 
 
 def stop_times(plant) -> dict[str, float | None]:
-    """Bus time at which each simulated drive stopped producing torque (its own state)."""
-    return {d.name: (d.stopped_since[0] if d.stopped_since else None) for d in plant.drives}
+    """Plant time at which each simulated drive stopped producing torque (its own state)."""
+    return {d.name: (plant.to_time(d.stopped_since[0]) if d.stopped_since else None) for d in plant.drives}
+
+
+def detection_time(robot, plant) -> float:
+    """Plant time of the master's first detection (both sides count the same SYNCs)."""
+    return min((s - plant.start_sync) * PERIOD for s in robot.fault_syncs().values())
 
 
 def assert_reaction_within_target(robot, plant, healthy=("right_wheel", "left_wheel", "pivot")):
     """Every healthy drive stopped by its own state 1..2 periods after the first detection: not
     before the SYNC that follows the detection (a quick stop is applied at a SYNC), not later
     than the target."""
-    detected = min(robot.fault_times().values())
+    detected = detection_time(robot, plant)
     stops = stop_times(plant)
     for name in healthy:
         assert stops[name] is not None, (name, plant.report())
