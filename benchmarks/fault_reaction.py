@@ -46,9 +46,10 @@ def one_run(cfg, kind: str, at: float = 0.15, duration: float = 0.3) -> dict:
     return reaction(inj, plant.injector.fired_t, robot, plant.after, cfg.bus.period)
 
 
-def master_kill(cfg, runs: int) -> list[float]:
-    """ms from SIGKILL of a realtime master (``otbot run --bus config``) to each drive stopping."""
-    out = []
+def master_kill(cfg, runs: int) -> tuple[list[float], list[str]]:
+    """ms from SIGKILL of a realtime master (``otbot run --bus config``) to each drive stopping,
+    and the watchdogs that stopped them."""
+    out, why = [], []
     with tempfile.TemporaryDirectory() as tmp:
         src = cfg.path
         (Path(tmp) / "robot.yaml").write_text(src.read_text().replace("  options: {}",
@@ -74,7 +75,8 @@ def master_kill(cfg, runs: int) -> list[float]:
                 master.wait()
                 rep = pp.report(wait_stopped=True, timeout=2.0)
                 out += [(d["stopped_wall"] - killed) * 1e3 for d in rep["drives"] if d["stopped_wall"]]
-    return out
+                why += [d["aborts"][0][1].split(" for ")[0] for d in rep["drives"] if d["aborts"]]
+    return out, why
 
 
 def main() -> None:
@@ -101,10 +103,11 @@ def main() -> None:
                      "stop_periods": stop.tolist(), "all_stopped_ms": allstop.tolist(),
                      "states_after": sorted({s for r in res for s in r["drive_states_after"].values()})})
     print("[bench] master killed (SIGKILL), plant as its own process", file=sys.stderr, flush=True)
-    kill_ms = master_kill(cfg, max(1, args.runs // 2))
+    kill_ms, kill_why = master_kill(cfg, max(1, args.runs // 2))
     load = os.getloadavg()
     if args.json:
-        print(json.dumps({"rate": cfg.bus.control_rate, "rows": rows, "master_kill_ms": kill_ms, "loadavg": load}))
+        print(json.dumps({"rate": cfg.bus.control_rate, "rows": rows, "master_kill_ms": kill_ms,
+                          "master_kill_by": kill_why, "loadavg": load}))
         return
 
     def fmt(v, unit=""):
@@ -122,8 +125,9 @@ def main() -> None:
         print(f"| {r['kind']} | {fmt(r['detection_periods'])} | {fmt(r['stop_periods'])} | "
               f"{fmt(r['all_stopped_ms'])} | {', '.join(r['states_after'])} |")
     consumer = cfg.drives[0].master_heartbeat_consumer * 1e3
-    print(f"| master killed (SIGKILL) | - | - | {fmt(kill_ms)} after the kill (consumer time {consumer:g} ms, "
-          f"master heartbeat every {cfg.bus.master_heartbeat * 1e3:g} ms) | QUICK STOP ACTIVE |")
+    print(f"| master killed (SIGKILL) | - | - | {fmt(kill_ms)} after the kill, by: {', '.join(sorted(set(kill_why)))} "
+          f"(SYNC loss after {1.5 * cfg.bus.period * 1e3:g} ms; master heartbeat consumer {consumer:g} ms) | "
+          "QUICK STOP ACTIVE |")
     print(f"\n(load average during the run: {load[0]:.1f}, {load[1]:.1f}, {load[2]:.1f})")
 
 

@@ -101,7 +101,8 @@ def test_malformed_frames_are_ignored_without_crash():
                can.Message(arbitration_id=0x000, data=b"\x81", is_extended_id=False),  # short NMT
                can.Message(arbitration_id=0x603, data=bytes(range(8)), is_extended_id=False),  # bad SDO
                can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=True),  # extended ID
-               can.Message(arbitration_id=0x184, is_remote_frame=True, dlc=4, is_extended_id=False)]
+               can.Message(arbitration_id=0x184, is_remote_frame=True, dlc=4, is_extended_id=False),
+               can.Message(arbitration_id=0x281, data=bytes(8), is_extended_id=False)]  # 8 bytes on 7-byte TPDO2
         try:
             res = []
             for k in range(n):
@@ -118,6 +119,7 @@ def test_malformed_frames_are_ignored_without_crash():
         assert not robot.faults
         assert robot.drives[0].malformed >= 1 and robot.drives[1].malformed >= 1
         assert plant.drives[1].malformed >= 1 and plant.malformed_sync >= 1
+        assert plant.drives[0].foreign >= 1  # the short frame on its own TPDO1 COB-ID, ignored
         assert all(sd.state == "OPERATION ENABLED" for sd in plant.drives)
         # Readings stayed consistent with the plant: monotone wheel angle under constant torque.
         right = np.array([s.joint_pos[0] for s in res])
