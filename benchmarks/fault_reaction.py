@@ -32,6 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from drivers.config import load_robot_config  # noqa: E402
 from drivers.runs import run_torques  # noqa: E402
+from otbot_hw.robot import RobotError  # noqa: E402
 from sim.injection import Injection, reaction  # noqa: E402
 from sim.plant import PlantProcess, simulated_robot  # noqa: E402
 
@@ -45,9 +46,9 @@ def one_run(cfg, kind: str, at: float = 0.15, duration: float = 0.3) -> tuple[di
     n = int(round(duration * cfg.bus.control_rate))
     with simulated_robot(cfg, realtime=True, inject=inj) as (robot, plant):
         res = run_torques(robot, np.tile([4.0, -4.0, 2.0], (n, 1)), cfg.bus.period)
-    if plant.injector.fired_t is None:
+    if plant.injected_t is None:
         return None, [str(f) for f in res.faults]
-    return reaction(inj, plant.injector.fired_t, robot, plant.after, cfg.bus.period), [str(f) for f in res.faults]
+    return reaction(inj, plant.injected_t, robot, plant.after, cfg.bus.period), [str(f) for f in res.faults]
 
 
 def master_kill(cfg, runs: int) -> tuple[list[float], list[str]]:
@@ -99,7 +100,10 @@ def main() -> None:
         res = []
         while len(res) < args.runs and len(missed) < 5 * args.runs:
             print(f"[bench] {kind} run {len(res) + 1}/{args.runs}", file=sys.stderr, flush=True)
-            r, faults = one_run(cfg, kind)
+            try:
+                r, faults = one_run(cfg, kind)
+            except RobotError as exc:  # e.g. an SDO answer later than its timeout while booting
+                r, faults = None, [f"boot: {exc}"]
             if r is None:
                 missed.append(faults)
                 print(f"[bench]   stopped before the injection: {'; '.join(faults)}", file=sys.stderr, flush=True)

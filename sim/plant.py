@@ -190,6 +190,11 @@ class Plant:
         return {"t": self.t, "syncs": self.syncs, "started": self.started, "start_sync": self.start_sync,
                 "drives": drives, "injection": self.injector.to_dict() if self.injector is not None else None}
 
+    @property
+    def injected_t(self) -> float | None:
+        """Plant time (s) at which the injector fired (None without one, or before it fired)."""
+        return self.injector.fired_t if self.injector is not None else None
+
     def all_stopped(self) -> bool:
         return all(d.stopped_since is not None for d in self.drives)
 

@@ -177,8 +177,7 @@ def run(args: argparse.Namespace) -> dict:
     if inject is not None:
         from sim.injection import reaction
 
-        injected = plant.injected_t if hasattr(plant, "injected_t") else plant.injector.fired_t
-        result["reaction"] = reaction(inject, injected, robot, plant.after, cfg.bus.period)
+        result["reaction"] = reaction(inject, plant.injected_t, robot, plant.after, cfg.bus.period)
     if args.bus == "sim" and rec.truth_q is not None and len(rec):
         result["q_final"] = rec.truth_q[-1].tolist()
     if args.plot is not None and len(rec) > 1:
