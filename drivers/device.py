@@ -168,11 +168,7 @@ class CanopenDevice:
     # -- SDO -------------------------------------------------------------------------------------
     def has(self, index: int, subindex: int = 0) -> bool:
         """Whether the object dictionary describes ``index:subindex``."""
-        od = self.node.object_dictionary
-        if index not in od:
-            return False
-        obj = od[index]
-        return subindex == 0 if isinstance(obj, canopen.objectdictionary.ODVariable) else subindex in obj
+        return mapping.has_object(self.node.object_dictionary, index, subindex)
 
     def config_error(self, meaning: str) -> DeviceConfigError:
         f = self.fault("config", meaning)

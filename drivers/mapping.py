@@ -85,6 +85,14 @@ class PlanError(ValueError):
     """The dictionary cannot carry what the loop needs; the message names the object."""
 
 
+def has_object(od, index: int, subindex: int = 0) -> bool:
+    """Whether object dictionary ``od`` describes ``index:subindex``."""
+    if index not in od:
+        return False
+    obj = od[index]
+    return subindex == 0 if isinstance(obj, ODVariable) else subindex in obj
+
+
 def _variable(od, index: int, sub: int = 0) -> ODVariable | None:
     if index not in od:
         return None

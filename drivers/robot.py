@@ -245,27 +245,22 @@ class CanopenRobot(Robot):
                         d.sdo_write(0x1016, 1, 0)
                     except RobotError as exc:
                         problems.append(f"{d.name} (node {d.node_id}): heartbeat consumer not switched off: {exc}")
-        for dev in self.devices:
+        def attempt(what: str, fn) -> None:
             try:
-                dev.nmt_command(NMT_ENTER_PRE_OPERATIONAL)
-            except Exception as exc:  # noqa: BLE001
-                problems.append(f"{dev.name} (node {dev.node_id}): NMT PRE-OPERATIONAL not sent: {exc}")
-        try:
-            self.master_heartbeat.stop()
-        except Exception as exc:  # noqa: BLE001
-            problems.append(f"master heartbeat not stopped: {exc}")
+                fn()
+            except Exception as exc:  # noqa: BLE001 - close() reports, never raises
+                problems.append(f"{what}: {exc}")
+
+        for dev in self.devices:
+            attempt(f"{dev.name} (node {dev.node_id}): NMT PRE-OPERATIONAL not sent",
+                    lambda dev=dev: dev.nmt_command(NMT_ENTER_PRE_OPERATIONAL))
+        attempt("master heartbeat not stopped", self.master_heartbeat.stop)
         if self._safety is not None:
             self._safety.join(timeout=2.0)
             self._safety = None
         if self.imu is not None and self.close_imu and hasattr(self.imu, "close"):
-            try:
-                self.imu.close()
-            except Exception as exc:  # noqa: BLE001
-                problems.append(f"IMU not closed: {exc}")
-        try:
-            self.network.disconnect()
-        except Exception as exc:  # noqa: BLE001
-            problems.append(f"CAN bus not released: {exc}")
+            attempt("IMU not closed", self.imu.close)
+        attempt("CAN bus not released", self.network.disconnect)
         self.close_report = problems
         return list(problems)
 
@@ -548,7 +543,8 @@ class CanopenRobot(Robot):
 
     def disable(self) -> None:
         with self._cycle_lock:
-            self._stop_drives("disable", quick_stop=False)
+            if self._open:
+                self._stop_drives("disable", quick_stop=False)
 
     def quick_stop(self) -> None:
         """Quick stop every drive, confirmed by their statuswords (SYNC kept alive for at most

@@ -36,6 +36,7 @@ from canopen.sdo import SdoAbortedError
 
 from drivers.config import DriveConfig, EncoderConfig
 from drivers.device import pdo_get, pdo_put
+from drivers.mapping import has_object
 
 log = logging.getLogger(__name__)
 
@@ -111,11 +112,7 @@ class SimulatedNode:
     # -- SDO / OD ------------------------------------------------------------------------------
     def has(self, index: int, subindex: int = 0) -> bool:
         """Whether this device's dictionary describes ``index:subindex``."""
-        od = self.node.object_dictionary
-        if index not in od:
-            return False
-        obj = od[index]
-        return subindex == 0 if isinstance(obj, canopen.objectdictionary.ODVariable) else subindex in obj
+        return has_object(self.node.object_dictionary, index, subindex)
 
     def _on_read(self, index: int, subindex: int, od):
         return self.values.get((index, subindex))
