@@ -26,7 +26,7 @@ T_FAULTS = "tests/test_bus_faults.py"
 T_EDS = "tests/test_bus_eds.py"
 T_INJ = "tests/test_bus_injection.py"
 
-#: name, file, text, replacement, tests that must fail
+#: name, file, text, replacement (or lists of them, all applied), tests that must fail
 MUTATIONS = [
     ("heartbeat timeout 1.5x too long", "drivers/heartbeat.py", "if now - w.last > w.timeout:",
      "if now - w.last > 1.5 * w.timeout:", [T_TIMING]),
@@ -77,7 +77,8 @@ MUTATIONS = [
     ("the drives do not watch the master's heartbeat", "sim/canopen_slaves.py",
      "        if (index, subindex) == (0x1016, 1):", "        if False:", [T_TIMING]),
     ("the simulated slaves keep foreign frames on their TPDO IDs", "sim/canopen_slaves.py",
-     "                    m.data = bytearray((m.length + 7) // 8)\n", "", [T_FAULTS]),
+     ["                    m.data = bytearray((m.length + 7) // 8)\n", "            if m.on_message in subs:"],
+     ["", "            if False:"], [T_FAULTS]),
     ("fault-bit without a statusword check", "drivers/cia402.py", "        if state in FAULT_STATES:\n"
      "            if not self._fault_reported:", "        if False:\n            if not self._fault_reported:",
      [T_REACT]),
@@ -96,9 +97,13 @@ def copy_tree(dst: Path) -> None:
 def probe(name, file, old, new, tests, tree: Path) -> dict:
     path = tree / file
     original = path.read_text()
-    if old not in original:
-        return {"name": name, "caught": None, "note": "text not found (source changed?)"}
-    path.write_text(original.replace(old, new, 1))
+    olds, news = ([old], [new]) if isinstance(old, str) else (old, new)
+    mutated = original
+    for o, n in zip(olds, news):
+        if o not in mutated:
+            return {"name": name, "caught": None, "note": "text not found (source changed?)"}
+        mutated = mutated.replace(o, n, 1)
+    path.write_text(mutated)
     t0 = time.monotonic()
     try:
         env = {**os.environ, "PYTHONPATH": str(tree)}
