@@ -180,6 +180,7 @@ class CanopenRobot(Robot):
         self.reactions: list[dict] = []
         self.problems: list[str] = []  # what a reaction could not do (reported by close())
         self.close_report: list[str] = []
+        self._configured: set[int] = set()  # nodes configured by open() (their 0x1016 is ours to clear)
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def open(self) -> "CanopenRobot":
@@ -202,6 +203,7 @@ class CanopenRobot(Robot):
             for dev in self.devices:
                 dev.reset_and_wait_bootup(self.config.bus.boot_timeout)
                 dev.configure()
+                self._configured.add(dev.node_id)
             for dev in self.devices:
                 dev.start()
             ok = wait_until(lambda: all(self.heartbeats.state(d.node_id) == 5 for d in self.devices),
@@ -240,11 +242,12 @@ class CanopenRobot(Robot):
         off = self._off_bus()
         if not any(f.kind == "bus" for f in self.faults):
             for d in self.drives:  # a master that leaves in order is not a lost master
-                if d.has(0x1016, 1) and d.node_id not in off:
+                if d.has(0x1016, 1) and d.node_id in self._configured and d.node_id not in off:
                     try:
                         d.sdo_write(0x1016, 1, 0)
                     except RobotError as exc:
                         problems.append(f"{d.name} (node {d.node_id}): heartbeat consumer not switched off: {exc}")
+
         def attempt(what: str, fn) -> None:
             try:
                 fn()
