@@ -115,7 +115,8 @@ class CanopenRobot(Robot):
     after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC);
     ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control
     period (else lockstep: back to back, each SYNC's TPDOs awaited up to ``lockstep_timeout`` s,
-    and the drives get no period-based watchdogs since no period is kept).
+    and the drives get no period-based watchdogs since no period is kept); ``sdo_timeout``: s an
+    SDO answer is awaited (canopen's 0.3 s by default).
 
     The constructor reads the object dictionaries and refuses (``DeviceConfigError``) what cannot
     run, before any bus is opened. ``warnings``: what the devices cannot do that the loop would
@@ -129,7 +130,8 @@ class CanopenRobot(Robot):
     LOCKSTEP_SETTLE = 0.05
 
     def __init__(self, config: RobotConfig, bus=None, imu=None, imu_lockstep: bool = False,
-                 realtime: bool = False, close_imu: bool = True, lockstep_timeout: float = 1.0):
+                 realtime: bool = False, close_imu: bool = True, lockstep_timeout: float = 1.0,
+                 sdo_timeout: float | None = None):
         self.config = config
         self.period = config.bus.period
         self.realtime = realtime
@@ -151,6 +153,9 @@ class CanopenRobot(Robot):
         self.encoder = (CiA406Encoder(self.network, enc, self.tracker, self._add_fault)
                         if enc.source == "encoder" else None)
         self.devices = [*self.drives, *([self.encoder] if self.encoder else [])]
+        if sdo_timeout is not None:
+            for dev in self.devices:
+                dev.node.sdo.RESPONSE_TIMEOUT = sdo_timeout
         self.heartbeats = HeartbeatConsumer(self.network, on_fault=self._add_fault)
         for dc, d in zip(config.drives, self.drives):
             self.heartbeats.add(d.node_id, d.name, dc.heartbeat_consumer)

@@ -350,6 +350,9 @@ def open_sim_imu(config: RobotConfig):
 
 #: Lockstep runs: how long the master waits for the plant's answer to a SYNC (s).
 LOCKSTEP_TIMEOUT = 0.25
+#: Lockstep runs: SDO answers are awaited this long (s) while booting (a loaded machine can hold a
+#: simulated slave's answer longer than canopen's 0.3 s).
+LOCKSTEP_SDO_TIMEOUT = 1.0
 #: Lockstep runs: heartbeat consumer times (both ways) are at least this (s): no real-time deadline
 #: is at stake, and a loaded machine must not trip them.
 LOCKSTEP_HEARTBEAT = 0.5
@@ -404,7 +407,7 @@ def simulated_robot(config: RobotConfig, with_imu: bool = True, imu_pair=None, t
     master_bus = can.Bus(interface="virtual", channel=config.bus.channel)
     try:
         robot = CanopenRobot(config, bus=master_bus, imu=drv, imu_lockstep=not realtime, realtime=realtime,
-                             lockstep_timeout=lockstep_timeout)
+                             lockstep_timeout=lockstep_timeout, sdo_timeout=LOCKSTEP_SDO_TIMEOUT)
     except Exception:
         master_bus.shutdown()
         vp.close()
@@ -583,7 +586,7 @@ class PlantProcess:
         if with_imu and config.imu is not None and self.info.get("imu_port"):
             imu = open_imu(config.imu, port=self.info["imu_port"])
         return CanopenRobot(cfg, imu=imu, imu_lockstep=not realtime, realtime=realtime,
-                            lockstep_timeout=lockstep_timeout)
+                            lockstep_timeout=lockstep_timeout, sdo_timeout=LOCKSTEP_SDO_TIMEOUT)
 
     def restart(self, inject: Injection | None = None) -> dict:
         """Replace the plant in the process by a fresh one (new slaves, robot at rest) with the

@@ -397,7 +397,7 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
         with VirtualPlant(cfg, imu=pub, noise=NoiseModel()) as plant:
             for master in range(2):
                 robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), imu=drv,
-                                     imu_lockstep=True, close_imu=False)
+                                     imu_lockstep=True, close_imu=False, sdo_timeout=1.0)
                 robot.open()
                 robot.enable()
                 for _ in range(23 + 10 * master):

@@ -125,7 +125,7 @@ def test_torque_actual_absent_reads_nan_and_the_dictionary_defaults_apply(tmp_pa
         assert all(d.state == "FAULT" and d.values[(0x603F, 0)] == 0x8130 for d in plant.drives)
 
 
-def test_a_mapping_the_device_does_not_keep_is_refused_by_the_read_back(monkeypatch):
+def test_a_mapping_the_device_does_not_keep_is_refused_by_the_read_back(monkeypatch, capsys):
     from drivers.faults import DeviceConfigError
     from sim import plant as plant_mod
     from sim.plant import simulated_robot
@@ -150,6 +150,10 @@ def test_a_mapping_the_device_does_not_keep_is_refused_by_the_read_back(monkeypa
                                                  r"0x6064:00/32, 0x0000:00/0"):
         with simulated_robot(CFG, with_imu=False):
             pass
+    # through the command line: one line, exit 2, before any motion
+    assert main(["run", "--bus", "sim", "--no-imu", "--duration", "0.1", "--json"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "TPDO1 does not carry 0x6077" in err[0]
 
 
 def test_the_simulated_drives_live_with_any_of_these_dictionaries(tmp_path):

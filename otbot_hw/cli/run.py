@@ -141,7 +141,8 @@ def run(args: argparse.Namespace) -> dict:
                                   progress=None if quiet else (lambda m: progress(f"[run] {m}")))
         else:
             imu = open_imu(cfg.imu, port=args.imu_port) if with_imu else None
-            robot = CanopenRobot(cfg, imu=imu, realtime=not args.lockstep, imu_lockstep=args.lockstep)
+            robot = CanopenRobot(cfg, imu=imu, realtime=not args.lockstep, imu_lockstep=args.lockstep,
+                                 sdo_timeout=1.0 if args.lockstep else None)
             with robot:
                 robot.open()
                 _warn(robot, quiet)
