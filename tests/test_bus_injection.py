@@ -46,7 +46,7 @@ def check_reaction(r: dict, kind: str, consumer: float) -> None:
         assert 0.0 <= r["healthy_stopped_s"] - r["detected_s"] <= 2 * PERIOD + 1e-9, r
     assert r["all_stopped_s"] is not None, r
     if kind in ("drive-silent", "bus-off"):
-        assert r["all_stopped_s"] - r["injected_s"] <= consumer + 0.2, r
+        assert r["all_stopped_s"] - r["injected_s"] <= consumer + 0.3, r
     assert "OPERATION ENABLED" not in r["drive_states_after"].values(), r
 
 
@@ -154,7 +154,7 @@ def test_master_killed_mid_run_the_drives_stop_within_their_consumer_time(tmp_pa
             assert d["aborts"][0][0] == 0x8130  # the master's heartbeat was lost
             # the last heartbeat came at most one producer period before the kill
             stopped = d["stopped_wall"] - killed
-            assert consumer - CFG.bus.master_heartbeat - 0.005 <= stopped <= consumer + 0.08, stopped
+            assert consumer - CFG.bus.master_heartbeat - 0.005 <= stopped <= consumer + 0.12, stopped
 
 
 def _flood_run(robot, plant_or_process, n_cycles=60):
