@@ -208,8 +208,9 @@ def _print_reaction(r: dict) -> None:
     def t(v):
         return "never" if v is None else f"{v:.3f} s"
 
-    print(f"[run] injected {r['kind']} at {t(r['injected_s'])}, detected at {t(r['detected_s'])}, every drive "
-          f"stopped (own state) at {t(r['all_stopped_s'])}; drives after the run: {r['drive_states_after']}")
+    print(f"[run] injected {r['kind']} at {t(r['injected_s'])}, detected at {t(r['detected_s'])}; by their own "
+          f"state the drives on the bus stopped at {t(r['healthy_stopped_s'])}, every drive at "
+          f"{t(r['all_stopped_s'])}; drives after the run: {r['drive_states_after']}")
 
 
 def write_run_plots(folder: Path, rec) -> list[str]:
