@@ -17,7 +17,7 @@ package and ``otbot_hw.cli`` import ``sim`` and ``drivers`` (``tests/test_layeri
 from __future__ import annotations
 
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from otbot_hw.motors import MotorLimits
 from otbot_hw.sensors import NoiseModel
@@ -115,9 +115,16 @@ class BusSimBackend(_ConfiguredRate):
     noise: NoiseModel | None = None
     seed: int | None = 0
     with_imu: bool = True
+    inject: object = None  # sim.injection.Injection: a fault the plant injects at its time
+    process: bool = False  # the plant as its own process over slcan (no ground truth then)
     name: str = "bus sim"
     realtime: bool = False
     has_truth: bool = True
+    plant: object = field(default=None, init=False, repr=False)  # the last opened plant (its report after close)
+
+    def __post_init__(self):
+        if self.process:
+            self.has_truth = False
 
     @contextmanager
     def open(self, plant, x0=None, forces=None, fixture: str = "floor"):
@@ -125,7 +132,14 @@ class BusSimBackend(_ConfiguredRate):
 
         kw = {"params": plant, "x0": x0, "forces": forces, "fixture": fixture, "noise": self.noise or NoiseModel(),
               "seed": self.seed}
-        with simulated_robot(self.config, with_imu=self.with_imu, **kw) as (robot, _plant):
+        if self.process:  # a plant process takes the nominal robot, its fixture, noise and seed only
+            for key in ("params", "x0", "forces"):
+                if kw[key] is not None:
+                    raise ValueError(f"a simulated robot in its own process cannot take {key}")
+                del kw[key]
+        with simulated_robot(self.config, with_imu=self.with_imu, inject=self.inject, process=self.process,
+                             **kw) as (robot, sim_plant):
+            self.plant = sim_plant
             yield robot
 
     def describe(self) -> dict:
