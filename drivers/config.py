@@ -21,6 +21,16 @@ VELOCITY_UNITS = ("counts/s", "rpm", "0.1 rpm", "0.001 rpm")  # of 0x606C, motor
 ABORT_OPTIONS = {"no_action": 0, "fault": 1, "disable_voltage": 2, "quick_stop": 3}
 
 
+#: Lockstep runs: how long the master waits for the plant's answer to a SYNC (s).
+LOCKSTEP_TIMEOUT = 0.25
+#: Lockstep runs: SDO answers are awaited this long (s) while booting (a loaded machine can hold a
+#: simulated slave's answer longer than canopen's 0.3 s).
+LOCKSTEP_SDO_TIMEOUT = 1.0
+#: Lockstep runs: heartbeat consumer times (both ways) are at least this (s): no real-time deadline
+#: is at stake, and a loaded machine must not trip them.
+LOCKSTEP_HEARTBEAT = 0.5
+
+
 @dataclass(frozen=True)
 class BusConfig:
     """python-can bus and the control cycle: interface, channel, bitrate (bit/s), control_rate (Hz),

@@ -44,7 +44,7 @@ import can
 import canopen
 import numpy as np
 
-from drivers.config import RobotConfig
+from drivers.config import LOCKSTEP_HEARTBEAT, LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT, RobotConfig
 from drivers.robot import STANDARD_FRAMES_ONLY, CanopenRobot, imu_due
 from otbot_hw.params import OtbotParams, nominal
 from otbot_hw.sensors import NoiseModel
@@ -376,14 +376,6 @@ class SimulatedBusRobot(CanopenRobot):
             return np.array(self.plant.truth.f[-1], dtype=float) if self.plant.truth.f else np.zeros(2)
 
 
-#: Lockstep runs: how long the master waits for the plant's answer to a SYNC (s).
-LOCKSTEP_TIMEOUT = 0.25
-#: Lockstep runs: SDO answers are awaited this long (s) while booting (a loaded machine can hold a
-#: simulated slave's answer longer than canopen's 0.3 s).
-LOCKSTEP_SDO_TIMEOUT = 1.0
-#: Lockstep runs: heartbeat consumer times (both ways) are at least this (s): no real-time deadline
-#: is at stake, and a loaded machine must not trip them.
-LOCKSTEP_HEARTBEAT = 0.5
 
 
 @contextmanager

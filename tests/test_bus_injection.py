@@ -17,13 +17,13 @@ import can
 import numpy as np
 import pytest
 
-from drivers.config import load_robot_config
-from otbot_hw.runtime.openloop import run_torques
+from drivers.config import LOCKSTEP_HEARTBEAT, load_robot_config
 from otbot_hw.cli import main
 from otbot_hw.recording import read_recording
 from otbot_hw.robot import RobotFault
+from otbot_hw.runtime.openloop import run_torques
 from sim.injection import Injection, reaction
-from sim.plant import LOCKSTEP_HEARTBEAT, PlantProcess, flood_frames, send_flood, simulated_robot
+from sim.plant import PlantProcess, flood_frames, send_flood, simulated_robot
 
 CFG = load_robot_config()
 PERIOD = CFG.bus.period

@@ -9,9 +9,9 @@ from dataclasses import replace
 
 import pytest
 
-from drivers.config import load_robot_config
+from drivers.config import LOCKSTEP_TIMEOUT, load_robot_config
 from sim.canopen_slaves import SYNC_LOSS_CYCLES
-from sim.plant import LOCKSTEP_TIMEOUT, simulated_robot
+from sim.plant import simulated_robot
 
 CFG = load_robot_config()
 SLACK = 0.1  # s: scheduling noise a loaded 2-core machine adds to a wall-clock watchdog

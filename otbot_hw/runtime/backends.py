@@ -166,12 +166,17 @@ class BusConfigBackend(_ConfiguredRate):
 
     @contextmanager
     def open(self, plant=None, x0=None, forces=None, fixture: str = "floor"):
+        from drivers.config import LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT
         from drivers.robot import CanopenRobot, open_imu
 
         if plant is not None or forces is not None:
             raise ValueError("the configured bus runs the robot that is there: no plant parameters or forces")
-        imu = open_imu(self.config.imu, port=self.imu_port) if (self.with_imu and self.config.imu is not None) else None
-        robot = CanopenRobot(self.config, imu=imu, realtime=False, imu_lockstep=self.lockstep)
+        # the configuration's watchdog times are kept as written (even in lockstep): it is what the user asked for
+        config, kw = self.config, {}
+        if self.lockstep:  # a simulated plant answers in its own time: wait for it longer than for a drive
+            kw = {"lockstep_timeout": LOCKSTEP_TIMEOUT, "sdo_timeout": LOCKSTEP_SDO_TIMEOUT}
+        imu = open_imu(config.imu, port=self.imu_port) if (self.with_imu and config.imu is not None) else None
+        robot = CanopenRobot(config, imu=imu, realtime=False, imu_lockstep=self.lockstep, **kw)
         with robot:
             robot.open()
             yield robot
