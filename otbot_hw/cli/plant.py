@@ -4,10 +4,12 @@ The plant (simulated CiA 402 drives and CiA 406 encoder on canopen's LocalNode, 
 advancing one control period per SYNC) listens on an slcan adapter it emulates on a new
 pseudo-terminal, or on a socketcan interface; the simulated IMU writes VectorNav sentences into
 another pseudo-terminal. It prints one JSON line (can_interface, can_channel, imu_port) and runs
-until its standard input closes. A master then runs e.g.
-``otbot run --bus config --interface slcan --channel PTY --imu-port PTY2``. Lines on its standard
-input are operator commands (``sim.plant.Plant.operator``: ``fixture stand``, ``load 40@0.2,-0.1``,
-``unload``, ``status``), each answered with one JSON line on its standard output.
+until its standard input closes; each input line ``report`` is answered with one JSON line of
+the simulated drives' own state, and the operator commands (``sim.plant.Plant.operator``:
+``fixture stand``, ``load 40@0.2,-0.1``, ``unload``, ``status``: what a person at the bench does)
+with one JSON line each. ``--inject KIND@SECONDS`` makes the plant inject a fault at that
+plant time (``sim.injection``; ``plant-kill`` kills this process). A master then runs e.g.
+``otbot run --bus config --interface slcan --channel PTY --imu-port PTY2``.
 """
 from __future__ import annotations
 
@@ -25,8 +27,8 @@ def register(sub) -> None:
         help="serve the simulated robot over slcan (pseudo-terminal) or socketcan, as a separate process",
         description="Run the simulated Otbot (CANopen slaves + dynamic model in lockstep with SYNC) behind an "
                     "emulated slcan USB-CAN adapter on a pseudo-terminal, or on a socketcan interface. Prints one "
-                    "JSON line {can_interface, can_channel, imu_port}; stops when stdin closes. Each line on stdin is "
-                    "an operator command, answered with one JSON line: 'fixture floor|stand|locked', 'load KG@X,Y[,I]' "
+                    "JSON line {can_interface, can_channel, imu_port}; stops when stdin closes. Lines on stdin: 'report' (the drives' state), or "
+                    "an operator command, each answered with one JSON line: 'fixture floor|stand|locked', 'load KG@X,Y[,I]' "
                     "(a load of KG kg at X, Y m in the platform frame, own inertia I kg m^2), 'unload', 'status'; "
                     "the robot is at rest after each. Units: SI.",
     )
@@ -47,6 +49,10 @@ def register(sub) -> None:
                    help="sensor noise: the paper's IMU and encoder-rate sigmas (default), or none")
     p.add_argument("--seed", type=seed, default=0, help="noise seed, an integer >= 0 (default 0)")
     p.add_argument("--no-imu", action="store_true", help="no simulated IMU")
+    p.add_argument("--inject", default=None, metavar="KIND@SECONDS[:DRIVE]",
+                   help="inject a fault at this plant time (s since the drives were enabled): drive-silent, emcy, "
+                        "fault-bit, imu-loss, imu-error, bus-off, plant-kill (SIGKILL of this process); DRIVE: "
+                        "right_wheel, left_wheel (default) or pivot")
     p.add_argument("--json", action="store_true", help="accepted for uniformity: the output is always one JSON line")
     p.set_defaults(func=run)
 
@@ -69,13 +75,21 @@ def check_socketcan(channel: str) -> None:
 def run(args: argparse.Namespace) -> None:
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.sensors import NoiseModel
+    from sim.injection import Injection
     from sim.plant import serve
 
     model = ExtendedModel.load(args.plant_params)
     cfg = bus_config(args.config, args.rate)
     if args.transport == "socketcan":
         check_socketcan(args.channel)
+    try:
+        inject = Injection.parse(args.inject) if args.inject is not None else None
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
-    serve(cfg, transport=args.transport, channel=args.channel, with_imu=not args.no_imu,
-          fixture=args.fixture, noise=noise, seed=args.seed, params=model)
+    try:
+        serve(cfg, transport=args.transport, channel=args.channel, with_imu=not args.no_imu,
+              fixture=args.fixture, noise=noise, seed=args.seed, inject=inject, params=model)
+    except ValueError as exc:  # an injection this plant cannot do
+        raise CliError(str(exc)) from None
     return None
