@@ -27,10 +27,10 @@ def register(sub) -> None:
         help="serve the simulated robot over slcan (pseudo-terminal) or socketcan, as a separate process",
         description="Run the simulated Otbot (CANopen slaves + dynamic model in lockstep with SYNC) behind an "
                     "emulated slcan USB-CAN adapter on a pseudo-terminal, or on a socketcan interface. Prints one "
-                    "JSON line {can_interface, can_channel, imu_port}; stops when stdin closes. Lines on stdin: 'report' (the drives' state), or "
-                    "an operator command, each answered with one JSON line: 'fixture floor|stand|locked', 'load KG@X,Y[,I]' "
-                    "(a load of KG kg at X, Y m in the platform frame, own inertia I kg m^2), 'unload', 'status'; "
-                    "the robot is at rest after each. Units: SI.",
+                    "JSON line {can_interface, can_channel, imu_port}; stops when stdin closes. Lines on stdin: "
+                    "'report' (the drives' state) or an operator command, each answered with one JSON line: "
+                    "'fixture floor|stand|locked', 'load KG@X,Y[,I]' (a load of KG kg at X, Y m in the platform "
+                    "frame, own inertia I kg m^2), 'unload', 'status'; the robot is at rest after each. Units: SI.",
     )
     p.add_argument("--transport", choices=("slcan", "socketcan"), default="slcan",
                    help="slcan: emulate a USB-CAN adapter on a new pseudo-terminal (default, works everywhere); "

@@ -59,6 +59,8 @@ REST_TIME = 0.5       # s of the zero-torque run (and of the end of the settling
 BRAKE_TIME = 1.5      # s of braking after an excitation
 PROBE_PAUSE = 0.1     # s of zero torque after the probe doublet
 SETTLE_TIME = 2.5     # s of braking after the probe
+#: EMCY codes of the drives' communication watchdogs (CiA 301): SYNC timeout, life guard / heartbeat
+WATCHDOG_CODES = (0x8100, 0x8130)
 
 
 @dataclass(frozen=True)
@@ -178,6 +180,7 @@ class BenchProcedure:
         self.result = None  # the latest SessionResult
         self.specs: dict[str, ExperimentSpec] = {}
         self.designs: dict[str, dict] = {}
+        self.idle_resets: list = []
 
     # -- helpers -----------------------------------------------------------------------------------
     def best_params(self) -> OtbotParams:
@@ -213,8 +216,21 @@ class BenchProcedure:
         meta.update(extra or {})
         return meta
 
+    def _clear_idle_watchdogs(self) -> None:
+        """Between runs nothing commands torque (the drives are quick-stopped) while the bench computes
+        or waits for the operator; on a paced bus the drives' own watchdogs (SYNC timeout, the master's
+        heartbeat) may trip meanwhile and say so by EMCY. Such faults alone are reset before the next
+        run (and noted); any other fault stays and fails the run's drive check."""
+        faults = tuple(getattr(self.robot, "faults", ()))
+        if faults and all(f.kind == "emcy" and f.code in WATCHDOG_CODES for f in faults):
+            self.say("[bench] the drives' communication watchdogs tripped while the bench was idle ("
+                     + "; ".join(sorted({f"{f.device}: 0x{f.code:04X}" for f in faults})) + "): reset")
+            self.idle_resets.append([f.to_dict() for f in faults])
+            self.robot.fault_reset()
+
     def _run(self, controller, cycles: int, fixture: str | None, path: Path, meta: dict,
              feedback=None) -> LoopResult:
+        self._clear_idle_watchdogs()
         safety = self.s.safety.within(self.s.limits, fixture or "stand")
         sup = Supervisor(self.torque_limits, safety, self.period, realtime=self.realtime)
         runner = LoopRunner(self.robot, controller, sup, feedback, path=path, metadata=meta, realtime=self.realtime)
@@ -443,7 +459,7 @@ class BenchProcedure:
             "session": str(self.session.path), "passed": bool(final.passed), "excitation": self.s.excitation,
             "steps": steps, "parameters": params, "method": final.method,
             "units": final.to_dict()["units"], "correlation": final.to_dict()["correlation"],
-            "diagnosis": diagnosis, "designs": self.designs or None,
+            "diagnosis": diagnosis, "designs": self.designs or None, "idle_watchdog_resets": len(self.idle_resets),
             "timing": {"wall_time": wall, "cpu_time": cpu, "runs_wall_time": self.timing.runs,
                        "robot_time": self.timing.robot_time, "identification_wall_time": self.timing.identification,
                        "diagnosis_wall_time": self.timing.diagnosis},
