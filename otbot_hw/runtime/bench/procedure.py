@@ -218,11 +218,13 @@ class BenchProcedure:
 
     def _clear_idle_watchdogs(self) -> None:
         """Between runs nothing commands torque (the drives are quick-stopped) while the bench computes
-        or waits for the operator; on a paced bus the drives' own watchdogs (SYNC timeout, the master's
-        heartbeat) may trip meanwhile and say so by EMCY. Such faults alone are reset before the next
-        run (and noted); any other fault stays and fails the run's drive check."""
+        or waits for the operator; meanwhile the drives' own watchdogs (SYNC timeout, the master's
+        heartbeat) may trip on a paced bus and say so by EMCY, and on a loaded host a heartbeat may
+        come late. Such communication faults alone are reset before the next run (and noted in the
+        result): a node that is really gone faults again at once and fails the run's drive check, as
+        does any other fault, which is never reset."""
         faults = tuple(getattr(self.robot, "faults", ()))
-        if faults and all(f.kind == "emcy" and f.code in WATCHDOG_CODES for f in faults):
+        if faults and all(f.code in WATCHDOG_CODES and f.kind in ("emcy", "heartbeat") for f in faults):
             self.say("[bench] the drives' communication watchdogs tripped while the bench was idle ("
                      + "; ".join(sorted({f"{f.device}: 0x{f.code:04X}" for f in faults})) + "): reset")
             self.idle_resets.append([f.to_dict() for f in faults])
