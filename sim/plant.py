@@ -51,7 +51,7 @@ import numpy as np
 
 from drivers.config import LOCKSTEP_HEARTBEAT, LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT, RobotConfig
 from drivers.robot import STANDARD_FRAMES_ONLY, CanopenRobot, imu_due
-from otbot_hw.params import OtbotParams, nominal
+from otbot_hw.params import OtbotParams, nominal, parse_load
 from otbot_hw.sensors import NoiseModel
 from otbot_hw.simulation.sensing import StepperSensors
 from otbot_hw.simulation.simulator import ForceSchedule, make_stepper
@@ -263,7 +263,7 @@ class Plant:
                 if verb == "fixture" and len(args) == 1:
                     self._set_up(fixture=args[0])
                 elif verb == "load" and len(args) == 1:
-                    self._set_up(load=parse_load(args[0]))
+                    self._set_up(load=parse_load(args[0]))  # ValueError says what is wrong
                 elif verb == "unload" and not args:
                     self._set_up(load=None)
                 elif verb != "status" or args:
@@ -383,21 +383,6 @@ class Plant:
 
 OPERATOR_COMMANDS = ("fixture", "load", "unload", "status")
 OPERATOR_HELP = "fixture floor|stand|locked, load KG@X,Y[,I], unload, status"
-
-
-def parse_load(text: str) -> tuple[float, float, float, float]:
-    """'KG@X,Y[,I]' -> (mass kg, x m, y m, own inertia kg m^2); ValueError naming what is wrong."""
-    kg, sep, pos = text.partition("@")
-    parts = pos.split(",")
-    try:
-        vals = [float(kg), *(float(v) for v in parts)]
-    except ValueError:
-        vals = []
-    if not sep or len(parts) not in (2, 3) or len(vals) != len(parts) + 1 or not all(np.isfinite(vals)):
-        raise ValueError(f"a load looks like KG@X,Y or KG@X,Y,I (finite numbers), got {text!r}")
-    if vals[0] < 0 or (len(vals) == 4 and vals[3] < 0):
-        raise ValueError(f"load mass and inertia must be >= 0, got {text!r}")
-    return vals[0], vals[1], vals[2], vals[3] if len(vals) == 4 else 0.0
 
 
 class VirtualPlant:
