@@ -221,3 +221,27 @@ def test_a_robot_that_does_not_move_is_named_before_the_excitation(tmp_path, otb
     assert "step wheel: fixture: the right wheel did not turn under 1 N m" in last
     assert "check that the right wheel's drive delivers torque" in last
     assert json.loads((folder / "session.json").read_text())["steps"]["wheel"]["status"] == "failed"
+
+
+def test_supervisor_holds_the_free_area_with_the_stopping_distance():
+    from otbot_hw.experiment_limits import ExperimentLimits
+    from otbot_hw.motors import MotorLimits
+    from otbot_hw.runtime.feedback import StateEstimate
+    from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor
+
+    limits = ExperimentLimits(travel_radius=1.0, stop_deceleration=0.5, platform_speed=2.0)
+    floor = SafetyConfig().within(limits, "floor")
+    assert (floor.max_travel, floor.stop_deceleration, floor.max_wheel_rate) == (1.0, 0.5, limits.wheel_speed)
+    assert SafetyConfig().within(limits, "stand").max_travel is None  # the chassis is held
+    sup = Supervisor(MotorLimits(np.full(3, 10.0)), floor, 0.01)
+    start = np.array([3.0, -2.0, 0.0])  # the free area is around where the run starts
+    v = 0.6  # m/s along x: stopping distance 0.6^2 / (2 0.5) = 0.36 m, so it must stop by 0.64 m out
+    bad = None
+    for k in range(200):
+        t = 0.01 * k
+        est = StateEstimate(t, start + [v * t, 0.0, 0.0], np.array([v, 0.0, 0.0]), np.zeros(6), 0.0)
+        bad = sup.check(t, np.zeros(3), est)
+        if bad is not None:
+            break
+    assert bad is not None and bad.kind == "travel"
+    assert 0.64 - 0.006 <= v * bad.t <= 0.64 + 0.006 and bad.value == pytest.approx(v * bad.t + 0.36)
