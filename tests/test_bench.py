@@ -156,8 +156,9 @@ def test_plant_process_takes_operator_commands_and_the_bench_runs_on_it_over_slc
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     # lockstep with another process on a loaded machine: bus timeouts with room (as tests/test_bus_cli.py)
     cfg = _config(tmp_path, slcan=("  options: {}", "  options: {sleep_after_open: 0}"),
-                  tpdo=("tpdo_timeout: {value: 0.05, unit: s}", "tpdo_timeout: {value: 1.0, unit: s}"),
-                  hb=("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}"))
+                  hb=("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}"),
+                  master=("master_heartbeat_consumer: {value: 100, unit: ms}",
+                          "master_heartbeat_consumer: {value: 1000, unit: ms}"))
     proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "plant"], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:

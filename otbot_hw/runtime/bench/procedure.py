@@ -151,6 +151,62 @@ class SimulatedRobot:
         return {n: v[n] for n in SESSION_PARAMS}
 
 
+class IdleTicker:
+    """Keeps the bus cycling between the bench's runs, as a controller that never stops would: a thread
+    that reads the robot (SYNC, TPDOs, IMU; no torque is written, the drives stay quick-stopped) once
+    per period while the bench computes or waits for the operator. On a paced bus the drives' SYNC
+    watchdog (0x1006) stays satisfied; in lockstep the simulated robot's time and its IMU go on (the
+    IMU's stream watchdog would otherwise trip after a pause). Faults it sees are latched by the robot
+    and fail the next run's drive check. ``paused()`` stops it for a run."""
+
+    def __init__(self, robot: Robot):
+        self.robot = robot
+        self.period = float(robot.period)
+        self.reads = 0
+        self.error: str | None = None
+        self._stop = None
+        self._thread = None
+
+    def start(self) -> None:
+        import threading
+
+        if self._thread is not None or self.error is not None:
+            return
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="bench-idle", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        realtime = bool(getattr(self.robot, "realtime", False))
+        while not self._stop.is_set():
+            try:
+                self.robot.read()
+                self.reads += 1
+            except Exception as exc:  # noqa: BLE001 - the bus is gone: say so at the next run
+                self.error = f"{type(exc).__name__}: {exc}"
+                return
+            if not realtime:  # a paced read() waits for the period itself
+                self._stop.wait(self.period)
+
+    def stop(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join(timeout=5.0)
+            self._thread = None
+
+    def paused(self):
+        import contextlib
+
+        @contextlib.contextmanager
+        def cm():
+            self.stop()
+            try:
+                yield
+            finally:
+                self.start()
+        return cm()
+
+
 @dataclass
 class _Timing:
     runs: float = 0.0
@@ -181,6 +237,7 @@ class BenchProcedure:
         self.specs: dict[str, ExperimentSpec] = {}
         self.designs: dict[str, dict] = {}
         self.idle_resets: list = []
+        self.idle = IdleTicker(robot)
 
     # -- helpers -----------------------------------------------------------------------------------
     def best_params(self) -> OtbotParams:
@@ -218,11 +275,11 @@ class BenchProcedure:
 
     def _clear_idle_watchdogs(self) -> None:
         """Between runs nothing commands torque (the drives are quick-stopped) while the bench computes
-        or waits for the operator; meanwhile the drives' own watchdogs (SYNC timeout, the master's
-        heartbeat) may trip on a paced bus and say so by EMCY, and on a loaded host a heartbeat may
-        come late. Such communication faults alone are reset before the next run (and noted in the
-        result): a node that is really gone faults again at once and fails the run's drive check, as
-        does any other fault, which is never reset."""
+        or waits for the operator and the ``IdleTicker`` keeps the bus cycling; on a loaded host a
+        heartbeat may still come late, or a SYNC (the drives' watchdogs then say so by EMCY). Such
+        communication faults alone are reset before the next run (and counted in the result): a node
+        that is really gone faults again at once and fails the run's drive check, as does any other
+        fault, which is never reset."""
         faults = tuple(getattr(self.robot, "faults", ()))
         if faults and all(f.code in WATCHDOG_CODES and f.kind in ("emcy", "heartbeat") for f in faults):
             self.say("[bench] the drives' communication watchdogs tripped while the bench was idle ("
@@ -232,13 +289,14 @@ class BenchProcedure:
 
     def _run(self, controller, cycles: int, fixture: str | None, path: Path, meta: dict,
              feedback=None) -> LoopResult:
-        self._clear_idle_watchdogs()
         safety = self.s.safety.within(self.s.limits, fixture or "stand")
         sup = Supervisor(self.torque_limits, safety, self.period, realtime=self.realtime)
         runner = LoopRunner(self.robot, controller, sup, feedback, path=path, metadata=meta, realtime=self.realtime)
         t0 = time.perf_counter()
         try:
-            res = runner.run(cycles)
+            with self.idle.paused():
+                self._clear_idle_watchdogs()
+                res = runner.run(cycles)
         except RobotError as exc:  # the bus failed underneath (not a latched fault)
             raise BenchAbort(meta["bench"]["step"], f"the robot stopped answering: {exc}") from None
         self.timing.runs += time.perf_counter() - t0
@@ -399,11 +457,15 @@ class BenchProcedure:
     def run(self) -> dict:
         """Every step not passed yet, then identification, diagnosis; returns the JSON-ready result."""
         t0, c0 = time.perf_counter(), time.process_time()
-        for step in self.s.steps:
-            if self.session.status(step) == "passed":
-                self.say(f"[bench] step {step}: passed in an earlier run of this session")
-                continue
-            self.run_step(step)
+        self.idle.start()
+        try:
+            for step in self.s.steps:
+                if self.session.status(step) == "passed":
+                    self.say(f"[bench] step {step}: passed in an earlier run of this session")
+                    continue
+                self.run_step(step)
+        finally:
+            self.idle.stop()
         final = self.final_identification()
         diagnosis = self.diagnose(final) if self.s.diagnose else None
         return self.summary(final, diagnosis, time.perf_counter() - t0, time.process_time() - c0)
