@@ -246,3 +246,22 @@ def test_supervisor_holds_the_free_area_with_the_stopping_distance():
             break
     assert bad is not None and bad.kind == "travel"
     assert 0.64 - 0.006 <= v * bad.t <= 0.64 + 0.006 and bad.value == pytest.approx(v * bad.t + 0.36)
+
+
+def test_a_step_that_cannot_be_identified_says_so_and_the_diagnosis_names_what_is_missing(tmp_path, otbot_cli):
+    from otbot_hw.model.effects import ExtendedModel
+
+    rubbing = tmp_path / "coulomb.yaml"  # Coulomb friction at the wheels, which the paper's model lacks
+    ExtendedModel.paper(nominal()).with_values({"c_w": 0.3}).save(rubbing)
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--steps", "chassis", "--attempts", "1", "--yes", "--session", str(folder),
+                          "--sim-params", str(rubbing))
+    assert rc == 2 and out == ""
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("otbot bench: error: step chassis: its parameters could not be identified in 1 attempt(s)")
+    assert "residual RMS is" in last and "the model does not explain this channel" in last
+    # on the floor alone, wheel Coulomb friction and rolling resistance look alike (the stand run separates them)
+    assert "otbot diagnose on the session's recordings: ambiguous: " in last and "coulomb_wheels" in last
+    diagnosis = json.loads((folder / "diagnosis.json").read_text())
+    assert "coulomb_wheels" in {c["name"] for g in diagnosis["unloaded"]["ambiguous"] for c in g["candidates"]}
+    assert read_recording(folder / "chassis-1.mcap").metadata["effects"] == {"c_r": 0.3, "c_l": 0.3}

@@ -448,10 +448,14 @@ class BenchProcedure:
             reasons = (st.gates.reasons if st is not None else []) + list(result.reasons)
             self.session.set_status(step, "redo", attempt, reasons, verdict="redo")
             self.say(f"[bench] {step}: redo: {'; '.join(reasons)[:300]}")
+            failed_result, failed_recording = result, self.session.path / attempt["recording"]
         self.session.set_status(step, "failed")
-        raise BenchError(step, f"its parameters could not be identified in {self.s.attempts} attempt(s): "
-                               f"{'; '.join(reasons)} (look for missing physics: otbot diagnose "
-                               f"{self.session.path}/{step}-*.mcap)")
+        why = "; ".join(reasons[:2]) + (f" (and {len(reasons) - 2} more in session.json)" if len(reasons) > 2 else "")
+        found = ""
+        if self.s.diagnose:  # where the model fails, the mismatch finder says what it misses
+            d = self.diagnose(failed_result.values, {step: [failed_recording]})
+            found = f"; otbot diagnose on the session's recordings: {d['verdict']} ({self.session.path}/diagnosis.json)"
+        raise BenchError(step, f"its parameters could not be identified in {self.s.attempts} attempt(s): {why}{found}")
 
     # -- the whole procedure -----------------------------------------------------------------------
     def run(self) -> dict:
@@ -467,7 +471,7 @@ class BenchProcedure:
         finally:
             self.idle.stop()
         final = self.final_identification()
-        diagnosis = self.diagnose(final) if self.s.diagnose else None
+        diagnosis = self.diagnose(final.values) if self.s.diagnose else None
         return self.summary(final, diagnosis, time.perf_counter() - t0, time.process_time() - c0)
 
     def final_identification(self):
@@ -477,9 +481,10 @@ class BenchProcedure:
         self.result = self.identify(last, self.session.accepted_recordings(last)[0])
         return self.result
 
-    def diagnose(self, final) -> dict:
-        """The mismatch finder on the session's recordings: the unloaded robot's steps with the identified
-        unloaded robot, the platform step with the loaded one."""
+    def diagnose(self, values: dict, extra: dict[str, list[Path]] | None = None) -> dict:
+        """The mismatch finder on the session's recordings (the passed steps', and ``extra`` per step):
+        the unloaded robot's steps with the identified unloaded robot (``values``, session symbols), the
+        platform step with the loaded one. Written to ``diagnosis.json`` too."""
         from otbot_hw.diagnose.data import from_recording
         from otbot_hw.diagnose.diagnosis import diagnose
 
@@ -488,12 +493,12 @@ class BenchProcedure:
         groups = {"unloaded": [s for s in self.s.steps if not BENCH_STEPS[s].loaded],
                   "loaded": [s for s in self.s.steps if BENCH_STEPS[s].loaded]}
         for label, steps in groups.items():
-            paths = [p for s in steps for p in self.session.accepted_recordings(s)]
+            paths = [p for s in steps for p in [*self.session.accepted_recordings(s), *(extra or {}).get(s, [])]]
             if not paths:
                 continue
             self.say(f"[bench] diagnose: the {label} robot's recordings ({', '.join(self.session.rel(p) for p in paths)})")
             data = [from_recording(read_recording(p), name=self.session.rel(p)) for p in paths]
-            params = robot_params(final.values, self.s.params_start, loaded=label == "loaded")
+            params = robot_params(values, self.s.params_start, loaded=label == "loaded")
             out[label] = diagnose(data, params, progress=lambda m: self.say(m))
         self.timing.diagnosis += time.perf_counter() - t0
         effects = sorted({e["name"] for d in out.values() for e in d["effects"]})
