@@ -151,62 +151,6 @@ class SimulatedRobot:
         return {n: v[n] for n in SESSION_PARAMS}
 
 
-class IdleTicker:
-    """Keeps the bus cycling between the bench's runs, as a controller that never stops would: a thread
-    that reads the robot (SYNC, TPDOs, IMU; no torque is written, the drives stay quick-stopped) once
-    per period while the bench computes or waits for the operator. On a paced bus the drives' SYNC
-    watchdog (0x1006) stays satisfied; in lockstep the simulated robot's time and its IMU go on (the
-    IMU's stream watchdog would otherwise trip after a pause). Faults it sees are latched by the robot
-    and fail the next run's drive check. ``paused()`` stops it for a run."""
-
-    def __init__(self, robot: Robot):
-        self.robot = robot
-        self.period = float(robot.period)
-        self.reads = 0
-        self.error: str | None = None
-        self._stop = None
-        self._thread = None
-
-    def start(self) -> None:
-        import threading
-
-        if self._thread is not None or self.error is not None:
-            return
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name="bench-idle", daemon=True)
-        self._thread.start()
-
-    def _loop(self) -> None:
-        realtime = bool(getattr(self.robot, "realtime", False))
-        while not self._stop.is_set():
-            try:
-                self.robot.read()
-                self.reads += 1
-            except Exception as exc:  # noqa: BLE001 - the bus is gone: say so at the next run
-                self.error = f"{type(exc).__name__}: {exc}"
-                return
-            if not realtime:  # a paced read() waits for the period itself
-                self._stop.wait(self.period)
-
-    def stop(self) -> None:
-        if self._thread is not None:
-            self._stop.set()
-            self._thread.join(timeout=5.0)
-            self._thread = None
-
-    def paused(self):
-        import contextlib
-
-        @contextlib.contextmanager
-        def cm():
-            self.stop()
-            try:
-                yield
-            finally:
-                self.start()
-        return cm()
-
-
 @dataclass
 class _Timing:
     runs: float = 0.0
@@ -237,7 +181,6 @@ class BenchProcedure:
         self.specs: dict[str, ExperimentSpec] = {}
         self.designs: dict[str, dict] = {}
         self.idle_resets: list = []
-        self.idle = IdleTicker(robot)
 
     # -- helpers -----------------------------------------------------------------------------------
     def best_params(self) -> OtbotParams:
@@ -274,16 +217,22 @@ class BenchProcedure:
         return meta
 
     def _clear_idle_watchdogs(self) -> None:
-        """Between runs nothing commands torque (the drives are quick-stopped) while the bench computes
-        or waits for the operator and the ``IdleTicker`` keeps the bus cycling; on a loaded host a
-        heartbeat may still come late, or a SYNC (the drives' watchdogs then say so by EMCY). Such
-        communication faults alone are reset before the next run (and counted in the result): a node
-        that is really gone faults again at once and fails the run's drive check, as does any other
-        fault, which is never reset."""
+        """Between runs nothing commands torque (the drives are quick-stopped) and the bus rests while
+        the bench computes or waits for the operator. Wall-clock watchdogs may trip meanwhile: the
+        drives' watch of the master's heartbeat (or of SYNC, where configured) on a loaded host, said
+        by EMCY; in lockstep a node's heartbeat or TPDO, or the simulated IMU (it publishes on SYNC)
+        looks late. One SYNC shows them; such communication faults alone are then reset (and counted
+        in the result): a node or an IMU that is really gone faults again at once and fails the run's
+        drive or IMU check, as does any other fault, which is never reset."""
+        try:
+            self.robot.read()  # one SYNC: what went wrong while idle shows now (e.g. the IMU stream's watchdog)
+        except RobotError:
+            pass  # the bus is gone: the run's enable says so
         faults = tuple(getattr(self.robot, "faults", ()))
-        if faults and all(f.code in WATCHDOG_CODES and f.kind in ("emcy", "heartbeat") for f in faults):
-            self.say("[bench] the drives' communication watchdogs tripped while the bench was idle ("
-                     + "; ".join(sorted({f"{f.device}: 0x{f.code:04X}" for f in faults})) + "): reset")
+        if faults and all(_communication(f) for f in faults):
+            self.say("[bench] communication watchdogs tripped while the bench was idle ("
+                     + "; ".join(sorted({f"{f.device}: {f.kind}" + (f" 0x{f.code:04X}" if f.code else "")
+                                         for f in faults})) + "): reset")
             self.idle_resets.append([f.to_dict() for f in faults])
             self.robot.fault_reset()
 
@@ -294,9 +243,8 @@ class BenchProcedure:
         runner = LoopRunner(self.robot, controller, sup, feedback, path=path, metadata=meta, realtime=self.realtime)
         t0 = time.perf_counter()
         try:
-            with self.idle.paused():
-                self._clear_idle_watchdogs()
-                res = runner.run(cycles)
+            self._clear_idle_watchdogs()
+            res = runner.run(cycles)
         except RobotError as exc:  # the bus failed underneath (not a latched fault)
             raise BenchAbort(meta["bench"]["step"], f"the robot stopped answering: {exc}") from None
         self.timing.runs += time.perf_counter() - t0
@@ -461,15 +409,11 @@ class BenchProcedure:
     def run(self) -> dict:
         """Every step not passed yet, then identification, diagnosis; returns the JSON-ready result."""
         t0, c0 = time.perf_counter(), time.process_time()
-        self.idle.start()
-        try:
-            for step in self.s.steps:
-                if self.session.status(step) == "passed":
-                    self.say(f"[bench] step {step}: passed in an earlier run of this session")
-                    continue
-                self.run_step(step)
-        finally:
-            self.idle.stop()
+        for step in self.s.steps:
+            if self.session.status(step) == "passed":
+                self.say(f"[bench] step {step}: passed in an earlier run of this session")
+                continue
+            self.run_step(step)
         final = self.final_identification()
         diagnosis = self.diagnose(final.values) if self.s.diagnose else None
         return self.summary(final, diagnosis, time.perf_counter() - t0, time.process_time() - c0)
@@ -541,6 +485,15 @@ class BenchProcedure:
                                   if n in final.estimated}
             out["load"] = dict(zip(("mass", "x", "y", "inertia"), self.sim.load)) if self.sim.load else None
         return _finite(out)
+
+
+def _communication(f) -> bool:
+    """A fault of the bus's wall-clock watchdogs (not of a drive's power stage or its sensors)."""
+    if f.kind == "emcy":
+        return f.code in WATCHDOG_CODES
+    if f.kind == "imu":
+        return "no valid IMU sentence" in f.meaning or "no IMU sample within" in f.meaning
+    return f.kind in ("heartbeat", "stale")
 
 
 def _tail(rec, k: int):
