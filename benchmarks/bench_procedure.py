@@ -157,6 +157,19 @@ def time_table(sets: dict[str, list[dict]]) -> str:
     return "\n".join(lines)
 
 
+def print_tables(sets: dict[str, list[dict]]) -> None:
+    print("## Outcomes\n")
+    print(outcome_table(sets))
+    for v, ts in sets.items():
+        print(f"\n## Honest uncertainty through the bus: {v}\n")
+        print(honesty_table(ts))
+    if "designed" in sets and "paper-wide" in sets:
+        print("\n## Designed against the paper's excitation, measured through the bus\n")
+        print(sigma_table(sets["designed"], sets["paper-wide"]))
+    print("\n## Time per procedure\n")
+    print(time_table(sets))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=20, help="robots per variant (default 20)")
@@ -164,7 +177,16 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default="designed,paper,paper-wide", help="comma-separated, of " + ", ".join(VARIANTS))
     ap.add_argument("--out-dir", type=Path, default=None, help="keep the sessions here (default a temporary folder)")
     ap.add_argument("--json", type=Path, default=None, help="write every trial to this JSON file")
+    ap.add_argument("--tables", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="print the tables of earlier runs' --json files (merged) instead of running")
     args = ap.parse_args(argv)
+    if args.tables:
+        sets = {}
+        for f in args.tables:
+            for v, ts in json.loads(f.read_text()).items():
+                sets.setdefault(v, []).extend(ts)
+        print_tables(sets)
+        return 0
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     tmp = None
     if args.out_dir is None:
@@ -186,16 +208,7 @@ def main(argv=None) -> int:
             print(f"[{v}] seed {s}: exit {r['rc']}, {r['wall']:.1f} s, largest |error|/sigma {worst:.2f}"
                   + (f" ({r.get('reason') or ' '.join(r['stderr_tail'])})"[:200] if r["rc"] else ""), flush=True)
     print(f"\n{sum(len(t) for t in sets.values())} procedures in {time.perf_counter() - t0:.0f} s\n")
-    print("## Outcomes\n")
-    print(outcome_table(sets))
-    for v, ts in sets.items():
-        print(f"\n## Honest uncertainty through the bus: {v}\n")
-        print(honesty_table(ts))
-    if "designed" in sets and "paper-wide" in sets:
-        print("\n## Designed against the paper's excitation, measured through the bus\n")
-        print(sigma_table(sets["designed"], sets["paper-wide"]))
-    print("\n## Time per procedure\n")
-    print(time_table(sets))
+    print_tables(sets)
     if args.json:
         args.json.write_text(json.dumps(sets, indent=1, default=float))
     if tmp is not None:
