@@ -99,20 +99,22 @@ def imu_check(rec, imu_rate: float | None) -> Check:
                  "check the IMU's cable, port and output rate (otbot imu read shows what arrives)", frac)
 
 
-def rest_check(rec, noise, what: str = "") -> Check:
-    """The robot stands still: every encoder rate below the identification's rest threshold and its
-    mean within ``REST_MEAN_SIGMAS`` of the stated rate noise over the window (a slow coast biases
-    the fit, which starts the run at rest), the gyro quiet, the accelerometer's spread within 3x its
-    stated noise. ``noise``: the stated sensor noise (``NoiseModel``)."""
-    n = len(rec)
-    w = float(np.max(np.abs(rec.joint_vel))) if n else math.inf
-    m = float(np.max(np.abs(np.mean(rec.joint_vel, axis=0)))) if n else math.inf
+def rest_check(rec, noise, what: str = "", start: int = 0) -> Check:
+    """The robot stands still over the samples ``start``.. of ``rec``: every encoder rate below the
+    identification's rest threshold and its mean within ``REST_MEAN_SIGMAS`` of the stated rate
+    noise over the window (a slow coast biases the fit, which starts the run at rest), the gyro
+    quiet, the accelerometer's spread within 3x its stated noise. ``noise``: the stated sensor noise
+    (``NoiseModel``)."""
+    vel = np.asarray(rec.joint_vel[start:])
+    n = len(vel)
+    w = float(np.max(np.abs(vel))) if n else math.inf
+    m = float(np.max(np.abs(np.mean(vel, axis=0)))) if n else math.inf
     mean_lim = max(REST_MEAN_SIGMAS * (noise.enc_rate or 0.0) / math.sqrt(max(n, 1)), MIN_REST_MEAN)
     found = [f"largest encoder rate {w:.3f} rad/s, largest mean rate {m:.4f} rad/s"]
     ok = w <= REST_THRESHOLD and m <= mean_lim
-    if rec.imu_gyro is not None and np.all(np.isfinite(rec.imu_gyro)):
-        g = float(np.max(np.abs(np.mean(rec.imu_gyro, axis=0))))
-        s = float(np.max(np.std(rec.imu_accel[:, :2], axis=0)))
+    if rec.imu_gyro is not None and np.all(np.isfinite(rec.imu_gyro[start:])):
+        g = float(np.max(np.abs(np.mean(rec.imu_gyro[start:], axis=0))))
+        s = float(np.max(np.std(rec.imu_accel[start:, :2], axis=0)))
         found += [f"mean gyro {g:.3f} rad/s", f"accelerometer spread {s:.4f} m/s^2"]
         ok = ok and g <= REST_GYRO and s <= 3.0 * (noise.accel or 0.0137)
     head = "the robot stands still" if ok else "the robot is moving"

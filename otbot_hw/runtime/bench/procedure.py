@@ -288,13 +288,12 @@ class BenchProcedure:
         settle_path = self.session.recording_path(step, n, "settle")
         gains = brake_gains(best, bs.fixture if out[-1].passed else None, self.period)
         nb = int(round(SETTLE_TIME / self.period))
-        settle = self._run(ExcitationController(np.zeros((0, 3)), self.period, gains, self.s.limits.torque, nb), nb + 1, bs.fixture, settle_path,
-                           self._meta(step, "settle", n, bs.fixture))
+        settle = self._run(ExcitationController(np.zeros((0, 3)), self.period, gains, self.s.limits.torque, nb),
+                           nb + 1, bs.fixture, settle_path, self._meta(step, "settle", n, bs.fixture))
         attempt["check_recordings"].append(self.session.rel(settle_path))
-        if out[-1].passed:
-            tail = settle.recording
-            k = max(0, len(tail) - int(round(REST_TIME / self.period)))
-            c = chk.rest_check(_tail(tail, k), self.s.noise, what="after the probe")
+        if out[-1].passed:  # judged on its last REST_TIME
+            k = max(0, len(settle.recording) - int(round(REST_TIME / self.period)))
+            c = chk.rest_check(settle.recording, self.s.noise, what="after the probe", start=k)
             out.append(dataclasses.replace(c, name="settled"))
         return out
 
@@ -494,14 +493,6 @@ def _communication(f) -> bool:
     if f.kind == "imu":
         return "no valid IMU sentence" in f.meaning or "no IMU sample within" in f.meaning
     return f.kind in ("heartbeat", "stale")
-
-
-def _tail(rec, k: int):
-    """The samples k.. of a recording (the end of a run, judged at rest)."""
-    return dataclasses.replace(rec, t=rec.t[k:], torque=rec.torque[k:], joint_pos=rec.joint_pos[k:],
-                               joint_vel=rec.joint_vel[k:],
-                               imu_accel=None if rec.imu_accel is None else rec.imu_accel[k:],
-                               imu_gyro=None if rec.imu_gyro is None else rec.imu_gyro[k:])
 
 
 def _finite(o):
