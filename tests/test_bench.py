@@ -265,3 +265,17 @@ def test_a_step_that_cannot_be_identified_says_so_and_the_diagnosis_names_what_i
     diagnosis = json.loads((folder / "diagnosis.json").read_text())
     assert "coulomb_wheels" in {c["name"] for g in diagnosis["unloaded"]["ambiguous"] for c in g["candidates"]}
     assert read_recording(folder / "chassis-1.mcap").metadata["effects"] == {"c_r": 0.3, "c_l": 0.3}
+
+
+def test_drives_that_cap_the_torque_give_a_saturated_recording_that_is_named_and_kept(tmp_path, otbot_cli):
+    # the drives' own limit 0x6072 at 400 per-mille of 2 N m, x10 gear: 8 N m at the joint, below the paper's 10 N m
+    cfg = _config(tmp_path, cap=("- [0x6072, 0, 2500]", "- [0x6072, 0, 400]"))
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--steps", "chassis", "--yes", "--no-diagnose", "--session", str(folder),
+                          "--config", str(cfg))
+    assert rc == 2 and out == ""
+    last = err.strip().splitlines()[-1]
+    assert "step chassis: saturation: saturated: the drives applied -8.00 N m where -10.00 N m was commanded on left " \
+           "wheel (300 of 300 samples)" in last and "0x6072" in last
+    rec = read_recording(folder / "chassis-1.mcap")  # kept, and it says what the drives applied
+    assert np.all(rec.torque[:300] == [6.0, -8.0, 6.0])
