@@ -31,6 +31,7 @@ from otbot_hw.runtime.controllers import OpenLoopTorques, TrackingController
 from otbot_hw.runtime.feedback import EkfFeedback, TruthFeedback, load_ekf
 from otbot_hw.runtime.loop import LoopResult, LoopRunner
 from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor
+from otbot_hw.sensors import NoiseModel
 from otbot_hw.simulation.simulator import ForceSchedule, rest_state
 
 
@@ -125,6 +126,20 @@ def make_feedback(kind: str | None, params, period: float, start_pose, config_pa
     raise ValueError(f"unknown feedback {kind!r} (ekf, truth)")
 
 
+def warm_up(reference, law: ComputedTorqueController, feedback: str | None, period: float, x0=None,
+            config_path=None, cycles: int = 5) -> None:
+    """Compile what the loop runs (the law, its one-period prediction, the estimator's kernels, the
+    supervisor) with a few cycles on the in-process simulated robot, before a bus opens: numba compiles
+    a function at its first call and holds the interpreter meanwhile (seconds on a cold cache), which on
+    a live bus would starve the heartbeat threads and trip every watchdog."""
+    x0 = x0 if x0 is not None else rest_state(reference.sample(np.zeros(1))[0][0])
+    with DirectBackend(rate=1.0 / period, noise=NoiseModel.paper()).open(law.model, x0=x0) as robot:
+        controller = TrackingController(law, reference, period)
+        fb = make_feedback(feedback, law.params, period, x0[:3], config_path)
+        sup = Supervisor(MotorLimits(np.full(3, 1e9)), SafetyConfig(), period)
+        LoopRunner(robot, controller, sup, fb).run(cycles)
+
+
 def track_reference(reference, law: ComputedTorqueController, plant=None, limits: MotorLimits | None = None,
                     backend=None, feedback="truth", x0=None, forces: ForceSchedule | None = None,
                     duration: float | None = None, safety: SafetyConfig | None = None,
@@ -147,6 +162,8 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
     T = reference.duration if duration is None else float(duration)
     sim = backend.has_truth
     meta = {"backend": backend.describe(), **(metadata or {})}
+    if not isinstance(backend, DirectBackend):
+        warm_up(reference, law, feedback if isinstance(feedback, str) else None, backend.period, x0, config_path)
     with backend.open(plant if sim else None, x0=x0 if sim else None, forces=forces if sim else None) as robot:
         period = robot.period
         controller = TrackingController(law, reference, period, predict=predict)
