@@ -186,7 +186,7 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
     from otbot_hw.runtime.bench.buslog import BusLog
     from otbot_hw.runtime.bench.operator import AutomaticOperator, NoOperator, OperatorStopped, PromptOperator
-    from otbot_hw.runtime.bench.procedure import BenchAbort, BenchError, BenchProcedure, identity
+    from otbot_hw.runtime.bench.procedure import BenchAbort, BenchError, BenchProcedure, identity, warm_up
     from otbot_hw.runtime.bench.report import write_report
     from otbot_hw.runtime.bench.session import SessionError, SessionFolder
 
@@ -217,6 +217,7 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
         label = None
     log = None
     summary = None
+    warm_up(settings.params_start, cfg.bus.period)
     try:
         with opened as robot:
             ident = identity(robot, args.bus, sim, label)

@@ -528,6 +528,22 @@ def identity(robot, bus: str, sim: SimulatedRobot | None = None, sim_label: str 
     return out
 
 
+def warm_up(params: OtbotParams, period: float) -> None:
+    """Compile what the bench's runs call (the EKF's kernels, the supervisor, the brake's and the
+    predicted motion's model functions) before a bus opens: numba compiles at the first call and holds
+    the interpreter meanwhile (seconds on a cold cache), which on a live bus starves the heartbeat
+    threads (as ``runtime.tracking.warm_up`` does for tracking)."""
+    from otbot_hw.identification.experiments import PAPER_EXPERIMENTS
+    from otbot_hw.runtime.backends import DirectBackend
+    from otbot_hw.runtime.feedback import EkfFeedback
+
+    with DirectBackend(rate=1.0 / period, noise=NoiseModel.paper()).open(params) as robot:
+        ctrl = ExcitationController(np.zeros((3, 3)), period, brake_gains(params, "floor", period), 1.0, 3)
+        sup = Supervisor(MotorLimits(np.full(3, 1e9)), SafetyConfig(max_travel=10.0), period)
+        LoopRunner(robot, ctrl, sup, EkfFeedback(params, period, np.zeros(3))).run(6)
+    predicted_margins(PAPER_EXPERIMENTS["wheel"], params, ExperimentLimits(), None, None)
+
+
 def settings_from_manifest(data: dict, base: BenchSettings) -> BenchSettings:
     """The settings a session was started with (``--resume``), the hardware's limits and safety kept."""
     from otbot_hw.experiment_limits import limits_from_dict
