@@ -34,7 +34,7 @@ def floor_session(tmp_path_factory):
 
     with contextlib.redirect_stdout(out):
         rc = main(["bench", "--yes", "--json", "--steps", "chassis,platform", "--session", str(folder),
-                   "--sim-load", "{:g}@{:g},{:g},{:g}".format(*LOAD), "--seed", "3"])
+                   "--sim-load", "{:g}@{:g},{:g},{:g}".format(*LOAD), "--seed", "3", "--no-diagnose"])
     return rc, json.loads(out.getvalue()), folder
 
 
@@ -62,7 +62,7 @@ def test_floor_steps_identify_the_loaded_robot_through_the_bus(floor_session):
         assert p["std"] > 0 and abs(p["value"] - d["truth"][n]) <= 4 * p["std"], (n, p, d["truth"][n])
     for n in ("I_a", "b_w", "b_p"):  # steps not run keep the start values (the nominal file, no std)
         assert d["parameters"][n] == {"value": getattr(nominal(), n), "std": 0.0}
-    assert d["diagnosis"]["verdict"] and {"unloaded", "loaded"} <= set(d["diagnosis"])
+    assert d["diagnosis"] is None  # (the diagnosis of a whole session: the demo's test; of a failed step: below)
     # params.yaml is what otbot track / diagnose --params load: the loaded working robot with std
     p = OtbotParams.load(d["params_file"])
     assert p.m_p == pytest.approx(d["parameters"]["m_p"]["value"]) and p.std["m_p"] == pytest.approx(

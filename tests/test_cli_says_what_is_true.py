@@ -107,6 +107,7 @@ def test_demo_labels_numbers_announces_files_and_explains_saturation_once(tmp_pa
     for name in ("I_a", "b_w", "I_p0", "b_p", "m_c", "I_c", "x_B", "y_B", "m_p", "I_p", "x_F", "y_F"):
         assert re.search(rf"\b{name} -?[\d.e+-]+ \+- [\d.e+-]+ \([+-]\d+\.\d\)", bench), name
     assert "with the parameters the bench identified" in err
+    assert "[demo] bench diagnosis: no missing physics found" in out  # the simulated robot has none
 
 
 def test_corridor_walls_lie_half_a_width_from_the_centre_line():
