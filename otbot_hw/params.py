@@ -251,6 +251,35 @@ class OtbotParams:
         write_yaml(path, self.to_dict(), header)
 
 
+def parse_load(text: str) -> tuple[float, float, float, float]:
+    """A load on the platform written 'KG@X,Y[,I]' -> (mass kg, x m, y m, own inertia kg m^2), the
+    arguments of ``OtbotParams.with_load``. ``ValueError`` says what is wrong, without naming where the
+    text came from (callers prefix their option: "--load mass must be >= 0 kg, got -5")."""
+    if "@" not in text:
+        raise ValueError(f"must look like KG@X,Y or KG@X,Y,I, got {text!r}")
+    kg, pos = text.split("@", 1)
+    parts = [p.strip() for p in pos.split(",")]
+    if len(parts) not in (2, 3):
+        raise ValueError(f"position needs X,Y or X,Y,I, got {pos!r}")
+    vals = []
+    for what, items in (("mass", [kg.strip()]), ("position", parts)):
+        for item in items:
+            try:
+                v = float(item)
+            except ValueError:
+                raise ValueError(f"{what}: {item!r} is not a number") from None
+            if not math.isfinite(v):
+                raise ValueError(f"{what}: values must be finite, got {item!r}")
+            vals.append(v)
+    mass, x, y = vals[:3]
+    inertia = vals[3] if len(vals) == 4 else 0.0
+    if mass < 0:
+        raise ValueError(f"mass must be >= 0 kg, got {mass:g}")
+    if inertia < 0:
+        raise ValueError(f"inertia must be >= 0 kg m^2, got {inertia:g}")
+    return mass, x, y, inertia
+
+
 def nominal() -> OtbotParams:
     """The nominal parameters of ``config/otbot.yaml`` (paper Table 3)."""
     return OtbotParams.load(DEFAULT_PARAMS_FILE)

@@ -25,6 +25,11 @@ since the last SYNC for what happens between SYNCs (watchdogs, NMT).
 Transports: ``VirtualPlant`` (python-can ``virtual`` interface, same process), ``serve``
 (a plant in its own process behind an slcan adapter emulated on a pseudo-terminal, or on a
 socketcan interface; ``PlantProcess`` starts one and asks it for its ``report()``).
+
+The operator channel: what a person at the bench does to the robot (change the fixture, fix or
+remove a load) is ``Plant.operator("fixture stand")`` in this process, and the same line on the
+standard input of ``serve`` (``otbot plant``), which answers each with one JSON line
+(``OPERATOR_HELP``; the bench procedure's ``--yes`` uses it on the simulated robot).
 """
 from __future__ import annotations
 
@@ -46,7 +51,7 @@ import numpy as np
 
 from drivers.config import LOCKSTEP_HEARTBEAT, LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT, RobotConfig
 from drivers.robot import STANDARD_FRAMES_ONLY, CanopenRobot, imu_due
-from otbot_hw.params import OtbotParams, nominal
+from otbot_hw.params import OtbotParams, nominal, parse_load
 from otbot_hw.sensors import NoiseModel
 from otbot_hw.simulation.sensing import StepperSensors
 from otbot_hw.simulation.simulator import ForceSchedule, make_stepper
@@ -103,6 +108,10 @@ class Plant:
     or None; ``noise``: sensor noise (IMU accel/gyro sigma; joint angle and rate sigma added before
     the drives and the encoder quantize); ``position_offsets``: each drive's 0x6064 at phi = 0 (counts).
     """
+
+    #: the load an operator fixed on the platform ({mass, x, y, inertia}), and the robot without it
+    load: dict | None = None
+    unloaded_model = None
 
     def __init__(self, network: canopen.Network, config: RobotConfig, params=None,
                  fixture: str = "floor", forces: ForceSchedule | None = None, x0: np.ndarray | None = None,
@@ -232,6 +241,68 @@ class Plant:
         """Plant time, s (0 at the first SYNC with all drives enabled)."""
         return self.k * self.period
 
+    # -- the operator channel: what a person at the bench does to the robot --------------------------
+    def operator(self, command: str) -> dict:
+        """Do what an operator at the bench would: ``command`` is one line (``OPERATOR_COMMANDS``):
+
+        * ``fixture floor|stand|locked``: put the robot on the floor, on the stand (chassis held,
+          wheels free) or lock its wheels;
+        * ``load KG@X,Y[,I]``: fix a load of KG kg at (X, Y) m in the platform frame (own inertia
+          I kg m^2) on the platform (replacing any load); ``unload``: take it off;
+        * ``status``: report the fixture, the load and the robot's parameters.
+
+        A person handles the robot at rest: every change stops it (joint rates zero; the joint
+        angles, what the encoders count, are kept). Returns a JSON-ready reply (``error`` for a
+        command it does not know or cannot do); thread-safe against the SYNC handler."""
+        words = command.split()
+        if not words:
+            return {"error": "empty operator command (" + OPERATOR_HELP + ")"}
+        verb, args = words[0], words[1:]
+        with self.lock:
+            try:
+                if verb == "fixture" and len(args) == 1:
+                    self._set_up(fixture=args[0])
+                elif verb == "load" and len(args) == 1:
+                    self._set_up(load=parse_load(args[0]))  # ValueError says what is wrong
+                elif verb == "unload" and not args:
+                    self._set_up(load=None)
+                elif verb != "status" or args:
+                    return {"error": f"unknown operator command {command.strip()!r} ({OPERATOR_HELP})"}
+            except ValueError as exc:
+                return {"error": f"{command.strip()}: {exc}"}
+            return {"fixture": self.fixture, "load": self.load, "params": self.params.to_dict()}
+
+    def _set_up(self, fixture: str | None = None, load="keep") -> None:
+        """Rebuild the stepper for a new fixture and/or load (None: no load), the robot at rest."""
+        from otbot_hw.model.fixtures import FIXTURES
+        from otbot_hw.params import ParameterError
+
+        fixture = self.fixture if fixture is None else fixture
+        if fixture not in FIXTURES:
+            raise ValueError(f"unknown fixture {fixture!r} (known: {', '.join(FIXTURES)})")
+        if self.unloaded_model is None:
+            self.unloaded_model = self.model
+        if load != "keep":
+            base = self.unloaded_model
+            try:
+                params = getattr(base, "params", base).with_load(*load) if load else getattr(base, "params", base)
+            except ParameterError as exc:
+                raise ValueError(str(exc)) from None
+            self.model = type(base)(params, base.eff) if hasattr(base, "eff") else params
+            self.params = params
+            self.load = dict(zip(("mass", "x", "y", "inertia"), load)) if load else None
+        old = self.stepper
+        x0 = old.x.copy()
+        x0[6:] = 0.0  # handled by a person: at rest
+        st = make_stepper(self.model, self.period, x0, fixture)
+        for attr in ("slip", "tau"):  # the extended model's wheel slip (encoder offset) and drive torque
+            if hasattr(old, attr) and hasattr(st, attr):
+                setattr(st, attr, getattr(old, attr) * (0.0 if attr == "tau" else 1.0))
+        st.t = old.t
+        self.stepper = st
+        self.sensors = StepperSensors(st, self.period)
+        self.fixture = fixture
+
     def power_on(self) -> None:
         """Boot every slave (boot-up message, PRE-OPERATIONAL, heartbeat)."""
         for n in self.nodes:
@@ -308,6 +379,10 @@ class Plant:
         elif all(d.state == "OPERATION ENABLED" for d in self.drives):
             self.started = True
             self.start_sync = sync_index + 1
+
+
+OPERATOR_COMMANDS = ("fixture", "load", "unload", "status")
+OPERATOR_HELP = "fixture floor|stand|locked, load KG@X,Y[,I], unload, status"
 
 
 class VirtualPlant:
@@ -496,8 +571,12 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
     try:
         for line in commands:  # until the parent closes our input
             words = line.split()
+            if not words:
+                continue
             if words == ["report"]:
                 reply = plant.report()
+            elif words[0] in OPERATOR_COMMANDS:
+                reply = plant.operator(line)
             elif len(words) == 3 and words[0] == "flood":
                 reply = send_flood(bus, flood_frames(config, int(words[1]), int(words[2])))
             elif words[:1] == ["restart"] and len(words) <= 2:
@@ -509,7 +588,7 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
                     plant = new_plant(None)
                     reply = {"error": str(exc), **info}
             else:
-                reply = {"error": f"unknown command {line.strip()!r} (report, flood N SEED, restart [KIND@S])"}
+                reply = {"error": f"unknown command {line.strip()!r} (report, flood N SEED, restart [KIND@S], {OPERATOR_HELP})"}
             out.write(json.dumps(reply) + "\n")
             out.flush()
     except KeyboardInterrupt:

@@ -155,6 +155,29 @@ BAD_INPUT = [
     ("plant", "--rate 0.5", "cannot be written as 0x60C2"),
     ("plant", "--config {binary_yaml}", "not a text file"),
     ("plant", "--transport socketcan --channel otbot-no-such-can", "cannot open the CAN interface"),
+    # --- bench (checked before the bus opens; the sensors' and the data's verdicts are in test_bench.py)
+    ("bench", "--steps wheel,moon", "--steps: unknown step(s) moon (known: wheel, pivot, chassis, platform)"),
+    ("bench", "--steps wheel,wheel", "--steps: a step is named twice"),
+    ("bench", "--session {tmp}/a --resume {tmp}/b", "give --session DIR for a new session or --resume DIR"),
+    ("bench", "--resume {missing}", "--resume {missing}: no such session folder"),
+    ("bench", "--resume {folder}", "not a bench session (no session.json)"),
+    ("bench", "--resume {folder} --excitation designed", "--excitation: --resume continues the session with the "
+                                                         "settings it was started with"),
+    ("bench", "--session {ok}", "exists and is not a folder"),
+    ("bench", "--session {missing}/s", "does not exist (otbot creates no parent folders)"),
+    ("bench", "--rate 200", "the bench runs at 100 Hz, the paper's sampling"),
+    ("bench", "--bus config --sim-load 5@0,0", "--sim-params and --sim-load set the simulated robot"),
+    ("bench", "--sim-load heavy", "--sim-load must look like KG@X,Y or KG@X,Y,I"),
+    ("bench", "--sim-load -5@0,0", "--sim-load mass must be >= 0 kg"),
+    ("bench", "--sim-load 5@0.9,0", "the load at (0.9, 0) m is off the platform (radius 0.5 m)"),
+    ("bench", "--sim-params {binary_yaml}", "not a text file"),
+    ("bench", "--params {missing}/p.yaml", "cannot read parameter file"),
+    ("bench", "--free-area 0", "argument --free-area: must be a finite number of m > 0"),
+    ("bench", "--attempts 0", "argument --attempts: must be an integer >= 1"),
+    ("bench", "--excitation random", "invalid choice"),
+    ("bench", "--out {missing}/p.yaml", "does not exist"),
+    ("bench", "--report {ok}", "exists and is not a folder"),
+    ("bench", "--config {binary_yaml}", "not a text file"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
     (None, "", "the following arguments are required: COMMAND"),
@@ -245,7 +268,8 @@ def test_every_option_has_help_and_no_literal_percent_signs(name):
 
 def test_demo_help_describes_every_stage():
     text = " ".join(dict(_leaf_parsers())["demo"].format_help().split())
-    for stage in ("chassis experiment", "identification", "CANopen drivers", "narrow corridor"):
+    for stage in ("chassis experiment", "identification", "CANopen drivers", "bench identification procedure",
+                  "narrow corridor"):
         assert stage in text, stage
 
 

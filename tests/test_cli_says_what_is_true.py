@@ -100,8 +100,14 @@ def test_demo_labels_numbers_announces_files_and_explains_saturation_once(tmp_pa
     assert not [line for line in err.splitlines() if "feasibility:" in line]
     walls = re.search(r"footprint to the walls >= (\d+) mm", out)
     assert walls and int(walls.group(1)) > 0
-    for stage in ("1/4", "2/4", "3/4", "4/4"):
+    for stage in ("1/5", "2/5", "3/5", "4/5", "5/5"):
         assert f"[demo] {stage}" in err
+    # the bench stage identified the loaded robot the corridor then runs on, and says how well
+    bench = next(line for line in out.splitlines() if "bench estimates" in line)
+    for name in ("I_a", "b_w", "I_p0", "b_p", "m_c", "I_c", "x_B", "y_B", "m_p", "I_p", "x_F", "y_F"):
+        assert re.search(rf"\b{name} -?[\d.e+-]+ \+- [\d.e+-]+ \([+-]\d+\.\d\)", bench), name
+    assert "with the parameters the bench identified" in err
+    assert "[demo] bench diagnosis: no missing physics found" in out  # the simulated robot has none
 
 
 def test_corridor_walls_lie_half_a_width_from_the_centre_line():

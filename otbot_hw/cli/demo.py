@@ -1,11 +1,14 @@
-"""``otbot demo``: the main job against the built-in simulated robot, in four stages.
+"""``otbot demo``: the main job against the built-in simulated robot, in five stages.
 
 1. the paper's chassis experiment (tau = (6, -10, 6) N m for 3 s, 100 Hz zero-order hold, IMU
    noise sigma = ND sqrt(SR) = 13.7e-3): MCAP recording and plots;
 2. chassis identification (paper step 2) from that recording;
 3. the same experiment through the CANopen drivers (simulated robot on virtual CAN);
-4. the paper's narrow corridor tracked by the computed-torque controller over the simulated CAN
-   bus, fed by the pose EKF on the encoders and IMU (recording and plots in ``corridor/``).
+4. the bench procedure (``otbot bench --yes``) on a robot carrying a load, over the simulated CAN
+   bus: the four steps with their checks, identification with std, diagnosis, report (``bench/``);
+5. the paper's narrow corridor tracked by the computed-torque controller over the simulated CAN
+   bus on that loaded robot, with the parameters the bench identified, fed by the pose EKF on the
+   encoders and IMU (recording and plots in ``corridor/``).
 
 Every file written is announced on stdout (text mode) or listed in the JSON.
 """
@@ -26,15 +29,18 @@ Q_LABELS = (("x", "m"), ("y", "m"), ("alpha", "rad"), ("phi_r", "rad"), ("phi_l"
 def register(sub) -> None:
     p = sub.add_parser(
         "demo",
-        help="run the main job against the built-in simulated robot (simulate, identify, CAN, track)",
-        description="The main job on the built-in simulated robot, in four stages, all files in --out-dir: "
+        help="run the main job against the built-in simulated robot (simulate, identify, CAN, bench, track)",
+        description="The main job on the built-in simulated robot, in five stages, all files in --out-dir: "
                     "(1) the paper's chassis experiment (tau = 6, -10, 6 N m for 3 s at 100 Hz): MCAP recording "
                     "chassis.mcap and PNG plots in chassis/; (2) chassis identification (paper step 2: m_c in kg, "
                     "I_c in kg m^2, x_B, y_B in m) from that recording, plot in identification/; (3) the same "
                     "experiment through the CANopen drivers against the simulated robot on a virtual CAN bus: "
-                    "chassis_bus.mcap and plots in chassis_bus/; (4) the paper's narrow corridor (five 3 m "
-                    "segments at 0.6 m/s) tracked over the simulated CAN bus at the bus's control rate with "
-                    "EKF feedback: tracking errors of the true pose and estimation errors (estimate - truth) in "
+                    "chassis_bus.mcap and plots in chassis_bus/; (4) the bench identification procedure (otbot bench "
+                    "--yes) on a robot carrying a 40 kg load, over the simulated CAN bus: four steps with checks, "
+                    "estimates with std (SI units) against the simulated truth, diagnosis, report, all in bench/; "
+                    "(5) the paper's narrow corridor (five 3 m "
+                    "segments at 0.6 m/s) tracked on that loaded robot over the simulated CAN bus at the bus's "
+                    "control rate with the parameters the bench identified and EKF feedback: tracking errors of the true pose and estimation errors (estimate - truth) in "
                     "mm and rad, settle times in s per event, recording and plots in corridor/.",
     )
     p.add_argument("--out-dir", type=Path, default=Path("otbot-demo"), metavar="DIR",
@@ -51,7 +57,7 @@ def format_q(q) -> str:
 
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.cli.simulate import write_plots
-    from otbot_hw.params import nominal
+    from otbot_hw.params import OtbotParams, nominal
     from otbot_hw.recording import write_recording
     from otbot_hw.sensors import NoiseModel
     from otbot_hw.simulation.runs import simulated_recording
@@ -59,7 +65,7 @@ def run(args: argparse.Namespace) -> dict:
     out = output_folder(args.out_dir, "--out-dir")
     params = nominal()
     quiet = args.json
-    progress("[demo] 1/4 chassis experiment: tau = (6, -10, 6) N m, 3 s, 100 Hz", not quiet)
+    progress("[demo] 1/5 chassis experiment: tau = (6, -10, 6) N m, 3 s, 100 Hz", not quiet)
     rec = simulated_recording(params, np.tile([6.0, -10.0, 6.0], (300, 1)), 0.01, NoiseModel.paper(),
                               seed=args.seed, extra_metadata={"experiment": "chassis (paper §4.3.2)"})
     path = out / "chassis.mcap"
@@ -74,13 +80,53 @@ def run(args: argparse.Namespace) -> dict:
         for p in plots:
             print(f"[demo] plot: {p}")
         print(f"[demo] final configuration q at t = {rec.t[-1]:g} s: {format_q(rec.truth_q[-1])}")
-    progress("[demo] 2/4 identification: chassis parameters (step 2) from the recording", not quiet)
+    progress("[demo] 2/5 identification: chassis parameters (step 2) from the recording", not quiet)
     from otbot_hw.identification.steps import demo_stage
     result["identification"] = demo_stage(rec, params, out, quiet)
     from otbot_hw.cli.run import bus_demo
     result["bus_run"] = bus_demo(out, args.seed, quiet, reference=rec)
-    result["corridor"] = _corridor(out, params, quiet, args.seed)
+    result["bench"] = _bench(out, quiet, args.seed)
+    identified = OtbotParams.load(result["bench"]["params_file"])
+    result["corridor"] = _corridor(out, identified, quiet, args.seed, plant=params.with_load(*DEMO_LOAD))
     return result
+
+
+#: the load (kg, m, m, kg m^2) the nominal robot carries in the bench and corridor stages
+DEMO_LOAD = (40.0, 0.15, -0.1, 0.4)
+
+
+def _bench(out: Path, quiet: bool, seed: int) -> dict:
+    """The bench procedure as ``otbot bench --yes --json`` runs it, on the nominal robot carrying DEMO_LOAD."""
+    from otbot_hw.cli import build_parser
+
+    progress("[demo] 4/5 bench procedure (otbot bench --yes) on the robot with a "
+             f"{DEMO_LOAD[0]:g} kg load at ({DEMO_LOAD[1]:g}, {DEMO_LOAD[2]:g}) m, over the simulated CAN bus", not quiet)
+    folder = out / "bench"
+    if folder.exists():  # a demo run before: its session is replaced
+        import shutil
+
+        shutil.rmtree(folder)
+    load = "{:g}@{:g},{:g},{:g}".format(*DEMO_LOAD)
+    args = build_parser().parse_args(["bench", "--bus", "sim", "--yes", "--json", "--session", str(folder),
+                                      "--sim-load", load, "--seed", str(seed)])
+    res = args.func(args)
+    keep = ("session", "passed", "steps", "parameters", "truth", "error_sigma", "diagnosis", "params_file", "report",
+            "report_files", "bus_logs", "recordings", "timing", "load")
+    res = {k: res[k] for k in keep if k in res}
+    res["files"] = sorted(str(p) for p in folder.rglob("*") if p.is_file())
+    if not quiet:
+        print(f"[demo] bench: {'passed' if res['passed'] else 'NOT passed'}; "
+              + ", ".join(f"{n} {d['status']}" for n, d in res["steps"].items()))
+        es = res["error_sigma"]
+        print("[demo] bench estimates (value +- std, error in std against the simulated truth): " + ", ".join(
+            f"{n} {p['value']:.4g} +- {p['std']:.2g} ({es[n]:+.1f})" for n, p in res["parameters"].items()
+            if es.get(n) is not None))
+        if res.get("diagnosis"):
+            print(f"[demo] bench diagnosis: {res['diagnosis']['verdict']}")
+        print(f"[demo] bench parameters: {res['params_file']}")
+        for p in res["files"]:
+            print(f"[demo] bench file: {p}")
+    return res
 
 
 def saturation_line(saturation: list[dict], events: list[dict], rate_hz: float) -> str | None:
@@ -102,10 +148,11 @@ def saturation_line(saturation: list[dict], events: list[dict], rate_hz: float) 
     return head + "; not all at the reference's velocity steps: see 'saturation' in --json for when"
 
 
-def _corridor(out: Path, params, quiet: bool, seed: int = 0) -> dict:
-    """The paper's corridor tracked over the simulated CAN bus by the loop runner, fed by the pose EKF
-    on the encoders and IMU (by the simulator's true state, with a printed note, where the EKF is not
-    installed); recording and plots in ``corridor/``."""
+def _corridor(out: Path, params, quiet: bool, seed: int = 0, plant=None) -> dict:
+    """The paper's corridor tracked over the simulated CAN bus by the loop runner with the controller's
+    model ``params`` on the robot ``plant`` (default ``params``), fed by the pose EKF on the encoders and
+    IMU (by the simulator's true state, with a printed note, where the EKF is not installed);
+    recording and plots in ``corridor/``."""
     from drivers.config import load_robot_config
     from otbot_hw.runtime.backends import BusSimBackend
     from otbot_hw.runtime.feedback import FeedbackUnavailable, load_ekf
@@ -122,8 +169,8 @@ def _corridor(out: Path, params, quiet: bool, seed: int = 0) -> dict:
         feedback = "truth"
         note = f"{exc}: the controller is fed the simulator's true state instead"
         progress(f"[demo] note: {note}", True)
-    progress(f"[demo] 4/4 corridor: computed-torque tracking over the simulated CAN bus at {cfg.bus.control_rate:g} Hz, "
-             f"feedback {feedback}, five 3 m segments at 0.6 m/s", not quiet)
+    progress(f"[demo] 5/5 corridor: the loaded robot tracked over the simulated CAN bus at {cfg.bus.control_rate:g} Hz "
+             f"with the parameters the bench identified, feedback {feedback}, five 3 m segments at 0.6 m/s", not quiet)
 
     def say(m: str) -> None:
         # per-episode saturation and feasibility notices are summed up in one line after the run
@@ -132,7 +179,7 @@ def _corridor(out: Path, params, quiet: bool, seed: int = 0) -> dict:
 
     folder = out / "corridor"
     folder.mkdir(parents=True, exist_ok=True)
-    res = run_scenario("corridor", params, cfg.limits, robustness=False, plot_dir=folder,
+    res = run_scenario("corridor", params, cfg.limits, robustness=False, plot_dir=folder, plant=plant,
                        progress=None if quiet else say,
                        backend=BusSimBackend(cfg, NoiseModel.paper(), seed), feedback=feedback,
                        safety=SafetyConfig.load(), path=folder / "corridor.mcap",

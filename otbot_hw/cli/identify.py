@@ -57,22 +57,16 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def parse_load(text: str | None):
-    """'KG@X,Y[,I]' -> (mass, x, y, inertia) or None."""
+def parse_load(text: str | None, option: str = "--load"):
+    """'KG@X,Y[,I]' -> (mass, x, y, inertia) or None (``otbot_hw.params.parse_load``); errors name ``option``."""
+    from otbot_hw.params import parse_load as parse
+
     if not text:
         return None
-    if "@" not in text:
-        raise CliError(f"--load must look like KG@X,Y or KG@X,Y,I, got {text!r}")
-    kg, pos = text.split("@", 1)
-    mass = parse_vector(kg, 1, "--load mass")[0]
-    parts = pos.split(",")
-    vals = parse_vector(pos, len(parts), "--load position") if len(parts) in (2, 3) else None
-    if vals is None:
-        raise CliError(f"--load position needs X,Y or X,Y,I, got {pos!r}")
-    if mass < 0:
-        raise CliError(f"--load mass must be >= 0 kg, got {mass}")
-    inertia = vals[2] if len(vals) == 3 else 0.0
-    return mass, vals[0], vals[1], inertia
+    try:
+        return parse(text)
+    except ValueError as exc:
+        raise CliError(f"{option} {exc}") from None
 
 
 def parse_guesses(items: list[str], step: str) -> dict[str, float]:

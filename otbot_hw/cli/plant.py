@@ -5,7 +5,9 @@ advancing one control period per SYNC) listens on an slcan adapter it emulates o
 pseudo-terminal, or on a socketcan interface; the simulated IMU writes VectorNav sentences into
 another pseudo-terminal. It prints one JSON line (can_interface, can_channel, imu_port) and runs
 until its standard input closes; each input line ``report`` is answered with one JSON line of
-the simulated drives' own state. ``--inject KIND@SECONDS`` makes the plant inject a fault at that
+the simulated drives' own state, and the operator commands (``sim.plant.Plant.operator``:
+``fixture stand``, ``load 40@0.2,-0.1``, ``unload``, ``status``: what a person at the bench does)
+with one JSON line each. ``--inject KIND@SECONDS`` makes the plant inject a fault at that
 plant time (``sim.injection``; ``plant-kill`` kills this process). A master then runs e.g.
 ``otbot run --bus config --interface slcan --channel PTY --imu-port PTY2``.
 """
@@ -25,7 +27,10 @@ def register(sub) -> None:
         help="serve the simulated robot over slcan (pseudo-terminal) or socketcan, as a separate process",
         description="Run the simulated Otbot (CANopen slaves + dynamic model in lockstep with SYNC) behind an "
                     "emulated slcan USB-CAN adapter on a pseudo-terminal, or on a socketcan interface. Prints one "
-                    "JSON line {can_interface, can_channel, imu_port}; stops when stdin closes. Units: SI.",
+                    "JSON line {can_interface, can_channel, imu_port}; stops when stdin closes. Lines on stdin: "
+                    "'report' (the drives' state) or an operator command, each answered with one JSON line: "
+                    "'fixture floor|stand|locked', 'load KG@X,Y[,I]' (a load of KG kg at X, Y m in the platform "
+                    "frame, own inertia I kg m^2), 'unload', 'status'; the robot is at rest after each. Units: SI.",
     )
     p.add_argument("--transport", choices=("slcan", "socketcan"), default="slcan",
                    help="slcan: emulate a USB-CAN adapter on a new pseudo-terminal (default, works everywhere); "

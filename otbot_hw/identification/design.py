@@ -44,6 +44,7 @@ from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, ExperimentSpe
 from otbot_hw.identification.model import OtbotModel
 from otbot_hw.identification.prediction_error import TYPICAL_SCALE, ResidualProblem
 from otbot_hw.model import compiled
+from otbot_hw.model.fixtures import fixture_code
 from otbot_hw.params import OtbotParams
 from otbot_hw.sensors import NoiseModel
 
@@ -148,7 +149,7 @@ def predicted_motion(spec: ExperimentSpec, torques: np.ndarray, params: OtbotPar
     """States q, qd (samples + 1, 6) of the step's fixture under the torques, from rest."""
     n = len(torques)
     X = compiled.rk4_zoh(np.zeros(12), np.ascontiguousarray(torques), np.zeros((n, 2)), 1.0 / spec.rate, 4,
-                         params.as_array(), 0)
+                         params.as_array(), fixture_code(spec.fixture))
     return X[:, :6], X[:, 6:]
 
 

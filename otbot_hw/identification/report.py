@@ -103,13 +103,20 @@ def step_table(res, crb: dict[str, float] | None = None) -> str:
 
 def plot_fit(folder: str | Path, res) -> list[str]:
     """One PNG per experiment: measured vs predicted per channel, residuals beneath."""
+    return plot_experiments(folder, res.experiments, res.fit, f"Step {res.step}: {res.spec.description}"
+                            + ("" if res.converged else " (NOT CONVERGED)"))
+
+
+def plot_experiments(folder: str | Path, experiments, fit, title: str) -> list[str]:
+    """One PNG per experiment of ``fit`` (a ``FitResult`` of ``experiments``, in order): measured vs
+    predicted per channel with its fit %, the residuals with +-3 sigma beside (``<name>_fit.png``)."""
     from otbot_hw.plots import _plt
 
     plt = _plt()
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = []
-    for e, pred in zip(res.experiments, res.fit.predicted):
+    for e, pred in zip(experiments, fit.predicted):
         chans = list(e.channels)
         fig, axes = plt.subplots(len(chans), 2, figsize=(11, 2.2 * len(chans) + 0.6), squeeze=False,
                                  gridspec_kw={"width_ratios": [3, 2]})
@@ -119,7 +126,7 @@ def plot_fit(folder: str | Path, res) -> list[str]:
             ax.plot(e.t, e.measured[c], lw=0.8, color="0.5", label="measured")
             ax.plot(e.t, pred[c], lw=1.4, color="C3", label="predicted")
             ax.set_ylabel(f"{c} ({CHANNEL_UNITS[c]})", fontsize=8)
-            ax.set_title(f"{c}: fit {res.fit.fit_percent[key]:.2f} %", fontsize=9)
+            ax.set_title(f"{c}: fit {fit.fit_percent[key]:.2f} %", fontsize=9)
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=7, loc="best")
             ax2 = axes[i, 1]
@@ -130,8 +137,7 @@ def plot_fit(folder: str | Path, res) -> list[str]:
             ax2.grid(True, alpha=0.3)
         axes[-1, 0].set_xlabel("t (s)")
         axes[-1, 1].set_xlabel("t (s)")
-        fig.suptitle(f"Step {res.step}: {res.spec.description}"
-                     + ("" if res.converged else " (NOT CONVERGED)"))
+        fig.suptitle(f"{title}: {e.name}" if len(experiments) > 1 else title)
         fig.tight_layout()
         path = folder / f"{e.name}_fit.png"
         fig.savefig(path, dpi=110)

@@ -11,6 +11,8 @@ kind                   violation
 joint_rate             an encoder rate |phi_dot| above max_wheel_rate / max_pivot_rate
 platform_speed         the estimated |(x_dot, y_dot)| above max_speed or |alpha_dot| above max_turn_rate
 workspace              the estimated pivot position outside the workspace rectangle
+travel                 the estimated pivot farther than max_travel from where the run started, counting
+                       the distance it needs to stop, speed^2 / (2 stop_deceleration) (a free area)
 tracking_error         |(x, y) - (x_d, y_d)| above max_position_error or |alpha - alpha_d| above
                        max_heading_error (estimate against the reference of the acting command)
 estimator              a non-finite estimate, position/heading std above its maximum, or more than
@@ -26,6 +28,7 @@ runner directly and latch here too (``latch``).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import asdict, dataclass, fields
@@ -65,12 +68,14 @@ class SafetyConfig:
     rejection_window: float = 1.0
     overrun_factor: float = 1.5
     max_consecutive_overruns: int = 5
+    max_travel: float | None = None
+    stop_deceleration: float = 1.0
 
     #: key -> unit in the YAML file
     UNITS = {"max_wheel_rate": "rad/s", "max_pivot_rate": "rad/s", "max_speed": "m/s", "max_turn_rate": "rad/s",
              "workspace": "m", "max_position_error": "m", "max_heading_error": "rad", "max_position_std": "m",
              "max_heading_std": "rad", "max_rejected_fraction": "1", "rejection_window": "s",
-             "overrun_factor": "1", "max_consecutive_overruns": "1"}
+             "overrun_factor": "1", "max_consecutive_overruns": "1", "max_travel": "m", "stop_deceleration": "m/s^2"}
 
     @classmethod
     def off(cls) -> "SafetyConfig":
@@ -104,7 +109,7 @@ class SafetyConfig:
                 raise ParameterError(f"{source}: unknown key '{name}' (known: {', '.join(sorted(known))})")
             v, _ = read_entry(source, name, entry, cls.UNITS[key])
             if v is None:
-                if key in ("rejection_window", "overrun_factor", "max_consecutive_overruns"):
+                if key in ("rejection_window", "overrun_factor", "max_consecutive_overruns", "stop_deceleration"):
                     raise ParameterError(f"{source}: '{name}' cannot be null")
                 values[key] = None
             elif key == "workspace":
@@ -129,6 +134,27 @@ class SafetyConfig:
         d = asdict(self)
         d.pop("UNITS", None)
         return d
+
+    def within(self, limits, fixture: str = "floor") -> "SafetyConfig":
+        """These checks tightened to an identification experiment's ``ExperimentLimits``
+        (``otbot_hw.experiment_limits``, section ``experiment_limits``) on ``fixture``.
+
+        floor: wheel and pivot rates, platform speed, and the free area (``max_travel`` =
+        travel_radius around the start, with the stop at stop_deceleration); stand / locked (the
+        chassis held, the wheels spinning freely on the stand): the pivot rate only, the wheels keep
+        this config's limit. Tracking errors are off (no reference). The torque limit is the
+        limiter's: give the ``Supervisor`` motor limits clipped to ``limits.torque``."""
+        def tight(mine, theirs):
+            return theirs if mine is None else min(mine, theirs)
+
+        common = {"max_pivot_rate": tight(self.max_pivot_rate, limits.pivot_speed), "max_position_error": None,
+                  "max_heading_error": None}
+        if fixture != "floor":
+            return dataclasses.replace(self, **common)
+        return dataclasses.replace(self, **common, max_wheel_rate=tight(self.max_wheel_rate, limits.wheel_speed),
+                                   max_speed=tight(self.max_speed, limits.platform_speed),
+                                   max_travel=tight(self.max_travel, limits.travel_radius),
+                                   stop_deceleration=limits.stop_deceleration)
 
 
 def _number(v) -> bool:
@@ -169,6 +195,7 @@ class Supervisor:
         self.overruns = 0
         self._consecutive = 0
         self._innovations: deque = deque()
+        self._start: tuple[float, float] | None = None  # first estimated pivot position (travel check)
 
     # -- command path ------------------------------------------------------------------------------
     def limit(self, t: float, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -191,6 +218,7 @@ class Supervisor:
         self.fault = None
         self._consecutive = 0
         self._innovations.clear()
+        self._start = None
 
     def check(self, t: float, joint_vel, estimate=None, reference=None,
               wall_period: float | None = None) -> Violation | None:
@@ -244,6 +272,14 @@ class Supervisor:
         if c.max_turn_rate is not None and abs(va) > c.max_turn_rate:
             return Violation("platform_speed", t, f"platform turn rate {abs(va):.3f} rad/s, limit "
                                                   f"{c.max_turn_rate:g} rad/s", abs(va), c.max_turn_rate)
+        if c.max_travel is not None:
+            if self._start is None:
+                self._start = (x, y)
+            dist = math.hypot(x - self._start[0], y - self._start[1]) + speed * speed / (2.0 * c.stop_deceleration)
+            if dist > c.max_travel:
+                return Violation("travel", t, f"pivot {math.hypot(x - self._start[0], y - self._start[1]):.3f} m from "
+                                              f"its start at {speed:.3f} m/s needs {dist:.3f} m to stop, beyond the "
+                                              f"free area of {c.max_travel:g} m", dist, c.max_travel)
         if c.workspace is not None:
             x0, x1, y0, y1 = c.workspace
             if not (x0 <= x <= x1 and y0 <= y <= y1):

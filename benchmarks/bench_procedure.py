@@ -1,0 +1,220 @@
+"""The whole bench procedure through the simulated bus on robots that differ from nominal (report script).
+
+Run: ``nice -n 10 .venv/bin/python benchmarks/bench_procedure.py [--seeds 20] [--variants designed,paper,paper-wide]
+[--out-dir DIR] [--json out.json]``
+
+For each seed a robot is drawn by ``identification.study.perturbed_robot`` (masses, inertias,
+frictions +-20 %, the chassis' centre of mass moved up to 5 cm, a 20-300 kg load anywhere within
+0.35 m of the pivot with its own inertia) and the procedure runs as a user runs it:
+``otbot bench --bus sim --yes --json --sim-params ROBOT.yaml --sim-load KG@X,Y,I --seed S`` (in
+this process, through ``otbot_hw.cli.main``): the CANopen drivers over the virtual bus to the
+simulated plant in lockstep, the simulated operator changing fixture and load, the checks, the
+supervised runs with the brake, the identification with gates and redo, the diagnosis. Variants:
+
+* ``designed``: ``--excitation designed`` (the designs for the nominal prior and the default limits,
+  ``config/excitation/``), default limits, with the diagnosis: the main row;
+* ``paper``: the paper's constant torques, default limits: how often the supervisor stops them;
+* ``paper-wide``: the paper's torques with every speed limit and the free area widened 1.5x (a
+  config copy), without the diagnosis: the sigma the paper's excitation gives, for the comparison
+  at equal duration.
+
+Tables (docs/identification.md, section *The bench procedure*): outcomes per variant; for each
+parameter the fraction of robots whose final estimate is within 3 reported sigma (target >= 95 %),
+the RMS of error / sigma, the mean sigma; the sigma ratio designed / paper measured through the
+bus; the procedure's wall and CPU time.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from otbot_hw.identification.uncertainty import SESSION_PARAMS  # noqa: E402
+
+VARIANTS = {
+    "designed": ["--excitation", "designed"],
+    "paper": [],
+    "paper-wide": ["--no-diagnose"],
+}
+WIDEN = 1.5
+
+
+def wide_config(folder: Path) -> Path:
+    """A copy of config/robot.yaml with the experiment's speed limits and free area widened WIDEN times
+    (EDS paths made absolute, so the copy works from another folder)."""
+    import yaml
+
+    data = yaml.safe_load((ROOT / "config" / "robot.yaml").read_text())
+    for sec in ("drives", "pivot_encoder"):
+        data[sec]["eds"] = str(ROOT / "config" / data[sec]["eds"])
+    for k in ("wheel_speed", "pivot_speed", "platform_speed", "travel_radius"):
+        data["experiment_limits"][k]["value"] *= WIDEN
+    for k in ("max_wheel_rate", "max_pivot_rate"):
+        data["safety"][k]["value"] *= WIDEN
+    path = folder / "robot-wide.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def run_one(seed: int, variant: str, folder: Path, extra: list[str]) -> dict:
+    """One procedure; returns the parsed JSON (or the failure) with the truth and the exit code."""
+    from otbot_hw.cli import main
+    from otbot_hw.identification.study import perturbed_robot
+
+    unloaded, loaded, load = perturbed_robot(seed)
+    robot = folder / f"robot-{seed}.yaml"
+    unloaded.save(robot, header=f"perturbed_robot({seed})")
+    argv = ["bench", "--bus", "sim", "--yes", "--json", "--session", str(folder / f"{variant}-{seed}"),
+            "--sim-params", str(robot), "--sim-load",
+            f"{load['mass']!r}@{load['x']!r},{load['y']!r},{load['inertia']!r}", "--seed", str(seed),
+            *VARIANTS[variant], *extra]
+    out, err = io.StringIO(), io.StringIO()
+    t0, c0 = time.perf_counter(), time.process_time()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main(argv)
+        except SystemExit as exc:
+            rc = exc.code
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    text = out.getvalue().strip()
+    res = json.loads(text.splitlines()[-1]) if text else {}
+    res.update(seed=seed, variant=variant, rc=rc, wall=wall, cpu=cpu, load=load,
+               stderr_tail=err.getvalue().strip().splitlines()[-1:] if rc else [])
+    return res
+
+
+def honesty_table(trials: list[dict]) -> str:
+    ok = [t for t in trials if t["rc"] == 0]
+    lines = ["| parameter | truth range | within 3 sigma | RMS of error / sigma | largest abs(error) / sigma | mean sigma |",
+             "|---|---|---|---|---|---|"]
+    for n in SESSION_PARAMS:
+        z = np.array([t["error_sigma"][n] for t in ok if t.get("error_sigma", {}).get(n) is not None])
+        tr = np.array([t["truth"][n] for t in ok])
+        s = np.array([t["parameters"][n]["std"] for t in ok])
+        if not len(z):
+            continue
+        lines.append(f"| {n} | {tr.min():.4g} .. {tr.max():.4g} | {100 * np.mean(np.abs(z) <= 3):.0f} % | "
+                     f"{np.sqrt(np.mean(z ** 2)):.2f} | {np.max(np.abs(z)):.2f} | {s.mean():.3g} |")
+    return "\n".join(lines)
+
+
+def outcome_table(sets: dict[str, list[dict]]) -> str:
+    lines = ["| variant | robots | passed | stopped by a limit or fault (exit 1) | refused (exit 2) | redo runs | "
+             "reasons |", "|---|---|---|---|---|---|---|"]
+    for v, ts in sets.items():
+        stopped = [t for t in ts if t["rc"] == 1]
+        refused = [t for t in ts if t["rc"] == 2]
+        redo = sum(max(0, d["attempts"] - 1) for t in ts if t["rc"] == 0 for d in t["steps"].values())
+        why = {}
+        for t in stopped + refused:
+            text = (t.get("reason") or " ".join(t["stderr_tail"]))
+            key = next((k for k in ("joint_rate", "platform_speed", "travel", "limits", "fixture", "at_rest",
+                                    "saturation", "identif") if k in text), text[:60])
+            why[key] = why.get(key, 0) + 1
+        lines.append(f"| {v} | {len(ts)} | {sum(t['rc'] == 0 and t['passed'] for t in ts)} | {len(stopped)} | "
+                     f"{len(refused)} | {redo} | {', '.join(f'{k}: {c}' for k, c in why.items()) or '-'} |")
+    return "\n".join(lines)
+
+
+def sigma_table(designed: list[dict], paper: list[dict]) -> str:
+    both = sorted({t["seed"] for t in designed if t["rc"] == 0} & {t["seed"] for t in paper if t["rc"] == 0})
+    d = {t["seed"]: t for t in designed}
+    p = {t["seed"]: t for t in paper}
+    lines = [f"| parameter | paper: mean sigma | designed: mean sigma | sigma ratio designed / paper | "
+             f"(both on the same {len(both)} robots) |", "|---|---|---|---|---|"]
+    for n in SESSION_PARAMS:
+        sp = np.array([p[s]["parameters"][n]["std"] for s in both])
+        sd = np.array([d[s]["parameters"][n]["std"] for s in both])
+        if len(both):
+            lines.append(f"| {n} | {sp.mean():.3g} | {sd.mean():.3g} | {sd.mean() / sp.mean():.2f} | |")
+    return "\n".join(lines)
+
+
+def time_table(sets: dict[str, list[dict]]) -> str:
+    lines = ["| variant | procedure wall time: mean | max | CPU time: mean | max | of which: bus runs (wall) | "
+             "identification | diagnosis | robot time |", "|---|---|---|---|---|---|---|---|---|"]
+    for v, ts in sets.items():
+        ok = [t for t in ts if t["rc"] == 0]
+        if not ok:
+            continue
+        w = np.array([t["wall"] for t in ok])
+        c = np.array([t["cpu"] for t in ok])
+        tm = {k: np.mean([t["timing"][k] for t in ok]) for k in ("runs_wall_time", "identification_wall_time",
+                                                                   "diagnosis_wall_time", "robot_time")}
+        lines.append(f"| {v} | {w.mean():.1f} s | {w.max():.1f} s | {c.mean():.1f} s | {c.max():.1f} s | "
+                     f"{tm['runs_wall_time']:.1f} s | {tm['identification_wall_time']:.1f} s | "
+                     f"{tm['diagnosis_wall_time']:.1f} s | {tm['robot_time']:.1f} s |")
+    return "\n".join(lines)
+
+
+def print_tables(sets: dict[str, list[dict]]) -> None:
+    print("## Outcomes\n")
+    print(outcome_table(sets))
+    for v, ts in sets.items():
+        print(f"\n## Honest uncertainty through the bus: {v}\n")
+        print(honesty_table(ts))
+    if "designed" in sets and "paper-wide" in sets:
+        print("\n## Designed against the paper's excitation, measured through the bus\n")
+        print(sigma_table(sets["designed"], sets["paper-wide"]))
+    print("\n## Time per procedure\n")
+    print(time_table(sets))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, default=20, help="robots per variant (default 20)")
+    ap.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
+    ap.add_argument("--variants", default="designed,paper,paper-wide", help="comma-separated, of " + ", ".join(VARIANTS))
+    ap.add_argument("--out-dir", type=Path, default=None, help="keep the sessions here (default a temporary folder)")
+    ap.add_argument("--json", type=Path, default=None, help="write every trial to this JSON file")
+    ap.add_argument("--tables", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="print the tables of earlier runs' --json files (merged) instead of running")
+    args = ap.parse_args(argv)
+    if args.tables:
+        sets = {}
+        for f in args.tables:
+            for v, ts in json.loads(f.read_text()).items():
+                sets.setdefault(v, []).extend(ts)
+        print_tables(sets)
+        return 0
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    tmp = None
+    if args.out_dir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="bench-procedure-")
+        folder = Path(tmp.name)
+    else:
+        folder = args.out_dir
+        folder.mkdir(parents=True, exist_ok=True)
+    extra = {"paper-wide": ["--config", str(wide_config(folder))]}
+    sets: dict[str, list[dict]] = {}
+    t0 = time.perf_counter()
+    for v in variants:
+        sets[v] = []
+        for s in range(args.first_seed, args.first_seed + args.seeds):
+            r = run_one(s, v, folder, extra.get(v, []))
+            sets[v].append(r)
+            es = r.get("error_sigma") or {}
+            worst = max((abs(x) for x in es.values() if x is not None), default=float("nan"))
+            print(f"[{v}] seed {s}: exit {r['rc']}, {r['wall']:.1f} s, largest |error|/sigma {worst:.2f}"
+                  + (f" ({r.get('reason') or ' '.join(r['stderr_tail'])})"[:200] if r["rc"] else ""), flush=True)
+    print(f"\n{sum(len(t) for t in sets.values())} procedures in {time.perf_counter() - t0:.0f} s\n")
+    print_tables(sets)
+    if args.json:
+        args.json.write_text(json.dumps(sets, indent=1, default=float))
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

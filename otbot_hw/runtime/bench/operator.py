@@ -1,0 +1,108 @@
+"""The person at the bench: told what to set up, asked to fix what a check found.
+
+* ``PromptOperator`` (default, interactive): prints the instructions and waits for Enter on its
+  input (``q`` stops the session, resumable; a closed input is an error: run with ``--yes`` for
+  automation). With a simulated robot, lines typed at the prompt are operator commands for the
+  simulated plant (``fixture stand``, ``load 40@0.2,-0.1,0.5``, ``unload``, ``status``:
+  ``sim.plant.Plant.operator``): the person sets the simulated robot up themself; Enter without
+  any command lets the simulated operator do what the instructions say.
+* ``AutomaticOperator`` (``--yes``): no questions. With a simulated robot it does what the
+  instructions say through the plant's operator channel; with a real robot it assumes the setup
+  is done (the checks verify it). A failed check is final: nobody is there to fix it.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Callable, TextIO
+
+
+class OperatorStopped(Exception):
+    """The operator chose to stop (``q``): the session is kept and can be resumed."""
+
+
+class NoOperator(Exception):
+    """The operator's input closed while an answer was needed."""
+
+
+class Operator:
+    """Base: ``plant`` (a simulated plant with ``operator(command) -> dict``, or None) and what each
+    step's setup means for it (``setup_commands(step)``)."""
+
+    def __init__(self, plant=None, load: str | None = None, say: Callable[[str], None] | None = None):
+        self.plant = plant
+        self.load = load
+        self.say = say or (lambda m: print(m, file=sys.stderr, flush=True))
+
+    def setup_commands(self, fixture: str, loaded: bool) -> list[str]:
+        """Operator-channel commands that set the simulated robot up for a step."""
+        return [f"fixture {fixture}", (f"load {self.load}" if (loaded and self.load) else "unload")]
+
+    def _do(self, commands: list[str]) -> None:
+        for c in commands:
+            reply = self.plant.operator(c)
+            if "error" in reply:
+                raise ValueError(f"simulated operator: {reply['error']}")
+        self.say(f"[bench] simulated operator: {'; '.join(commands)}")
+
+    def set_up(self, step: str, text: str, fixture: str, loaded: bool) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def retry(self, step: str, failed: list, fixture: str, loaded: bool) -> bool:  # pragma: no cover
+        raise NotImplementedError
+
+
+class AutomaticOperator(Operator):
+    """``--yes``: the instructions are printed and, on a simulated robot, carried out."""
+
+    def set_up(self, step: str, text: str, fixture: str, loaded: bool) -> None:
+        self.say(f"[bench] {step}: {text}")
+        if self.plant is not None:
+            self._do(self.setup_commands(fixture, loaded))
+
+    def retry(self, step: str, failed: list, fixture: str, loaded: bool) -> bool:
+        return False
+
+
+class PromptOperator(Operator):
+    """Interactive: instructions, then a prompt on ``stream`` (default stdin)."""
+
+    def __init__(self, plant=None, load: str | None = None, say=None, stream: TextIO | None = None):
+        super().__init__(plant, load, say)
+        self.stream = stream if stream is not None else sys.stdin
+
+    def _ask(self, prompt: str, fixture: str, loaded: bool) -> None:
+        typed = False
+        while True:
+            self.say(prompt)
+            line = self.stream.readline()
+            if not line:
+                raise NoOperator("no answer from the operator (input closed); run interactively, or with --yes "
+                                 "for automation")
+            words = line.strip()
+            if words.lower() in ("q", "quit"):
+                raise OperatorStopped("stopped by the operator")
+            if not words:
+                if self.plant is not None and not typed:
+                    self._do(self.setup_commands(fixture, loaded))
+                return
+            if self.plant is None:
+                self.say("[bench] (press Enter when done, q to stop)")
+                continue
+            reply = self.plant.operator(words)
+            typed = typed or "error" not in reply
+            self.say(f"[bench] simulated robot: {reply.get('error') or ({k: reply[k] for k in ('fixture', 'load')})}")
+
+    def _prompt(self) -> str:
+        sim = (" (simulated robot: type operator commands - fixture stand|locked|floor, load KG@X,Y[,I], unload - "
+               "or just Enter to have it done as instructed)") if self.plant is not None else ""
+        return f"[bench] press Enter when done, q to stop{sim}: "
+
+    def set_up(self, step: str, text: str, fixture: str, loaded: bool) -> None:
+        self.say(f"[bench] {step}: {text}")
+        self._ask(self._prompt(), fixture, loaded)
+
+    def retry(self, step: str, failed: list, fixture: str, loaded: bool) -> bool:
+        for c in failed:
+            self.say(f"[bench] {step}: check {c.name} failed: {c.message}; {c.fix}")
+        self._ask("[bench] fix it, then " + self._prompt()[len("[bench] "):], fixture, loaded)
+        return True
