@@ -23,7 +23,7 @@ from typing import Sequence
 from otbot_hw.cli.checks import CliError, parse_vector, positive_float  # noqa: F401  (re-exported)
 
 #: Subcommand modules under otbot_hw.cli, in --help order.
-SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "estimate", "imu", "track", "plan", "run", "plant", "ctl")
+SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "estimate", "imu", "track", "plan", "run", "plant", "daemon", "ctl")
 
 
 class UsageError(CliError):

@@ -227,6 +227,7 @@ class LoopRunner:
         self.last_snapshot: Snapshot | None = None
         self.last_estimate: StateEstimate | None = None
         self.last_command = None  # otbot_hw.robot.Command
+        self.last_reference: Reference | None = None
         self._trip: Violation | None = None
         self._trip_lock = threading.Lock()
         self.wake = threading.Event()
@@ -292,6 +293,23 @@ class LoopRunner:
         finally:
             self._interrupted()
             self.event(self.t, "mode", mode)
+
+    def power_down(self, text: str) -> list[str]:
+        """Between cycles, when the loop ends for good: quick stop (if the drives are powered), then
+        disable; recorded as a mode event. Never raises: returns what could not be done."""
+        problems = []
+        if self.armed:
+            self.armed = False
+            note = self._quick_stop()
+            if note:
+                problems.append(note)
+        try:
+            self.robot.disable()
+        except Exception as exc:  # noqa: BLE001 - the bus may be gone: say so
+            problems.append(f"disable failed: {exc}")
+        self._held = None
+        self.event(self.t, "mode", text + (f" ({'; '.join(problems)})" if problems else ""))
+        return problems
 
     def trip(self, v: Violation) -> None:
         """A fault from another thread (e.g. an estop): quick stop and latch at once — before the next
@@ -419,7 +437,7 @@ class LoopRunner:
             fault = self.supervisor.check(s.t, s.joint_vel, est, ref, wall_period)
         else:
             fault = self.supervisor.latch(fault)
-        self.last_snapshot, self.last_estimate = s, est
+        self.last_snapshot, self.last_estimate, self.last_reference = s, est, ref
         self._record(s, est, ref)
         self.cycles += 1
         if fault is not None:

@@ -43,3 +43,57 @@ def saturated_samples(res: LoopResult, limits: MotorLimits | None) -> np.ndarray
     if limits is None or res.requested is None:
         return np.zeros(len(res.recording), bool)
     return np.any(np.abs(res.requested) > np.asarray(limits.max_torque) + 1e-12, axis=1)
+
+
+TORQUE_CSV_COLUMNS = ("t", "tau_r", "tau_l", "tau_p")
+
+
+class TorqueSequenceError(ValueError):
+    """A torque sequence file that cannot be played; the message names the file and what is wrong."""
+
+
+def load_torque_sequence(path) -> tuple[np.ndarray, np.ndarray]:
+    """(times (K,) s from 0, torques (K, 3) N m, row k held from times[k]) of a recording (``.mcap``:
+    its ``/otbot/command``) or a CSV (header with ``t``, ``tau_r``, ``tau_l``, ``tau_p``; other columns
+    ignored; ``#`` comments). Times must increase strictly; every value finite."""
+    import csv
+
+    from otbot_hw.recording import RecordingError, read_recording
+
+    path = Path(path)
+    if path.suffix.lower() == ".mcap":
+        try:
+            rec = read_recording(path)
+        except RecordingError as exc:
+            raise TorqueSequenceError(str(exc)) from None
+        t, u = np.asarray(rec.t, float), np.asarray(rec.torque, float)
+    else:
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise TorqueSequenceError(f"{path}: cannot read a CSV text file: {exc}") from None
+        rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
+        if not rows:
+            raise TorqueSequenceError(f"{path}: empty (expected the header {', '.join(TORQUE_CSV_COLUMNS)})")
+        header = [h.strip() for h in rows[0]]
+        missing = [c for c in TORQUE_CSV_COLUMNS if c not in header]
+        if missing:
+            raise TorqueSequenceError(f"{path}: missing column(s) {', '.join(missing)} (header: {', '.join(header)})")
+        cols = [header.index(c) for c in TORQUE_CSV_COLUMNS]
+        data = []
+        for i, row in enumerate(rows[1:], start=2):
+            try:
+                data.append([float(row[c]) for c in cols])
+            except (ValueError, IndexError):
+                raise TorqueSequenceError(f"{path}: row {i}: expected numbers in {', '.join(TORQUE_CSV_COLUMNS)}, "
+                                          f"got {row!r}") from None
+        arr = np.array(data, dtype=float).reshape(-1, 4)
+        t, u = arr[:, 0], arr[:, 1:]
+    if len(t) < 1:
+        raise TorqueSequenceError(f"{path}: no torque rows")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u))):
+        raise TorqueSequenceError(f"{path}: NaN or inf in the times or torques")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        raise TorqueSequenceError(f"{path}: time does not increase after row {int(bad[0]) + 1} (t = {t[bad[0]]:g} s)")
+    return t - t[0], u
