@@ -183,6 +183,7 @@ class Daemon:
             stop_at_end=False, record_reference=True, keep_samples=False, continue_after_fault=True,
             recorder=recorder if s.record_dir is not None else None)
         runner.start(enable=False)
+        self._warm_up(runner)
         if self._pending_trip is not None:
             runner.trip(self._pending_trip)
         self._set_mode("idle", "idle: drives booted, not powered")
@@ -196,6 +197,20 @@ class Daemon:
             self.problems += runner.power_down(f"idle: stopped ({self.stop_reason or 'error'})")
             self.mode = "idle"
             runner.close()
+
+    def _warm_up(self, runner: LoopRunner) -> None:
+        """Before READY: one cycle, the law and its prediction once (compiled code loaded), then the
+        objects of the start frozen out of the garbage collector, so neither a first call nor a full
+        collection of everything imported lands in a cycle (measured: 10-60 ms pauses without)."""
+        import gc
+
+        runner.cycle()
+        p = np.zeros(3)
+        TrackingController(self.law, StopTrajectory(p), runner.period).update(
+            runner.period, _probe_feedback(runner), runner.last_snapshot)
+        gc.collect()
+        gc.freeze()
+        runner.pause()
 
     def _new_feedback(self, pose, period: float, std=None):
         fb = EkfFeedback(self.params, period, pose, self.settings.estimator, initial_std=std)
@@ -547,6 +562,14 @@ class Daemon:
                         "faults_seen": self.faults_seen, "sessions": self.sessions,
                         "recording_dir": str(self.settings.record_dir) if self.settings.record_dir else None,
                         "wall_s": wall, "cpu_s": cpu, "pid": os.getpid(), "problems": self.problems})
+
+
+def _probe_feedback(runner: LoopRunner):
+    from otbot_hw.control.computed_torque import TaskState
+    from otbot_hw.runtime.controllers import Feedback
+
+    z = np.zeros(3)
+    return Feedback(0.0, TaskState(z, z, 0.0), z, runner.period)
 
 
 def _finite(obj):

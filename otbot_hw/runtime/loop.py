@@ -220,6 +220,8 @@ class LoopRunner:
         self.period_hist = TimingHistogram()
         self.jitter_hist = TimingHistogram()
         self.compute_hist = TimingHistogram()
+        self.read_hist = TimingHistogram()
+        self._overrunning = False
         self.cycles = 0
         self.overruns = 0
         self.last_period: float | None = None
@@ -345,6 +347,10 @@ class LoopRunner:
             self._feedback_started = False
         self.event(self.t, "mode", "reset")
 
+    def pause(self) -> None:
+        """The caller held the loop up on purpose (a warm-up): the next period is not a loop period."""
+        self._interrupted()
+
     def _interrupted(self) -> None:
         """A drive operation ran bus cycles of its own: the next period is not a loop period."""
         self._t_last_read = None
@@ -393,6 +399,7 @@ class LoopRunner:
                 self.wake.clear()
             if self._take_trip() and not self.continue_after_fault:
                 return False
+        t_ask = time.perf_counter()
         try:
             s = self.robot.read()
         except RobotError as exc:
@@ -400,6 +407,7 @@ class LoopRunner:
                 self._fail(Violation("robot", self.t, f"read failed: {exc}"))
             return False
         t_read = time.perf_counter()
+        self.read_hist.add(t_read - t_ask)
         s = self._loop_time(s)
         host = s.host_time if s.host_time is not None and math.isfinite(s.host_time) else t_read
         wall_period = None if self._t_last_read is None else host - self._t_last_read
@@ -478,6 +486,11 @@ class LoopRunner:
         self.jitter_hist.add(abs(wall_period - self.period))
         if wall_period > self.supervisor.config.overrun_factor * self.period:
             self.overruns += 1
+            if not self._overrunning and not self.keep_samples:  # a streak starts: say when (all-day loops)
+                self.event(self.t, "overrun", f"period {wall_period * 1e3:.2f} ms (target {self.period * 1e3:.2f} ms)")
+            self._overrunning = True
+        else:
+            self._overrunning = False
         if self.keep_samples:
             self._periods.append(wall_period)
 
@@ -499,16 +512,19 @@ class LoopRunner:
 
     def timing(self) -> dict:
         """Timing so far (any thread): rate (Hz), period {target, p50, p99, max}, jitter (|period -
-        target|) {p50, p99, max}, compute {p50, p99} (s), overruns, cycles."""
+        target|) {p50, p99, max}, compute {p50, p99} (read's return to write's), read {p50, p99}
+        (``robot.read()``: SYNC to every TPDO and the IMU) (s), overruns, cycles."""
         p50, p99 = self.period_hist.percentiles((50, 99))
         j50, j99 = self.jitter_hist.percentiles((50, 99))
         c50, c99 = self.compute_hist.percentiles((50, 99))
+        r50, r99 = self.read_hist.percentiles((50, 99))
         f = lambda v: None if not math.isfinite(v) else float(v)  # noqa: E731
         return {"rate": 1.0 / self.period, "period": {"target": self.period, "p50": f(p50), "p99": f(p99),
                                                       "max": f(self.period_hist.max) if self.period_hist.count else None},
                 "jitter": {"p50": f(j50), "p99": f(j99),
                            "max": f(self.jitter_hist.max) if self.jitter_hist.count else None},
-                "compute": {"p50": f(c50), "p99": f(c99)}, "overruns": self.overruns, "cycles": self.cycles}
+                "compute": {"p50": f(c50), "p99": f(c99)}, "read": {"p50": f(r50), "p99": f(r99)},
+                "overruns": self.overruns, "cycles": self.cycles}
 
     # -- recording ---------------------------------------------------------------------------------
     def _open_writer(self, est, ref) -> None:
