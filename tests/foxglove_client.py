@@ -45,12 +45,16 @@ class FoxgloveClient:
                 self.decoders[topic] = message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"]))
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
 
-    def messages(self, quiet: float = 0.3) -> list[tuple[str, int, object]]:
-        """(topic, log time ns, decoded message) of every message data frame until ``quiet`` s pass."""
+    def messages(self, quiet: float = 0.3, duration: float = float("inf")) -> list[tuple[str, int, object]]:
+        """(topic, log time ns, decoded message) of every message data frame until ``quiet`` s pass
+        without one, or ``duration`` s in all (a live stream never goes quiet)."""
+        import time
+
         out = []
-        while True:
+        end = time.monotonic() + duration
+        while time.monotonic() < end:
             try:
-                m = self.ws.recv(timeout=quiet)
+                m = self.ws.recv(timeout=min(quiet, max(0.0, end - time.monotonic())))
             except TimeoutError:
                 return out
             if isinstance(m, str):
@@ -62,6 +66,7 @@ class FoxgloveClient:
             payload = m[13:]
             dec = self.decoders.get(topic)
             out.append((topic, stamp, dec.FromString(payload) if dec else json.loads(payload)))
+        return out
 
     def close(self):
         self._stack.close()

@@ -186,7 +186,7 @@ class Daemon:
         self._warm_up(runner)
         if self._pending_trip is not None:
             runner.trip(self._pending_trip)
-        self._set_mode("idle", "idle: drives booted, not powered")
+        self._set_mode("idle", "idle: drives booted, not powered", notify=False)
         self.notifier.ready(self._status_line())
         log.info("ready: %s Hz, socket %s", 1.0 / period, self.server.path)
         try:
@@ -257,11 +257,12 @@ class Daemon:
         self._velocity = self._tracking = self._excite = None
         self._set_mode("idle", f"idle: fault: {fault}")
 
-    def _set_mode(self, mode: str, text: str, event: bool = True) -> None:
+    def _set_mode(self, mode: str, text: str, event: bool = True, notify: bool = True) -> None:
         self.mode, self.mode_text = mode, text
         if event:
             self.runner.event(self.runner.t, "mode", text)
-        self.notifier.status(self._status_line())
+        if notify:
+            self.notifier.status(self._status_line())
         log.info("mode %s", text)
 
     def _status_line(self) -> str:
@@ -470,7 +471,8 @@ class Daemon:
                            "t": v.t})
         if s is not None:
             faults += [f.to_dict() for f in s.faults]
-        out = {"mode": self.mode, "mode_text": self.mode_text, "t": r.t if r is not None else None,
+        mode = self.mode if r is None or r.fault is None else "idle"  # the loop goes idle at its next step
+        out = {"mode": mode, "mode_text": self.mode_text, "t": r.t if r is not None else None,
                "faults": faults,
                "drive_states": dict(zip(MOTORS, s.drive_states)) if s is not None else {},
                "loop": r.timing() if r is not None else None,
@@ -533,8 +535,8 @@ class Daemon:
             return {"latched": True, "stopped": False, "note": "the daemon is starting: applied when the loop starts"}
         r.trip(v)
         end = time.monotonic() + min(0.2, 5 * r.period)
-        while r.fault is None and time.monotonic() < end:
-            time.sleep(0.0005)
+        while (r.fault is None or self._seen_fault is not r.fault) and time.monotonic() < end:
+            time.sleep(0.0005)  # until the loop has stopped the drives and gone idle
         return {"latched": True, "stopped": r.fault is not None and not r.armed,
                 "fault": str(r.fault) if r.fault is not None else None}
 
