@@ -1,5 +1,6 @@
-"""CAN bus load of the control cycle: bits per cycle of SYNC and the configured PDOs (drives
-and pivot encoder), heartbeats as background load, and the highest control rate the bitrate
+"""CAN bus load of the control cycle: bits per cycle of SYNC and the PDOs planned from each
+device's object dictionary (drives and pivot encoder), heartbeats (the nodes' and the master's)
+as background load, and the highest control rate the bitrate
 allows.
 
 A classical CAN 2.0A data frame with n data bytes has 47 + 8n bits (SOF, 11-bit ID, RTR,
@@ -11,10 +12,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import canopen
-
-from drivers import cia402, cia406
+from drivers import cia402, cia406, mapping
 from drivers.config import RobotConfig
+from drivers.faults import DeviceConfigError
+from otbot_hw.robot import Fault
 
 INTERFRAME_BITS = 3
 
@@ -28,9 +29,17 @@ def frame_bits(n_bytes: int, stuffing: bool = True) -> int:
     return stuffed_region + stuff + 10 + INTERFRAME_BITS  # + CRC delimiter, ACK (2), EOF (7)
 
 
-def _pdo_sizes(eds, layout: dict) -> list[int]:
-    od = canopen.import_od(str(eds), 1)
-    return [sum(len(od[i]) for i in objs) // 8 for objs in layout.values()]
+def pdo_plan(name: str, node_id: int, eds, encoder: bool = False) -> mapping.Plan:
+    """The PDO plan of a device from its EDS alone (no bus): ``DeviceConfigError`` naming the device
+    and the object when the dictionary cannot carry what the loop needs."""
+    device = f"{name} (node {node_id})"
+    try:
+        od = mapping.import_dictionary(eds, node_id, device)
+        if encoder:
+            return mapping.plan_pdos(od, node_id, device, [], cia406.TX_NEEDS, {}, cia406.TPDO_LAYOUT)
+        return cia402.plan_drive_pdos(od, node_id, device)
+    except mapping.PlanError as exc:
+        raise DeviceConfigError(str(exc), (Fault(name, node_id, "config", str(exc).split(": ", 1)[1]),)) from None
 
 
 @dataclass(frozen=True)
@@ -68,18 +77,17 @@ class BusLoad:
 def bus_load(config: RobotConfig, rate: float | None = None) -> BusLoad:
     """Bus load of ``config`` at ``rate`` Hz (default: the configured control rate)."""
     frames = [("SYNC", 0, frame_bits(0))]
-    rsizes = _pdo_sizes(config.drives[0].eds, cia402.RPDO_LAYOUT)
-    tsizes = _pdo_sizes(config.drives[0].eds, cia402.TPDO_LAYOUT)
-    background = 0.0
+    background = frame_bits(1) / config.bus.master_heartbeat
     for d in config.drives:
-        for no, n in zip(cia402.RPDO_LAYOUT, rsizes):
+        plan = pdo_plan(d.name, d.node_id, d.eds)
+        for no, n in mapping.sizes(plan.rx).items():
             frames.append((f"{d.name} RPDO{no}", n, frame_bits(n)))
-        for no, n in zip(cia402.TPDO_LAYOUT, tsizes):
+        for no, n in mapping.sizes(plan.tx).items():
             frames.append((f"{d.name} TPDO{no}", n, frame_bits(n)))
         background += frame_bits(1) / d.heartbeat_producer
     enc = config.pivot_encoder
     if enc.source == "encoder":
-        for no, n in zip(cia406.TPDO_LAYOUT, _pdo_sizes(enc.eds, cia406.TPDO_LAYOUT)):
+        for no, n in mapping.sizes(pdo_plan("pivot_encoder", enc.node_id, enc.eds, encoder=True).tx).items():
             frames.append((f"pivot_encoder TPDO{no}", n, frame_bits(n)))
         background += frame_bits(1) / enc.heartbeat_producer
     return BusLoad(frames=tuple(frames), bits_per_cycle=sum(f[2] for f in frames), background_bps=background,

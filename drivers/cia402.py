@@ -1,36 +1,88 @@
 """CiA 402 drive in a torque mode, driven through canopen's ``BaseNode402``.
 
-Setup (``configure``): heartbeat producer time (0x1017), the configured SDO writes,
-interpolation period (0x60C2) = control period, checks of 0x6076 (rated torque) and 0x608F
-(encoder resolution) against the configuration, mode of operation: cyclic synchronous torque
-(10) or, where 0x6502 lacks it, profile torque (4); PDO mapping, all synchronous (type 1):
+Setup (``configure``), every step skipped or refused by name where the object dictionary lacks
+the object: heartbeat producer time (0x1017); drive-side protection (the master's heartbeat
+consumed through 0x1016, abort connection option 0x6007, communication cycle period 0x1006 for
+SYNC monitoring and the RPDO deadline 0x1400:05 on a paced bus); the configured SDO writes;
+interpolation period (0x60C2) = control period; 0x6076 rated torque checked against the
+configuration (the configuration's value used where the drive has no 0x6076), 0x608F encoder
+resolution; mode of operation: cyclic synchronous torque (10) or, where the drive lacks it,
+profile torque (4); PDO mapping (``drivers.mapping``: planned from the dictionary, fixed
+mappings used as they are, written, read back and verified), all synchronous (type 1). The
+preferred layout:
 
 * RPDO1: controlword 0x6040, target torque 0x6071 (per-mille of rated torque);
 * TPDO1: statusword 0x6041, position actual 0x6064 (counts), torque actual 0x6077 (per-mille);
-* TPDO2: velocity actual 0x606C (counts/s), error code 0x603F, mode display 0x6061.
+* TPDO2: velocity actual 0x606C, error code 0x603F, mode display 0x6061.
 
 SI units at the API: joint angle phi = polarity * (counts - counts at zero) / (counts_per_rev *
 gear_ratio) * 2 pi rad, zeroed at the first TPDO after ``configure`` (the 32-bit counter is
 unwrapped, so wrap-around is invisible); joint rate in rad/s from 0x606C in the configured
 ``drives.velocity_unit`` (counts/s or rpm variants, motor side); joint torque tau = polarity *
-gear_ratio * per-mille / 1000 * rated torque (N m).
+gear_ratio * per-mille / 1000 * rated torque (N m); NaN where the drive does not report 0x6077.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import canopen
 from canopen.profiles.p402 import BaseNode402, OperationMode, State402
+from canopen.sdo import SdoAbortedError
 
 from drivers.config import DriveConfig
 from drivers.device import CanopenDevice, pdo_bytes, pdo_get, pdo_put
-from drivers.faults import DriverError, error_meaning
+from drivers.faults import DeviceConfigError, DriverError, error_meaning
+from drivers.mapping import Need, object_name
 from otbot_hw.robot import Fault
 
 CW_FAULT_RESET = 0x0080
 RPDO_LAYOUT = {1: [0x6040, 0x6071]}
 TPDO_LAYOUT = {1: [0x6041, 0x6064, 0x6077], 2: [0x606C, 0x603F, 0x6061]}
+RX_NEEDS = [Need(0x6040), Need(0x6071)]
+TX_NEEDS = [Need(0x6041), Need(0x6064), Need(0x606C), Need(0x6077, False), Need(0x603F, False),
+            Need(0x6061, False)]
 FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
+#: States in which a drive produces no torque: a quick stop or disable is confirmed by these.
+STOPPED_STATES = ("QUICK STOP ACTIVE", "SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON",
+                  "NOT READY TO SWITCH ON", "FAULT")
+TORQUE_MODES = {"CYCLIC SYNCHRONOUS TORQUE": OperationMode.CYCLIC_SYNCHRONOUS_TORQUE,
+                "PROFILED TORQUE": OperationMode.PROFILED_TORQUE}
+
+
+def plan_drive_pdos(od, node_id: int, device: str):
+    """Check that dictionary ``od`` describes a drive the loop can command in torque and plan its
+    PDOs (``drivers.mapping.plan_pdos``); ``PlanError`` naming the missing object or capability."""
+    from drivers.mapping import PlanError, plan_pdos
+
+    modes = supported_torque_modes(od)
+    if modes == []:
+        raise PlanError(f"{device}: {no_torque_mode(od[0x6502].default)}")
+    if 0x6060 not in od:
+        raise PlanError(f"{device}: the object dictionary has no {object_name(0x6060)}: the torque mode cannot be "
+                        "selected")
+    return plan_pdos(od, node_id, device, RX_NEEDS, TX_NEEDS, RPDO_LAYOUT, TPDO_LAYOUT)
+
+
+def supported_torque_modes(od) -> list[str] | None:
+    """Torque modes the dictionary's 0x6502 default declares (None where it gives no value)."""
+    if 0x6502 not in od or od[0x6502].default is None:
+        return None
+    bits = od[0x6502].default
+    return [m for m in TORQUE_MODES if bits & OperationMode.SUPPORTED[m]]
+
+
+def mode_names(bits: int) -> str:
+    """'pp, pv, hm, csp' for a 0x6502 value."""
+    short = {"PROFILED POSITION": "pp", "VELOCITY": "vl", "PROFILED VELOCITY": "pv", "PROFILED TORQUE": "tq",
+             "HOMING": "hm", "INTERPOLATED POSITION": "ip", "CYCLIC SYNCHRONOUS POSITION": "csp",
+             "CYCLIC SYNCHRONOUS VELOCITY": "csv", "CYCLIC SYNCHRONOUS TORQUE": "cst"}
+    return ", ".join(short[m] for m, b in OperationMode.SUPPORTED.items() if b and bits & b) or "none"
+
+
+def no_torque_mode(bits: int) -> str:
+    return (f"0x6502 supported drive modes = 0x{bits:08X} ({mode_names(bits)}): neither cyclic synchronous torque "
+            "(bit 9) nor profile torque (bit 3), so the drive cannot be commanded in torque")
 
 
 class Node402(BaseNode402):
@@ -74,57 +126,136 @@ class CiA402Drive(CanopenDevice):
         super().__init__(network, cfg.name, cfg.node_id, cfg.eds, tracker, on_fault)
         self.cfg = cfg
         self.period = period
+        self.paced = True  # SYNC every period (real time): drive-side SYNC and RPDO watchdogs are armed
         self.mode: int | None = None
         self.max_permille = 32767
+        self.rated_torque = cfg.rated_torque  # N m, motor side
         self.controlword = State402.CW_DISABLE_VOLTAGE
         self.target_permille = 0
         self._last_raw_pos: int | None = None
         self._pos_counts = 0  # unwrapped counts since the first reading
         self._fault_reported = False
+        self._pos_tpdo: int | None = None
+        self._fill: dict[int, int] = {}  # values of RPDO objects the loop does not command
+        # Refuse, before any bus traffic, what the dictionary cannot do.
+        from drivers.mapping import PlanError
+
+        try:
+            self.static_plan = plan_drive_pdos(self.node.object_dictionary, self.node_id,
+                                               f"{self.name} (node {self.node_id})")
+        except PlanError as exc:
+            raise self.config_error(str(exc).split(": ", 1)[1]) from None
 
     # -- setup -----------------------------------------------------------------------------------
     def configure(self) -> None:
         """SDO configuration, checks, mode of operation and PDO mapping (node PRE-OPERATIONAL)."""
         c = self.cfg
+        self.notes = []
         self.sdo_write(0x1017, 0, int(round(c.heartbeat_producer * 1000)))
+        self.configure_protection()
+        self.max_permille = 32767
         for index, sub, value in c.sdo_config:
-            self.sdo_write(index, sub, value)
-        if 0x60C2 in self.node.object_dictionary:
+            if self.has(index, sub):
+                self.sdo_write(index, sub, value)
+                continue
+            what = "configured write skipped"
+            if (index, sub) == (0x6072, 0):
+                self.max_permille = min(self.max_permille, int(value))
+                what += f"; the driver limits target torque to {int(value)} per-mille itself"
+            self.notes.append(f"no {object_name(index, sub)} in the object dictionary: {what}")
+        if self.has(0x60C2, 1) and self.has(0x60C2, 2):
             value, index = interpolation_period(self.period)
             self.sdo_write(0x60C2, 1, value)
             self.sdo_write(0x60C2, 2, index)
-        rated = self.sdo_read(0x6076) / 1000.0
-        if abs(rated - c.rated_torque) > 5e-4:
-            f = self.fault("config", f"drive reports rated torque 0x6076 = {rated:g} N m, config "
-                                     f"'drives.rated_torque' says {c.rated_torque:g} N m")
-            raise DriverError(str(f), (f,))
-        if 0x608F in self.node.object_dictionary:
+        if self.has(0x6076):
+            rated = self.sdo_read(0x6076) / 1000.0
+            if abs(rated - c.rated_torque) > 5e-4:
+                raise self.config_error(f"drive reports rated torque 0x6076 = {rated:g} N m, config "
+                                        f"'drives.rated_torque' says {c.rated_torque:g} N m")
+        else:
+            self.notes.append(f"no {object_name(0x6076)} in the object dictionary: per-mille taken of "
+                              f"'drives.rated_torque' = {c.rated_torque:g} N m")
+        self.rated_torque = c.rated_torque
+        if self.has(0x608F, 1) and self.has(0x608F, 2):
             inc, revs = self.sdo_read(0x608F, 1), self.sdo_read(0x608F, 2)
             if revs and inc / revs != c.counts_per_rev:
-                f = self.fault("config", f"drive reports {inc}/{revs} increments per motor revolution (0x608F), "
-                                         f"config 'drives.counts_per_rev' says {c.counts_per_rev}")
-                raise DriverError(str(f), (f,))
-        self.max_permille = min(32767, int(self.sdo_read(0x6072))) if 0x6072 in self.node.object_dictionary else 32767
-        if self.node.is_op_mode_supported("CYCLIC SYNCHRONOUS TORQUE"):
-            self.mode = OperationMode.CYCLIC_SYNCHRONOUS_TORQUE
-        elif self.node.is_op_mode_supported("PROFILED TORQUE"):
-            self.mode = OperationMode.PROFILED_TORQUE
-        else:
-            f = self.fault("config", f"0x6502 = 0x{self.node._op_mode_support:08X}: neither cyclic synchronous "
-                                     "torque nor profile torque mode supported")
-            raise DriverError(str(f), (f,))
-        self.sdo_write(0x6071, 0, 0)
-        self.sdo_write(0x6060, 0, self.mode)
-        shown = self.sdo_read(0x6061)
-        if shown != self.mode:
-            f = self.fault("config", f"mode of operation {self.mode} written, drive shows {shown} (0x6061)")
-            raise DriverError(str(f), (f,))
-        self.map_pdos(RPDO_LAYOUT, TPDO_LAYOUT)
+                raise self.config_error(f"drive reports {inc}/{revs} increments per motor revolution (0x608F), "
+                                        f"config 'drives.counts_per_rev' says {c.counts_per_rev}")
+        if self.has(0x6072):
+            self.max_permille = min(self.max_permille, int(self.sdo_read(0x6072)))
+        self.mode = self.select_torque_mode()
+        plan = self.static_plan
+        self.map_pdos(plan)
+        rx = plan.rx.carrying(0x6040)
+        self.configure_rpdo_deadline(rx)
+        self._fill = {}
+        for no, objs in plan.rx.pdos.items():
+            for index, sub, _ in objs:
+                if index == 0x6060:
+                    self._fill[index] = self.mode
+                elif index not in (0x6040, 0x6071):
+                    self._fill[index] = self.sdo_read(index, sub) if self.has(index, sub) else 0
+        self._pos_tpdo = plan.tx.carrying(0x6064)
+        self.node.tpdo_values.clear()
+        self.node.tpdo_pointers.clear()
+        self.node.rpdo_pointers.clear()
         self.node.setup_pdos(upload=False)  # BaseNode402 caches TPDO values / RPDO pointers
         self.hook_tpdos()  # after BaseNode402's cache update, so tpdo_values are fresh here
         self._last_raw_pos = None
         self.controlword = State402.CW_DISABLE_VOLTAGE
         self.target_permille = 0
+
+    def configure_protection(self) -> None:
+        """Drive-side watchdogs: the drive consumes the master's heartbeat (0x1016), and on its loss,
+        on SYNC loss (0x1006 cycle period, paced bus only) or an RPDO deadline miss, applies the abort
+        connection option 0x6007."""
+        c = self.cfg
+        master = getattr(self, "master", None)
+        if master is not None:
+            node_id, _ = master
+            entry = (node_id << 16) | int(math.ceil(c.master_heartbeat_consumer * 1000 - 1e-9))
+            self.sdo_write_if_present(0x1016, 1, entry, "the drive does not watch the master's heartbeat and will "
+                                                        "not stop by itself if the master dies")
+        self.sdo_write_if_present(0x6007, 0, c.abort_connection_option,
+                                  "the drive's reaction to a lost master is its own default")
+        cycle_us = int(round(self.period * 1e6)) if self.paced else 0
+        self.sdo_write_if_present(0x1006, 0, cycle_us, "the drive does not watch the SYNC period")
+
+    def configure_rpdo_deadline(self, rpdo: int | None) -> None:
+        """RPDO deadline monitoring (0x1400:05 event timer of the RPDO with the controlword), ms."""
+        if rpdo is None:
+            return
+        ms = int(math.ceil(self.cfg.rpdo_timeout * self.period * 1000 - 1e-9)) if self.paced else 0
+        self.sdo_write_if_present(0x1400 + rpdo - 1, 5, ms, "the drive does not watch its RPDO deadline (event "
+                                                            "timer)")
+
+    def select_torque_mode(self) -> int:
+        """Write 0x6060 = cyclic synchronous torque where the drive supports it, else profile torque;
+        confirmed by 0x6061 where the drive has it."""
+        if self.has(0x6502):
+            bits = int(self.sdo_read(0x6502))
+            candidates = [code for name, code in TORQUE_MODES.items() if bits & OperationMode.SUPPORTED[name]]
+            if not candidates:
+                raise self.config_error(no_torque_mode(bits))
+        else:
+            candidates = list(TORQUE_MODES.values())
+            self.notes.append(f"no {object_name(0x6502)}: torque modes tried in turn")
+        self.sdo_write(0x6071, 0, 0)
+        for k, mode in enumerate(candidates):
+            try:
+                self.node.sdo[0x6060].raw = mode
+            except SdoAbortedError as exc:
+                if k + 1 < len(candidates):
+                    continue
+                raise self.config_error(f"the drive refused every torque mode (0x6060 = {mode}: {exc})") from None
+            break
+        if self.has(0x6061):
+            shown = self.sdo_read(0x6061)
+            if shown != mode:
+                raise self.config_error(f"mode of operation {mode} written, drive shows {shown} (0x6061)")
+        else:
+            self.notes.append(f"no {object_name(0x6061)}: the mode of operation is not confirmed")
+        return mode
 
     # -- units -----------------------------------------------------------------------------------
     def torque_to_permille(self, tau: float) -> int:
@@ -136,9 +267,18 @@ class CiA402Drive(CanopenDevice):
     def permille_to_torque(self, pm: int) -> float:
         return self.cfg.polarity * pm * self.cfg.joint_torque_per_permille
 
+    @property
+    def status_tpdo(self) -> int | None:
+        """Number of the TPDO that carries the statusword."""
+        return self.plan.tx.carrying(0x6041) if self.plan is not None else None
+
+    @property
+    def reports_torque(self) -> bool:
+        return self.plan is not None and self.plan.tx.carrying(0x6077) is not None
+
     # -- reception -------------------------------------------------------------------------------
     def on_valid_tpdo(self, number: int, pdo_map) -> None:
-        if number == 1:
+        if number == self._pos_tpdo:
             raw = self.node.tpdo_values[0x6064]
             if self._last_raw_pos is None:
                 self._pos_counts = 0
@@ -152,10 +292,26 @@ class CiA402Drive(CanopenDevice):
         v = self.node.tpdo_values
         c = self.cfg
         sw = v.get(0x6041, 0)
+        torque = self.permille_to_torque(v.get(0x6077, 0)) if self.reports_torque else math.nan
         return DriveReading(position=c.polarity * self._pos_counts * c.rad_per_count,
                             velocity=c.polarity * v.get(0x606C, 0) * c.rad_s_per_velocity_unit,
-                            torque=self.permille_to_torque(v.get(0x6077, 0)), statusword=sw,
-                            state=self.node.state, error_code=v.get(0x603F, 0), mode=v.get(0x6061, 0))
+                            torque=torque, statusword=sw, state=self.state, error_code=self.error_code(),
+                            mode=v.get(0x6061, 0))
+
+    @property
+    def state(self) -> str:
+        """CiA 402 state of the last statusword received (in a TPDO)."""
+        return self.node.state
+
+    def error_code(self) -> int | None:
+        """0x603F from the last TPDO; where the drive does not send it, the last EMCY code (or None)."""
+        if self.plan is not None and self.plan.tx.carrying(0x603F) is not None:
+            return self.node.tpdo_values.get(0x603F, 0)
+        return self.last_emcy_code
+
+    def error_text(self) -> str:
+        code = self.error_code()
+        return error_meaning(code) if code is not None else "error code unknown (the drive sends no 0x603F)"
 
     def check_statusword(self) -> Fault | None:
         """A fault if the statusword shows FAULT (reported once until reset)."""
@@ -163,8 +319,7 @@ class CiA402Drive(CanopenDevice):
         if state in FAULT_STATES:
             if not self._fault_reported:
                 self._fault_reported = True
-                code = self.node.tpdo_values.get(0x603F, 0)
-                return self.fault("statusword", f"drive in {state}: {error_meaning(code)}", code)
+                return self.fault("statusword", f"drive in {state}: {self.error_text()}", self.error_code())
         else:
             self._fault_reported = False
         return None
@@ -177,8 +332,7 @@ class CiA402Drive(CanopenDevice):
             self.controlword = State402.CW_OPERATION_ENABLED
             return True
         if state in FAULT_STATES:
-            f = self.fault("statusword", f"cannot enable: drive in {state} "
-                                         f"({error_meaning(self.node.tpdo_values.get(0x603F, 0))}); reset the fault")
+            f = self.fault("statusword", f"cannot enable: drive in {state} ({self.error_text()}); reset the fault")
             raise DriverError(str(f), (f,))
         nxt = ("OPERATION ENABLED" if (state, "OPERATION ENABLED") in State402.TRANSITIONTABLE
                else State402.next_state_indirect(state))
@@ -205,8 +359,12 @@ class CiA402Drive(CanopenDevice):
         return self.permille_to_torque(self.target_permille)
 
     def transmit(self) -> None:
-        """Send RPDO1 (controlword, target torque); the drive applies it at the next SYNC."""
+        """Send the RPDO(s) with controlword and target torque; the drive applies them at the next SYNC."""
         p = self.node.rpdo_pointers
         pdo_put(p[0x6040], self.controlword)
         pdo_put(p[0x6071], self.target_permille)
-        p[0x6040].pdo_parent.transmit()
+        for index, value in self._fill.items():
+            pdo_put(p[index], value)
+        parents = {id(p[0x6040].pdo_parent): p[0x6040].pdo_parent, id(p[0x6071].pdo_parent): p[0x6071].pdo_parent}
+        for m in parents.values():
+            m.transmit()

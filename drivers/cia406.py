@@ -15,8 +15,10 @@ import canopen
 from drivers.config import EncoderConfig
 from drivers.device import CanopenDevice, pdo_get
 from drivers.faults import DriverError
+from drivers.mapping import Need
 
 TPDO_LAYOUT = {1: [0x6004]}
+TX_NEEDS = [Need(0x6004)]
 
 
 class CiA406Encoder(CanopenDevice):
@@ -29,6 +31,7 @@ class CiA406Encoder(CanopenDevice):
         self.total_range = 0
         self._last: int | None = None
         self._counts = 0  # unwrapped counts relative to the offset
+        self.static_plan = self.plan_pdos([], TX_NEEDS, {}, TPDO_LAYOUT)
 
     def configure(self) -> None:
         self.sdo_write(0x1017, 0, int(round(self.cfg.heartbeat_producer * 1000)))
@@ -42,7 +45,7 @@ class CiA406Encoder(CanopenDevice):
             f = self.fault("config", f"'pivot_encoder.offset' = {self.cfg.offset} counts is outside the encoder "
                                      f"range 0..{self.total_range - 1} (0x6002)")
             raise DriverError(str(f), (f,))
-        self.map_pdos({}, TPDO_LAYOUT)
+        self.map_pdos(self.static_plan)
         self.hook_tpdos()
         self._last = None
 

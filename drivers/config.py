@@ -17,20 +17,42 @@ from otbot_hw.params import ParameterError, read_yaml
 
 JOINTS = MOTORS  # ("right_wheel", "left_wheel", "pivot"): order of u and of the joint angles
 VELOCITY_UNITS = ("counts/s", "rpm", "0.1 rpm", "0.001 rpm")  # of 0x606C, motor side
+#: 0x6007 abort connection option codes (CiA 402): what a drive does when it loses the master.
+ABORT_OPTIONS = {"no_action": 0, "fault": 1, "disable_voltage": 2, "quick_stop": 3}
+
+
+#: Lockstep runs: how long the master waits for the plant's answer to a SYNC (s).
+LOCKSTEP_TIMEOUT = 0.25
+#: Lockstep runs: SDO answers are awaited this long (s) while booting (a loaded machine can hold a
+#: simulated slave's answer longer than canopen's 0.3 s).
+LOCKSTEP_SDO_TIMEOUT = 1.0
+#: Lockstep runs: heartbeat consumer times (both ways) are at least this (s): no real-time deadline
+#: is at stake, and a loaded machine must not trip them.
+LOCKSTEP_HEARTBEAT = 0.5
 
 
 @dataclass(frozen=True)
 class BusConfig:
     """python-can bus and the control cycle: interface, channel, bitrate (bit/s), control_rate (Hz),
-    tpdo_timeout and boot_timeout (s), options (extra ``can.Bus`` keyword arguments)."""
+    boot_timeout (s), options (extra ``can.Bus`` keyword arguments).
+
+    tpdo_timeout: a device whose TPDO is missing at this many consecutive SYNCs is faulted (periods);
+    reaction_timeout: on a fault, SYNC keeps running at most this many periods for every drive still
+    on the bus to confirm its quick stop, then the ones that did not get NMT STOP (periods);
+    master_node_id / master_heartbeat: the heartbeat the master produces (COB-ID 0x700 + ID, every s),
+    which the drives consume (0x1016).
+    """
 
     interface: str
     channel: str
     bitrate: int
     control_rate: float
-    tpdo_timeout: float = 0.05
+    tpdo_timeout: int = 2
     boot_timeout: float = 2.0
     options: dict = field(default_factory=dict)
+    reaction_timeout: int = 2
+    master_node_id: int = 127
+    master_heartbeat: float = 0.02
 
     @property
     def period(self) -> float:
@@ -48,9 +70,13 @@ class BusConfig:
 @dataclass(frozen=True)
 class DriveConfig:
     """One CiA 402 drive: node_id, EDS path, counts_per_rev (motor), gear_ratio, polarity (+1/-1),
-    rated_torque (N m, motor side, 0x6076), heartbeat producer/consumer times (s), SDO writes,
-    max_torque (N m, joint side, from ``motors``), velocity_unit of 0x606C (motor side, one of
-    ``VELOCITY_UNITS``)."""
+    rated_torque (N m, motor side, 0x6076; used as is where the drive has no 0x6076), heartbeat
+    producer/consumer times (s), SDO writes, max_torque (N m, joint side, from ``motors``),
+    velocity_unit of 0x606C (motor side, one of ``VELOCITY_UNITS``).
+
+    Drive-side protection, written by SDO at boot: master_heartbeat_consumer (s, 0x1016),
+    rpdo_timeout (periods, RPDO deadline 0x1400:05 on a paced bus), abort_connection_option
+    (0x6007: what the drive does when the master's heartbeat, SYNC or RPDOs stop)."""
 
     name: str
     node_id: int
@@ -64,6 +90,9 @@ class DriveConfig:
     sdo_config: tuple = ()
     max_torque: float = float("inf")
     velocity_unit: str = "counts/s"
+    master_heartbeat_consumer: float = 0.1
+    rpdo_timeout: int = 3
+    abort_connection_option: int = 3
 
     @property
     def rad_s_per_velocity_unit(self) -> float:
@@ -118,6 +147,18 @@ class RobotConfig:
 
         return replace(self, bus=replace(self.bus, **kw))
 
+    def relaxed(self, seconds: float) -> "RobotConfig":
+        """A copy whose heartbeat consumer times (the master's of each node, each drive's of the
+        master) are at least ``seconds``: for lockstep runs against a simulated plant, where no
+        real-time deadline is at stake and a loaded machine must not trip them."""
+        from dataclasses import replace
+
+        drives = tuple(replace(d, heartbeat_consumer=max(seconds, d.heartbeat_consumer),
+                               master_heartbeat_consumer=max(seconds, d.master_heartbeat_consumer))
+                       for d in self.drives)
+        enc = replace(self.pivot_encoder, heartbeat_consumer=max(seconds, self.pivot_encoder.heartbeat_consumer))
+        return replace(self, drives=drives, pivot_encoder=enc)
+
     def node_ids(self) -> list[int]:
         ids = [d.node_id for d in self.drives]
         if self.pivot_encoder.source == "encoder":
@@ -166,6 +207,20 @@ class _Reader:
             raise self.err(name, f"must be > 0, got {v!r}")
         return int(v) if integer else float(v)
 
+    def periods(self, d: dict, key: str, name: str, rate: float, default: int) -> int:
+        """A whole number of control periods, written {value: N, unit: periods}; a time in s is
+        rounded up to whole periods of ``rate`` Hz."""
+        v = self.raw(d, key, name, None)
+        if v is None:
+            return default
+        if isinstance(v, dict) and v.get("unit") == "s":
+            secs = self.number(d, key, name, "s")
+            return max(1, int(np.ceil(secs * rate - 1e-9)))
+        n = self.number(d, key, name, "periods")
+        if not float(n).is_integer() or n < 1:
+            raise self.err(name, f"must be a whole number of periods >= 1, got {n!r}")
+        return int(n)
+
     def node_id(self, d: dict, name: str) -> int:
         v = self.number(d, "node_id", f"{name}.node_id", None, integer=True)
         if not 1 <= v <= 127:
@@ -210,12 +265,19 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     options = r.raw(b, "options", "bus.options", {}) or {}
     if not isinstance(options, dict):
         raise r.err("bus.options", f"must be a mapping, got {options!r}")
+    rate = r.number(b, "control_rate", "bus.control_rate", "Hz")
+    master_id = r.number(b, "master_node_id", "bus.master_node_id", None, default=127, integer=True)
+    if not 1 <= master_id <= 127:
+        raise r.err("bus.master_node_id", f"must be a CANopen node ID 1..127, got {master_id}")
     bus = BusConfig(interface=iface, channel=str(chan),
                     bitrate=r.number(b, "bitrate", "bus.bitrate", "bit/s", integer=True),
-                    control_rate=r.number(b, "control_rate", "bus.control_rate", "Hz"),
-                    tpdo_timeout=r.number(b, "tpdo_timeout", "bus.tpdo_timeout", "s", default=0.05),
+                    control_rate=rate,
+                    tpdo_timeout=r.periods(b, "tpdo_timeout", "bus.tpdo_timeout", rate, default=2),
                     boot_timeout=r.number(b, "boot_timeout", "bus.boot_timeout", "s", default=2.0),
-                    options=dict(options))
+                    options=dict(options),
+                    reaction_timeout=r.periods(b, "reaction_timeout", "bus.reaction_timeout", rate, default=2),
+                    master_node_id=master_id,
+                    master_heartbeat=r.number(b, "master_heartbeat", "bus.master_heartbeat", "ms", default=20.0) / 1000)
 
     d = r.section(data, "drives")
     eds = r.eds(d, "drives.eds")
@@ -230,6 +292,16 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     vunit = r.raw(d, "velocity_unit", "drives.velocity_unit", "counts/s")
     if vunit not in VELOCITY_UNITS:
         raise r.err("drives.velocity_unit", f"must be one of {', '.join(VELOCITY_UNITS)}, got {vunit!r}")
+    mhb_c = r.number(d, "master_heartbeat_consumer", "drives.master_heartbeat_consumer", "ms", default=100.0) / 1000
+    if mhb_c <= bus.master_heartbeat:
+        raise r.err("drives.master_heartbeat_consumer", f"({mhb_c * 1000:g} ms) must exceed bus.master_heartbeat "
+                                                        f"({bus.master_heartbeat * 1000:g} ms)")
+    if mhb_c > 65.535:
+        raise r.err("drives.master_heartbeat_consumer", f"({mhb_c * 1000:g} ms) must fit 0x1016 (at most 65535 ms)")
+    rpdo_timeout = r.periods(d, "rpdo_timeout", "drives.rpdo_timeout", rate, default=3)
+    abort = r.raw(d, "abort_connection_option", "drives.abort_connection_option", "quick_stop")
+    if abort not in ABORT_OPTIONS:
+        raise r.err("drives.abort_connection_option", f"must be one of {', '.join(ABORT_OPTIONS)}, got {abort!r}")
     drives = []
     for k, name in enumerate(JOINTS):
         j = r.section(d, f"drives.{name}")
@@ -238,7 +310,8 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
             gear_ratio=r.number(j, "gear_ratio", f"drives.{name}.gear_ratio", None),
             polarity=r.sign(j, "polarity", f"drives.{name}.polarity"), rated_torque=rated,
             heartbeat_producer=hb_p, heartbeat_consumer=hb_c, sdo_config=sdo,
-            max_torque=float(limits.max_torque[k]), velocity_unit=vunit))
+            max_torque=float(limits.max_torque[k]), velocity_unit=vunit, master_heartbeat_consumer=mhb_c,
+            rpdo_timeout=rpdo_timeout, abort_connection_option=ABORT_OPTIONS[abort]))
 
     e = r.section(data, "pivot_encoder")
     source = r.raw(e, "source", "pivot_encoder.source")
@@ -264,9 +337,10 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
         from drivers.imu import load_imu_config
 
         imu = load_imu_config(p)
-    ids = [dc.node_id for dc in drives] + ([enc.node_id] if enc.source == "encoder" else [])
+    ids = [dc.node_id for dc in drives] + ([enc.node_id] if enc.source == "encoder" else []) + [bus.master_node_id]
     if len(set(ids)) != len(ids):
-        raise ParameterError(f"{p}: node IDs must be distinct, got {ids} (drives.*.node_id, pivot_encoder.node_id)")
+        raise ParameterError(f"{p}: node IDs must be distinct, got {ids} (drives.*.node_id, pivot_encoder.node_id, "
+                             f"bus.master_node_id)")
     return RobotConfig(bus=bus, drives=tuple(drives), pivot_encoder=enc, imu=imu, limits=limits, path=p)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from canopen.emcy import EmcyError
 
+from otbot_hw.params import ParameterError
 from otbot_hw.robot import RobotError
 
 #: Specific error codes of CiA 301 / CiA 402 (the classes are in canopen's EmcyError).
@@ -35,6 +36,7 @@ ERROR_CODES: dict[int, str] = {
     0x7305: "incremental sensor 1 fault",
     0x7310: "speed sensor fault",
     0x7320: "position sensor fault",
+    0x8100: "communication error (SYNC timeout)",
     0x8110: "CAN overrun (objects lost)",
     0x8120: "CAN in error passive mode",
     0x8130: "life guard or heartbeat error",
@@ -42,6 +44,9 @@ ERROR_CODES: dict[int, str] = {
     0x8150: "CAN-ID collision",
     0x8210: "PDO not processed due to length error",
     0x8220: "PDO length exceeded",
+    0x8230: "DAM MPDO not processed, destination object not available",
+    0x8240: "unexpected SYNC data length",
+    0x8250: "RPDO timeout",
     0x8611: "following error",
     0x8612: "reference limit",
     0xFF00: "device specific",
@@ -58,3 +63,9 @@ def error_meaning(code: int) -> str:
 
 class DriverError(RobotError):
     """A driver operation failed (boot, configuration, enabling); ``faults`` says why."""
+
+
+class DeviceConfigError(DriverError, ParameterError):
+    """A device cannot be run as the configuration asks: its object dictionary lacks an object or
+    a capability the loop needs, it refused a configuration write, or its PDO mapping read back
+    does not carry what the loop needs. Bad input (exit code 2), raised before any motion."""

@@ -127,3 +127,52 @@ class HeartbeatConsumer:
         """Seconds since the last heartbeat of ``node_id`` (None before the first)."""
         w = self._watch[node_id]
         return None if w.last is None else time.monotonic() - w.last
+
+
+class HeartbeatProducer:
+    """The master's own heartbeat (CiA 301 §7.2.8.3.2.1): NMT state OPERATIONAL (0x05) on COB-ID
+    0x700 + ``node_id`` every ``period`` s, from a thread of its own (so it keeps going while the
+    control loop is busy, and stops when the process dies). The drives consume it through 0x1016
+    and apply their abort connection option when it stops. A frame the bus cannot carry is
+    counted (``failures``, last error in ``error``) and the next one tried a period later."""
+
+    OPERATIONAL = 0x05
+
+    def __init__(self, network, node_id: int, period: float):
+        self.network = network
+        self.node_id = node_id
+        self.period = period
+        self.sent = 0
+        self.failures = 0
+        self.error: str | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name=f"heartbeat-0x{0x700 + self.node_id:03X}",
+                                            daemon=True)
+            self._thread.start()
+
+    def _run(self) -> None:
+        due = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.network.send_message(0x700 + self.node_id, bytes([self.OPERATIONAL]))
+                self.sent += 1
+            except Exception as exc:  # noqa: BLE001 - the bus is gone: keep trying, say why
+                self.failures += 1
+                self.error = str(exc) or type(exc).__name__
+            due = max(due + self.period, time.monotonic())
+            self._stop.wait(max(0.0, due - time.monotonic()))
+
+    def stop(self) -> None:
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=1.0)

@@ -124,6 +124,7 @@ class VectorNavIMU:
         self._parser = vn.SentenceParser()
         self._replies: list[vn.Sentence] = []
         self._last_valid = 0.0
+        self._in_command = False
 
     @classmethod
     def from_config(cls, cfg: "ImuConfig", port: str | None = None) -> "VectorNavIMU":
@@ -194,6 +195,9 @@ class VectorNavIMU:
             for item in self._parser.feed(data):
                 if isinstance(item, vn.ImuRecord):
                     newest = (now, item)
+                elif item.header == "VNERR" and not self._in_command:
+                    # The device reports a system error while streaming: a fault, with its meaning.
+                    raise ImuFault(f"IMU on {self.port} reported {vn.device_error_text(item)}")
                 elif item.header in ("VNWRG", "VNRRG", "VNERR"):
                     self._replies.append(item)
         if newest is None:
@@ -254,6 +258,13 @@ class VectorNavIMU:
     # -- registers ----------------------------------------------------------------------
     def _command(self, command: bytes, header: str, register: int) -> vn.Sentence:
         """Send a register command and wait (``self.timeout``) for its reply."""
+        self._in_command = True
+        try:
+            return self._command_reply(command, header, register)
+        finally:
+            self._in_command = False
+
+    def _command_reply(self, command: bytes, header: str, register: int) -> vn.Sentence:
         self._drain()
         self._replies.clear()
         self._write(command)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 #: Kinds of fault, by where they were detected.
-FAULT_KINDS = ("emcy", "statusword", "heartbeat", "stale", "nmt", "boot", "config", "imu")
+FAULT_KINDS = ("emcy", "statusword", "heartbeat", "stale", "nmt", "boot", "config", "imu", "bus")
 
 
 @dataclass(frozen=True)

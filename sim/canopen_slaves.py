@@ -6,9 +6,20 @@ with an NMT boot-up message and produces heartbeats (``NmtSlave``), obeys NMT co
 node / reset communication reboot it), maps PDOs as the master configures them over SDO, applies
 synchronous RPDOs and transmits synchronous TPDOs when the plant calls ``latch()`` / ``send_tpdos()``
 on every SYNC, and sends EMCY messages on faults. Joint quantities come from the plant, which
-owns the physics; the slaves only turn them into device units (counts, per-mille).
+owns the physics; the slaves turn them into device units with their own conversions, written
+from the CiA 402 / 406 definitions (not the driver's). A slave has only the objects its EDS
+describes: whatever the dictionary lacks, the device lacks.
 
-Fault injection for tests: ``inject_fault(code)``, ``drop_tpdos``, ``go_silent()``.
+The drive models the drive-side protection of a real CiA 402 drive, configured by the master
+over SDO: it consumes the master's heartbeat (0x1016), watches the SYNC (1.5 x the communication
+cycle period 0x1006, as CANopenNode does) and its RPDO deadline (event timer 0x1400:05), and
+treats leaving NMT OPERATIONAL while enabled the same way: it applies its abort connection
+option 0x6007 (0 nothing, 1 fault, 2 disable voltage, 3 quick stop; 1 where the dictionary has
+no 0x6007, the CiA 402 default) and sends an EMCY. The watchdogs run on wall time
+(``check_watchdogs``, called by the plant's watchdog thread).
+
+Fault injection for tests: ``inject_fault(code, emcy=True)``, ``send_emcy(code)``,
+``drop_tpdos``, ``go_silent()``.
 """
 from __future__ import annotations
 
@@ -16,6 +27,7 @@ import logging
 import math
 import struct
 import threading
+import time
 from pathlib import Path
 
 import canopen
@@ -24,12 +36,17 @@ from canopen.sdo import SdoAbortedError
 
 from drivers.config import DriveConfig, EncoderConfig
 from drivers.device import pdo_get, pdo_put
+from drivers.mapping import has_object
 
 log = logging.getLogger(__name__)
 
 NMT_RESET_NODE = 0x81
 NMT_RESET_COMMUNICATION = 0x82
+NMT_STOP = 0x02
+NMT_ENTER_PRE_OPERATIONAL = 0x80
 INT32 = 2 ** 32
+#: SYNC loss: no SYNC for this many communication cycle periods (0x1006), CANopenNode's rule.
+SYNC_LOSS_CYCLES = 1.5
 
 
 def wrap_int32(v: int) -> int:
@@ -51,8 +68,13 @@ class SimulatedNode:
         network.add_node(self.node)
         self.values: dict[tuple[int, int], object] = {}
         self._od_cache: dict[tuple[int, int], object] = {}  # stored (non-live) values; cleared on writes
+        self._guards: list = []
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
+        # SDO requests are 8 bytes, NMT commands 2 (CiA 301): canopen's server would raise on others;
+        # a silent node hears neither
+        self._intercept(self.node.sdo.rx_cobid, self.node.sdo.on_request, 8)
+        self._intercept(0, self.node.nmt.on_command, 2)
         network.subscribe(0, self._on_nmt)
         self.lock = threading.RLock()
         self._pdo_dirty = True
@@ -62,6 +84,7 @@ class SimulatedNode:
         self.silent = False
         self.drop_tpdos = False
         self.malformed = 0  # frames addressed to this node that were ignored (wrong length)
+        self.foreign = 0  # frames on this node's own TPDO COB-IDs sent by someone else (ignored)
         self.tpdos_sent = 0
         self.reset_listeners: list = []  # called with (node, application) after an NMT reset
 
@@ -69,11 +92,28 @@ class SimulatedNode:
     def node_id(self) -> int:
         return self.node.id
 
+    def _intercept(self, can_id: int, callback, length: int) -> None:
+        def guarded(cid, data, timestamp):
+            if self.silent:
+                return
+            if len(data) != length:
+                self.malformed += 1
+                return
+            callback(cid, data, timestamp)
+
+        subs = self.network.subscribers.get(can_id, [])
+        subs[subs.index(callback)] = guarded
+        self._guards.append(guarded)
+
     @property
     def operational(self) -> bool:
         return self.node.nmt.state == "OPERATIONAL"
 
     # -- SDO / OD ------------------------------------------------------------------------------
+    def has(self, index: int, subindex: int = 0) -> bool:
+        """Whether this device's dictionary describes ``index:subindex``."""
+        return has_object(self.node.object_dictionary, index, subindex)
+
     def _on_read(self, index: int, subindex: int, od):
         return self.values.get((index, subindex))
 
@@ -82,21 +122,31 @@ class SimulatedNode:
         if 0x1400 <= index <= 0x1BFF:
             self._pdo_dirty = True
         key = (index, subindex)
+        value = od.decode_raw(data)
         if key in self.values:
-            value = od.decode_raw(data)
             self.on_sdo_write(index, subindex, value)
             self.values[key] = value
+        self.on_config_write(index, subindex, value)
 
     def on_sdo_write(self, index: int, subindex: int, value) -> None:
         """Hook: validate or act on an SDO write of a live value (raise SdoAbortedError to refuse)."""
 
-    def od_value(self, index: int, subindex: int = 0):
-        """Current value of any object (live, written, or the EDS default)."""
+    def on_config_write(self, index: int, subindex: int, value) -> None:
+        """Hook: an object is being written with ``value`` (``od_value`` still gives the old one)."""
+
+    def od_value(self, index: int, subindex: int = 0, default=None):
+        """Current value of any object (live, written, or the EDS default); ``default`` where the
+        dictionary does not have it or gives it no value."""
         key = (index, subindex)
         if key in self.values:
             return self.values[key]
         if key not in self._od_cache:
-            self._od_cache[key] = self._od_read(index, subindex)
+            if not self.has(index, subindex):
+                return default
+            try:
+                self._od_cache[key] = self._od_read(index, subindex)
+            except (SdoAbortedError, KeyError, struct.error):
+                return default
         return self._od_cache[key]
 
     def _od_read(self, index: int, subindex: int):
@@ -105,14 +155,18 @@ class SimulatedNode:
             obj = obj[subindex]
         return obj.decode_raw(self.node.get_data(index, subindex))
 
-    def set_od(self, index: int, subindex: int, value) -> None:
-        """Set an object's stored value locally (no SDO traffic)."""
+    def set_od(self, index: int, subindex: int, value) -> bool:
+        """Set an object's stored value locally (no SDO traffic); False where the dictionary lacks it."""
+        if not self.has(index, subindex):
+            return False
         obj = self.node.object_dictionary[index]
         if isinstance(obj, canopen.objectdictionary.ODVariable):
             data = obj.encode_raw(value)
         else:
             data = obj[subindex].encode_raw(value)
         self.node.set_data(index, subindex, data)
+        self._od_cache.clear()
+        return True
 
     # -- NMT -------------------------------------------------------------------------------------
     def _on_nmt(self, can_id: int, data: bytes, timestamp: float) -> None:
@@ -122,9 +176,14 @@ class SimulatedNode:
         cmd, node = struct.unpack("BB", data)
         if node not in (0, self.node.id) or self.silent:
             return
+        if cmd in (NMT_RESET_NODE, NMT_RESET_COMMUNICATION, NMT_STOP, NMT_ENTER_PRE_OPERATIONAL):
+            self.on_leave_operational(cmd)
         if cmd in (NMT_RESET_NODE, NMT_RESET_COMMUNICATION):
             self.reset(application=cmd == NMT_RESET_NODE)
             self.boot()
+
+    def on_leave_operational(self, command: int) -> None:
+        """Hook: an NMT command takes the node out of OPERATIONAL (stop, pre-operational, reset)."""
 
     def reset(self, application: bool) -> None:
         """Forget written communication objects (and application objects on a node reset)."""
@@ -154,23 +213,48 @@ class SimulatedNode:
         self.node.nmt.send_command(0x80)  # PRE-OPERATIONAL: starts the heartbeat producer
 
     def go_silent(self) -> None:
-        """Simulate a dead node: no heartbeat, no PDO, no SDO answer, no EMCY."""
+        """Simulate a node cut off the bus (transceiver dead): it sends nothing (no heartbeat, PDO,
+        SDO answer, EMCY) and hears nothing (no SYNC, RPDO, NMT, heartbeat)."""
         self.silent = True
         self.node.nmt.stop_heartbeat()
-        self.network.unsubscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
 
     def stop(self) -> None:
         self.node.nmt.stop_heartbeat()
+
+    def detach(self) -> None:
+        """Leave the network for good (a plant being replaced): no heartbeat, no subscription left."""
+        self.stop()
+        owners = {id(o) for o in (self, self.node, self.node.sdo, self.node.nmt, self.node.emcy,
+                                  *self.node.tpdo.map.values(), *self.node.rpdo.map.values())}
+        guards = {id(g) for g in self._guards}
+        for can_id in list(self.network.subscribers):
+            keep = [cb for cb in self.network.subscribers[can_id]
+                    if id(getattr(cb, "__self__", None)) not in owners and id(cb) not in guards]
+            if keep:
+                self.network.subscribers[can_id] = keep
+            else:
+                del self.network.subscribers[can_id]
+        self.network.nodes.pop(self.node.id, None)
 
     # -- PDO -------------------------------------------------------------------------------------
     def _reload_pdos(self) -> None:
         self.node.tpdo.read(from_od=False)
         self.node.rpdo.read(from_od=False)
+        for m in self.node.tpdo.map.values():
+            # A TPDO is transmitted, never received: frames others send on its COB-ID are foreign.
+            subs = self.network.subscribers.get(m.cob_id, []) if m.cob_id is not None else []
+            if m.on_message in subs:
+                self.network.unsubscribe(m.cob_id, m.on_message)
+                if self._on_foreign not in self.network.subscribers.get(m.cob_id, []):
+                    self.network.subscribe(m.cob_id, self._on_foreign)
         for no, m in self.node.rpdo.map.items():
             if no not in self._rpdo_hooked:
                 m.add_callback(self._on_rpdo)
                 self._rpdo_hooked.add(no)
         self._pdo_dirty = False
+
+    def _on_foreign(self, can_id: int, data: bytes, timestamp: float) -> None:
+        self.foreign += 1
 
     def _on_rpdo(self, pdo_map) -> None:
         if self.silent or not self.operational:
@@ -179,11 +263,15 @@ class SimulatedNode:
         if len(data) != (pdo_map.length + 7) // 8:
             self.malformed += 1
             return
+        self.on_rpdo_received(pdo_map)
         with self.lock:
             if pdo_map.trans_type is not None and pdo_map.trans_type <= 240:
                 self._rpdo_pending[pdo_map.cob_id] = data  # applied at the next SYNC
             else:
                 self._apply_rpdo(pdo_map, data)
+
+    def on_rpdo_received(self, pdo_map) -> None:
+        """Hook: a valid RPDO arrived (deadline monitoring)."""
 
     def _apply_rpdo(self, pdo_map, data: bytes) -> None:
         pdo_map.data = bytearray(data)
@@ -202,7 +290,11 @@ class SimulatedNode:
         with self.lock:
             if self._pdo_dirty:
                 self._reload_pdos()
-            if not self.operational or self.silent:
+            if self.silent:
+                self._rpdo_pending.clear()
+                return
+            self.on_sync_received()
+            if not self.operational:
                 self._rpdo_pending.clear()
                 return
             for m in self.node.rpdo.map.values():
@@ -210,6 +302,9 @@ class SimulatedNode:
                 if data is not None:
                     self._apply_rpdo(m, data)
             self.on_sync()
+
+    def on_sync_received(self) -> None:
+        """Hook: a SYNC arrived (SYNC monitoring)."""
 
     def on_sync(self) -> None:
         """Hook: per-SYNC device dynamics (after the RPDOs are applied)."""
@@ -227,6 +322,7 @@ class SimulatedNode:
                 if not m.enabled or tt is None or tt > 240:
                     continue
                 if tt == 0 or self._sync_count % tt == 0:
+                    m.data = bytearray((m.length + 7) // 8)
                     for v in m.map:
                         pdo_put(v, self.values.get((v.index, v.subindex), 0))
                     if not self.drop_tpdos:
@@ -242,6 +338,10 @@ SW_REMOTE = 0x0200
 SW_TARGET_REACHED = 0x0400
 TORQUE_MODES = (OperationMode.PROFILED_TORQUE, OperationMode.CYCLIC_SYNCHRONOUS_TORQUE)
 _ERROR_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # current, voltage, temperature, comm
+#: 0x606C velocity units, per revolution per second of the motor (CiA 402: position units = encoder
+#: increments, so "counts/s" is increments per second; rpm and its fractions per minute).
+REVS_PER_S_TO_VELOCITY_UNIT = {"rpm": 60.0, "0.1 rpm": 600.0, "0.001 rpm": 60000.0}
+ABORT_NOTHING, ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP = 0, 1, 2, 3
 
 
 class SimulatedDrive(SimulatedNode):
@@ -250,7 +350,8 @@ class SimulatedDrive(SimulatedNode):
     The plant reads ``joint_torque()`` (N m at the joint, after gear and polarity) and writes the
     joint angle and rate with ``sample(phi, phi_dot)``; 0x6064 is floor-quantized to motor counts
     and wraps as an INTEGER32 (``position_offset`` counts at phi = 0), 0x606C is rounded to the
-    configured velocity unit (counts/s by default).
+    configured velocity unit (counts/s by default). ``clock()`` gives the plant's bus time (s),
+    used to stamp when the drive stops producing torque (``stopped_since``).
     """
 
     def __init__(self, network: canopen.Network, cfg: DriveConfig, position_offset: int = 0,
@@ -269,6 +370,14 @@ class SimulatedDrive(SimulatedNode):
         self.values.update({(0x6040, 0): 0, (0x6041, 0): 0, (0x6060, 0): 0, (0x6061, 0): 0,
                             (0x6064, 0): 0, (0x606C, 0): 0, (0x6071, 0): 0, (0x6077, 0): 0,
                             (0x603F, 0): 0, (0x1001, 0): 0})
+        self.clock = lambda: 0.0
+        self.stopped_since: tuple[float, float] | None = (0.0, time.monotonic())  # (bus time, wall)
+        self.aborts: list[tuple[int, str, float]] = []  # (error code, reason, bus time) of each abort
+        self._master: tuple[int, float] | None = None  # (node ID, consumer time s) from 0x1016:01
+        self._master_seen: float | None = None  # wall time of the master's last heartbeat
+        self._last_sync: float | None = None
+        self._last_rpdo: float | None = None
+        self._tripped: set[str] = set()
         self._update_statusword()
 
     def keep_on_reset(self) -> set[int]:
@@ -281,18 +390,77 @@ class SimulatedDrive(SimulatedNode):
                 self.values[key] = 0
             self._last_cw = 0
             self._actual_pm = 0
+        self._configure_master_watch()
+        self._last_sync = self._last_rpdo = None
+        self._tripped.clear()
         self._update_statusword()
+        self._track()
+
+    # -- units (CiA 402) -------------------------------------------------------------------------
+    @property
+    def rated_torque(self) -> float:
+        """Motor rated torque, N m: 0x6076 (mN m) where the drive has it, else the configuration's."""
+        v = self.od_value(0x6076)
+        return v / 1000.0 if v else self.cfg.rated_torque
+
+    def motor_angle(self, phi: float) -> float:
+        """Motor shaft angle (rad) of joint angle ``phi`` (rad), before the polarity sign."""
+        return phi * self.cfg.gear_ratio
+
+    def velocity_units(self, phi_dot: float) -> int:
+        """0x606C for joint rate ``phi_dot`` (rad/s): motor revolutions per second in the configured
+        unit (increments per second of 0x608F, or rpm, 0.1 rpm, 0.001 rpm), rounded."""
+        revs_per_s = self.cfg.polarity * phi_dot * self.cfg.gear_ratio / (2 * math.pi)
+        unit = self.cfg.velocity_unit
+        if unit == "counts/s":
+            inc = self.od_value(0x608F, 1, self.cfg.counts_per_rev) / self.od_value(0x608F, 2, 1)
+            return int(round(revs_per_s * inc))
+        return int(round(revs_per_s * REVS_PER_S_TO_VELOCITY_UNIT[unit]))
 
     # -- state machine ---------------------------------------------------------------------------
     def on_sdo_write(self, index: int, subindex: int, value) -> None:
         if index == 0x6060:
-            supported = self.od_value(0x6502)
+            supported = self.od_value(0x6502, 0, 0)
             bit = {v: OperationMode.SUPPORTED[k] for k, v in OperationMode.NAME2CODE.items()}.get(value)
             if value != 0 and (bit is None or not supported & bit):
                 raise SdoAbortedError(0x06090030)  # value range of parameter exceeded
             self.values[(0x6061, 0)] = value
         elif index == 0x6040:
             self._controlword(value)
+
+    def on_config_write(self, index: int, subindex: int, value) -> None:
+        if (index, subindex) == (0x1016, 1):
+            self._configure_master_watch(value)
+
+    def _configure_master_watch(self, entry: int | None = None) -> None:
+        """0x1016:01 = node ID << 16 | consumer time in ms (CiA 301): watch that node's heartbeat."""
+        if self._master is not None:
+            try:
+                self.network.unsubscribe(0x700 + self._master[0], self._on_master_heartbeat)
+            except (KeyError, ValueError):
+                pass
+        self._master = None
+        self._master_seen = None
+        if entry is None:
+            entry = self.od_value(0x1016, 1, 0) or 0
+        node, ms = (entry >> 16) & 0x7F, entry & 0xFFFF
+        if node and ms:
+            self._master = (node, ms / 1000.0)
+            self.network.subscribe(0x700 + node, self._on_master_heartbeat)
+
+    def _on_master_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if self.silent or len(data) != 1:
+            return
+        self._master_seen = time.monotonic()
+        self._tripped.discard("heartbeat")
+
+    def on_sync_received(self) -> None:
+        self._last_sync = time.monotonic()
+        self._tripped.discard("sync")
+
+    def on_rpdo_received(self, pdo_map) -> None:
+        self._last_rpdo = time.monotonic()
+        self._tripped.discard("rpdo")
 
     def _controlword(self, cw: int) -> None:
         rising_reset = bool(cw & 0x80) and not (self._last_cw & 0x80)
@@ -311,7 +479,7 @@ class SimulatedDrive(SimulatedNode):
             self.state = "SWITCH ON DISABLED"
         elif cw & 0x04 == 0:  # quick stop
             self.state = "QUICK STOP ACTIVE" if s in ("OPERATION ENABLED", "QUICK STOP ACTIVE") else "SWITCH ON DISABLED"
-            if self.state == "QUICK STOP ACTIVE" and self.od_value(0x605A) not in (5, 6, 7, 8):
+            if self.state == "QUICK STOP ACTIVE" and self.od_value(0x605A, 0, 2) not in (5, 6, 7, 8):
                 self.state = "SWITCH ON DISABLED"
         elif cw & 0x01 == 0:  # shutdown
             if s in ("SWITCH ON DISABLED", "SWITCHED ON", "OPERATION ENABLED"):
@@ -333,22 +501,108 @@ class SimulatedDrive(SimulatedNode):
     def on_rpdo_applied(self) -> None:
         self._update_statusword()
 
-    def inject_fault(self, code: int) -> None:
-        """A drive error: FAULT state, 0x603F = ``code``, error register, 0x1003 history, EMCY."""
+    def _track(self) -> None:
+        """Stamp the moment the drive stops producing torque (zero torque, not OPERATION ENABLED)."""
+        stopped = self._actual_pm == 0 and self.state != "OPERATION ENABLED"
+        if stopped and self.stopped_since is None:
+            self.stopped_since = (self.clock(), time.monotonic())
+        elif not stopped:
+            self.stopped_since = None
+
+    # -- faults ----------------------------------------------------------------------------------
+    def inject_fault(self, code: int, emcy: bool = True) -> None:
+        """A drive error: FAULT state (torque off), 0x603F = ``code``, error register, 0x1003
+        history and, with ``emcy``, an EMCY message (without: the fault shows in the statusword only)."""
         with self.lock:
             reg = 0x01 | _ERROR_REGISTER_BITS.get(code >> 12, 0)
             self.state = "FAULT"
             self._actual_pm = 0
             self.values[(0x603F, 0)] = code
             self.values[(0x1001, 0)] = reg
-            n = min(self.od_value(0x1003, 0) + 1, 4)
-            for i in range(n, 1, -1):
-                self.set_od(0x1003, i, self.od_value(0x1003, i - 1))
-            self.set_od(0x1003, 1, code)
-            self.set_od(0x1003, 0, n)
+            if self.has(0x1003, 0):
+                n = min(self.od_value(0x1003, 0, 0) + 1, 4)
+                for i in range(n, 1, -1):
+                    self.set_od(0x1003, i, self.od_value(0x1003, i - 1, 0))
+                self.set_od(0x1003, 1, code)
+                self.set_od(0x1003, 0, n)
             self._update_statusword()
-            if not self.silent:
+            self._track()
+            if emcy and not self.silent:
                 self.node.emcy.send(code, reg)
+
+    def send_emcy(self, code: int) -> None:
+        """An EMCY message (e.g. a warning) without any change of state: the drive keeps running."""
+        if not self.silent:
+            self.node.emcy.send(code, 0x01 | _ERROR_REGISTER_BITS.get(code >> 12, 0))
+
+    def abort_connection(self, code: int, reason: str, emcy: bool = True) -> None:
+        """The master is lost (``reason``): apply 0x6007 (1, fault, where the dictionary has none)."""
+        with self.lock:
+            option = self.od_value(0x6007, 0, ABORT_FAULT)
+            self.aborts.append((code, reason, self.clock()))
+            log.info("%s: %s: abort connection option %s", self.name, reason, option)
+            if option == ABORT_NOTHING:
+                return
+            if option == ABORT_DISABLE_VOLTAGE:
+                self._controlword(0x0000)
+            elif option == ABORT_QUICK_STOP:
+                self._controlword(0x0002)
+            else:  # fault signal, or manufacturer-specific (< 0)
+                self.inject_fault(code, emcy=emcy)
+                return
+            if self.state != "OPERATION ENABLED":
+                self._actual_pm = 0
+            self._track()
+            if emcy and not self.silent:
+                self.node.emcy.send(code, 0x11)
+
+    def on_leave_operational(self, command: int) -> None:
+        if self.state == "OPERATION ENABLED":
+            self.abort_connection(0x8100, f"NMT command 0x{command:02X} while OPERATION ENABLED", emcy=False)
+
+    def check_watchdogs(self, now: float) -> None:
+        """Drive-side watchdogs on wall time ``now`` (time.monotonic()): the master's heartbeat
+        (0x1016), SYNC loss (0x1006) and the RPDO deadline (0x1400:05); each trips once until the
+        watched thing comes back."""
+        with self.lock:
+            if self._master is not None and self._master_seen is not None and "heartbeat" not in self._tripped:
+                if now - self._master_seen > self._master[1]:
+                    self._tripped.add("heartbeat")
+                    self.abort_connection(0x8130, f"heartbeat of the master (node {self._master[0]}) lost for "
+                                                  f"{now - self._master_seen:.3f} s")
+            if self.state != "OPERATION ENABLED":
+                return
+            if not self.operational:  # left OPERATIONAL by itself (no NMT command seen)
+                self.abort_connection(0x8100, f"NMT state {self.node.nmt.state} while OPERATION ENABLED")
+                return
+            cycle = (self.od_value(0x1006, 0, 0) or 0) * 1e-6
+            if cycle and self._last_sync is not None and "sync" not in self._tripped:
+                if now - self._last_sync > SYNC_LOSS_CYCLES * cycle:
+                    self._tripped.add("sync")
+                    self.abort_connection(0x8100, f"SYNC lost for {now - self._last_sync:.4f} s")
+            deadline = self._rpdo_deadline()
+            if deadline and self._last_rpdo is not None and "rpdo" not in self._tripped:
+                if now - self._last_rpdo > deadline:
+                    self._tripped.add("rpdo")
+                    self.abort_connection(0x8250, f"no RPDO for {now - self._last_rpdo:.4f} s")
+
+    def _rpdo_deadline(self) -> float:
+        """Shortest event timer (s) of the enabled RPDOs (0x14xx:05, CiA 301 deadline monitoring)."""
+        best = 0.0
+        for k in range(4):
+            if not self.has(0x1400 + k, 5):
+                continue
+            cob = self.od_value(0x1400 + k, 1, 0x80000000)
+            ms = self.od_value(0x1400 + k, 5, 0) or 0
+            if not cob & 0x80000000 and ms:
+                best = ms / 1000.0 if not best else min(best, ms / 1000.0)
+        return best
+
+    def watchdog_times(self) -> list[float]:
+        """The configured watchdog times (s), for the plant's check period."""
+        out = [self._master[1]] if self._master else []
+        cycle = (self.od_value(0x1006, 0, 0) or 0) * 1e-6
+        return out + [t for t in (SYNC_LOSS_CYCLES * cycle, self._rpdo_deadline()) if t]
 
     # -- process values --------------------------------------------------------------------------
     def on_sync(self) -> None:
@@ -358,30 +612,34 @@ class SimulatedDrive(SimulatedNode):
         mode = self.values[(0x6061, 0)]
         if self.state != "OPERATION ENABLED" or mode not in TORQUE_MODES:
             self._actual_pm = 0
+            self._track()
             return
-        limit = self.od_value(0x6072)
+        limit = self.od_value(0x6072, 0, 32767)
         target = int(max(-limit, min(limit, self.values[(0x6071, 0)])))
-        slope = self.od_value(0x6087)
+        slope = self.od_value(0x6087, 0, 0) or 0
         if mode == OperationMode.PROFILED_TORQUE and slope > 0:
-            period = self.od_value(0x60C2, 1) * 10.0 ** self.od_value(0x60C2, 2)
+            period = self.od_value(0x60C2, 1, 1) * 10.0 ** self.od_value(0x60C2, 2, -3)
             step = max(1, int(slope * period))
             target = self._actual_pm + max(-step, min(step, target - self._actual_pm))
         self._actual_pm = target
+        self._track()
 
     def applied_permille(self) -> int:
         """Torque the power stage produces, per-mille of rated torque (set at each SYNC)."""
         return self._actual_pm
 
     def joint_torque(self) -> float:
-        """Torque at the joint, N m."""
-        return self.cfg.polarity * self.cfg.gear_ratio * self.applied_permille() / 1000.0 * self.cfg.rated_torque
+        """Torque at the joint, N m: polarity * gear ratio * motor torque (per-mille of rated)."""
+        motor = self.applied_permille() / 1000.0 * self.rated_torque
+        return self.cfg.polarity * self.cfg.gear_ratio * motor
 
     def sample(self, phi: float, phi_dot: float) -> None:
-        """Joint angle (rad) and rate (rad/s) into 0x6064 (counts) and 0x606C (counts/s)."""
-        per_rad = self.cfg.gear_ratio * self.cfg.counts_per_rev / (2 * math.pi)
-        counts = math.floor(phi * per_rad + 1e-9)
+        """Joint angle (rad) and rate (rad/s) into 0x6064 (increments of 0x608F per motor revolution)
+        and 0x606C (the configured velocity unit)."""
+        inc = self.od_value(0x608F, 1, self.cfg.counts_per_rev) / self.od_value(0x608F, 2, 1)
+        counts = math.floor(self.motor_angle(phi) * inc / (2 * math.pi) + 1e-9)
         self.values[(0x6064, 0)] = wrap_int32(self.position_offset + self.cfg.polarity * counts)
-        self.values[(0x606C, 0)] = int(round(self.cfg.polarity * phi_dot / self.cfg.rad_s_per_velocity_unit))
+        self.values[(0x606C, 0)] = self.velocity_units(phi_dot)
         self.values[(0x6077, 0)] = self.applied_permille()
         self._update_statusword()
 
@@ -409,7 +667,7 @@ class SimulatedEncoder(SimulatedNode):
         upr = self.od_value(0x6001)
         rng = self.od_value(0x6002)
         c = math.floor(phi * self.cfg.gear_ratio * upr / (2 * math.pi) + 1e-9)
-        if self.od_value(0x6000) & 0x1:  # code sequence: counting direction inverted
+        if self.od_value(0x6000, 0, 0) & 0x1:  # code sequence: counting direction inverted
             c = -c
         return (self.cfg.offset + self.cfg.direction * c + self._preset_shift) % rng
 

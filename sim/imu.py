@@ -10,7 +10,7 @@ opens ``sim.port`` (the slave path) with pyserial exactly as it would open
   device -- the reply echoes the register and its value with a checksum -- and register 1
   (model) for reads; anything else gets ``$VNERR,<code>`` (see ``drivers.vectornav``);
 * injects faults for tests: garbage bytes, a bad checksum, a truncated sentence, silence,
-  a closed port.
+  a ``$VNERR`` system error, a closed port.
 
 Who decides *when* to publish is the caller (the plant publishes once per IMU period of
 ``rate_hz``, in lockstep with its simulation; :meth:`SimulatedIMU.publish_at` does the
@@ -143,6 +143,13 @@ class SimulatedIMU:
             return b""
         self._last_tick = tick
         return self.publish_platform(accel_platform, gyro_platform, **kw)
+
+    def report_error(self, code: int) -> bytes:
+        """An asynchronous ``$VNERR,<code>`` sentence, as the device sends on a system error while
+        streaming (e.g. 12: insufficient baud rate); returns the bytes written."""
+        data = vn.frame(f"VNERR,{int(code):02d}")
+        self._send(data)
+        return data
 
     def write_garbage(self, data: bytes | int, seed: int = 0) -> bytes:
         """Write raw bytes onto the line: ``data`` itself, or that many random bytes that

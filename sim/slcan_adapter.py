@@ -72,6 +72,7 @@ class SlcanAdapterBus(can.BusABC):
         self.bitrate: int | None = None
         self.malformed = 0
         self.overruns = 0
+        self.is_cut = False  # bus off: no frame carried either way (``cut()``)
         self._closed = False
         super().__init__(channel=self.port, **kwargs)
         self.channel_info = f"emulated slcan adapter on {self.port}"
@@ -96,7 +97,7 @@ class SlcanAdapterBus(can.BusABC):
                 self.malformed += 1
                 self._write(ERROR)
                 return None
-            return msg if self.is_open else None
+            return msg if self.is_open and not self.is_cut else None
         if c in "OL" and len(text) == 1:
             self.is_open = True
         elif c == "C" and len(text) == 1:
@@ -151,8 +152,12 @@ class SlcanAdapterBus(can.BusABC):
                 self._buf.clear()
         return None, False
 
+    def cut(self) -> None:
+        """The bus stops carrying frames (bus off, connector pulled): nothing is forwarded either way."""
+        self.is_cut = True
+
     def send(self, msg: can.Message, timeout=None) -> None:
-        if self.is_open:
+        if self.is_open and not self.is_cut:
             self._write(format_frame(msg))
 
     def shutdown(self) -> None:

@@ -32,11 +32,7 @@ VEL_Q = 0.5 * DRIVE_Q + 1e-12  # velocity rounding to whole counts/s
 
 def lenient(cfg):
     """``cfg`` with watchdogs a loaded test machine cannot trip (lockstep runs have no deadline)."""
-    from dataclasses import replace
-
-    cfg = cfg.replace_bus(tpdo_timeout=1.0)
-    return replace(cfg, drives=tuple(replace(d, heartbeat_consumer=1.0) for d in cfg.drives),
-                   pivot_encoder=replace(cfg.pivot_encoder, heartbeat_consumer=1.0))
+    return cfg.relaxed(1.0)
 
 
 def expected_joints(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -368,7 +364,8 @@ def test_realtime_pacing_sends_one_sync_per_period():
             elapsed = time.monotonic() - t0
         assert elapsed >= 10 * cfg.bus.period * 0.95
         assert np.median(np.diff(stamps)) == pytest.approx(cfg.bus.period, abs=2e-3)
-        assert plant.k == 11 + 1  # the plant stepped once per SYNC (and once for disable on close)
+        assert plant.k == 11 + 2  # the plant stepped once per SYNC (and on close once for the confirmed
+        # quick stop, once for disable)
 
 
 def test_velocity_unit_of_the_drives_is_configurable():
@@ -400,7 +397,7 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
         with VirtualPlant(cfg, imu=pub, noise=NoiseModel()) as plant:
             for master in range(2):
                 robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), imu=drv,
-                                     imu_lockstep=True, close_imu=False)
+                                     imu_lockstep=True, close_imu=False, sdo_timeout=1.0)
                 robot.open()
                 robot.enable()
                 for _ in range(23 + 10 * master):

@@ -71,8 +71,9 @@ def test_otbot_run_against_an_otbot_plant_process(tmp_path, capsys):
     src = load_robot_config().path
     cfg = tmp_path / "robot.yaml"
     text = src.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}")
-    text = text.replace("tpdo_timeout: {value: 0.05, unit: s}", "tpdo_timeout: {value: 1.0, unit: s}")
     text = text.replace("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}")
+    text = text.replace("master_heartbeat_consumer: {value: 100, unit: ms}",
+                        "master_heartbeat_consumer: {value: 1000, unit: ms}")
     cfg.write_text(text)
     for eds in src.parent.glob("*.eds"):
         (tmp_path / eds.name).write_text(eds.read_text())

@@ -472,7 +472,10 @@ def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(mo
     heavy.save(hfile)
     cfg = tmp_path / "robot.yaml"
     text = CFG.path.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}")
-    text = text.replace("tpdo_timeout: {value: 0.05, unit: s}", "tpdo_timeout: {value: 1.0, unit: s}")
+    # lockstep against a plant process on a loaded machine: watchdogs at 1 s both ways (this test is about physics)
+    text = text.replace("master_heartbeat_consumer: {value: 100, unit: ms}",
+                        "master_heartbeat_consumer: {value: 1000, unit: ms}")
+    assert "master_heartbeat_consumer: {value: 1000, unit: ms}" in text
     cfg.write_text(text.replace("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}"))
     for eds in CFG.path.parent.glob("*.eds"):
         (tmp_path / eds.name).write_text(eds.read_text())

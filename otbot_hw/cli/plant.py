@@ -4,7 +4,9 @@ The plant (simulated CiA 402 drives and CiA 406 encoder on canopen's LocalNode, 
 advancing one control period per SYNC) listens on an slcan adapter it emulates on a new
 pseudo-terminal, or on a socketcan interface; the simulated IMU writes VectorNav sentences into
 another pseudo-terminal. It prints one JSON line (can_interface, can_channel, imu_port) and runs
-until its standard input closes. A master then runs e.g.
+until its standard input closes; each input line ``report`` is answered with one JSON line of
+the simulated drives' own state. ``--inject KIND@SECONDS`` makes the plant inject a fault at that
+plant time (``sim.injection``; ``plant-kill`` kills this process). A master then runs e.g.
 ``otbot run --bus config --interface slcan --channel PTY --imu-port PTY2``.
 """
 from __future__ import annotations
@@ -42,6 +44,10 @@ def register(sub) -> None:
                    help="sensor noise: the paper's IMU and encoder-rate sigmas (default), or none")
     p.add_argument("--seed", type=seed, default=0, help="noise seed, an integer >= 0 (default 0)")
     p.add_argument("--no-imu", action="store_true", help="no simulated IMU")
+    p.add_argument("--inject", default=None, metavar="KIND@SECONDS[:DRIVE]",
+                   help="inject a fault at this plant time (s since the drives were enabled): drive-silent, emcy, "
+                        "fault-bit, imu-loss, imu-error, bus-off, plant-kill (SIGKILL of this process); DRIVE: "
+                        "right_wheel, left_wheel (default) or pivot")
     p.add_argument("--json", action="store_true", help="accepted for uniformity: the output is always one JSON line")
     p.set_defaults(func=run)
 
@@ -64,17 +70,25 @@ def check_socketcan(channel: str) -> None:
 def run(args: argparse.Namespace) -> None:
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.sensors import NoiseModel
+    from sim.injection import Injection
     from sim.plant import serve
 
     model = ExtendedModel.load(args.plant_params)
     cfg = bus_config(args.config, args.rate)
     if args.transport == "socketcan":
         check_socketcan(args.channel)
+    try:
+        inject = Injection.parse(args.inject) if args.inject is not None else None
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     noise = NoiseModel.paper() if args.noise == "paper" else NoiseModel()
     import gc
 
     gc.collect()  # the plant answers SYNCs as hardware would: no full collection of everything
     gc.freeze()   # imported in the middle of one (measured: 20-70 ms pauses without)
-    serve(cfg, transport=args.transport, channel=args.channel, with_imu=not args.no_imu,
-          fixture=args.fixture, noise=noise, seed=args.seed, params=model)
+    try:
+        serve(cfg, transport=args.transport, channel=args.channel, with_imu=not args.no_imu,
+              fixture=args.fixture, noise=noise, seed=args.seed, inject=inject, params=model)
+    except ValueError as exc:  # an injection this plant cannot do
+        raise CliError(str(exc)) from None
     return None

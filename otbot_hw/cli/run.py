@@ -41,6 +41,12 @@ def register(sub) -> None:
                    help="--bus sim: the robot to simulate, a parameter YAML or a diagnosed-model file with 'effects' "
                         "(default config/otbot.yaml)")
     add_bus_options(p, "default: bus.control_rate of the config")
+    p.add_argument("--inject", default=None, metavar="KIND@SECONDS[:DRIVE]",
+                   help="--bus sim: inject a fault at this plant time (s since the drives were enabled): "
+                        "drive-silent, emcy, fault-bit, imu-loss, imu-error ($VNERR), bus-off, plant-kill (runs the "
+                        "plant as its own process over slcan); DRIVE: right_wheel, left_wheel (default) or pivot. "
+                        "--json then gives 'reaction': injected_s, detected_s, all_stopped_s (from the simulated "
+                        "drives' own state), drive_states_after")
     p.add_argument("--out", type=Path, default=None, metavar="RUN.mcap",
                    help="MCAP recording to write (its folder must exist)")
     p.add_argument("--plot", type=Path, default=None, metavar="DIR",
@@ -57,6 +63,7 @@ def _fail(result: dict, message: str, as_json: bool):
 
 
 def run(args: argparse.Namespace) -> dict:
+    from drivers.faults import DeviceConfigError
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.robot import RobotError
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
@@ -74,6 +81,20 @@ def run(args: argparse.Namespace) -> dict:
     n = sample_count(args.duration, cfg.bus.control_rate)
     plant = ExtendedModel.load(args.plant_params) if args.plant_params is not None else None
     safety = SafetyConfig.load(args.config)
+    inject = None
+    if args.inject is not None:
+        from sim.injection import Injection
+
+        if args.bus != "sim":
+            raise CliError("--inject needs --bus sim (faults are injected into the simulated robot)")
+        try:
+            inject = Injection.parse(args.inject)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+        if inject.kind.startswith("imu") and (cfg.imu is None or args.no_imu):
+            raise CliError(f"--inject {inject.kind}: the run has no IMU")
+        if inject.kind == "plant-kill" and args.plant_params is not None:
+            raise CliError("--inject plant-kill runs the nominal robot in its own process: no --plant-params")
     torques = np.tile(tau, (n, 1))
     meta = {"bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
@@ -95,7 +116,10 @@ def run(args: argparse.Namespace) -> dict:
     if args.bus == "sim":
         noise = noise_model(args)
         meta.update(noise=noise.to_dict(), seed=args.seed)
-        backend = BusSimBackend(cfg, noise, args.seed, with_imu)
+        process = inject is not None and inject.kind == "plant-kill"
+        backend = BusSimBackend(cfg, noise, args.seed, with_imu, inject=inject, process=process)
+        if inject is not None:
+            meta["inject"] = str(inject)
         model = plant if plant is not None else ExtendedModel.load(None)
         meta["params"] = model.params.to_dict()
         if model.active_effects():
@@ -104,10 +128,14 @@ def run(args: argparse.Namespace) -> dict:
         backend = BusConfigBackend(cfg, args.imu_port, args.lockstep, with_imu)
         model = None
     try:
-        opened = backend.open(model, fixture=args.fixture) if args.bus == "sim" else backend.open()
+        opened = (backend.open(None if backend.process else model, fixture=args.fixture) if args.bus == "sim"
+                  else backend.open())
         with opened as robot:
+            _warn(robot, quiet)
             res = run_torques(robot, torques, cfg.limits, safety, args.out, meta, realtime=backend.realtime,
                               progress=say)
+    except DeviceConfigError:
+        raise  # the devices cannot run as configured: bad input, exit 2
     except RobotError as exc:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
@@ -133,12 +161,21 @@ def run(args: argparse.Namespace) -> dict:
         "busload": {"bits_per_cycle": load.bits_per_cycle, "max_rate": load.max_rate, "load": load.load},
         "loop": res.stats.to_dict(),
         "wall_time": res.stats.wall_time,
+        "warnings": list(getattr(robot, "warnings", [])),
+        "close_problems": list(getattr(robot, "close_report", [])),
     }
+    if inject is not None:
+        from sim.injection import reaction
+
+        sim_plant = backend.plant
+        result["reaction"] = reaction(inject, sim_plant.injected_t, robot, sim_plant.after, cfg.bus.period)
     if args.bus == "sim" and rec.truth_q is not None and len(rec):
         result["q_final"] = rec.truth_q[-1].tolist()
     if args.plot is not None and len(rec) > 1:
         result["plots"] = write_run_plots(args.plot, rec)
     if not res.completed:
+        if not quiet and "reaction" in result:
+            _print_reaction(result["reaction"])
         _fail(result, f"stopped by fault: {res.fault}" + (f"; recording up to the fault: {args.out}" if args.out else ""),
               args.json)
     if not quiet:
@@ -150,6 +187,21 @@ def run(args: argparse.Namespace) -> dict:
         for p in result.get("plots", []):
             print(f"[run] plot: {p}")
     return result
+
+
+def _warn(robot, quiet: bool) -> None:
+    """What the devices cannot do that the loop would use, said once."""
+    for w in getattr(robot, "warnings", []):
+        progress(f"[run] warning: {w}", not quiet)
+
+
+def _print_reaction(r: dict) -> None:
+    def t(v):
+        return "never" if v is None else f"{v:.3f} s"
+
+    print(f"[run] injected {r['kind']} at {t(r['injected_s'])}, detected at {t(r['detected_s'])}; by their own "
+          f"state the drives on the bus stopped at {t(r['healthy_stopped_s'])}, every drive at "
+          f"{t(r['all_stopped_s'])}; drives after the run: {r['drive_states_after']}")
 
 
 def write_run_plots(folder: Path, rec) -> list[str]:

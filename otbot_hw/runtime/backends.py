@@ -17,7 +17,7 @@ package and ``otbot_hw.cli`` import ``sim`` and ``drivers`` (``tests/test_layeri
 from __future__ import annotations
 
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from otbot_hw.motors import MotorLimits
 from otbot_hw.sensors import NoiseModel
@@ -115,9 +115,16 @@ class BusSimBackend(_ConfiguredRate):
     noise: NoiseModel | None = None
     seed: int | None = 0
     with_imu: bool = True
+    inject: object = None  # sim.injection.Injection: a fault the plant injects at its time
+    process: bool = False  # the plant as its own process over slcan (no ground truth then)
     name: str = "bus sim"
     realtime: bool = False
     has_truth: bool = True
+    plant: object = field(default=None, init=False, repr=False)  # the last opened plant (its report after close)
+
+    def __post_init__(self):
+        if self.process:
+            self.has_truth = False
 
     @contextmanager
     def open(self, plant, x0=None, forces=None, fixture: str = "floor"):
@@ -125,7 +132,14 @@ class BusSimBackend(_ConfiguredRate):
 
         kw = {"params": plant, "x0": x0, "forces": forces, "fixture": fixture, "noise": self.noise or NoiseModel(),
               "seed": self.seed}
-        with simulated_robot(self.config, with_imu=self.with_imu, **kw) as (robot, _plant):
+        if self.process:  # a plant process takes the nominal robot, its fixture, noise and seed only
+            for key in ("params", "x0", "forces"):
+                if kw[key] is not None:
+                    raise ValueError(f"a simulated robot in its own process cannot take {key}")
+                del kw[key]
+        with simulated_robot(self.config, with_imu=self.with_imu, inject=self.inject, process=self.process,
+                             **kw) as (robot, sim_plant):
+            self.plant = sim_plant
             yield robot
 
     def describe(self) -> dict:
@@ -152,12 +166,17 @@ class BusConfigBackend(_ConfiguredRate):
 
     @contextmanager
     def open(self, plant=None, x0=None, forces=None, fixture: str = "floor"):
+        from drivers.config import LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT
         from drivers.robot import CanopenRobot, open_imu
 
         if plant is not None or forces is not None:
             raise ValueError("the configured bus runs the robot that is there: no plant parameters or forces")
-        imu = open_imu(self.config.imu, port=self.imu_port) if (self.with_imu and self.config.imu is not None) else None
-        robot = CanopenRobot(self.config, imu=imu, realtime=False, imu_lockstep=self.lockstep)
+        # the configuration's watchdog times are kept as written (even in lockstep): it is what the user asked for
+        config, kw = self.config, {}
+        if self.lockstep:  # a simulated plant answers in its own time: wait for it longer than for a drive
+            kw = {"lockstep_timeout": LOCKSTEP_TIMEOUT, "sdo_timeout": LOCKSTEP_SDO_TIMEOUT}
+        imu = open_imu(config.imu, port=self.imu_port) if (self.with_imu and config.imu is not None) else None
+        robot = CanopenRobot(config, imu=imu, realtime=False, imu_lockstep=self.lockstep, **kw)
         with robot:
             robot.open()
             yield robot

@@ -1,0 +1,145 @@
+"""Mutation probe of the safety chain: plausible bugs put in one at a time, each must make the
+tests that pin it fail (issue 12, item 7).
+
+Each mutation replaces one piece of source text in a copy of the tree (the checkout itself is
+never touched) and runs the named tests there; the table says which mutations the tests caught.
+
+    .venv/bin/python benchmarks/mutation_probe.py [--only NAME ...] [--markdown]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+T_TIMING = "tests/test_bus_timing.py"
+T_REACT = "tests/test_bus_reaction.py"
+T_UNITS = "tests/test_bus_units.py"
+T_FAULTS = "tests/test_bus_faults.py"
+T_EDS = "tests/test_bus_eds.py"
+T_INJ = "tests/test_bus_injection.py"
+
+#: name, file, text, replacement (or lists of them, all applied), tests that must fail
+MUTATIONS = [
+    ("heartbeat timeout 1.5x too long", "drivers/heartbeat.py", "if now - w.last > w.timeout:",
+     "if now - w.last > 1.5 * w.timeout:", [T_TIMING]),
+    ("heartbeat check period 10x too slow", "drivers/heartbeat.py",
+     "period = min(w.timeout for w in self._watch.values()) / 10",
+     "period = min(w.timeout for w in self._watch.values())", [T_TIMING]),
+    ("stale-TPDO window 5x too long (realtime)", "drivers/robot.py", "TPDO_WINDOW = 0.8", "TPDO_WINDOW = 4.0",
+     [T_TIMING]),
+    ("stale-TPDO wait 5x too long (lockstep)", "drivers/robot.py", "LOCKSTEP_SETTLE = 0.05",
+     "LOCKSTEP_SETTLE = 0.25", [T_TIMING]),
+    ("stale fault one SYNC late", "drivers/robot.py", "if self._misses[key] == n_max:",
+     "if self._misses[key] == n_max + 1:", [T_REACT]),
+    ("close() without return to PRE-OPERATIONAL", "drivers/robot.py",
+     "lambda dev=dev: dev.nmt_command(NMT_ENTER_PRE_OPERATIONAL))", "lambda dev=dev: None)", [T_REACT]),
+    ("close() without stopping the heartbeat watcher", "drivers/robot.py",
+     "        self.heartbeats.stop()\n        try:\n            with self._cycle_lock:",
+     "        try:\n            with self._cycle_lock:", [T_REACT]),
+    ("a node leaving OPERATIONAL without rebooting is no fault", "drivers/heartbeat.py",
+     "elif w.rebooted or (w.expected is not None and w.state is not None and w.state != w.expected):",
+     "elif w.rebooted:", [T_REACT]),
+    ("the driver's 0x6072 clamp removed", "drivers/cia402.py",
+     "        return max(-self.max_permille, min(self.max_permille, pm))", "        return pm", [T_REACT]),
+    ("IMU mounting applied untransposed in the plant", "sim/plant.py",
+     "self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)",
+     "self.imu.publish(self.mounting @ acc, self.mounting @ gyro)", [T_UNITS]),
+    ("encoder direction dropped", "drivers/cia406.py", "return self.cfg.direction * self._counts",
+     "return self._counts", [T_UNITS]),
+    ("encoder gear ratio dropped", "drivers/cia406.py", "(self.units_per_rev * self.cfg.gear_ratio)",
+     "(self.units_per_rev)", [T_UNITS]),
+    ("wrong 0.1 rpm factor in the driver", "drivers/config.py", '"0.1 rpm": 2 * np.pi / 600',
+     '"0.1 rpm": 2 * np.pi / 60', [T_UNITS]),
+    ("drive gear ratio dropped in the simulated velocity", "sim/canopen_slaves.py",
+     "revs_per_s = self.cfg.polarity * phi_dot * self.cfg.gear_ratio / (2 * math.pi)",
+     "revs_per_s = self.cfg.polarity * phi_dot / (2 * math.pi)", [T_UNITS]),
+    ("reaction does not keep SYNC alive", "drivers/robot.py", "                arrived = self._sync_cycle()\n"
+     "                rec[\"cycles\"] += 1\n                off = self._off_bus()",
+     "                arrived = set()\n                rec[\"cycles\"] += 1\n                off = self._off_bus()",
+     [T_REACT]),
+    ("no disable after the confirmed quick stop", "drivers/robot.py",
+     "                    for d in self.drives:\n                        d.stage_disable()",
+     "                    for d in self.drives:\n                        d.stage_quick_stop()", [T_REACT]),
+    ("no NMT STOP for a drive that does not confirm", "drivers/robot.py", "d.nmt_command(NMT_STOP)",
+     "None", [T_REACT]),
+    ("$VNERR while streaming ignored", "drivers/imu.py", 'elif item.header == "VNERR" and not self._in_command:',
+     'elif False:', [T_REACT]),
+    ("PDO mapping not read back", "drivers/device.py", "            mapping.verify_pdos(self, plan)",
+     "            pass", [T_EDS]),
+    ("the drives do not watch the master's heartbeat", "sim/canopen_slaves.py",
+     "        if (index, subindex) == (0x1016, 1):", "        if False:", [T_TIMING]),
+    ("the simulated slaves keep foreign frames on their TPDO IDs", "sim/canopen_slaves.py",
+     ["                    m.data = bytearray((m.length + 7) // 8)\n", "            if m.on_message in subs:"],
+     ["", "            if False:"], [T_FAULTS]),
+    ("fault-bit without a statusword check", "drivers/cia402.py", "        if state in FAULT_STATES:\n"
+     "            if not self._fault_reported:", "        if False:\n            if not self._fault_reported:",
+     [T_REACT]),
+]
+
+
+def copy_tree(dst: Path) -> None:
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    for f in files:
+        src = ROOT / f
+        if src.is_file():
+            (dst / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dst / f)
+
+
+def probe(name, file, old, new, tests, tree: Path) -> dict:
+    path = tree / file
+    original = path.read_text()
+    olds, news = ([old], [new]) if isinstance(old, str) else (old, new)
+    mutated = original
+    for o, n in zip(olds, news):
+        if o not in mutated:
+            return {"name": name, "caught": None, "note": "text not found (source changed?)"}
+        mutated = mutated.replace(o, n, 1)
+    path.write_text(mutated)
+    t0 = time.monotonic()
+    try:
+        env = {**os.environ, "PYTHONPATH": str(tree)}
+        r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *tests], cwd=tree,
+                           env=env, capture_output=True, text=True)
+    finally:
+        path.write_text(original)
+    last = (r.stdout.strip().splitlines() or [""])[-1]
+    return {"name": name, "caught": r.returncode != 0, "tests": tests, "result": last,
+            "seconds": time.monotonic() - t0}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--only", nargs="*", default=None, help="run only mutations whose name contains one of these")
+    ap.add_argument("--markdown", action="store_true")
+    args = ap.parse_args()
+    todo = [m for m in MUTATIONS if not args.only or any(o in m[0] for o in args.only)]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp)
+        copy_tree(tree)
+        for m in todo:
+            print(f"[probe] {m[0]}", file=sys.stderr, flush=True)
+            rows.append(probe(*m, tree))
+            print(f"[probe]   {'caught' if rows[-1]['caught'] else 'MISSED'}: {rows[-1].get('result', '')}",
+                  file=sys.stderr, flush=True)
+    print("| mutation | pinned by | caught |")
+    print("|---|---|---|")
+    for r in rows:
+        print(f"| {r['name']} | {', '.join(Path(t).name for t in r.get('tests', []))} | "
+              f"{'yes' if r['caught'] else ('no' if r['caught'] is False else r['note'])} |")
+    missed = [r for r in rows if not r["caught"]]
+    print(f"\n{len(rows) - len(missed)} of {len(rows)} caught.")
+    sys.exit(1 if missed else 0)
+
+
+if __name__ == "__main__":
+    main()

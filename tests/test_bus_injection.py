@@ -1,0 +1,209 @@
+"""The fault matrix: ``otbot run --bus sim --inject KIND@SECONDS`` for every kind on virtual CAN,
+the same kinds with the plant as its own process over slcan, the master killed mid-run, and a
+flood of random frames on the devices' COB-IDs. Judged from the simulated drives' own state:
+drives on the bus stopped within two periods of the detection, faults in plain words, exit 1,
+the recording up to the fault loadable."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from drivers.config import LOCKSTEP_HEARTBEAT, load_robot_config
+from otbot_hw.cli import main
+from otbot_hw.recording import read_recording
+from otbot_hw.robot import RobotFault
+from otbot_hw.runtime.openloop import run_torques
+from sim.injection import Injection, reaction
+from sim.plant import PlantProcess, flood_frames, send_flood, simulated_robot
+
+CFG = load_robot_config()
+PERIOD = CFG.bus.period
+AT = 0.1  # s of plant time
+#: what each fault must be called, in words
+WORDS = {"drive-silent": "TPDO1 missing", "emcy": "excess drive temperature", "fault-bit": "over-current",
+         "imu-loss": "disconnected", "imu-error": "insufficient baud rate", "bus-off": "missing"}
+IN_PROCESS = list(WORDS)
+
+
+def check_reaction(r: dict, kind: str, consumer: float) -> None:
+    """The reaction block against the targets: detection within the TPDO timeout (two periods),
+    every drive still on the bus at zero torque within two periods of it, the others stopped by
+    their own watchdog (the master's heartbeat, ``consumer`` s) — judged from the drives' state."""
+    assert r["kind"] == kind and r["injected_s"] == pytest.approx(AT)
+    assert 0.0 <= r["detected_s"] - r["injected_s"] <= CFG.bus.tpdo_timeout * PERIOD + 1e-9
+    if kind in ("drive-silent", "bus-off"):
+        assert r["detected_s"] - r["injected_s"] == pytest.approx((CFG.bus.tpdo_timeout - 1) * PERIOD)
+    if kind != "bus-off":  # with the bus gone no drive can be reached: they stop by themselves
+        assert 0.0 <= r["healthy_stopped_s"] - r["detected_s"] <= 2 * PERIOD + 1e-9, r
+    assert r["all_stopped_s"] is not None, r
+    if kind in ("drive-silent", "bus-off"):
+        assert r["all_stopped_s"] - r["injected_s"] <= consumer + 0.3, r
+    assert "OPERATION ENABLED" not in r["drive_states_after"].values(), r
+
+
+@pytest.mark.parametrize("kind", IN_PROCESS)
+def test_otbot_run_inject_on_virtual_can(kind, tmp_path, capsys):
+    out = tmp_path / "run.mcap"
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--bus", "sim", "--inject", f"{kind}@{AT}", "--duration", "0.25", "--noise", "none",
+              "--out", str(out), "--json"])
+    assert exc.value.code == 1
+    captured = capsys.readouterr()
+    res = json.loads(captured.out)
+    assert res["completed"] is False
+    check_reaction(res["reaction"], kind, LOCKSTEP_HEARTBEAT)
+    assert any(WORDS[kind] in f["meaning"] for f in res["faults"]), res["faults"]
+    assert WORDS[kind] in captured.err  # said in the text output too
+    assert "Traceback" not in captured.err
+    rec = read_recording(out)  # the recording up to the fault loads
+    assert len(rec) == res["samples"] and rec.t[-1] < AT + CFG.bus.tpdo_timeout * PERIOD
+    assert any(e["kind"] == "fault" and WORDS[kind] in e["text"] for e in rec.events)
+
+
+def test_inject_refuses_what_it_cannot_do(capsys):
+    for args, words in ((["--inject", "melt@1"], "unknown fault kind 'melt'"),
+                        (["--inject", "emcy"], "KIND@SECONDS"),
+                        (["--inject", "emcy@-1"], ">= 0"),
+                        (["--inject", "emcy@1:elbow"], "device must be one of"),
+                        (["--inject", "imu-loss@0.1", "--no-imu"], "has no IMU"),
+                        (["--bus", "config", "--inject", "emcy@0.1"], "needs --bus sim")):
+        assert main(["run", *args, "--duration", "0.1"]) == 2
+        err = capsys.readouterr().err
+        assert words in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_plant_kill_with_the_plant_as_its_own_process(tmp_path, capsys):
+    out = tmp_path / "run.mcap"
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--bus", "sim", "--inject", f"plant-kill@{AT}", "--duration", "0.3", "--out", str(out),
+              "--json"])
+    assert exc.value.code == 1
+    captured = capsys.readouterr()
+    res = json.loads(captured.out)
+    r = res["reaction"]
+    assert r["injected_s"] == pytest.approx(AT) and 0 <= r["detected_s"] - AT <= 2 * PERIOD + 1e-9
+    assert r["all_stopped_s"] is None and r["drive_states_after"] is None and "gone" in r["note"]
+    assert {f["kind"] for f in res["faults"]} & {"bus", "stale", "imu"}
+    assert res["close_problems"] and "Traceback" not in captured.err  # reported, not raised
+    assert len(read_recording(out)) == res["samples"]
+
+
+def _matrix_run(pp: PlantProcess, kind: str) -> tuple[dict, list]:
+    cfg = CFG.relaxed(0.3)
+    robot = pp.robot(cfg)
+    with robot:
+        robot.open()
+        res = run_torques(robot, np.tile([4.0, -4.0, 2.0], (30, 1)))
+    pp.after = pp.report(wait_stopped=True, timeout=1.0)
+    return reaction(Injection(kind, AT), pp.injected_t, robot, pp.after, PERIOD), list(res.robot_faults)
+
+
+def test_fault_matrix_with_the_plant_as_its_own_process_over_slcan():
+    """Each kind against a plant in its own process (slcan on a pty), restarted fresh for each."""
+    with PlantProcess(CFG) as pp:
+        for kind in IN_PROCESS:
+            pp.restart(Injection(kind, AT))
+            r, faults = _matrix_run(pp, kind)
+            check_reaction(r, kind, 0.3)
+            assert any(WORDS[kind] in f.meaning for f in faults), (kind, faults)
+            assert pp.alive()
+
+
+def test_master_killed_mid_run_the_drives_stop_within_their_consumer_time(tmp_path):
+    consumer = 0.15
+    src = CFG.path
+    text = src.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}")
+    text = text.replace("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}")
+    text = text.replace("master_heartbeat_consumer: {value: 100, unit: ms}",
+                        f"master_heartbeat_consumer: {{value: {consumer * 1000:g}, unit: ms}}")
+    (tmp_path / "robot.yaml").write_text(text)
+    for eds in src.parent.glob("*.eds"):
+        (tmp_path / eds.name).write_text(eds.read_text())
+    with PlantProcess(CFG) as pp:
+        master = subprocess.Popen([sys.executable, "-m", "otbot_hw", "run", "--bus", "config", "--config",
+                                   str(tmp_path / "robot.yaml"), "--interface", "slcan", "--channel",
+                                   pp.info["can_channel"], "--imu-port", pp.info["imu_port"], "--lockstep",
+                                   "--duration", "1000", "--json"], stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)
+        try:
+            t0 = time.monotonic()
+            while True:
+                rep = pp.report()
+                if rep["started"] and rep["t"] > 0.2:
+                    break
+                assert time.monotonic() - t0 < 30 and master.poll() is None, "the master did not start"
+                time.sleep(0.01)
+            assert all(d["state"] == "OPERATION ENABLED" and d["torque_permille"] for d in rep["drives"])
+            os.kill(master.pid, signal.SIGKILL)
+            killed = time.monotonic()
+        finally:
+            master.kill()
+            master.wait()
+        rep = pp.report(wait_stopped=True, timeout=consumer + 1.0)
+        for d in rep["drives"]:
+            assert d["state"] == "QUICK STOP ACTIVE" and d["torque_permille"] == 0, d
+            assert d["aborts"][0][0] == 0x8130  # the master's heartbeat was lost
+            # the last heartbeat came at most one producer period before the kill
+            stopped = d["stopped_wall"] - killed
+            assert consumer - CFG.bus.master_heartbeat - 0.005 <= stopped <= consumer + 0.12, stopped
+
+
+def _flood_run(robot, plant_or_process, n_cycles=60):
+    """Drive the robot while frames flood the bus in cycles 5..34; faults must be plain words."""
+    faults_at = None
+    for c in range(n_cycles):
+        if 5 <= c < 35:
+            plant_or_process(c)
+        try:
+            robot.write([2.0, -2.0, 1.0])
+        except RobotFault:
+            pass
+        s = robot.read()
+        if s.faults and faults_at is None:
+            faults_at = c
+    for f in robot.faults:
+        assert f.meaning and "Error" not in f.meaning and "Traceback" not in f.meaning, f
+    return faults_at
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_flood_of_random_frames_on_the_devices_ids_on_virtual_can(seed, caplog):
+    with simulated_robot(CFG, with_imu=False) as (robot, plant):
+        robot.enable()
+        intruder = can.Bus(interface="virtual", channel=robot.config.bus.channel)
+        frames = flood_frames(robot.config, 300, seed)
+        try:
+            faulted = _flood_run(robot, lambda c: send_flood(intruder, frames[(c - 5) * 10:(c - 4) * 10]))
+        finally:
+            intruder.shutdown()
+        assert faulted is not None  # 300 random frames on these IDs do not go unnoticed
+    # after close every drive is at zero torque and not enabled, by its own state
+    assert all(d.state != "OPERATION ENABLED" and d.applied_permille() == 0 for d in plant.drives)
+    assert not [r for r in caplog.records if r.name.startswith(("drivers", "sim")) and r.levelname == "ERROR"]
+
+
+def test_a_flood_over_slcan_both_ways_with_the_plant_as_its_own_process():
+    with PlantProcess(CFG, with_imu=False) as pp:
+        robot = pp.robot(CFG.relaxed(0.5), with_imu=False)
+        frames = flood_frames(robot.config, 150, 7)
+        with robot:
+            robot.open()
+            robot.enable()
+
+            def flood(c):
+                send_flood(robot.network.bus, frames[(c - 5) * 5:(c - 4) * 5])  # to the drives
+                pp.flood(5, seed=c)  # and from the plant's side to the master
+
+            _flood_run(robot, flood)
+        rep = pp.report(wait_stopped=True, timeout=1.0)
+        assert pp.alive()
+        assert all(d["state"] != "OPERATION ENABLED" and d["torque_permille"] == 0 for d in rep["drives"]), rep

@@ -1,0 +1,152 @@
+"""Every watchdog time pinned from both sides, with bounds derived from the configuration: the
+master's heartbeat consumer (timeout and check period), the stale-TPDO window (realtime and
+lockstep), and the drives' own watchdogs the master configures at boot (its heartbeat, SYNC
+loss, RPDO deadline), measured on the simulated drives' own clocks."""
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import pytest
+
+from drivers.config import LOCKSTEP_TIMEOUT, load_robot_config
+from sim.canopen_slaves import SYNC_LOSS_CYCLES
+from sim.plant import simulated_robot
+
+CFG = load_robot_config()
+SLACK = 0.1  # s: scheduling noise a loaded 2-core machine adds to a wall-clock watchdog
+# The designed windows (docs/bus.md), written out so that a changed constant shows:
+TPDO_WINDOW = 0.8  # realtime: part of the period a read() waits for the TPDOs of its SYNC
+LOCKSTEP_SETTLE = 0.05  # lockstep: s the others are awaited after the first TPDO of a SYNC
+
+
+def with_times(cfg, consumer=None, master_consumer=None, rate=None):
+    if rate is not None:
+        cfg = cfg.replace_bus(control_rate=rate)
+    drives = tuple(replace(d, heartbeat_consumer=consumer or d.heartbeat_consumer,
+                           master_heartbeat_consumer=master_consumer or d.master_heartbeat_consumer)
+                   for d in cfg.drives)
+    enc = replace(cfg.pivot_encoder, heartbeat_consumer=consumer or cfg.pivot_encoder.heartbeat_consumer)
+    return replace(cfg, drives=drives, pivot_encoder=enc)
+
+
+def test_master_heartbeat_consumer_timeout_and_check_period():
+    consumer, producer = 0.4, CFG.drives[0].heartbeat_producer
+    cfg = with_times(CFG, consumer=consumer)
+    with simulated_robot(cfg, with_imu=False, heartbeat_consumer=None) as (robot, plant):
+        robot.enable()
+        # the watcher checks every consumer / 10 s, with or without control cycles
+        calls = []
+        real = robot.heartbeats.check
+        robot.heartbeats.check = lambda *a: calls.append(time.monotonic()) or real(*a)
+        time.sleep(0.5)
+        robot.heartbeats.check = real
+        assert 0.5 / (consumer / 10) * 0.6 <= len(calls) <= 0.5 / (consumer / 10) + 2, len(calls)
+        plant.drives[2].go_silent()
+        t0 = time.monotonic()
+        while not any(f.kind == "heartbeat" for f in robot.faults):
+            assert time.monotonic() - t0 < 3 * consumer, "no heartbeat fault"
+            time.sleep(0.002)
+        elapsed = time.monotonic() - t0
+        f = next(f for f in robot.faults if f.kind == "heartbeat")
+        assert f.device == "pivot" and f.code == 0x8130
+        silence = float(f.meaning.split("no heartbeat for ")[1].split(" s")[0])
+        # silent since the last heartbeat: the fault comes after the consumer time, at most one check later
+        assert consumer <= silence <= consumer + consumer / 10 + SLACK, silence
+        assert consumer - producer - 0.01 <= elapsed <= consumer + consumer / 10 + SLACK, elapsed
+
+
+def test_stale_tpdo_window_realtime_and_lockstep():
+    rate = 25.0
+    cfg = CFG.replace_bus(control_rate=rate)
+    period = 1 / rate
+    n = cfg.bus.tpdo_timeout
+    with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
+        robot.enable()
+        for _ in range(3):
+            robot.write([0.0, 0.0, 0.0])
+            s = robot.read()
+            assert time.monotonic() - s.host_time < TPDO_WINDOW * period  # all TPDOs in time
+        plant.encoder.drop_tpdos = True
+        for k in range(n):
+            robot.write([0.0, 0.0, 0.0])
+            s = robot.read()
+            waited = time.monotonic() - s.host_time
+            assert bool(s.faults) == (k == n - 1), (k, s.faults)
+            if k < n - 1:  # (the last one also runs the fault reaction)
+                # a missing TPDO is awaited for the window, never into the next period
+                assert TPDO_WINDOW * period - 0.002 <= waited <= period + SLACK / 2, waited
+    with simulated_robot(CFG, with_imu=False) as (robot, plant):  # lockstep
+        robot.enable()
+        plant.encoder.drop_tpdos = True
+        robot.write([0.0, 0.0, 0.0])
+        arrivals = []
+        m = robot.drives[0].node.tpdo[1]
+        m.add_callback(lambda _m: arrivals.append(time.monotonic()))
+        s = robot.read()
+        waited = time.monotonic() - arrivals[-1]
+        # the plant answered the SYNC; the missing encoder TPDO is awaited LOCKSTEP_SETTLE more
+        assert LOCKSTEP_SETTLE - 0.002 <= waited <= LOCKSTEP_SETTLE + SLACK, waited
+        assert time.monotonic() - s.host_time < LOCKSTEP_TIMEOUT + SLACK
+
+
+def test_drives_stop_when_the_masters_heartbeat_stops():
+    cfg = with_times(CFG, master_consumer=0.15)
+    consumer, producer = 0.15, cfg.bus.master_heartbeat
+    with simulated_robot(cfg, with_imu=False, heartbeat_consumer=None) as (robot, plant):
+        robot.enable()
+        robot.write([2.0, 2.0, 2.0])
+        robot.read()
+        assert all(d.node.sdo[0x1016][1].raw == (cfg.bus.master_node_id << 16 | 150) for d in robot.drives)
+        assert all(d.od_value(0x6007) == 3 for d in plant.drives)  # quick stop, as configured
+        robot.master_heartbeat.stop()  # the master's process hangs or dies: its heartbeat stops
+        t0 = time.monotonic()
+        assert plant.wait_all_stopped(consumer + 0.5)
+        for d in plant.drives:
+            # quick stop by itself (the master, told by EMCY, may have disabled it since)
+            assert d.state in ("QUICK STOP ACTIVE", "SWITCH ON DISABLED") and d.applied_permille() == 0
+            code, why, _ = d.aborts[0]
+            assert code == 0x8130 and "master (node 127)" in why
+            assert consumer - producer - 0.005 <= d.stopped_since[1] - t0 <= consumer + 0.01 + SLACK
+        # and they say so: EMCY 0x8130 from each drive
+        t1 = time.monotonic()
+        while len([f for f in robot.faults if f.kind == "emcy"]) < 3:
+            assert time.monotonic() - t1 < 0.5
+            time.sleep(0.002)
+        assert {f.code for f in robot.faults if f.kind == "emcy"} == {0x8130}
+
+
+def test_drives_stop_on_sync_loss_and_on_an_rpdo_deadline_miss():
+    rate = 50.0
+    cfg = CFG.replace_bus(control_rate=rate)
+    period = 1 / rate
+    with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
+        assert all(d.node.sdo[0x1006].raw == int(period * 1e6) for d in robot.drives)
+        assert all(d.node.sdo[0x1400][5].raw == round(cfg.drives[0].rpdo_timeout * period * 1000)
+                   for d in robot.drives)
+        robot.enable()
+        for _ in range(3):
+            robot.write([2.0, 2.0, 2.0])
+            robot.read()
+        last_sync = {d.name: d._last_sync for d in plant.drives}
+        # the loop stalls: no more SYNC (and no RPDO)
+        assert plant.wait_all_stopped(0.5)
+        for d in plant.drives:
+            code, why, _ = d.aborts[0]
+            assert code == 0x8100 and "SYNC lost" in why
+            lost = d.stopped_since[1] - last_sync[d.name]
+            assert SYNC_LOSS_CYCLES * period <= lost <= SYNC_LOSS_CYCLES * period + SLACK, lost
+    with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
+        robot.enable()
+        robot.write([2.0, 2.0, 2.0])
+        robot.read()
+        last_rpdo = {d.name: d._last_rpdo for d in plant.drives}
+        deadline = cfg.drives[0].rpdo_timeout * period
+        for _ in range(cfg.drives[0].rpdo_timeout + 3):  # SYNC goes on, the setpoints stop
+            robot.read()
+        assert plant.wait_all_stopped(0.3)
+        for d in plant.drives:
+            code, why, _ = d.aborts[0]
+            assert code == 0x8250 and "no RPDO" in why
+            assert deadline <= d.stopped_since[1] - last_rpdo[d.name] <= deadline + SLACK
+        assert {f.code for f in robot.faults if f.kind == "emcy"} >= {0x8250}
