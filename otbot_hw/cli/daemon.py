@@ -56,6 +56,10 @@ def register(sub) -> None:
     p.add_argument("--interface", default=None, help="--bus config: override bus.interface (a python-can interface)")
     p.add_argument("--channel", default=None, help="--bus config: override bus.channel")
     p.add_argument("--imu-port", default=None, help="--bus config: override imu.port")
+    p.add_argument("--lockstep", action="store_true",
+                   help="--bus config talks to a simulated plant (otbot plant): the robot waits for each SYNC's "
+                        "answers and IMU sample instead of within the period, and the drives get no period-based "
+                        "watchdogs (their master-heartbeat consumer stays); the loop still runs in real time")
     p.add_argument("--no-imu", action="store_true", help="run without the IMU")
     p.add_argument("--plant-params", type=Path, default=None,
                    help="--bus sim: the robot to simulate (parameters or a diagnosed model; default --params)")
@@ -87,8 +91,10 @@ def prepare(args: argparse.Namespace):
     from otbot_hw.runtime.supervisor import SafetyConfig
     from otbot_hw.runtime.telemetry import parse_host_port
 
-    if args.bus == "sim" and any(v is not None for v in (args.interface, args.channel, args.imu_port)):
-        raise CliError("--interface/--channel/--imu-port select the configured bus (--bus config), not --bus sim")
+    if args.bus == "sim" and (any(v is not None for v in (args.interface, args.channel, args.imu_port))
+                              or args.lockstep):
+        raise CliError("--interface/--channel/--imu-port/--lockstep are for the configured bus (--bus config), "
+                       "not --bus sim")
     if args.bus == "config" and (args.plant_params is not None):
         raise CliError("--plant-params sets the simulated robot (--bus sim); the configured bus runs the robot "
                        "that is there")
@@ -121,7 +127,6 @@ def _opener(args: argparse.Namespace, start):
 
     from otbot_hw.cli.backend_args import bus_config, noise_model
 
-    args.lockstep = False
     cfg, _ = bus_config(args, args.rate, tag="daemon")
     with_imu = not args.no_imu
     if args.bus == "sim":
@@ -142,7 +147,7 @@ def _opener(args: argparse.Namespace, start):
         return open_sim
     from otbot_hw.runtime.backends import BusConfigBackend
 
-    backend = BusConfigBackend(cfg, args.imu_port, lockstep=False, with_imu=with_imu)
+    backend = BusConfigBackend(cfg, args.imu_port, lockstep=args.lockstep, with_imu=with_imu, paced=not args.lockstep)
     return backend.open
 
 

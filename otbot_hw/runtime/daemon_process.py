@@ -3,9 +3,9 @@
 
 ``local_config(folder)`` writes a copy of a hardware configuration that this user may command
 (``daemon.socket.allowed_users``), with the object dictionaries beside it and no slcan settle delay;
-``PlantServer`` starts ``otbot plant`` (slcan on a pseudo-terminal, IMU on another); ``DaemonProcess``
-starts ``otbot daemon``, waits until it answers ``status`` and talks to it like ``otbot ctl``. Both
-take a command ``prefix`` (``chrt -f 50``: real-time scheduling, as the unit's CPUSchedulingPolicy).
+``DaemonProcess`` starts ``otbot daemon``, waits until it answers ``status`` and talks to it like
+``otbot ctl``; ``plant_bus_args`` puts it on a ``sim.plant.PlantProcess``; ``realtime_priority``
+gives a process SCHED_FIFO, as the unit's CPUSchedulingPolicy=fifo would.
 """
 from __future__ import annotations
 
@@ -44,47 +44,24 @@ def local_config(folder: Path, source: Path | None = None, replace: dict[str, st
     return out
 
 
-def _cli(prefix: list[str] | None = None) -> list[str]:
-    """The ``otbot`` command of this interpreter, behind ``prefix`` (e.g. ``chrt -f 50``)."""
-    return [*(prefix or []), sys.executable, "-m", "otbot_hw"]
+def _cli() -> list[str]:
+    return [sys.executable, "-m", "otbot_hw"]
 
 
-class PlantServer:
-    """``otbot plant`` (slcan on a pty, IMU on a pty) as a child process: ``info`` has can_channel and
-    imu_port; ``close()`` ends it by closing its input."""
+def plant_bus_args(info: dict) -> list[str]:
+    """``otbot daemon`` options that put it on a plant process (``sim.plant.PlantProcess.info``:
+    slcan on a pty, the IMU on another), answering in lockstep (``otbot daemon --lockstep``)."""
+    return ["--bus", "config", "--lockstep", "--interface", "slcan", "--channel", info["can_channel"],
+            *(["--imu-port", info["imu_port"]] if info.get("imu_port") else ["--no-imu"])]
 
-    def __init__(self, config: Path, rate: float | None = None, extra: list[str] | None = None, env=None,
-                 prefix: list[str] | None = None):
-        args = [*_cli(prefix), "plant", "--config", str(config), *(["--rate", repr(rate)] if rate else []), *(extra or [])]
-        self.proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
-        line = self.proc.stdout.readline()
-        try:
-            self.info = json.loads(line)
-        except ValueError:
-            self.close()
-            raise RuntimeError(f"the plant process did not start (exit code {self.proc.poll()})") from None
 
-    def bus_args(self) -> list[str]:
-        """``otbot daemon`` options that put it on this plant."""
-        return ["--bus", "config", "--interface", "slcan", "--channel", self.info["can_channel"],
-                "--imu-port", self.info["imu_port"]]
-
-    def close(self) -> int | None:
-        try:
-            self.proc.stdin.close()
-        except OSError:
-            pass
-        try:
-            return self.proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return self.proc.wait(timeout=10)
-
-    def __enter__(self) -> "PlantServer":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+def realtime_priority(pid: int, priority: int = 50) -> int:
+    """Put every thread of process ``pid`` under SCHED_FIFO ``priority`` (what the unit's
+    CPUSchedulingPolicy=fifo does from the start); returns how many threads. Needs CAP_SYS_NICE."""
+    tasks = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    for tid in tasks:
+        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+    return len(tasks)
 
 
 class DaemonProcess:
@@ -92,12 +69,11 @@ class DaemonProcess:
     ``log`` (a file path). ``request(cmd, **args)`` sends one command; ``terminate()`` sends SIGTERM
     and returns (exit code, the JSON summary it printed)."""
 
-    def __init__(self, args: list[str], socket: Path, log: Path, env: dict | None = None, ready_timeout: float = 60.0,
-                 prefix: list[str] | None = None):
+    def __init__(self, args: list[str], socket: Path, log: Path, env: dict | None = None, ready_timeout: float = 60.0):
         self.socket = Path(socket)
         self.log_path = Path(log)
         self._log = open(self.log_path, "w")
-        self.proc = subprocess.Popen([*_cli(prefix), "daemon", "--socket", str(self.socket), "--json", *args],
+        self.proc = subprocess.Popen([*_cli(), "daemon", "--socket", str(self.socket), "--json", *args],
                                      stdout=subprocess.PIPE, stderr=self._log, text=True,
                                      env={**os.environ, **(env or {})})
         self.wait_ready(ready_timeout)
