@@ -315,6 +315,37 @@ def test_overruns_latch_a_fault_and_quick_stop_the_drives(sim, monkeypatch):
     assert sim.ctl("reset")["mode"] == "idle" and sim.ctl("status")["faults"] == []
 
 
+def test_excite_plays_the_torques_then_holds_and_record_restarts_the_session(sim):
+    sim.to_hold_at_rest()
+    bad = sim.folder / "bad.csv"
+    bad.write_text("t,tau_r,tau_l\n0,1,1\n")
+    with pytest.raises(ControlError, match="missing column") as e:
+        sim.ctl("excite", path=str(bad))
+    assert e.value.code == "bad_request" and sim.ctl("status")["mode"] == "hold"
+    rows = [(0.0, 3.0, 3.0, 0.0), (0.2, -3.0, -3.0, 0.5), (0.4, 0.0, 0.0, -0.5)]
+    f = sim.folder / "excite.csv"
+    f.write_text("t,tau_r,tau_l,tau_p\n" + "".join(",".join(map(str, r)) + "\n" for r in rows))
+    assert sim.ctl("excite", path=str(f))["rows"] == 3
+    assert sim.ctl("status")["mode"] == "excite"
+    with pytest.raises(ControlError, match="stop first"):
+        sim.ctl("track", target="corridor-smooth")
+    assert wait_for(lambda: sim.daemon.mode == "hold", 5)                  # the sequence ended: hold
+    first = sim.daemon.runner.recording.path
+    stopped = sim.ctl("record", action="stop")["recording"]
+    assert stopped["closed"] and stopped["path"] == str(first)
+    assert sim.ctl("status")["recording"] is None
+    rec = read_recording(first)
+    assert not rec.truncated                                               # closed: complete
+    t0 = next(e["t"] for e in reversed(rec.events) if e["kind"] == "mode" and e["text"].startswith("excite"))
+    for start, *u in rows:                                                 # every row was applied as written
+        k = (rec.t > t0 + start + 0.015) & (rec.t < t0 + start + 0.19)
+        np.testing.assert_allclose(rec.torque[k], np.tile(u, (k.sum(), 1)), atol=0.02)   # drives' per-mille
+    started = sim.ctl("record", action="start")["recording"]
+    assert started["path"] != str(first) and started["index"] == 0
+    with pytest.raises(ControlError, match="already recording"):
+        sim.ctl("record", action="start")
+
+
 def test_shutdown_quick_stops_disables_and_leaves_loadable_recordings(sim):
     sim.to_hold_at_rest()
     assert sim.ctl("shutdown") == {"stopping": True}
@@ -323,16 +354,17 @@ def test_shutdown_quick_stops_disables_and_leaves_loadable_recordings(sim):
     assert sim.at_exit["states"] == ["SWITCH ON DISABLED"] * 3 and sim.at_exit["torque"] == [0.0] * 3
     assert sim.summary["stopped"].startswith("shutdown") and sim.summary["faults_seen"] >= 2
     assert not sim.sock.exists()
-    files = sorted((sim.folder / "rec").glob(f"{sim.summary['sessions'][0]}-*.mcap"))
-    recs = [read_recording(f) for f in files]
-    assert recs and not any(r.truncated for r in recs)
-    rec = recs[-1]
+    assert len(sim.summary["sessions"]) == 2                               # record stop / start
+    recs = [read_recording(f) for s in sim.summary["sessions"] for f in sorted((sim.folder / "rec").glob(f"{s}-*.mcap"))]
+    assert len(recs) == 2 and not any(r.truncated for r in recs)
+    assert recs[1].events[0]["kind"] == "mode" and recs[1].events[0]["text"].startswith("hold")  # says the mode
+    rec = recs[0]
     assert rec.estimate_pose is not None and rec.reference_p is not None and rec.truth_q is not None
     assert np.all(np.isfinite(rec.estimate_pose)) and np.all(np.diff(rec.t) > 0)
     kinds = {e["kind"] for e in rec.events}
     texts = " | ".join(e["text"] for e in rec.events)
     assert {"mode", "fault"} <= kinds and "estop" in texts and "deadman" in texts and "overrun" in texts
-    assert rec.events[-1]["text"].startswith("idle: stopped (shutdown")
+    assert recs[1].events[-1]["text"].startswith("idle: stopped (shutdown")
 
 
 # -- a daemon process ------------------------------------------------------------------------------

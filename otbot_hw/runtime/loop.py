@@ -486,7 +486,7 @@ class LoopRunner:
         self.jitter_hist.add(abs(wall_period - self.period))
         if wall_period > self.supervisor.config.overrun_factor * self.period:
             self.overruns += 1
-            if not self._overrunning and not self.keep_samples:  # a streak starts: say when (all-day loops)
+            if not self._overrunning and self.realtime and not self.keep_samples:  # a streak starts: say when
                 self.event(self.t, "overrun", f"period {wall_period * 1e3:.2f} ms (target {self.period * 1e3:.2f} ms)")
             self._overrunning = True
         else:
