@@ -1,10 +1,13 @@
 """The daemon's loop against wall time: ``otbot daemon`` over slcan to ``otbot plant`` in its own
 process, at several control rates.
 
-    nice -n 10 python benchmarks/daemon.py [--rates 100,250,500,1000] [--seconds 60] [--long 300] [--json]
+    python benchmarks/daemon.py [--rates 100,250,500,1000] [--seconds 60] [--long 300] [--fifo 50]
+                                [--paced] [--json]
 
-Per rate: a plant process (slcan on a pty, IMU on a pty, at that rate) and a daemon process
-(``--bus config`` on it, telemetry on, recording on); the daemon is enabled and then driven in
+Per rate: a plant process (``sim.plant.PlantProcess``: slcan on a pty, IMU on a pty, at that rate,
+paper noise) and a daemon process (``--bus config --lockstep`` on it: the robot waits for each
+SYNC's answers; with ``--paced`` within the period, the drives' SYNC/RPDO watchdogs armed, as on
+the real bus; telemetry on, recording on); the daemon is enabled and then driven in
 velocity mode around a circle (a new twist every 0.1 s, 0.2 m/s, radius 0.5 m), so the controller,
 the EKF, the supervisor, the recording and the telemetry all work every cycle. After ``--seconds``
 (``--long`` for 250 Hz, the target) the daemon's ``status`` gives the loop timing since start (SYNC
@@ -12,7 +15,11 @@ to SYNC periods: p50/p99, jitter = |period - target| p99 and max, overruns = per
 targets), then SIGTERM gives its CPU time. Reported: period p50/p99 (ms), jitter p99/max (ms),
 overruns per minute, the daemon's CPU time per period (all its threads) as a share of the period,
 the plant's, the load average (1 min) before and after, and whether a fault stopped it.
-Target (issue 14): 250 Hz with no overrun in 5 minutes and p99 jitter <= 0.5 ms.
+``--fifo P``: both processes under SCHED_FIFO priority P once started (the unit's
+CPUSchedulingPolicy=fifo; needs CAP_SYS_NICE). The configuration counts overruns without stopping
+(max_consecutive_overruns very large) and gives the heartbeat consumers 0.5 s, so a run measures
+the loop instead of ending at the first stall of a shared machine; a fault still ends it and is
+reported. Target (issue 14): 250 Hz with no overrun in 5 minutes and p99 jitter <= 0.5 ms.
 """
 from __future__ import annotations
 
@@ -27,7 +34,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from otbot_hw.runtime.daemon_process import DaemonProcess, PlantServer, local_config  # noqa: E402
+from drivers.config import load_robot_config  # noqa: E402
+from otbot_hw.runtime.daemon_process import (DaemonProcess, local_config, plant_bus_args,  # noqa: E402
+                                             realtime_priority)
+from otbot_hw.sensors import NoiseModel  # noqa: E402
+from sim.plant import PlantProcess  # noqa: E402
+
+RELAX = {"max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {value: 1000000000",
+         "master_heartbeat_consumer: {value: 100, unit: ms}": "master_heartbeat_consumer: {value: 500, unit: ms}",
+         "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 500, unit: ms}"}
 
 
 def proc_cpu(pid: int) -> float:
@@ -36,17 +51,26 @@ def proc_cpu(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True) -> dict:
-    cfg = local_config(folder)
+def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, fifo: int | None = None,
+             paced: bool = False) -> dict:
+    cfg_path = local_config(folder, replace={**RELAX, "control_rate: {value: 100, unit: Hz}":
+                                             f"control_rate: {{value: {rate:g}, unit: Hz}}"})
+    config = load_robot_config(cfg_path)
     load0 = os.getloadavg()[0]
-    with PlantServer(cfg, rate=rate) as plant:
-        cpu_plant0 = proc_cpu(plant.proc.pid)
-        d = DaemonProcess([*plant.bus_args(), "--config", str(cfg), "--rate", repr(rate),
-                           "--record-dir", str(folder / "rec"),
+    with PlantProcess(config, noise=NoiseModel.paper()) as plant:
+        bus = plant_bus_args(plant.info)
+        if paced:
+            bus.remove("--lockstep")
+        d = DaemonProcess([*bus, "--config", str(cfg_path), "--record-dir", str(folder / "rec"),
                            *(["--telemetry", "127.0.0.1:0"] if telemetry else ["--no-telemetry"])],
                           folder / "control.sock", folder / f"daemon-{rate:g}.log")
         try:
+            if fifo:
+                realtime_priority(plant.proc.pid, fifo)
+                realtime_priority(d.pid, fifo)
+            cpu_plant0 = proc_cpu(plant.proc.pid)
             d.request("enable")
+            time.sleep(1.0)  # the hold settles; the window starts here
             t0 = time.monotonic()
             st0 = d.request("status")
             n = 0
@@ -69,6 +93,7 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True) 
     load1 = os.getloadavg()[0]
     loop, loop0 = st["loop"], st0["loop"]
     cycles = loop["cycles"] - loop0["cycles"]
+    overruns = loop["overruns"] - loop0["overruns"]  # in the window (the percentiles include the start)
     period = 1.0 / rate
     ms = lambda v: None if v is None else 1e3 * v  # noqa: E731
     return {"rate": rate, "seconds": wall, "cycles": cycles, "commands": n,
@@ -76,12 +101,14 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True) 
             "period_max_ms": ms(loop["period"]["max"]),
             "jitter_p50_ms": ms(loop["jitter"]["p50"]), "jitter_p99_ms": ms(loop["jitter"]["p99"]),
             "jitter_max_ms": ms(loop["jitter"]["max"]),
-            "overruns": loop["overruns"], "overruns_per_min": loop["overruns"] / (summary["wall_s"] / 60.0),
+            "overruns": overruns, "overruns_per_min": overruns / (wall / 60.0),
+            "read_p50_ms": ms(loop["read"]["p50"]), "read_p99_ms": ms(loop["read"]["p99"]),
             "compute_p50_ms": ms(loop["compute"]["p50"]), "compute_p99_ms": ms(loop["compute"]["p99"]),
             "daemon_cpu_share": summary["cpu_s"] / summary["wall_s"],
             "plant_cpu_share": cpu_plant / wall, "achieved_rate": cycles / wall,
             "fault": (st["faults"] or [None])[0], "exit_code": code,
-            "load_before": load0, "load_after": load1, "period_ms": 1e3 * period}
+            "load_before": load0, "load_after": load1, "period_ms": 1e3 * period, "fifo": fifo,
+            "paced": paced}
 
 
 def main(argv=None) -> int:
@@ -90,6 +117,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=60.0, help="run per rate (s)")
     ap.add_argument("--long", type=float, default=300.0, help="run of the 250 Hz target case (s)")
     ap.add_argument("--no-telemetry", action="store_true")
+    ap.add_argument("--fifo", type=int, default=None, metavar="PRIORITY",
+                    help="run daemon and plant under SCHED_FIFO at this priority (1-99)")
+    ap.add_argument("--paced", action="store_true",
+                    help="the robot keeps the period (real-bus semantics) instead of --lockstep")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     rows = []
@@ -98,18 +129,19 @@ def main(argv=None) -> int:
             secs = a.long if r == 250 else a.seconds
             print(f"{r:g} Hz for {secs:g} s (load average {os.getloadavg()[0]:.1f}) ...", file=sys.stderr, flush=True)
             folder = Path(tmp) / f"{r:g}"
-            rows.append(run_rate(r, secs, folder, telemetry=not a.no_telemetry))
+            rows.append(run_rate(r, secs, folder, telemetry=not a.no_telemetry, fifo=a.fifo, paced=a.paced))
             print("  " + json.dumps(rows[-1]), file=sys.stderr, flush=True)
     if a.json:
         print(json.dumps(rows))
         return 0
     f = lambda v, d=3: "-" if v is None else f"{v:.{d}f}"  # noqa: E731
-    print("| rate (Hz) | run (s) | period p50 / p99 (ms) | jitter p99 / max (ms) | overruns per min | compute p50 / p99 "
-          "(ms) | daemon CPU / period | plant CPU / period | load avg (before, after) | fault |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| rate (Hz) | run (s) | period p50 / p99 (ms) | jitter p99 / max (ms) | overruns (per min) | read p50 / p99 "
+          "(ms) | compute p50 / p99 (ms) | daemon CPU / period | plant CPU / period | load avg (before, after) | fault |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['rate']:g} | {r['seconds']:.0f} | {f(r['period_p50_ms'])} / {f(r['period_p99_ms'])} | "
-              f"{f(r['jitter_p99_ms'])} / {f(r['jitter_max_ms'])} | {r['overruns_per_min']:.1f} | "
+              f"{f(r['jitter_p99_ms'])} / {f(r['jitter_max_ms'])} | {r['overruns']} ({r['overruns_per_min']:.1f}) | "
+              f"{f(r['read_p50_ms'])} / {f(r['read_p99_ms'])} | "
               f"{f(r['compute_p50_ms'])} / {f(r['compute_p99_ms'])} | {100 * r['daemon_cpu_share']:.0f} % | "
               f"{100 * r['plant_cpu_share']:.0f} % | {r['load_before']:.1f}, {r['load_after']:.1f} | "
               f"{(r['fault'] or {}).get('kind', 'none') if isinstance(r['fault'], dict) else r['fault'] or 'none'} |")

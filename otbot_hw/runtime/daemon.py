@@ -152,6 +152,7 @@ class Daemon:
                 host, port = s.telemetry
                 self.telemetry = TelemetryServer(host, port, s.daemon.telemetry.rate, limits=s.limits.max_torque,
                                                  l1=self.params.l1)
+            self._warm_up(0.01)
             with open_robot() as robot:
                 self.robot = robot
                 self._run(robot)
@@ -183,7 +184,10 @@ class Daemon:
             stop_at_end=False, record_reference=True, keep_samples=False, continue_after_fault=True,
             recorder=recorder if s.record_dir is not None else None)
         runner.start(enable=False)
-        self._warm_up(runner)
+        runner.cycle()
+        import gc
+
+        gc.freeze()  # what booting the drives created, too (no collection: that would stall the bus)
         if self._pending_trip is not None:
             runner.trip(self._pending_trip)
         self._set_mode("idle", "idle: drives booted, not powered", notify=False)
@@ -198,19 +202,17 @@ class Daemon:
             self.mode = "idle"
             runner.close()
 
-    def _warm_up(self, runner: LoopRunner) -> None:
-        """Before READY: one cycle, the law and its prediction once (compiled code loaded), then the
-        objects of the start frozen out of the garbage collector, so neither a first call nor a full
-        collection of everything imported lands in a cycle (measured: 10-60 ms pauses without)."""
+    def _warm_up(self, period: float) -> None:
+        """Before the robot is opened: the law and its prediction once (compiled code loaded), a
+        full collection, and everything imported so far frozen out of the garbage collector, so
+        neither a first call nor a collection of the whole heap lands in a cycle (measured: 10-100
+        ms pauses without) — nor in a gap between SYNCs the drives' or the IMU's watchdogs see."""
         import gc
 
-        runner.cycle()
-        p = np.zeros(3)
-        TrackingController(self.law, StopTrajectory(p), runner.period).update(
-            runner.period, _probe_feedback(runner), runner.last_snapshot)
+        TrackingController(self.law, StopTrajectory(np.zeros(3)), period).update(
+            period, _probe_feedback(period), None)
         gc.collect()
         gc.freeze()
-        runner.pause()
 
     def _new_feedback(self, pose, period: float, std=None):
         fb = EkfFeedback(self.params, period, pose, self.settings.estimator, initial_std=std)
@@ -566,12 +568,12 @@ class Daemon:
                         "wall_s": wall, "cpu_s": cpu, "pid": os.getpid(), "problems": self.problems})
 
 
-def _probe_feedback(runner: LoopRunner):
+def _probe_feedback(period: float):
     from otbot_hw.control.computed_torque import TaskState
     from otbot_hw.runtime.controllers import Feedback
 
     z = np.zeros(3)
-    return Feedback(0.0, TaskState(z, z, 0.0), z, runner.period)
+    return Feedback(0.0, TaskState(z, z, 0.0), z, period)
 
 
 def _finite(obj):
