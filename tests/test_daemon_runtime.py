@@ -164,9 +164,9 @@ def test_torque_sequences_load_from_csv_and_recordings_and_bad_files_are_named(t
     t, u = load_torque_sequence(f)
     np.testing.assert_allclose(t, [0.0, 0.5])
     np.testing.assert_allclose(u, [[1, 2, 3], [-1, 0, 0.5]])
-    for text, msg in (("t,tau_r,tau_l\n0,1,2\n", "missing column"), ("t,tau_r,tau_l,tau_p\n0,1,2,x\n", "row 2"),
+    for text, msg in (("t,tau_r,tau_l\n0,1,2\n", "missing column"), ("t,tau_r,tau_l,tau_p\n0,1,2,x\n", "line 2, column tau_p"),
                       ("t,tau_r,tau_l,tau_p\n0,1,2,3\n0,1,2,3\n", "does not increase"),
-                      ("t,tau_r,tau_l,tau_p\n0,1,2,nan\n", "NaN"), ("", "empty")):
+                      ("t,tau_r,tau_l,tau_p\n0,1,2,nan\n", "must be finite"), ("", "empty")):
         f.write_text(text)
         with pytest.raises(TorqueSequenceError, match=msg):
             load_torque_sequence(f)

@@ -394,6 +394,41 @@ def _check_samples(t, P, PD, source):
                               f"(t = {t[i]:g} s after {t[i - 1]:g} s)")
 
 
+def csv_table(path, text: str, required: Sequence[str], error: type[Exception] = TrajectoryError):
+    """(header, data rows) of a CSV text with a header row; lines starting with ``#`` are comments.
+    ``error`` (naming ``path``) when it is empty or lacks a ``required`` column."""
+    rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
+    if not rows:
+        raise error(f"{path}: empty file (expected a header with columns {', '.join(required)})")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise error(f"{path}: missing column(s) {', '.join(missing)} (header: {', '.join(header)})")
+    return header, rows[1:]
+
+
+def csv_numbers(path, header: list[str], rows: list[list[str]], wanted: Sequence[str],
+                error: type[Exception] = TrajectoryError) -> np.ndarray:
+    """The ``wanted`` columns of ``rows`` as finite floats (N, len(wanted)); ``error`` names the line
+    (the header is line 1, comments not counted) and the column of the first bad field."""
+    col = {c: header.index(c) for c in wanted}
+    data = np.empty((len(rows), len(wanted)))
+    for r, row in enumerate(rows):
+        line = r + 2
+        if len(row) != len(header):
+            raise error(f"{path}: line {line} has {len(row)} fields, header has {len(header)}")
+        for j, c in enumerate(wanted):
+            s = row[col[c]].strip()
+            try:
+                v = float(s)
+            except ValueError:
+                raise error(f"{path}: line {line}, column {c}: {s!r} is not a number") from None
+            if not math.isfinite(v):
+                raise error(f"{path}: line {line}, column {c}: value is {s} (must be finite)")
+            data[r, j] = v
+    return data
+
+
 def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
     """Read a trajectory CSV (format in the module docstring); errors name the row and column."""
     path = Path(path)
@@ -414,13 +449,7 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
                 raise TrajectoryError(f"{path}: line {n}: obstacle comment must be '# obstacle: cx, cy, r' "
                                       f"(m, r > 0), got {line!r}")
             obstacles.append(tuple(vals))
-    rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
-    if not rows:
-        raise TrajectoryError(f"{path}: empty file (expected a header with columns {', '.join(REQUIRED_COLUMNS)})")
-    header = [h.strip() for h in rows[0]]
-    missing = [c for c in REQUIRED_COLUMNS if c not in header]
-    if missing:
-        raise TrajectoryError(f"{path}: missing column(s) {', '.join(missing)} (header: {', '.join(header)})")
+    header, rows = csv_table(path, text, REQUIRED_COLUMNS)
     vel = [c for c in VELOCITY_COLUMNS if c in header]
     if vel and len(vel) != 3:
         raise TrajectoryError(f"{path}: velocity columns must be all of {', '.join(VELOCITY_COLUMNS)} or none, "
@@ -428,22 +457,7 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
     tq = [c for c in TORQUE_COLUMNS if c in header]
     if tq and len(tq) != 3:
         raise TrajectoryError(f"{path}: torque columns must be all of {', '.join(TORQUE_COLUMNS)} or none")
-    wanted = list(REQUIRED_COLUMNS) + vel + tq
-    col = {c: header.index(c) for c in wanted}
-    data = np.empty((len(rows) - 1, len(wanted)))
-    for r, row in enumerate(rows[1:]):
-        line = r + 2
-        if len(row) != len(header):
-            raise TrajectoryError(f"{path}: line {line} has {len(row)} fields, header has {len(header)}")
-        for j, c in enumerate(wanted):
-            s = row[col[c]].strip()
-            try:
-                v = float(s)
-            except ValueError:
-                raise TrajectoryError(f"{path}: line {line}, column {c}: {s!r} is not a number") from None
-            if not math.isfinite(v):
-                raise TrajectoryError(f"{path}: line {line}, column {c}: value is {s} (must be finite)")
-            data[r, j] = v
+    data = csv_numbers(path, header, rows, list(REQUIRED_COLUMNS) + vel + tq)
     if len(data) < 2:
         raise TrajectoryError(f"{path}: need at least 2 data rows, got {len(data)}")
     t = data[:, 0]

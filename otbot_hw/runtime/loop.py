@@ -288,13 +288,20 @@ class LoopRunner:
 
     def disable(self, mode: str = "disabled") -> None:
         """Between cycles: remove motor power (``robot.disable()``); no commands until ``enable``."""
+        try:
+            self._unpowered(self.robot.disable)
+        finally:
+            self.event(self.t, "mode", mode)
+
+    def _unpowered(self, operation: Callable[[], None]) -> None:
+        """A drive operation between cycles after which nothing is commanded (it runs bus cycles of
+        its own: the next period is not a loop period)."""
         self.armed = False
         self._held = None
         try:
-            self.robot.disable()
+            operation()
         finally:
             self._interrupted()
-            self.event(self.t, "mode", mode)
 
     def power_down(self, text: str) -> list[str]:
         """Between cycles, when the loop ends for good: quick stop (if the drives are powered), then
@@ -333,12 +340,7 @@ class LoopRunner:
     def reset(self, feedback=None) -> None:
         """Clear the latched fault (``robot.fault_reset()``, the supervisor's latch); the drives stay
         unpowered. ``feedback``: a new state source (an estimator that faulted starts again)."""
-        self.armed = False
-        self._held = None
-        try:
-            self.robot.fault_reset()
-        finally:
-            self._interrupted()
+        self._unpowered(self.robot.fault_reset)
         self.supervisor.reset()
         self.fault = None
         self.robot_faults = ()

@@ -55,9 +55,8 @@ class TorqueSequenceError(ValueError):
 def load_torque_sequence(path) -> tuple[np.ndarray, np.ndarray]:
     """(times (K,) s from 0, torques (K, 3) N m, row k held from times[k]) of a recording (``.mcap``:
     its ``/otbot/command``) or a CSV (header with ``t``, ``tau_r``, ``tau_l``, ``tau_p``; other columns
-    ignored; ``#`` comments). Times must increase strictly; every value finite."""
-    import csv
-
+    ignored; ``#`` comments; the trajectory CSV's reader). Times must increase strictly; every value
+    finite."""
     from otbot_hw.recording import RecordingError, read_recording
 
     path = Path(path)
@@ -68,26 +67,14 @@ def load_torque_sequence(path) -> tuple[np.ndarray, np.ndarray]:
             raise TorqueSequenceError(str(exc)) from None
         t, u = np.asarray(rec.t, float), np.asarray(rec.torque, float)
     else:
+        from otbot_hw.control.trajectories import csv_numbers, csv_table
+
         try:
             text = path.read_text()
         except (OSError, UnicodeDecodeError) as exc:
             raise TorqueSequenceError(f"{path}: cannot read a CSV text file: {exc}") from None
-        rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
-        if not rows:
-            raise TorqueSequenceError(f"{path}: empty (expected the header {', '.join(TORQUE_CSV_COLUMNS)})")
-        header = [h.strip() for h in rows[0]]
-        missing = [c for c in TORQUE_CSV_COLUMNS if c not in header]
-        if missing:
-            raise TorqueSequenceError(f"{path}: missing column(s) {', '.join(missing)} (header: {', '.join(header)})")
-        cols = [header.index(c) for c in TORQUE_CSV_COLUMNS]
-        data = []
-        for i, row in enumerate(rows[1:], start=2):
-            try:
-                data.append([float(row[c]) for c in cols])
-            except (ValueError, IndexError):
-                raise TorqueSequenceError(f"{path}: row {i}: expected numbers in {', '.join(TORQUE_CSV_COLUMNS)}, "
-                                          f"got {row!r}") from None
-        arr = np.array(data, dtype=float).reshape(-1, 4)
+        header, rows = csv_table(path, text, TORQUE_CSV_COLUMNS, TorqueSequenceError)
+        arr = csv_numbers(path, header, rows, TORQUE_CSV_COLUMNS, TorqueSequenceError)
         t, u = arr[:, 0], arr[:, 1:]
     if len(t) < 1:
         raise TorqueSequenceError(f"{path}: no torque rows")
