@@ -18,7 +18,7 @@ import threading
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector
-from otbot_hw.cli import checks
+from otbot_hw.cli.backend_args import add_bus_options
 
 
 def register(sub) -> None:
@@ -35,9 +35,6 @@ def register(sub) -> None:
     p.add_argument("--bus", choices=("sim", "config"), default="config",
                    help="config: the bus and IMU of --config (the robot, or an `otbot plant` process; default); "
                         "sim: the simulated robot behind the CANopen drivers on virtual CAN in this process")
-    p.add_argument("--config", type=Path, default=None,
-                   help="hardware configuration: bus, drives, IMU, motor limits, safety, estimator, daemon "
-                        "(default config/robot.yaml)")
     p.add_argument("--params", type=Path, default=None,
                    help="parameter YAML of the controller and the estimator (default config/otbot.yaml; a diagnosed "
                         "model from otbot diagnose --out adds effects the controller compensates)")
@@ -50,22 +47,14 @@ def register(sub) -> None:
     tel.add_argument("--telemetry", default=None, metavar="HOST:PORT",
                      help="Foxglove WebSocket address (default daemon.telemetry: 127.0.0.1:8765; port 0: any free)")
     tel.add_argument("--no-telemetry", action="store_true", help="no live telemetry server")
-    p.add_argument("--rate", type=checks.rate, default=None, help="control rate in Hz (default bus.control_rate)")
     p.add_argument("--start-pose", default="0,0,0", metavar="X,Y,ALPHA",
                    help="where the robot stands at start, m, m, rad (default 0,0,0: frame B is the start pose)")
-    p.add_argument("--interface", default=None, help="--bus config: override bus.interface (a python-can interface)")
-    p.add_argument("--channel", default=None, help="--bus config: override bus.channel")
-    p.add_argument("--imu-port", default=None, help="--bus config: override imu.port")
-    p.add_argument("--lockstep", action="store_true",
-                   help="--bus config talks to a simulated plant (otbot plant): the robot waits for each SYNC's "
-                        "answers and IMU sample instead of within the period, and the drives get no period-based "
-                        "watchdogs (their master-heartbeat consumer stays); the loop still runs in real time")
-    p.add_argument("--no-imu", action="store_true", help="run without the IMU")
+    add_bus_options(p, "default bus.control_rate of --config", lockstep_help=(
+        "--bus config talks to a simulated plant (otbot plant): the robot waits for each SYNC's answers and IMU "
+        "sample instead of within the period, and the drives get no period-based watchdogs (their "
+        "master-heartbeat consumer stays); the loop still runs in real time"))
     p.add_argument("--plant-params", type=Path, default=None,
                    help="--bus sim: the robot to simulate (parameters or a diagnosed model; default --params)")
-    p.add_argument("--noise", choices=("paper", "none"), default="paper",
-                   help="--bus sim: sensor noise of the simulated robot (default paper)")
-    p.add_argument("--seed", type=checks.seed, default=0, help="--bus sim: noise seed (default 0)")
     add_json_flag(p)
     p.set_defaults(func=run)
 
