@@ -66,6 +66,9 @@ REST_TURN = 0.02
 START_TOLERANCE = (0.05, 0.05)
 #: How long a command waits for the loop to pick it up (s); after that it is dropped, never late.
 LOOP_PICKUP_TIMEOUT = 2.0
+#: s: how long the loop thread may wait for the interpreter lock held by another thread (Python's
+#: default is 5 ms: longer than the jitter the loop is allowed).
+GIL_SWITCH_INTERVAL = 0.0002
 
 
 @dataclass
@@ -144,9 +147,17 @@ class Daemon:
         """Run the daemon (on the calling thread) until ``request_stop``; returns the summary."""
         from otbot_hw.runtime.telemetry import TelemetryServer
 
+        import sys
+
         s = self.settings
         self._t_start = (time.monotonic(), time.process_time())
         self.server.start()  # SocketInUse: another daemon runs here; nothing else touched yet
+        switch = sys.getswitchinterval()
+        # A thread waiting for the interpreter lock asks the holder to let go after this interval:
+        # 5 ms by default, i.e. a loop waking while a command thread builds a reply could start its
+        # cycle up to 5 ms late. The loop's threads wait on I/O almost all the time, so a short
+        # interval costs little.
+        sys.setswitchinterval(GIL_SWITCH_INTERVAL)
         try:
             if s.telemetry is not None:
                 host, port = s.telemetry
@@ -161,6 +172,7 @@ class Daemon:
             self.server.close()
             if self.telemetry is not None:
                 self.telemetry.close()
+            sys.setswitchinterval(switch)
         return self.summary()
 
     def _run(self, robot: Robot) -> None:
