@@ -106,12 +106,12 @@ def prepare(args: argparse.Namespace):
         safety=SafetyConfig.load(args.config), estimator=EstimatorConfig.load(args.config), daemon=dcfg,
         socket_path=args.socket, record_dir=record_dir, telemetry=telemetry, start_pose=tuple(start),
         metadata={"command": "otbot daemon", "bus": args.bus})
-    open_robot = _opener(args, start)
-    return Daemon(settings), open_robot
+    open_robot, period = _opener(args, start)
+    return Daemon(settings, period=period), open_robot
 
 
 def _opener(args: argparse.Namespace, start):
-    """The context manager that opens (boots) the robot of ``--bus``."""
+    """(the context manager that opens (boots) the robot of ``--bus``, its period in s)."""
     import numpy as np
 
     from otbot_hw.cli.backend_args import bus_config, noise_model
@@ -133,11 +133,11 @@ def _opener(args: argparse.Namespace, start):
             with simulated_robot(cfg, with_imu=with_imu, params=plant, x0=x0, noise=noise_model(args),
                                  seed=args.seed) as (robot, _plant):
                 yield robot
-        return open_sim
+        return open_sim, cfg.bus.period
     from otbot_hw.runtime.backends import BusConfigBackend
 
     backend = BusConfigBackend(cfg, args.imu_port, lockstep=args.lockstep, with_imu=with_imu, paced=not args.lockstep)
-    return backend.open
+    return backend.open, cfg.bus.period
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -101,10 +101,11 @@ class Daemon:
     closes the recording; returns a summary."""
 
     def __init__(self, settings: DaemonSettings, notifier: Notifier | None = None,
-                 watchdog: Watchdog | None = None):
+                 watchdog: Watchdog | None = None, period: float = 0.01):
         from otbot_hw.control.scenarios import SCENARIOS
 
         self.settings = settings
+        self._period_hint = float(period)  # the loop period the robot will have (s), for the warm-up
         self.params = getattr(settings.model, "params", settings.model)
         self.law = ComputedTorqueController(settings.model, gains_from_tstab(settings.t_stab))
         vel = settings.daemon.velocity
@@ -163,7 +164,7 @@ class Daemon:
                 host, port = s.telemetry
                 self.telemetry = TelemetryServer(host, port, s.daemon.telemetry.rate, limits=s.limits.max_torque,
                                                  l1=self.params.l1)
-            self._warm_up(0.01)
+            self._warm_up(self._period_hint)
             with open_robot() as robot:
                 self.robot = robot
                 self._run(robot)
@@ -215,14 +216,25 @@ class Daemon:
             runner.close()
 
     def _warm_up(self, period: float) -> None:
-        """Before the robot is opened: the law and its prediction once (compiled code loaded), a
-        full collection, and everything imported so far frozen out of the garbage collector, so
-        neither a first call nor a collection of the whole heap lands in a cycle (measured: 10-100
-        ms pauses without) — nor in a gap between SYNCs the drives' or the IMU's watchdogs see."""
+        """Before the robot is opened: everything the first cycles run once — the EKF's compiled
+        kernels, the law and its prediction, the recording and telemetry libraries — then a full
+        collection and the heap frozen out of the garbage collector. Loading compiled code or
+        collecting the whole heap holds the interpreter for 0.1-1 s: in a cycle it is an overrun;
+        once the drives are booted it starves the master's heartbeat thread, and the drives stop."""
         import gc
 
-        TrackingController(self.law, StopTrajectory(np.zeros(3)), period).update(
-            period, _probe_feedback(period), None)
+        import foxglove.messages  # noqa: F401 - imported by the first telemetry publish
+        import mcap.writer  # noqa: F401 - imported by the first recording
+
+        from otbot_hw.robot import Snapshot
+
+        fb = self._new_feedback(self.settings.start_pose, period)
+        z, g = np.zeros(3), np.array([0.0, 0.0, 9.81])
+        for k in range(3):
+            snap = Snapshot(t=k * period, cycle=k, host_time=0.0, joint_pos=z, joint_vel=z, joint_torque=z,
+                            imu_accel=g, imu_gyro=z, imu_time=float(k))
+            est = fb.start(snap, None) if k == 0 else fb.step(snap, None, z)
+        TrackingController(self.law, StopTrajectory(est.pose), period).update(period, _probe_feedback(period), snap)
         gc.collect()
         gc.freeze()
 
