@@ -495,7 +495,8 @@ def test_over_slcan_kill_9_of_the_daemon_stops_the_motors_through_the_drives_hea
     worst = max(x["stopped_wall"] for x in after["drives"]) - t_kill
     print(f"kill -9 -> every simulated drive stopped by itself {first * 1e3:.1f}-{worst * 1e3:.1f} ms later "
           f"(master heartbeat consumer {consumer * 1e3:.0f} ms)")
-    # not before the consumer time counted from the last heartbeat (sent at most one heartbeat period
-    # before the kill); after it, as soon as the drive's own watchdog runs (a thread of the plant
-    # process, which the shared machine delays too: 1.15 s measured at 98 % CPU pressure)
-    assert consumer - config.bus.master_heartbeat - 0.005 < first and worst < consumer + 0.5
+    # about the consumer time after the last heartbeat, which left at most one heartbeat period
+    # before the kill on an idle machine (954 ms measured: the daemon's heartbeat thread is delayed
+    # too when the machine is saturated); after it, as soon as the drive's own watchdog runs (a
+    # thread of the plant process: 1.15 s measured at 98 % CPU pressure)
+    assert consumer - 0.2 < first and worst < consumer + 0.5
