@@ -328,7 +328,9 @@ class Daemon:
             raise CommandRefused(f"{what}: the robot is not at rest yet (speed {math.hypot(*est.twist[:2]):.3f} m/s, "
                                  f"turn {est.twist[2]:.3f} rad/s): wait for the hold")
 
-    def _hold(self, p0, v0, origin: float | None, text: str) -> None:
+    def _hold(self, p0, v0, origin: float | None):
+        """A hold controller (``StopTrajectory`` from p0 moving at v0, its time 0 at ``origin``) and
+        its trajectory; it becomes the one the rest checks refer to."""
         vel = self.settings.daemon.velocity
         traj = StopTrajectory(p0, v0, vel.max_acceleration, vel.max_angular_acceleration)
         ctrl = TrackingController(self.law, traj, self.runner.period, origin=origin)
@@ -345,7 +347,7 @@ class Daemon:
         else:
             est = self._estimate()
             origin, p0, v0 = est.t, est.pose, est.twist
-        ctrl, traj = self._hold(p0, v0, origin, "")
+        ctrl, traj = self._hold(p0, v0, origin)
         text = f"hold: {reason}" + (f" (ramp to rest over {traj.stop_time:.2f} s)" if traj.stop_time > 0 else "")
         r.set_controller(ctrl, text)
         self._set_mode("hold", text, event=False)
@@ -356,7 +358,7 @@ class Daemon:
         if self.mode != "idle":
             raise CommandRefused(f"already enabled (mode {self.mode})")
         est = self._estimate()
-        ctrl, traj = self._hold(est.pose, est.twist, est.t, "")
+        ctrl, traj = self._hold(est.pose, est.twist, est.t)
         text = f"hold: enabled by {peer}"
         try:
             self.runner.enable(ctrl, text)
