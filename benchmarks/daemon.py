@@ -24,6 +24,7 @@ reported. Target (issue 14): 250 Hz with no overrun in 5 minutes and p99 jitter 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -51,24 +52,42 @@ def proc_cpu(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+class _InProcess:
+    """Stands in for the plant process when the plant runs inside the daemon (``--bus sim``)."""
+
+    proc = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+
 def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, fifo: int | None = None,
-             paced: bool = False) -> dict:
+             paced: bool = False, in_process: bool = False, imu: bool = True) -> dict:
     cfg_path = local_config(folder, replace={**RELAX, "control_rate: {value: 100, unit: Hz}":
                                              f"control_rate: {{value: {rate:g}, unit: Hz}}"})
     config = load_robot_config(cfg_path)
     load0 = os.getloadavg()[0]
-    with PlantProcess(config, noise=NoiseModel.paper()) as plant:
-        bus = plant_bus_args(plant.info)
-        if paced:
-            bus.remove("--lockstep")
+    with (_InProcess() if in_process else PlantProcess(config, noise=NoiseModel.paper(), with_imu=imu)) as plant:
+        if in_process:
+            bus = ["--bus", "sim"]
+        else:
+            bus = plant_bus_args(plant.info)
+            if paced:
+                bus.remove("--lockstep")
+        if not imu:
+            bus = [b for b in bus if b != "--no-imu"] + ["--no-imu"]
         d = DaemonProcess([*bus, "--config", str(cfg_path), "--record-dir", str(folder / "rec"),
                            *(["--telemetry", "127.0.0.1:0"] if telemetry else ["--no-telemetry"])],
                           folder / "control.sock", folder / f"daemon-{rate:g}.log")
         try:
             if fifo:
-                realtime_priority(plant.proc.pid, fifo)
+                if plant.proc is not None:
+                    realtime_priority(plant.proc.pid, fifo)
                 realtime_priority(d.pid, fifo)
-            cpu_plant0 = proc_cpu(plant.proc.pid)
+            cpu_plant0 = proc_cpu(plant.proc.pid) if plant.proc is not None else 0.0
             d.request("enable")
             time.sleep(1.0)  # the hold settles; the window starts here
             t0 = time.monotonic()
@@ -84,7 +103,7 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
                 n += 1
                 time.sleep(0.1)
             st = d.request("status")
-            cpu_plant = proc_cpu(plant.proc.pid) - cpu_plant0
+            cpu_plant = proc_cpu(plant.proc.pid) - cpu_plant0 if plant.proc is not None else math.nan
             wall = time.monotonic() - t0
             code, summary = d.terminate()
         except BaseException:
@@ -108,7 +127,7 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
             "plant_cpu_share": cpu_plant / wall, "achieved_rate": cycles / wall,
             "fault": (st["faults"] or [None])[0], "exit_code": code,
             "load_before": load0, "load_after": load1, "period_ms": 1e3 * period, "fifo": fifo,
-            "paced": paced}
+            "paced": paced, "in_process": in_process, "imu": imu}
 
 
 def main(argv=None) -> int:
@@ -121,15 +140,23 @@ def main(argv=None) -> int:
                     help="run daemon and plant under SCHED_FIFO at this priority (1-99)")
     ap.add_argument("--paced", action="store_true",
                     help="the robot keeps the period (real-bus semantics) instead of --lockstep")
+    ap.add_argument("--in-process", action="store_true",
+                    help="the plant inside the daemon (--bus sim: virtual CAN, no slcan pty): the loop without the "
+                         "transport")
+    ap.add_argument("--no-imu", action="store_true", help="no IMU (its sentences travel over a pty too)")
+    ap.add_argument("--work-dir", type=Path, default=None,
+                    help="keep the configurations, logs and recordings here (default: a temporary folder)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     rows = []
-    with tempfile.TemporaryDirectory(prefix="otbot-daemon-bench-") as tmp:
+    with (contextlib.nullcontext(str(a.work_dir)) if a.work_dir else
+          tempfile.TemporaryDirectory(prefix="otbot-daemon-bench-")) as tmp:
         for r in (float(x) for x in a.rates.split(",")):
             secs = a.long if r == 250 else a.seconds
             print(f"{r:g} Hz for {secs:g} s (load average {os.getloadavg()[0]:.1f}) ...", file=sys.stderr, flush=True)
             folder = Path(tmp) / f"{r:g}"
-            rows.append(run_rate(r, secs, folder, telemetry=not a.no_telemetry, fifo=a.fifo, paced=a.paced))
+            rows.append(run_rate(r, secs, folder, telemetry=not a.no_telemetry, fifo=a.fifo, paced=a.paced,
+                                 in_process=a.in_process, imu=not a.no_imu))
             print("  " + json.dumps(rows[-1]), file=sys.stderr, flush=True)
     if a.json:
         print(json.dumps(rows))
@@ -139,11 +166,13 @@ def main(argv=None) -> int:
           "(ms) | compute p50 / p99 (ms) | daemon CPU / period | plant CPU / period | load avg (before, after) | fault |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        plant = "in the daemon" if r["in_process"] else f"{100 * r['plant_cpu_share']:.0f} %"
         print(f"| {r['rate']:g} | {r['seconds']:.0f} | {f(r['period_p50_ms'])} / {f(r['period_p99_ms'])} | "
               f"{f(r['jitter_p99_ms'])} / {f(r['jitter_max_ms'])} | {r['overruns']} ({r['overruns_per_min']:.1f}) | "
               f"{f(r['read_p50_ms'])} / {f(r['read_p99_ms'])} | "
               f"{f(r['compute_p50_ms'])} / {f(r['compute_p99_ms'])} | {100 * r['daemon_cpu_share']:.0f} % | "
-              f"{100 * r['plant_cpu_share']:.0f} % | {r['load_before']:.1f}, {r['load_after']:.1f} | "
+              f"{plant} | "
+              f"{r['load_before']:.1f}, {r['load_after']:.1f} | "
               f"{(r['fault'] or {}).get('kind', 'none') if isinstance(r['fault'], dict) else r['fault'] or 'none'} |")
     ok = [r for r in rows if r["rate"] == 250]
     if ok:

@@ -154,6 +154,7 @@ class _Columns:
 
 
 _NAN3 = np.full(3, np.nan)
+_ZERO3 = np.zeros(3)
 _ZERO2 = np.zeros(2)
 _NO_REFERENCE = Reference(_NAN3, _NAN3, _NAN3)
 
@@ -282,6 +283,7 @@ class LoopRunner:
             self._fail(Violation("robot", self.t, f"enabling failed: {exc}"))
             raise
         self._interrupted()
+        self._no_torque()
         self.armed = True
         self._held = None
         self.set_controller(controller, mode)
@@ -298,6 +300,7 @@ class LoopRunner:
         its own: the next period is not a loop period)."""
         self.armed = False
         self._held = None
+        self._no_torque()
         try:
             operation()
         finally:
@@ -317,6 +320,7 @@ class LoopRunner:
         except Exception as exc:  # noqa: BLE001 - the bus may be gone: say so
             problems.append(f"disable failed: {exc}")
         self._held = None
+        self._no_torque()
         self.event(self.t, "mode", text + (f" ({'; '.join(problems)})" if problems else ""))
         return problems
 
@@ -352,6 +356,11 @@ class LoopRunner:
     def pause(self) -> None:
         """The caller held the loop up on purpose (a warm-up): the next period is not a loop period."""
         self._interrupted()
+
+    def _no_torque(self) -> None:
+        """The drives produce no torque from now on: what is recorded as commanded and what the
+        estimator is told acted."""
+        self._u_held = self._u_prev = np.zeros(3)
 
     def _interrupted(self) -> None:
         """A drive operation ran bus cycles of its own: the next period is not a loop period."""
@@ -430,7 +439,7 @@ class LoopRunner:
                     est = self.feedback.start(s, self.robot)
                     self._feedback_started = True
                 else:
-                    est = self.feedback.step(s, self.robot, self._u_prev)
+                    est = self.feedback.step(s, self.robot, self._u_prev if self._u_prev is not None else _ZERO3)
             except self.feedback.faults as exc:
                 if not faulted:
                     fault = Violation("estimator_fault", s.t, str(exc) or type(exc).__name__)
@@ -653,6 +662,8 @@ class LoopRunner:
         self.fault = self.supervisor.fault
         self.armed = False
         note = self._quick_stop() if stop else None
+        if self.continue_after_fault:  # the cycles go on: they record (and estimate with) no torque
+            self._no_torque()
         self._interrupted()
         t = max(v.t, self.t)
         self.event(t, "fault", str(self.fault) + (f" ({note})" if note else ""))
