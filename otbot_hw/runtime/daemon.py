@@ -30,9 +30,11 @@ publishing; ``reset`` clears it (faults still present come back), then ``enable`
 """
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import os
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -52,6 +54,7 @@ from otbot_hw.runtime.controllers import OpenLoopTorques, TrackingController, Tw
 from otbot_hw.runtime.daemon_config import DaemonConfig
 from otbot_hw.runtime.feedback import EkfFeedback
 from otbot_hw.runtime.loop import LoopRunner
+from otbot_hw.runtime.session_recording import SessionRecording
 from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor, Violation
 from otbot_hw.runtime.systemd import Notifier, Watchdog
 
@@ -148,8 +151,6 @@ class Daemon:
         """Run the daemon (on the calling thread) until ``request_stop``; returns the summary."""
         from otbot_hw.runtime.telemetry import TelemetryServer
 
-        import sys
-
         s = self.settings
         self._t_start = (time.monotonic(), time.process_time())
         self.server.start()  # SocketInUse: another daemon runs here; nothing else touched yet
@@ -179,12 +180,10 @@ class Daemon:
     def _run(self, robot: Robot) -> None:
         s = self.settings
         period = robot.period
-        from otbot_hw.runtime.session_recording import SessionRecording
-
         rec_cfg = s.daemon.recording
 
         def recorder(meta: dict, topics: list):
-            sess = SessionRecording(s.record_dir, {**meta, "mode": self.mode}, topics, rate=1.0 / period,
+            sess = SessionRecording(s.record_dir, meta, topics, rate=1.0 / period,
                                     rotate_size=rec_cfg.rotate_size, rotate_time=rec_cfg.rotate_time,
                                     flush_interval=rec_cfg.flush_interval)
             self.sessions.append(sess.session_id)
@@ -198,8 +197,6 @@ class Daemon:
             recorder=recorder if s.record_dir is not None else None)
         runner.start(enable=False)
         runner.cycle()
-        import gc
-
         gc.freeze()  # what booting the drives created, too (no collection: that would stall the bus)
         if self._pending_trip is not None:
             runner.trip(self._pending_trip)
@@ -221,8 +218,6 @@ class Daemon:
         collection and the heap frozen out of the garbage collector. Loading compiled code or
         collecting the whole heap holds the interpreter for 0.1-1 s: in a cycle it is an overrun;
         once the drives are booted it starves the master's heartbeat thread, and the drives stop."""
-        import gc
-
         import foxglove.messages  # noqa: F401 - imported by the first telemetry publish
         import mcap.writer  # noqa: F401 - imported by the first recording
 
@@ -238,9 +233,9 @@ class Daemon:
         gc.collect()
         gc.freeze()
 
-    def _new_feedback(self, pose, period: float, std=None):
-        fb = EkfFeedback(self.params, period, pose, self.settings.estimator, initial_std=std)
-        return fb
+    def _new_feedback(self, pose, period: float) -> EkfFeedback:
+        """The pose EKF, starting at ``pose`` (x, y m, alpha rad)."""
+        return EkfFeedback(self.params, period, pose, self.settings.estimator)
 
     # -- every cycle (loop thread) -----------------------------------------------------------
     def _after_cycle(self) -> None:
