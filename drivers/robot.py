@@ -192,7 +192,14 @@ class CanopenRobot(Robot):
         """Connect, boot and configure every node, start PDOs (NMT OPERATIONAL), watch heartbeats,
         produce the master heartbeat."""
         try:
-            if self.network.bus is None:
+            if self.network.bus is None and self.config.bus.interface == "slcan":
+                from drivers.slcan import ChunkedSlcanBus  # python-can's slcan, reading in chunks
+
+                kw = self.config.bus.can_kwargs()
+                del kw["interface"]
+                self.network.bus = ChunkedSlcanBus(**kw)
+                self.network.connect()
+            elif self.network.bus is None:
                 self.network.connect(**self.config.bus.can_kwargs())
             else:
                 self.network.connect()

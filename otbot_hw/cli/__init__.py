@@ -23,7 +23,8 @@ from typing import Sequence
 from otbot_hw.cli.checks import CliError, parse_vector, positive_float  # noqa: F401  (re-exported)
 
 #: Subcommand modules under otbot_hw.cli, in --help order.
-SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "estimate", "imu", "track", "plan", "run", "plant", "bench", "ctl")
+SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "estimate", "imu", "track", "plan", "run", "plant",
+               "bench", "daemon", "ctl")
 
 
 class UsageError(CliError):

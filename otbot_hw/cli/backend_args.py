@@ -13,8 +13,9 @@ from otbot_hw.cli import CliError, progress
 from otbot_hw.cli import checks
 
 
-def add_bus_options(p: argparse.ArgumentParser, rate_default: str) -> None:
-    """--config, --rate, --noise, --seed, --no-imu, --interface, --channel, --imu-port, --lockstep."""
+def add_bus_options(p: argparse.ArgumentParser, rate_default: str, lockstep_help: str | None = None) -> None:
+    """--config, --rate, --noise, --seed, --no-imu, --interface, --channel, --imu-port, --lockstep
+    (``lockstep_help``: what it means for this command, when it differs)."""
     p.add_argument("--config", "--robot", dest="config", type=Path, default=None,
                    help="hardware configuration: bus, drives, IMU, motor limits, safety (default config/robot.yaml)")
     p.add_argument("--rate", type=checks.rate, default=None, help=f"control rate in Hz ({rate_default})")
@@ -26,8 +27,8 @@ def add_bus_options(p: argparse.ArgumentParser, rate_default: str) -> None:
     p.add_argument("--channel", default=None, help="--bus config: override bus.channel")
     p.add_argument("--imu-port", default=None, help="--bus config: override imu.port")
     p.add_argument("--lockstep", action="store_true",
-                   help="--bus config talks to a simulated plant (otbot plant): send SYNCs back to back instead "
-                        "of every 1/rate s, and wait for the IMU sample of each SYNC")
+                   help=lockstep_help or "--bus config talks to a simulated plant (otbot plant): send SYNCs back to "
+                                         "back instead of every 1/rate s, and wait for the IMU sample of each SYNC")
 
 
 def bus_config(args: argparse.Namespace, rate: float | None, quiet: bool = False, tag: str = "otbot"):

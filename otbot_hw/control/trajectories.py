@@ -15,6 +15,11 @@ its first / last point.
 * ``SampledTrajectory``   — samples loaded from CSV (format below), interpolated by a
   C^2 cubic spline or, when velocities are given, a cubic Hermite spline, so p, p_dot
   and p_dd are the exact derivatives of one interpolant (mutually consistent).
+* ``StopTrajectory``      — from a pose moving at a given velocity to rest on a straight
+  line, velocity decaying smoothly (zero acceleration at both ends) within acceleration
+  limits; with zero velocity a hold of the pose. The daemon's ``hold``/``stop``/deadman.
+* ``PlacedTrajectory``    — any trajectory moved rigidly (turned about its start, then
+  shifted) so it starts at a given pose: a scenario run from where the robot stands.
 
 CSV format (``load_csv`` / ``save_csv``): a header row, comma separated, SI units.
 Required columns ``t`` (s, strictly increasing), ``x``, ``y`` (m), ``alpha`` (rad).
@@ -52,6 +57,76 @@ class DesiredTrajectory(ABC):
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         P, PD, PDD = self.sample(np.array([float(t)]))
         return P[0], PD[0], PDD[0]
+
+
+# ---------------------------------------------------------------- stop and hold
+class StopTrajectory(DesiredTrajectory):
+    """From pose ``p0`` (m, m, rad) moving at ``v0`` (m/s, m/s, rad/s) to rest, on the straight line
+    along v0: p_dot(t) = v0 (1 - 3 s^2 + 2 s^3), s = t / T, so the acceleration starts and ends at
+    zero and peaks at 1.5 |v0| / T. T is the shortest time keeping the peak within
+    ``max_acceleration`` (m/s^2, of |(x_dd, y_dd)|) and ``max_angular_acceleration`` (rad/s^2);
+    the rest pose is p0 + v0 T / 2. With v0 = 0 (T = 0) it holds p0. Before t = 0 it moves at v0
+    (the motion it takes over); after T it rests."""
+
+    def __init__(self, p0, v0=(0.0, 0.0, 0.0), max_acceleration: float = 0.5,
+                 max_angular_acceleration: float = 1.0):
+        self.p0 = np.asarray(p0, dtype=float).reshape(3).copy()
+        self.v0 = np.asarray(v0, dtype=float).reshape(3).copy()
+        if not (np.all(np.isfinite(self.p0)) and np.all(np.isfinite(self.v0))):
+            raise TrajectoryError(f"stop trajectory from a non-finite state: p0 {self.p0.tolist()}, "
+                                  f"v0 {self.v0.tolist()}")
+        if not (max_acceleration > 0 and max_angular_acceleration > 0):
+            raise TrajectoryError("stop trajectory: acceleration limits must be > 0")
+        self.stop_time = 1.5 * max(math.hypot(self.v0[0], self.v0[1]) / max_acceleration,
+                                   abs(self.v0[2]) / max_angular_acceleration)
+        self.duration = self.stop_time
+        self.rest = self.p0 + 0.5 * self.v0 * self.stop_time
+
+    def sample(self, t):
+        t = np.atleast_1d(np.asarray(t, dtype=float))[:, None]
+        T = self.stop_time
+        if T == 0.0:
+            n = len(t)
+            return np.tile(self.p0, (n, 1)), np.zeros((n, 3)), np.zeros((n, 3))
+        s = np.clip(t / T, 0.0, 1.0)
+        before = t < 0
+        P = np.where(before, self.p0 + self.v0 * t, self.p0 + self.v0 * T * (s - s ** 3 + 0.5 * s ** 4))
+        PD = np.where(before, self.v0, self.v0 * (1.0 - 3.0 * s ** 2 + 2.0 * s ** 3))
+        PDD = np.where(before | (t > T), 0.0, self.v0 * (6.0 * s ** 2 - 6.0 * s) / T)
+        return P, PD, PDD
+
+
+class PlacedTrajectory(DesiredTrajectory):
+    """``reference`` moved rigidly so that its start pose p_d(0) becomes ``start`` (x, y m, alpha
+    rad): turned by start_alpha - alpha_d(0) about its start point, then shifted. Velocities and
+    accelerations turn with it; alpha keeps its own changes. The dynamics are the same in any
+    ground frame (a level floor), so the robot tracks the placed trajectory as it would the
+    original from its start."""
+
+    def __init__(self, reference: DesiredTrajectory, start):
+        self.reference = reference
+        self.start = np.asarray(start, dtype=float).reshape(3).copy()
+        p0 = reference.sample(np.zeros(1))[0][0]
+        self.origin = p0
+        self.turn = float(self.start[2] - p0[2])
+        c, s = math.cos(self.turn), math.sin(self.turn)
+        self._R = np.array([[c, -s], [s, c]])
+        self.duration = reference.duration
+        for attr in ("corner_times", "end"):
+            if hasattr(reference, attr):
+                setattr(self, attr, getattr(reference, attr))
+
+    def _turn(self, V):
+        out = V.copy()
+        out[:, :2] = V[:, :2] @ self._R.T
+        return out
+
+    def sample(self, t):
+        P, PD, PDD = self.reference.sample(t)
+        Q = self._turn(P - self.origin)
+        Q[:, :2] += self.start[:2]
+        Q[:, 2] = P[:, 2] + self.turn
+        return Q, self._turn(PD), self._turn(PDD)
 
 
 # ---------------------------------------------------------------- polylines
@@ -319,6 +394,41 @@ def _check_samples(t, P, PD, source):
                               f"(t = {t[i]:g} s after {t[i - 1]:g} s)")
 
 
+def csv_table(path, text: str, required: Sequence[str], error: type[Exception] = TrajectoryError):
+    """(header, data rows) of a CSV text with a header row; lines starting with ``#`` are comments.
+    ``error`` (naming ``path``) when it is empty or lacks a ``required`` column."""
+    rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
+    if not rows:
+        raise error(f"{path}: empty file (expected a header with columns {', '.join(required)})")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise error(f"{path}: missing column(s) {', '.join(missing)} (header: {', '.join(header)})")
+    return header, rows[1:]
+
+
+def csv_numbers(path, header: list[str], rows: list[list[str]], wanted: Sequence[str],
+                error: type[Exception] = TrajectoryError) -> np.ndarray:
+    """The ``wanted`` columns of ``rows`` as finite floats (N, len(wanted)); ``error`` names the line
+    (the header is line 1, comments not counted) and the column of the first bad field."""
+    col = {c: header.index(c) for c in wanted}
+    data = np.empty((len(rows), len(wanted)))
+    for r, row in enumerate(rows):
+        line = r + 2
+        if len(row) != len(header):
+            raise error(f"{path}: line {line} has {len(row)} fields, header has {len(header)}")
+        for j, c in enumerate(wanted):
+            s = row[col[c]].strip()
+            try:
+                v = float(s)
+            except ValueError:
+                raise error(f"{path}: line {line}, column {c}: {s!r} is not a number") from None
+            if not math.isfinite(v):
+                raise error(f"{path}: line {line}, column {c}: value is {s} (must be finite)")
+            data[r, j] = v
+    return data
+
+
 def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
     """Read a trajectory CSV (format in the module docstring); errors name the row and column."""
     path = Path(path)
@@ -339,13 +449,7 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
                 raise TrajectoryError(f"{path}: line {n}: obstacle comment must be '# obstacle: cx, cy, r' "
                                       f"(m, r > 0), got {line!r}")
             obstacles.append(tuple(vals))
-    rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
-    if not rows:
-        raise TrajectoryError(f"{path}: empty file (expected a header with columns {', '.join(REQUIRED_COLUMNS)})")
-    header = [h.strip() for h in rows[0]]
-    missing = [c for c in REQUIRED_COLUMNS if c not in header]
-    if missing:
-        raise TrajectoryError(f"{path}: missing column(s) {', '.join(missing)} (header: {', '.join(header)})")
+    header, rows = csv_table(path, text, REQUIRED_COLUMNS)
     vel = [c for c in VELOCITY_COLUMNS if c in header]
     if vel and len(vel) != 3:
         raise TrajectoryError(f"{path}: velocity columns must be all of {', '.join(VELOCITY_COLUMNS)} or none, "
@@ -353,22 +457,7 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
     tq = [c for c in TORQUE_COLUMNS if c in header]
     if tq and len(tq) != 3:
         raise TrajectoryError(f"{path}: torque columns must be all of {', '.join(TORQUE_COLUMNS)} or none")
-    wanted = list(REQUIRED_COLUMNS) + vel + tq
-    col = {c: header.index(c) for c in wanted}
-    data = np.empty((len(rows) - 1, len(wanted)))
-    for r, row in enumerate(rows[1:]):
-        line = r + 2
-        if len(row) != len(header):
-            raise TrajectoryError(f"{path}: line {line} has {len(row)} fields, header has {len(header)}")
-        for j, c in enumerate(wanted):
-            s = row[col[c]].strip()
-            try:
-                v = float(s)
-            except ValueError:
-                raise TrajectoryError(f"{path}: line {line}, column {c}: {s!r} is not a number") from None
-            if not math.isfinite(v):
-                raise TrajectoryError(f"{path}: line {line}, column {c}: value is {s} (must be finite)")
-            data[r, j] = v
+    data = csv_numbers(path, header, rows, list(REQUIRED_COLUMNS) + vel + tq)
     if len(data) < 2:
         raise TrajectoryError(f"{path}: need at least 2 data rows, got {len(data)}")
     t = data[:, 0]

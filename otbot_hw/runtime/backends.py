@@ -151,12 +151,16 @@ class BusSimBackend(_ConfiguredRate):
 class BusConfigBackend(_ConfiguredRate):
     """``bus config``: ``CanopenRobot`` on the configured bus and IMU port (``imu_port`` overrides
     it); ``lockstep``: the other end is a simulated plant (SYNCs back to back, IMU sample awaited per
-    SYNC) instead of a real robot paced in real time."""
+    SYNC) instead of a real robot paced in real time. ``paced``: the robot keeps the period itself
+    (``CanopenRobot(realtime=True)``: each SYNC's TPDOs awaited within the period, the drives' SYNC
+    and RPDO watchdogs armed, a fault reaction's SYNCs one period apart) — the daemon, which runs
+    for hours on the real bus; otherwise only the loop runner paces the reads."""
 
     config: object  # drivers.config.RobotConfig
     imu_port: str | None = None
     lockstep: bool = False
     with_imu: bool = True
+    paced: bool = False
     name: str = "bus config"
     has_truth: bool = False
 
@@ -176,7 +180,8 @@ class BusConfigBackend(_ConfiguredRate):
         if self.lockstep:  # a simulated plant answers in its own time: wait for it longer than for a drive
             kw = {"lockstep_timeout": LOCKSTEP_TIMEOUT, "sdo_timeout": LOCKSTEP_SDO_TIMEOUT}
         imu = open_imu(config.imu, port=self.imu_port) if (self.with_imu and config.imu is not None) else None
-        robot = CanopenRobot(config, imu=imu, realtime=False, imu_lockstep=self.lockstep, **kw)
+        robot = CanopenRobot(config, imu=imu, realtime=self.paced and not self.lockstep, imu_lockstep=self.lockstep,
+                             **kw)
         with robot:
             robot.open()
             yield robot
@@ -184,7 +189,7 @@ class BusConfigBackend(_ConfiguredRate):
     def describe(self) -> dict:
         b = self.config.bus
         return {"mode": self.name, "interface": b.interface, "channel": b.channel, "rate": b.control_rate,
-                "bitrate": b.bitrate, "lockstep": self.lockstep}
+                "bitrate": b.bitrate, "lockstep": self.lockstep, "paced": self.paced}
 
 
 def with_bus_overrides(config, interface: str | None = None, channel: str | None = None):

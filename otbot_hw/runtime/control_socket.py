@@ -131,7 +131,9 @@ class CommandHandler(Protocol):
     error (logged). ``status`` must satisfy ``control_protocol.STATUS_REQUIRED``. ``estop`` is
     called from the I/O thread (see the module docstring); every other method from the dispatch
     thread, one at a time. A method may call ``ControlServer.close()`` (``shutdown`` does): the
-    requests already queued are still carried out and every reply, its own included, goes out."""
+    requests already queued are still carried out and every reply, its own included, goes out.
+    A method may raise ``ProtocolError`` (e.g. ``bad_request`` for a file that does not parse): the
+    reply carries its code."""
 
     def status(self, *, peer: Peer) -> dict: ...
     def enable(self, *, peer: Peer) -> dict: ...
@@ -565,6 +567,8 @@ class ControlServer:
             return encode_reply(req.id, result)
         except CommandRefused as exc:
             return encode_reply(req.id, error=("refused", str(exc)))
+        except ProtocolError as exc:  # an argument found bad on closer look (a file that does not parse)
+            return encode_reply(req.id, error=(exc.code, str(exc)))
         except Exception as exc:
             log.exception("%s failed", req.cmd)
             return encode_reply(req.id, error=("internal", f"{req.cmd} failed: {type(exc).__name__}: {exc}"))

@@ -12,6 +12,8 @@ then. Before the first sample the runner asks with ``feedback=None`` (the comman
   (``otbot_hw.control.prediction``), so the sample delay costs nothing with a good model.
 * ``OpenLoopTorques``: a torque sequence held from given times (``otbot run``, identification
   experiments); no feedback needed.
+* ``TwistReference``: an online reference for ``TrackingController`` that follows a commanded
+  platform twist within acceleration limits (the daemon's velocity mode).
 
 A controller keeps no state the runner must know about, so the runner (the daemon) may replace it
 between two cycles; a new tracking controller starts its reference at the next command (bumpless
@@ -19,6 +21,7 @@ when the reference starts where the robot is).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -96,20 +99,73 @@ class ReferenceSampler:
         return Reference(np.ascontiguousarray(P[0]), np.ascontiguousarray(PD[0]), np.ascontiguousarray(PDD[0]))
 
 
+class TwistReference:
+    """An online reference that follows a commanded platform twist (x_dot, y_dot m/s, alpha_dot
+    rad/s; ground frame), for ``TrackingController`` (anything with ``at(tau) -> Reference`` is a
+    reference source). Starts at pose ``p0`` moving at ``v0``; ``command(v)`` sets the twist to
+    reach. Asked at increasing times tau (s, reference time), it integrates exactly (piecewise
+    constant acceleration, so p_d, p_dot_d, p_ddot_d are consistent) and picks for the next
+    ``period`` the acceleration that approaches the commanded twist within ``max_acceleration``
+    (m/s^2, of |(x_dd, y_dd)|, the change kept along one direction) and
+    ``max_angular_acceleration`` (rad/s^2). ``p``, ``v``: the state at the last asked time."""
+
+    duration = math.inf
+
+    def __init__(self, p0, v0, period: float, max_acceleration: float, max_angular_acceleration: float):
+        self.p = np.asarray(p0, dtype=float).reshape(3).copy()
+        self.v = np.asarray(v0, dtype=float).reshape(3).copy()
+        self.a = np.zeros(3)
+        self.period = float(period)
+        self.max_acceleration = float(max_acceleration)
+        self.max_angular_acceleration = float(max_angular_acceleration)
+        self.target = self.v.copy()
+        self.tau = 0.0
+
+    def command(self, twist) -> None:
+        v = np.asarray(twist, dtype=float).reshape(3)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"twist must be finite, got {v.tolist()}")
+        self.target = v.copy()
+
+    def at(self, tau: float) -> Reference:
+        dt = float(tau) - self.tau
+        if dt < 0:  # runs forward only: an earlier time gets the current state
+            return Reference(self.p.copy(), self.v.copy(), self.a.copy())
+        if dt > 0:
+            self.p = self.p + self.v * dt + 0.5 * self.a * dt * dt
+            self.v = self.v + self.a * dt
+            self.tau = float(tau)
+        h = self.period
+        dv = self.target - self.v
+        a = np.empty(3)
+        lin = math.hypot(dv[0], dv[1])
+        scale = min(1.0, self.max_acceleration * h / lin) if lin > 0 else 0.0
+        a[:2] = dv[:2] * scale / h
+        a[2] = max(-self.max_angular_acceleration, min(self.max_angular_acceleration, dv[2] / h))
+        self.a = a
+        return Reference(self.p.copy(), self.v.copy(), a.copy())
+
+    def at_rest(self, tol: float = 1e-9) -> bool:
+        return bool(np.all(np.abs(self.v) <= tol) and np.all(np.abs(self.target) <= tol))
+
+
 class TrackingController:
-    """Computed-torque tracking of ``reference`` (a ``DesiredTrajectory``) with ``law``.
+    """Computed-torque tracking of ``reference`` with ``law``: a ``DesiredTrajectory`` (sampled in
+    blocks) or a reference source with ``at(tau) -> Reference`` (e.g. ``TwistReference``), tau the
+    reference's own time (s, 0 at ``origin``).
 
     ``period`` s: the loop period; ``predict``: evaluate the law on the state predicted at the
     instant the command takes effect (default) or, without, on the fed-back state (one period
     late). ``origin``: robot time (s) where the reference starts; default: the instant of the first
-    command computed from feedback."""
+    command computed from feedback. A daemon that swaps controllers passes the time of the acting
+    reference it takes over, so the new reference continues it without a jump."""
 
-    def __init__(self, law: ComputedTorqueController, reference: DesiredTrajectory, period: float,
+    def __init__(self, law: ComputedTorqueController, reference, period: float,
                  predict: bool = True, origin: float | None = None):
         self.law = law
         self.reference = reference
         self.period = float(period)
-        self.sampler = ReferenceSampler(reference, period)
+        self.sampler = reference if not hasattr(reference, "sample") else ReferenceSampler(reference, period)
         self.predictor = TaskStatePredictor(law.model, period) if predict else None
         self.origin = origin
 
@@ -131,6 +187,10 @@ class TrackingController:
                                                 None if abs(h - self.period) < 1e-12 else h)
         out = self.law.update_fast(p, pd, float(phi), ref.p, ref.pd, ref.pdd)
         return ControlStep(out[0].copy(), ref, out[1].copy(), out[2].copy())
+
+    def finished(self, t: float) -> bool:
+        """Whether the reference has reached its end (rest) by robot time t (s)."""
+        return self.origin is not None and t - self.origin >= getattr(self.reference, "duration", math.inf)
 
 
 class OpenLoopTorques:

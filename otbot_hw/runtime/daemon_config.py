@@ -69,11 +69,16 @@ class ControlSocketConfig:
 class VelocityConfig:
     """Velocity mode: deadman (s without a new ``velocity`` command before the daemon ramps to zero
     and holds), max_linear (m/s, norm of (x_dot, y_dot)) and max_angular (rad/s, |alpha_dot|): the
-    largest twist a ``velocity`` request may ask (larger ones are refused, not clamped)."""
+    largest twist a ``velocity`` request may ask (larger ones are refused, not clamped);
+    max_acceleration (m/s^2, of |(x_dd, y_dd)|) and max_angular_acceleration (rad/s^2): how fast the
+    reference may change its twist (velocity commands, the ramp to zero of stop, hold and the
+    deadman)."""
 
     deadman: float = 0.5
     max_linear: float = 0.5
     max_angular: float = 1.0
+    max_acceleration: float = 0.5
+    max_angular_acceleration: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -192,11 +197,15 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
         request_timeout=s.quantity("request_timeout", "s", d.request_timeout))
     if sock.max_request < 256:
         raise s.err("max_request", f"must be at least 256 bytes, got {sock.max_request}")
-    v = _Section(source, "daemon.velocity", top.data.get("velocity"), ("deadman", "max_linear", "max_angular"))
+    v = _Section(source, "daemon.velocity", top.data.get("velocity"),
+                 ("deadman", "max_linear", "max_angular", "max_acceleration", "max_angular_acceleration"))
     dv = VelocityConfig()
     vel = VelocityConfig(deadman=v.quantity("deadman", "s", dv.deadman),
                          max_linear=v.quantity("max_linear", "m/s", dv.max_linear),
-                         max_angular=v.quantity("max_angular", "rad/s", dv.max_angular))
+                         max_angular=v.quantity("max_angular", "rad/s", dv.max_angular),
+                         max_acceleration=v.quantity("max_acceleration", "m/s^2", dv.max_acceleration),
+                         max_angular_acceleration=v.quantity("max_angular_acceleration", "rad/s^2",
+                                                             dv.max_angular_acceleration))
     r = _Section(source, "daemon.recording", top.data.get("recording"),
                  ("dir", "rotate_size", "rotate_time", "flush_interval"))
     dr = RecordingConfig()

@@ -20,14 +20,26 @@ the robot is quick-stopped too (zero torque, drives in QUICK STOP ACTIVE).
 
 Timing: ``realtime=True`` paces the reads at the period against the wall clock (a real bus);
 otherwise cycles run back to back (lockstep simulation, faster than real time). Either way the
-loop measures each cycle's wall-clock period and compute time, jitter and overruns
-(``LoopStats``), and reports robot time next to wall time.
+loop measures each cycle's wall-clock period (between the snapshots' host times, i.e. the SYNCs)
+and compute time, jitter and overruns (``LoopStats``), and reports robot time next to wall time.
+
+Running indefinitely (the daemon): ``keep_samples=False`` keeps nothing per sample in memory (the
+recording is streamed, timing goes into fixed-size histograms, ``TimingHistogram``);
+``start(enable=False)`` starts with the drives unpowered and ``enable()``/``disable()`` power them
+between cycles (only armed cycles write commands); ``continue_after_fault=True`` keeps reading,
+estimating and recording after a fault (no commands) until ``reset()``; ``trip(violation)`` is a
+fault raised from another thread (an operator's estop), acted on at once — it also wakes the
+real-time wait; ``recorder(metadata, topics)`` makes the writer (a ``SessionRecording``) and
+``start_recording``/``stop_recording`` open and close it between cycles. A robot whose clock
+restarts (``CanopenRobot`` counts from ``enable()``) is continued: the loop's time never goes back.
 """
 from __future__ import annotations
 
 import math
+import threading
+from collections import deque
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -76,6 +88,41 @@ class LoopStats:
         return d
 
 
+class TimingHistogram:
+    """Durations (s) counted in ``resolution``-wide bins up to ``span`` (longer ones in the last bin,
+    their maximum kept): percentiles of a loop that runs all day in fixed memory, O(1) per cycle."""
+
+    def __init__(self, resolution: float = 1e-5, span: float = 1.0):
+        self.resolution = float(resolution)
+        self.bins = [0] * (int(span / resolution) + 1)
+        self.count = 0
+        self.max = 0.0
+        self.total = 0.0
+        self.total_sq = 0.0
+
+    def add(self, value: float) -> None:
+        i = int(value / self.resolution)
+        bins = self.bins
+        bins[i if i < len(bins) else -1] += 1
+        self.count += 1
+        self.total += value
+        self.total_sq += value * value
+        if value > self.max:
+            self.max = value
+
+    def percentiles(self, qs) -> list[float]:
+        """Upper bin edges at the percentiles ``qs`` (0..100); NaN while empty."""
+        if not self.count:
+            return [math.nan for _ in qs]
+        counts = np.cumsum(np.asarray(self.bins))  # a copy: safe against the loop adding meanwhile
+        n = counts[-1]
+        out = []
+        for q in qs:
+            i = int(np.searchsorted(counts, max(1, math.ceil(q / 100.0 * n))))
+            out.append(min((i + 1) * self.resolution, self.max) if i < len(self.bins) - 1 else self.max)
+        return out
+
+
 @dataclass
 class LoopResult:
     """A finished run: the recording (every sample, also streamed to disk when a path was given),
@@ -107,6 +154,7 @@ class _Columns:
 
 
 _NAN3 = np.full(3, np.nan)
+_ZERO3 = np.zeros(3)
 _ZERO2 = np.zeros(2)
 _NO_REFERENCE = Reference(_NAN3, _NAN3, _NAN3)
 
@@ -123,12 +171,14 @@ class LoopRunner:
 
     Between ``start()`` and ``close()`` a caller may drive the cycles itself (``cycle()``, a daemon)
     and swap the controller between them (``set_controller``); ``result()`` then gives what ran.
+    ``keep_samples``, ``continue_after_fault``, ``recorder``: see the module docstring.
     """
 
-    def __init__(self, robot: Robot, controller: Controller, supervisor: Supervisor, feedback=None,
+    def __init__(self, robot: Robot, controller: Controller | None, supervisor: Supervisor, feedback=None,
                  path: str | Path | None = None, metadata: dict | None = None, realtime: bool = False,
                  progress: Callable[[str], None] | None = None, progress_every: float = 1.0,
-                 stop_at_end: bool = True, record_reference: bool | None = None):
+                 stop_at_end: bool = True, record_reference: bool | None = None, keep_samples: bool = True,
+                 continue_after_fault: bool = False, recorder: Callable[[dict, list], Any] | None = None):
         self.robot = robot
         self.controller = controller
         self.supervisor = supervisor
@@ -164,25 +214,166 @@ class LoopRunner:
         self._total = None
         self._user_saturation = supervisor.limiter.on_saturation
         supervisor.limiter.on_saturation = self._on_saturation
+        self.keep_samples = keep_samples
+        self.continue_after_fault = continue_after_fault
+        self.recorder = recorder
+        self.armed = False  # the drives are powered and commands are written
+        self.period_hist = TimingHistogram()
+        self.jitter_hist = TimingHistogram()
+        self.compute_hist = TimingHistogram()
+        self.read_hist = TimingHistogram()
+        self._overrunning = False
+        self.cycles = 0
+        self.overruns = 0
+        self.last_period: float | None = None
+        # the last cycle, for telemetry and status (read by other threads; replaced, never mutated)
+        self.last_snapshot: Snapshot | None = None
+        self.last_estimate: StateEstimate | None = None
+        self.last_command = None  # otbot_hw.robot.Command
+        self.last_reference: Reference | None = None
+        self._trip: Violation | None = None
+        self._trip_lock = threading.Lock()
+        self.wake = threading.Event()
+        self._t_offset = 0.0
+        self._t_prev_raw = None
+        self._t_prev = None
+        self._topics: set = set()
+        self._topic_list: list = []
+        self._feedback_started = False
+        if not keep_samples:  # the recent events only (they are in the recording)
+            self.events = deque(maxlen=1000)
 
     # -- lifecycle ---------------------------------------------------------------------------------
-    def start(self) -> None:
-        """Enable the robot and write the first command (asked without feedback)."""
+    def start(self, enable: bool = True) -> None:
+        """Enable the robot and write the first command (asked without feedback); with ``enable``
+        False the loop starts with the drives unpowered (``enable()`` later)."""
         self._t_wall0 = time.perf_counter()
+        if not enable:
+            self.event(0.0, "mode", "start: drives disabled"
+                                    + (f", feedback {self.feedback.name}" if self.feedback is not None else ""))
+            return
         try:
             self.robot.enable()
         except RobotError as exc:
             self._fail(Violation("robot", 0.0, f"enabling failed: {exc}"), stop=True)
             return
+        self.armed = True
         self._command(0.0, None, None)
         self.event(0.0, "mode", f"start: {type(self.controller).__name__}"
                                 + (f", feedback {self.feedback.name}" if self.feedback is not None else ""))
 
-    def set_controller(self, controller: Controller, mode: str | None = None) -> None:
+    @property
+    def t(self) -> float:
+        """The loop's time (s): that of the last sample (0 before the first)."""
+        return self._t_prev if self._t_prev is not None else 0.0
+
+    def set_controller(self, controller: Controller | None, mode: str | None = None) -> None:
         """Swap the controller between two cycles (bumpless: the next command is the new one's)."""
         self.controller = controller
-        t = self._cols.t[-1] if self._cols.t else 0.0
-        self.event(t, "mode", mode or f"controller: {type(controller).__name__}")
+        self.event(self.t, "mode", mode or f"controller: {type(controller).__name__}")
+
+    def enable(self, controller: Controller, mode: str | None = None) -> None:
+        """Between cycles: power the drives (``robot.enable()``, a few bus cycles) and hand the next
+        command to ``controller``. A failure is latched as a fault (quick stop) and re-raised."""
+        if self.fault is not None:
+            raise RobotError(f"cannot enable while faulted: {self.fault}")
+        try:
+            self.robot.enable()
+        except RobotError as exc:
+            self._fail(Violation("robot", self.t, f"enabling failed: {exc}"))
+            raise
+        self._interrupted()
+        self._no_torque()
+        self.armed = True
+        self._held = None
+        self.set_controller(controller, mode)
+
+    def disable(self, mode: str = "disabled") -> None:
+        """Between cycles: remove motor power (``robot.disable()``); no commands until ``enable``."""
+        try:
+            self._unpowered(self.robot.disable)
+        finally:
+            self.event(self.t, "mode", mode)
+
+    def _unpowered(self, operation: Callable[[], None]) -> None:
+        """A drive operation between cycles after which nothing is commanded (it runs bus cycles of
+        its own: the next period is not a loop period)."""
+        self.armed = False
+        self._held = None
+        self._no_torque()
+        try:
+            operation()
+        finally:
+            self._interrupted()
+
+    def power_down(self, text: str) -> list[str]:
+        """Between cycles, when the loop ends for good: quick stop (if the drives are powered), then
+        disable; recorded as a mode event. Never raises: returns what could not be done."""
+        problems = []
+        if self.armed:
+            self.armed = False
+            note = self._quick_stop()
+            if note:
+                problems.append(note)
+        try:
+            self.robot.disable()
+        except Exception as exc:  # noqa: BLE001 - the bus may be gone: say so
+            problems.append(f"disable failed: {exc}")
+        self._held = None
+        self._no_torque()
+        self.event(self.t, "mode", text + (f" ({'; '.join(problems)})" if problems else ""))
+        return problems
+
+    def trip(self, v: Violation) -> None:
+        """A fault from another thread (e.g. an estop): quick stop and latch at once — before the next
+        read, and before any command not yet written. Thread-safe; wakes a real-time wait."""
+        with self._trip_lock:
+            if self._trip is None:
+                self._trip = v
+        self.wake.set()
+
+    def _take_trip(self) -> bool:
+        """Act on a pending ``trip``; returns whether the loop is (now) faulted."""
+        if self._trip is not None:
+            with self._trip_lock:
+                v, self._trip = self._trip, None
+            if v is not None:
+                self._fail(v)
+        return self.fault is not None
+
+    def reset(self, feedback=None) -> None:
+        """Clear the latched fault (``robot.fault_reset()``, the supervisor's latch); the drives stay
+        unpowered. ``feedback``: a new state source (an estimator that faulted starts again)."""
+        self._unpowered(self.robot.fault_reset)
+        self.supervisor.reset()
+        self.fault = None
+        self.robot_faults = ()
+        if feedback is not None:
+            self.feedback = feedback
+            self._feedback_started = False
+        self.event(self.t, "mode", "reset")
+
+    def pause(self) -> None:
+        """The caller held the loop up on purpose (a warm-up): the next period is not a loop period."""
+        self._interrupted()
+
+    def _no_torque(self) -> None:
+        """The drives produce no torque from now on: what is recorded as commanded and what the
+        estimator is told acted."""
+        self._u_held = self._u_prev = np.zeros(3)
+
+    def _interrupted(self) -> None:
+        """A drive operation ran bus cycles of its own: the next period is not a loop period."""
+        self._t_last_read = None
+        self._t_next = None
+
+    def reference_state(self):
+        """(t, Reference) of the command acting now — where a new controller continues from —
+        or None when the acting command has no reference (open loop, unpowered)."""
+        held = self._held
+        if held is None or held.reference is None:
+            return None
+        return self.t + self.period, held.reference
 
     def run(self, cycles: int) -> LoopResult:
         """``start()``, ``cycles`` cycles (one sample each), then stop; returns the result."""
@@ -195,7 +386,7 @@ class LoopRunner:
                 self.cycle(last=self._k == cycles - 1)
             if self.fault is None and self.stop_at_end:
                 self._quick_stop()
-                self.event(self._cols.t[-1] if self._cols.t else 0.0, "mode", "stopped: end of run (quick stop)")
+                self.event(self.t, "mode", "stopped: end of run (quick stop)")
         except BaseException:
             self._quick_stop()
             raise
@@ -205,63 +396,114 @@ class LoopRunner:
 
     def cycle(self, last: bool = False) -> bool:
         """One cycle (see the module docstring); ``last``: record the sample but write no new command.
-        Returns False once a fault has stopped the loop."""
-        if self.fault is not None:
+        Returns False once a fault has stopped the loop (with ``continue_after_fault`` the cycles go on
+        reading and recording; commands wait for ``reset()`` and ``enable()``)."""
+        if self.fault is not None and not self.continue_after_fault:
             return False
+        self._take_trip()
         if self.realtime:
             now = time.perf_counter()
             self._t_next = now if self._t_next is None else max(self._t_next + self.period, now)
             delay = self._t_next - time.perf_counter()
             if delay > 0:
-                time.sleep(delay)
+                self.wake.wait(delay)
+                self.wake.clear()
+            if self._take_trip() and not self.continue_after_fault:
+                return False
+        t_ask = time.perf_counter()
         try:
             s = self.robot.read()
         except RobotError as exc:
-            self._fail(Violation("robot", self._cols.t[-1] if self._cols.t else 0.0, f"read failed: {exc}"))
+            if self.fault is None:
+                self._fail(Violation("robot", self.t, f"read failed: {exc}"))
             return False
         t_read = time.perf_counter()
-        wall_period = None if self._t_last_read is None else t_read - self._t_last_read
-        self._t_last_read = t_read
+        self.read_hist.add(t_read - t_ask)
+        s = self._loop_time(s)
+        host = s.host_time if s.host_time is not None and math.isfinite(s.host_time) else t_read
+        wall_period = None if self._t_last_read is None else host - self._t_last_read
+        self._t_last_read = host
         if wall_period is not None:
-            self._periods.append(wall_period)
+            self._timing(wall_period)
         if self._has_truth is None:
             self._has_truth = self.robot.truth() is not None
+        faulted = self.fault is not None
         fault = None
-        if s.faults:
+        if s.faults and not faulted:
             self.robot_faults = tuple(s.faults)
             fault = Violation("robot", s.t, "; ".join(map(str, s.faults)))
         est = None
         if self.feedback is not None and fault is None:
             try:
-                est = (self.feedback.start(s, self.robot) if self._k == 0
-                       else self.feedback.step(s, self.robot, self._u_prev))
+                if not self._feedback_started:
+                    est = self.feedback.start(s, self.robot)
+                    self._feedback_started = True
+                else:
+                    est = self.feedback.step(s, self.robot, self._u_prev if self._u_prev is not None else _ZERO3)
             except self.feedback.faults as exc:
-                fault = Violation("estimator_fault", s.t, str(exc) or type(exc).__name__)
+                if not faulted:
+                    fault = Violation("estimator_fault", s.t, str(exc) or type(exc).__name__)
             except FeedbackUnavailable as exc:
-                fault = Violation("feedback", s.t, str(exc))
-        if est is None and fault is not None:
+                if not faulted:
+                    fault = Violation("feedback", s.t, str(exc))
+        if est is None and (fault is not None or faulted):
             est = self._last_est
         self._last_est = est
-        ref = self._held.reference if self._held is not None else None
-        if fault is None:
+        ref = self._held.reference if (self._held is not None and self.armed) else None
+        if faulted:
+            fault = None
+        elif fault is None:
             fault = self.supervisor.check(s.t, s.joint_vel, est, ref, wall_period)
         else:
             fault = self.supervisor.latch(fault)
+        self.last_snapshot, self.last_estimate, self.last_reference = s, est, ref
         self._record(s, est, ref)
+        self.cycles += 1
         if fault is not None:
             self._fail(fault)
+            return False
+        if faulted:
             return False
         self._k += 1
         if self.progress is not None and s.t >= self._next_progress:
             self._next_progress += self.progress_every
             self.progress(self._progress_text(s, est))
-        if not last:
+        if not last and self.armed and self.controller is not None:
             fb = None
             if est is not None:
                 fb = Feedback(s.t, TaskState(est.pose, est.twist, est.phi_p), self._u_held, self.period)
-            self._command(s.t + self.period, fb, s)
-            self._compute.append(time.perf_counter() - t_read)
+            if not self._take_trip():
+                self._command(s.t + self.period, fb, s)
+            t_done = time.perf_counter() - t_read
+            self.compute_hist.add(t_done)
+            if self.keep_samples:
+                self._compute.append(t_done)
         return self.fault is None
+
+    def _loop_time(self, s: Snapshot) -> Snapshot:
+        """The snapshot on the loop's clock: a robot clock that restarts (at ``enable()``) is
+        continued one period after the last sample."""
+        raw = s.t
+        if self._t_prev_raw is not None and raw + self._t_offset <= self._t_prev + 1e-9 * self.period:
+            self._t_offset = self._t_prev + self.period - raw
+        self._t_prev_raw = raw
+        t = raw + self._t_offset
+        self._t_prev = t
+        return s if self._t_offset == 0.0 else replace(s, t=t)
+
+    def _timing(self, wall_period: float) -> None:
+        self.last_period = wall_period
+        self.period_hist.add(wall_period)
+        self.jitter_hist.add(abs(wall_period - self.period))
+        if wall_period > self.supervisor.config.overrun_factor * self.period:
+            self.overruns += 1
+            if not self._overrunning and self.realtime and not self.keep_samples:  # a streak starts: say when
+                self.event(self.t, "overrun", f"period {wall_period * 1e3:.2f} ms (target {self.period * 1e3:.2f} ms)")
+            self._overrunning = True
+        else:
+            self._overrunning = False
+        if self.keep_samples:
+            self._periods.append(wall_period)
 
     def _command(self, t: float, fb: Feedback | None, s: Snapshot | None) -> None:
         step = self.controller.update(t, fb, s)
@@ -274,9 +516,26 @@ class LoopRunner:
         except RobotError as exc:
             self._fail(Violation("robot", t, f"write failed: {exc}"))
             return
+        self.last_command = cmd
         self._u_prev = self._u_held
         self._u_held = cmd.commanded
         self._held = step
+
+    def timing(self) -> dict:
+        """Timing so far (any thread): rate (Hz), period {target, p50, p99, max}, jitter (|period -
+        target|) {p50, p99, max}, compute {p50, p99} (read's return to write's), read {p50, p99}
+        (``robot.read()``: SYNC to every TPDO and the IMU) (s), overruns, cycles."""
+        p50, p99 = self.period_hist.percentiles((50, 99))
+        j50, j99 = self.jitter_hist.percentiles((50, 99))
+        c50, c99 = self.compute_hist.percentiles((50, 99))
+        r50, r99 = self.read_hist.percentiles((50, 99))
+        f = lambda v: None if not math.isfinite(v) else float(v)  # noqa: E731
+        return {"rate": 1.0 / self.period, "period": {"target": self.period, "p50": f(p50), "p99": f(p99),
+                                                      "max": f(self.period_hist.max) if self.period_hist.count else None},
+                "jitter": {"p50": f(j50), "p99": f(j99),
+                           "max": f(self.jitter_hist.max) if self.jitter_hist.count else None},
+                "compute": {"p50": f(c50), "p99": f(c99)}, "read": {"p50": f(r50), "p99": f(r99)},
+                "overruns": self.overruns, "cycles": self.cycles}
 
     # -- recording ---------------------------------------------------------------------------------
     def _open_writer(self, est, ref) -> None:
@@ -290,6 +549,7 @@ class LoopRunner:
         if self.record_reference or (self.record_reference is None and ref is not None):
             topics.append(TOPIC_REFERENCE)
         self._topics = set(topics)
+        self._topic_list = topics
         meta = {"source": "loop", "sample_period": self.period, "realtime": self.realtime, **self.metadata}
         if self._has_imu and getattr(self.robot, "imu_rate", None):
             meta.setdefault("imu_rate", float(self.robot.imu_rate))
@@ -298,40 +558,69 @@ class LoopRunner:
         self.metadata = meta
         if self.path is not None:
             self.writer = RecordingWriter(self.path, meta, topics=topics)
+        elif self.recorder is not None:
+            self.writer = self.recorder(meta, topics)
+        if self.writer is not None:
             for ev in self.events:
                 self.writer.write_event(ev["t"], ev["kind"], ev["text"])
 
+    @property
+    def recording(self):
+        """The writer samples go to (None: not recording)."""
+        return self.writer
+
+    def start_recording(self):
+        """Between cycles: open a new recording with ``recorder`` (the same topics and metadata);
+        returns the writer. Before the first sample the recording opens with it anyway."""
+        if self.recorder is None:
+            raise RuntimeError("this loop has no recorder")
+        if self.writer is not None:
+            raise RuntimeError("already recording")
+        if not self._topics:
+            return None
+        self.writer = self.recorder(self.metadata, self._topic_list)
+        return self.writer
+
+    def stop_recording(self):
+        """Between cycles: close the current recording (complete, with its summary); returns it."""
+        w, self.writer = self.writer, None
+        if w is not None:
+            w.close()
+        return w
+
     def _record(self, s: Snapshot, est: StateEstimate | None, ref) -> None:
-        c = self._cols
-        if not c.t:
+        if not self._topics:
             self._open_writer(est, ref)
         held = self._held
-        c.t.append(s.t)
-        c.torque.append(self._u_held)
-        c.requested.append(held.u if held is not None else self._u_held)
-        c.u_traj.append(held.u_traj if held is not None and held.u_traj is not None else _NAN3)
-        c.u_corr.append(held.u_corr if held is not None and held.u_corr is not None else _NAN3)
-        c.pos.append(s.joint_pos)
-        c.vel.append(s.joint_vel)
         acc = s.imu_accel if s.imu_accel is not None else _NAN3
         gyro = s.imu_gyro if s.imu_gyro is not None else _NAN3
-        c.acc.append(acc)
-        c.gyro.append(gyro)
         truth = self.robot.truth() if self._has_truth else None
-        if self._has_truth:
-            c.truth.append(truth)
-            c.force.append(self._truth_force() if self._truth_force is not None else _ZERO2)
-        if TOPIC_ESTIMATE in self._topics:
-            e = est if est is not None else self._last_est
-            c.pose.append(e.pose)
-            c.twist.append(e.twist)
-            c.std.append(e.std)
-            c.bias.append(e.gyro_bias)
-        if TOPIC_REFERENCE in self._topics:
-            r = ref if ref is not None else _NO_REFERENCE  # e.g. open loop before a tracking controller
-            c.ref_p.append(r.p)
-            c.ref_pd.append(r.pd)
-            c.ref_pdd.append(r.pdd)
+        force = (self._truth_force() if self._truth_force is not None else _ZERO2) if self._has_truth else None
+        e = est if est is not None else self._last_est
+        r = ref if ref is not None else _NO_REFERENCE  # e.g. open loop before a tracking controller
+        if self.keep_samples:
+            c = self._cols
+            c.t.append(s.t)
+            c.torque.append(self._u_held)
+            c.requested.append(held.u if held is not None else self._u_held)
+            c.u_traj.append(held.u_traj if held is not None and held.u_traj is not None else _NAN3)
+            c.u_corr.append(held.u_corr if held is not None and held.u_corr is not None else _NAN3)
+            c.pos.append(s.joint_pos)
+            c.vel.append(s.joint_vel)
+            c.acc.append(acc)
+            c.gyro.append(gyro)
+            if self._has_truth:
+                c.truth.append(truth)
+                c.force.append(force)
+            if TOPIC_ESTIMATE in self._topics:
+                c.pose.append(e.pose)
+                c.twist.append(e.twist)
+                c.std.append(e.std)
+                c.bias.append(e.gyro_bias)
+            if TOPIC_REFERENCE in self._topics:
+                c.ref_p.append(r.p)
+                c.ref_pd.append(r.pd)
+                c.ref_pdd.append(r.pdd)
         if self.writer is None:
             return
         t = s.t
@@ -341,14 +630,12 @@ class LoopRunner:
         if self._has_imu:
             msg[TOPIC_IMU] = {"t": t, "accel": acc.tolist(), "gyro": gyro.tolist()}
         if truth is not None:
-            msg[TOPIC_TRUTH] = {"t": t, "q": truth[:6].tolist(), "qd": truth[6:].tolist(),
-                                "force": c.force[-1].tolist()}
+            msg[TOPIC_TRUTH] = {"t": t, "q": truth[:6].tolist(), "qd": truth[6:].tolist(), "force": force.tolist()}
         if TOPIC_ESTIMATE in self._topics:
-            msg[TOPIC_ESTIMATE] = {"t": t, "pose": c.pose[-1].tolist(), "twist": c.twist[-1].tolist(),
-                                   "std": c.std[-1].tolist(), "gyro_bias": float(c.bias[-1])}
+            msg[TOPIC_ESTIMATE] = {"t": t, "pose": e.pose.tolist(), "twist": e.twist.tolist(),
+                                   "std": e.std.tolist(), "gyro_bias": float(e.gyro_bias)}
         if TOPIC_REFERENCE in self._topics:
-            msg[TOPIC_REFERENCE] = {"t": t, "p": c.ref_p[-1].tolist(), "pd": c.ref_pd[-1].tolist(),
-                                    "pdd": c.ref_pdd[-1].tolist()}
+            msg[TOPIC_REFERENCE] = {"t": t, "p": r.p.tolist(), "pd": r.pd.tolist(), "pdd": r.pdd.tolist()}
         self.writer.write_sample(msg)
 
     def event(self, t: float, kind: str, text: str) -> None:
@@ -373,8 +660,12 @@ class LoopRunner:
     def _fail(self, v: Violation, stop: bool = True) -> None:
         self.supervisor.latch(v)
         self.fault = self.supervisor.fault
+        self.armed = False
         note = self._quick_stop() if stop else None
-        t = max(v.t, self._cols.t[-1]) if self._cols.t else v.t
+        if self.continue_after_fault:  # the cycles go on: they record (and estimate with) no torque
+            self._no_torque()
+        self._interrupted()
+        t = max(v.t, self.t)
         self.event(t, "fault", str(self.fault) + (f" ({note})" if note else ""))
         if self.writer is not None:
             self.writer.flush()
@@ -391,12 +682,25 @@ class LoopRunner:
 
     # -- result ------------------------------------------------------------------------------------
     def result(self) -> LoopResult:
+        """What ran. Without ``keep_samples`` the recording is empty (it went to the writer) and the
+        timing comes from the histograms (percentiles to their 10 us bins)."""
         c = self._cols
         n = len(c.t)
         st = self.stats
         st.cycles = n
         st.wall_time = time.perf_counter() - self._t_wall0 if self._t_wall0 is not None else 0.0
         st.robot_time = (c.t[-1] - c.t[0] + self.period) if n else 0.0
+        if not self.keep_samples:
+            st.cycles = self.cycles
+            st.robot_time = self.cycles * self.period
+            if self.period_hist.count:
+                st.period_p50, st.period_p99 = self.period_hist.percentiles((50, 99))
+                st.period_max = self.period_hist.max
+                st.jitter_rms = math.sqrt(self.jitter_hist.total_sq / self.jitter_hist.count)
+                st.overruns = self.overruns
+            if self.compute_hist.count:
+                st.compute_p50, st.compute_p99 = self.compute_hist.percentiles((50, 99))
+                st.compute_max = self.compute_hist.max
         if self._periods:
             p = np.asarray(self._periods)
             st.period_p50, st.period_p99, st.period_max = (float(v) for v in np.percentile(p, [50, 99, 100]))

@@ -43,3 +43,44 @@ def saturated_samples(res: LoopResult, limits: MotorLimits | None) -> np.ndarray
     if limits is None or res.requested is None:
         return np.zeros(len(res.recording), bool)
     return np.any(np.abs(res.requested) > np.asarray(limits.max_torque) + 1e-12, axis=1)
+
+
+TORQUE_CSV_COLUMNS = ("t", "tau_r", "tau_l", "tau_p")
+
+
+class TorqueSequenceError(ValueError):
+    """A torque sequence file that cannot be played; the message names the file and what is wrong."""
+
+
+def load_torque_sequence(path) -> tuple[np.ndarray, np.ndarray]:
+    """(times (K,) s from 0, torques (K, 3) N m, row k held from times[k]) of a recording (``.mcap``:
+    its ``/otbot/command``) or a CSV (header with ``t``, ``tau_r``, ``tau_l``, ``tau_p``; other columns
+    ignored; ``#`` comments; the trajectory CSV's reader). Times must increase strictly; every value
+    finite."""
+    from otbot_hw.recording import RecordingError, read_recording
+
+    path = Path(path)
+    if path.suffix.lower() == ".mcap":
+        try:
+            rec = read_recording(path)
+        except RecordingError as exc:
+            raise TorqueSequenceError(str(exc)) from None
+        t, u = np.asarray(rec.t, float), np.asarray(rec.torque, float)
+    else:
+        from otbot_hw.control.trajectories import csv_numbers, csv_table
+
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise TorqueSequenceError(f"{path}: cannot read a CSV text file: {exc}") from None
+        header, rows = csv_table(path, text, TORQUE_CSV_COLUMNS, TorqueSequenceError)
+        arr = csv_numbers(path, header, rows, TORQUE_CSV_COLUMNS, TorqueSequenceError)
+        t, u = arr[:, 0], arr[:, 1:]
+    if len(t) < 1:
+        raise TorqueSequenceError(f"{path}: no torque rows")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u))):
+        raise TorqueSequenceError(f"{path}: NaN or inf in the times or torques")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        raise TorqueSequenceError(f"{path}: time does not increase after row {int(bad[0]) + 1} (t = {t[bad[0]]:g} s)")
+    return t - t[0], u
