@@ -29,6 +29,9 @@ LOCKSTEP_SDO_TIMEOUT = 1.0
 #: Lockstep runs: heartbeat consumer times (both ways) are at least this (s): no real-time deadline
 #: is at stake, and a loaded machine must not trip them.
 LOCKSTEP_HEARTBEAT = 0.5
+#: Lockstep runs: the master waits at least this long (s) for the simulated IMU's sample of a SYNC
+#: (the plant publishes it when it has stepped; a loaded machine can hold that past imu.timeout).
+LOCKSTEP_IMU_TIMEOUT = 1.0
 
 
 @dataclass(frozen=True)

@@ -229,6 +229,12 @@ class VectorNavIMU:
             raise ImuFault(f"IMU port {self.port}: write failed: {exc}") from None
 
     # -- measurements -------------------------------------------------------------------
+    def restart_watchdog(self, t: float) -> None:
+        """Count the stream watchdog from ``t`` (s, ``time.monotonic``) if that is later than the
+        last valid sentence: for a source that only publishes when the master steps it (the
+        simulated IMU in lockstep), silence between steps is not a dead stream."""
+        self._last_valid = max(self._last_valid, float(t))
+
     def read(self, timeout: float | None = None) -> ImuSample | None:
         """Latest complete sample received since the previous call, in B''.
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from drivers.cia402 import STOPPED_STATES, CiA402Drive
 from drivers.cia406 import CiA406Encoder
-from drivers.config import RobotConfig
+from drivers.config import LOCKSTEP_IMU_TIMEOUT, RobotConfig
 from drivers.device import NMT_ENTER_PRE_OPERATIONAL, NMT_STOP, CycleTracker, wait_until
 from drivers.faults import DriverError
 from drivers.heartbeat import HeartbeatConsumer, HeartbeatProducer
@@ -112,7 +112,8 @@ class CanopenRobot(Robot):
     (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``).
 
     ``bus``: a python-can bus to use instead of opening ``config.bus``; ``imu_lockstep``: wait,
-    after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC);
+    after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC; its
+    stream watchdog then counts from the SYNC and lasts at least ``LOCKSTEP_IMU_TIMEOUT``);
     ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control
     period (else lockstep: back to back, each SYNC's TPDOs awaited up to ``lockstep_timeout`` s,
     and the drives get no period-based watchdogs since no period is kept); ``sdo_timeout``: s an
@@ -166,6 +167,10 @@ class CanopenRobot(Robot):
         self.close_imu = close_imu
         self.imu_lockstep = imu_lockstep
         self.imu_timeout = config.imu.timeout if config.imu else 0.5
+        if imu_lockstep:  # no real-time deadline: the plant's sample of a SYNC may come late
+            self.imu_timeout = max(self.imu_timeout, LOCKSTEP_IMU_TIMEOUT)
+            if imu is not None:
+                imu.timeout = max(imu.timeout, LOCKSTEP_IMU_TIMEOUT)
         self.imu_rate = float(config.imu.rate_hz) if config.imu else 1.0 / self.period
         self._syncs = 0  # SYNCs sent since open()
         self._misses: dict[tuple[int, int], int] = {}  # consecutive SYNCs without this TPDO
@@ -435,6 +440,8 @@ class CanopenRobot(Robot):
         published for this SYNC."""
         wait_new = self.imu_lockstep and imu_due(sync_index, self.period, self.imu_rate)
         try:
+            if self.imu_lockstep:  # the plant publishes per SYNC: the stream is due from this one
+                self.imu.restart_watchdog(t_sync)
             sample = self.imu.read(timeout=self.imu_timeout if wait_new else 0)
             if sample is not None:
                 self._imu_last = sample

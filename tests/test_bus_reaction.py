@@ -298,3 +298,20 @@ def test_the_drives_max_torque_0x6072_is_enforced_by_the_driver():
         assert list(cmd.saturated) == [True, True, False]
         robot.read()
         assert [d.values[(0x6071, 0)] for d in plant.drives] == [1000, 1000, 250]
+
+
+def test_a_lockstep_pause_longer_than_the_imu_watchdog_is_not_an_imu_fault_but_silence_after_sync_is():
+    """In lockstep the simulated IMU publishes only when the master sends SYNC: a pause between
+    open() and enable() longer than the IMU stream watchdog (a slow boot on a loaded machine) is not
+    a dead IMU; an IMU that stays silent after a SYNC still is one."""
+    from drivers.config import LOCKSTEP_IMU_TIMEOUT
+
+    with simulated_robot(CFG) as (robot, plant):
+        time.sleep(max(CFG.imu.timeout, LOCKSTEP_IMU_TIMEOUT) + 0.2)
+        robot.enable()
+        run_cycles(robot, 3)
+        assert not robot.faults
+        plant.imu.disconnect()
+        robot.write([0.0, 0.0, 0.0])
+        s = robot.read()
+        assert [f.kind for f in s.faults] == ["imu"]
