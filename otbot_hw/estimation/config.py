@@ -68,7 +68,9 @@ class EstimatorConfig:
     accel_bias_std: float = 0.02
     accel_bias_walk: float = 1e-3
     model_accel_density: float = 0.5
-    model_angular_density: float = 0.5
+    model_angular_density: float = 0.003
+    angular_disturbance_std: float = 0.5
+    angular_disturbance_walk: float = 0.3
     gate_probability: float = 0.9999
     standstill_window: float = 0.2
     standstill_angle: float = 2 * 2 * math.pi / PIVOT_ENCODER_COUNTS
@@ -140,8 +142,9 @@ UNITS = {
     "pivot_angle_sigma": "rad",
     "gyro_bias_std": "rad/s", "gyro_bias_walk": "rad/s/sqrt(s)", "accel_bias_std": "m/s^2",
     "accel_bias_walk": "m/s^2/sqrt(s)", "model_accel_density": "m/s^2/sqrt(Hz)",
-    "model_angular_density": "rad/s^2/sqrt(Hz)", "gate_probability": "1", "standstill_window": "s",
+    "model_angular_density": "rad/s^2/sqrt(Hz)", "angular_disturbance_std": "rad/s^2",
+    "angular_disturbance_walk": "rad/s^2/sqrt(s)", "gate_probability": "1", "standstill_window": "s",
     "standstill_angle": "rad", "imu_timeout": "s",
 }
-_NONNEGATIVE = {"gyro_bias_walk", "accel_bias_walk"}
+_NONNEGATIVE = {"gyro_bias_walk", "accel_bias_walk", "angular_disturbance_walk"}
 _WORDS = {"prediction", "encoder_quantization"}

@@ -69,10 +69,10 @@ from otbot_hw.estimation.config import EstimatorConfig
 from otbot_hw.model import compiled
 from otbot_hw.params import OtbotParams
 
-N_STATE = 11
-X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP = range(N_STATE)
+N_STATE = 12
+X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA = range(N_STATE)
 STATE_NAMES = ("x", "y", "alpha", "x_dot", "y_dot", "alpha_dot", "gyro_bias", "accel_bias_x", "accel_bias_y",
-               "kappa", "pivot_quantization")
+               "kappa", "pivot_quantization", "alpha_dd_unmodelled")
 #: Update kinds and their dimensions.
 UPDATE_KINDS = {"encoders": 3, "heading": 1, "zupt": 3, "gyro": 1, "accel": 2, "fix": 3}
 TWO_PI = 2 * math.pi
@@ -151,6 +151,8 @@ class PoseEKF:
         self._prm = params.as_array()
         self.gate = {kind: float(chi2.ppf(cfg.gate_probability, dof)) for kind, dof in UPDATE_KINDS.items()}
         self._var_q = cfg.pivot_angle_sigma ** 2  # the pivot angle's quantization variance (rad^2)
+        self._half_width_p = math.sqrt(3.0) * cfg.pivot_angle_sigma  # half a count: the reading's error bound
+        self._count_p = 2 * self._half_width_p
         #: added to the angle readings: half a count for floored readings (the count's centre)
         half = 0.5 * math.sqrt(12) if cfg.encoder_quantization == "floor" else 0.0
         self._half_count = half * np.array([cfg.wheel_angle_sigma, cfg.wheel_angle_sigma, cfg.pivot_angle_sigma])
@@ -162,6 +164,8 @@ class PoseEKF:
         self._R_gyro = np.array([[cfg.gyro_sigma ** 2]])
         self._R_accel = np.eye(2) * cfg.accel_sigma ** 2
         self._var = (cfg.accel_sigma ** 2, cfg.gyro_sigma ** 2, cfg.gyro_bias_walk ** 2, cfg.accel_bias_walk ** 2)
+        self._var_alpha_dd = cfg.model_angular_density ** 2
+        self._var_da = cfg.angular_disturbance_walk ** 2
         # work arrays of the hot path
         self.kf.F = np.eye(N_STATE)
         self.kf.Q = np.zeros((N_STATE, N_STATE))
@@ -208,6 +212,7 @@ class PoseEKF:
         P[[VX, VY, VA], [VX, VY, VA]] = np.square(INITIAL_TWIST_STD)
         P[BG, BG] = cfg.gyro_bias_std ** 2
         P[BAX, BAX] = P[BAY, BAY] = cfg.accel_bias_std ** 2
+        P[DA, DA] = cfg.angular_disturbance_std ** 2
         # kappa comes from the first (quantized) reading: its error is alpha's plus that reading's
         P[EP, EP] = P[KAPPA, EP] = P[EP, KAPPA] = self._var_q
         P[KAPPA, KAPPA] = P[A, A] + self._var_q + self._R_heading[0, 0]
@@ -284,6 +289,8 @@ class PoseEKF:
                                  f"at t = {t} s")
         self._acc_held = acc_prev if acc_prev is not None else self._acc
         self._gyro_held = gyro_prev if gyro_prev is not None else self._gyro
+        # the pivot's motion under its reading, trapezoid: half with the rates before the prediction ...
+        kernels.pivot_error_step(self.kf.x, self.kf.P, self._phi_p, self._l1, 0.5 * dt)
         if self.prediction == "imu":
             kf = self.kf
             fx, fy = self._acc_held[0], self._acc_held[1]
@@ -293,18 +300,25 @@ class PoseEKF:
                         self._acc_u = self._torque
                 elif held_u is not None:  # an older reading still driving: add what the torque changed since
                     fx, fy = self._held_force_correction(fx, fy, held_u)
-            kernels.predict_imu(kf.x, kf.P, fx, fy, self._gyro[2], new_gyro, dt,
-                                self._imu_period, *self._var, kf.F, kf.Q)
+            add = 0.0
+            if self._torque is not None:
+                x = kf.x
+                c, s = math.cos(x[A]), math.sin(x[A])
+                gx, gy = fx - x[BAX], fy - x[BAY]
+                add = kernels.yaw_acceleration(x, self._phi_p, self._torque, c * gx - s * gy, s * gx + c * gy,
+                                               self._prm)
+            kernels.predict_imu(kf.x, kf.P, fx, fy, add, dt, self._imu_period, self._var[0],
+                                self._var_alpha_dd, self._var[2], self._var[3], self._var_da, kf.F, kf.Q)
         else:
             self._predict_model(dt)
-        self._renew_quantization(float(phi[2]), dt)
+        self._pivot_quantization(float(phi[2]), dt)
         self._t_prev, self._t = self._t, float(t)
         self._phi_p = float(phi[2])
         self._update_encoders(t, phi, phid)
         self._standstill = self._detect_standstill(t, phi)
         if self._standstill:
             self._update("zupt", t, -self.kf.x[3:6], self._H_zupt, self._R_zupt)
-        if self.prediction == "model" and new_gyro:
+        if new_gyro:
             x = self.kf.x
             self._update("gyro", t, np.array([self._gyro[2] - x[VA] - x[BG]]), self._H_gyro, self._R_gyro)
         self._check_health(t)
@@ -379,20 +393,29 @@ class PoseEKF:
             self._heading_off_since = None
             self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
 
-    def _renew_quantization(self, phi_p: float, dt: float) -> None:
-        """e_p is drawn afresh when the pivot reading changes; while the reading stays, the error moves only
-        by the pivot's own motion under it: its variance grows by (phi_p_dot dt)^2 per step (phi_p_dot from
-        the twist by M_IIK's last row; at most one count's variance per step)."""
-        P, x = self.kf.P, self.kf.x
-        if phi_p != self._phi_p:
+    def _pivot_quantization(self, phi_p: float, dt: float) -> None:
+        """e_p = reading - true pivot angle: it moves by minus the pivot's motion (the other half of the
+        trapezoid, with the rates after the prediction), jumps by the reading's change, and lies inside the
+        count, |e_p| <= h = sqrt(3) pivot_angle_sigma (half a count).
+
+        A new reading is new information: the Gaussian is truncated to the count and its moments matched
+        (``kernels.truncate``; an edge just crossed pins e_p near that edge). While the reading stays the
+        constraint is the one already used, and truncating again would count it again (through e_p's
+        correlations, e.g. with kappa); only e_p's own spread is kept within the count's: its variance at
+        most the uniform's, its mean inside [-h, h], the other states' moments untouched. A prediction that
+        left the count altogether (model error) or a jump of several counts re-draws e_p."""
+        x, P = self.kf.x, self.kf.P
+        kernels.pivot_error_step(x, P, self._phi_p, self._l1, 0.5 * dt)
+        jump = phi_p - self._phi_p
+        h = self._half_width_p
+        x[EP] += jump
+        if not (jump != 0.0 or P[EP, EP] > self._var_q or abs(x[EP]) > h):
+            return  # the constraint holds already: truncating again would count it twice
+        if abs(jump) > 1.5 * self._count_p or not kernels.truncate(x, P, EP, -h, h):
             P[EP, :] = 0.0
             P[:, EP] = 0.0
             P[EP, EP] = self._var_q
             x[EP] = 0.0
-            return
-        th = x[A] - phi_p + x[EP]
-        rate = (math.sin(th) * x[VX] - math.cos(th) * x[VY]) / self._l1 + x[VA]
-        P[EP, EP] += min(self._var_q, (rate * dt) ** 2)
 
     def _detect_standstill(self, t: float, phi: np.ndarray) -> bool:
         cfg = self.config
@@ -467,9 +490,13 @@ class PoseEKF:
         cols = [A, VX, VY, VA]
         F[np.ix_([X, Y, A], cols)] += h2 * J
         F[np.ix_([VX, VY, VA], cols)] += dt * J
+        F[A, DA], F[VA, DA] = h2, dt
         x[0:3] += x[3:6] * dt + h2 * f0
         x[3:6] += f0 * dt
+        x[A] += h2 * x[DA]
+        x[VA] += dt * x[DA]
         Q = np.zeros((N_STATE, N_STATE))
+        Q[DA, DA] = self._var_da * dt
         for (p, v), q in (((X, VX), cfg.model_accel_density), ((Y, VY), cfg.model_accel_density),
                           ((A, VA), cfg.model_angular_density)):
             q2 = q * q
