@@ -1,11 +1,12 @@
 """Extended Kalman filter for the platform pose and twist of Otbot (filterpy ``ExtendedKalmanFilter``).
 
-State (11,), ground frame B unless said otherwise::
+State (12,), ground frame B unless said otherwise::
 
     0 x, 1 y (m)            pivot P               6 b_g (rad/s)          gyro z bias
     2 alpha (rad)           platform heading      7 b_ax, 8 b_ay (m/s^2) accelerometer bias in B''
     3 x_dot, 4 y_dot (m/s)                        9 kappa (rad)          wheel-heading offset
     5 alpha_dot (rad/s)                           10 e_p (rad)           pivot encoder quantization error
+                                                  11 d (rad/s^2)         alpha_dd the model does not know
 
 The filterpy object ``kf`` holds the state ``kf.x``, its covariance ``kf.P`` and the last step's
 transition ``kf.F`` and process noise ``kf.Q``. Its generic predict/update are not used: they neither
@@ -15,15 +16,21 @@ update are compiled kernels (``otbot_hw.estimation.kernels``) working on that st
 
 Prediction (``EstimatorConfig.prediction``; the IMU was chosen by measurement, docs/estimation.md):
 
-* ``imu``: the specific force in B'' less its bias, rotated by alpha, drives x_dot, y_dot; alpha_dot is
-  the newest gyro reading less its bias, alpha the trapezoid of the rates. The reading taken at t_{k-1}
-  (just after it, under the command of [t_{k-1}, t_k)) drives the step to t_k; a reading held over
-  several steps (an IMU slower than the loop) keeps driving them, its noise counted once per IMU period,
-  corrected by the acceleration change the paper's model gives for the torque change since the reading.
+* ``imu``: the specific force in B'' less its bias, rotated by alpha, drives x_dot, y_dot. The reading
+  taken at t_{k-1} (just after it, under the command of [t_{k-1}, t_k)) drives the step to t_k; a reading
+  held over several steps (an IMU slower than the loop) keeps driving them, its noise counted once per
+  IMU period, corrected by the acceleration change the paper's model gives for the torque change since
+  the reading. The yaw rate is no IMU input: alpha_dd comes from the paper's model under the commanded
+  torque (``kernels.yaw_acceleration``), with the unknown horizontal force at the pivot eliminated by the
+  accelerometer's measured acceleration (the model is linear in it), plus the state d -- the torques
+  the model does not know (friction, torque-gain errors), a random walk -- and white noise
+  (``model_angular_density``); the gyro is a measurement of alpha_dot + b_g. A gyro reading fed as the
+  rate itself put its white noise (13.7 mrad/s per sample) into alpha_dot unfiltered, and the control law
+  turned it into platform motion (docs/estimation.md, "In the loop").
 * ``model``: the paper's multiplier-free dynamics (``otbot_hw.model.compiled``) under the commanded
-  torque drive the twist, with white acceleration noise; the IMU becomes a measurement (gyro of
-  alpha_dot + b_g; accelerometer of R(alpha)^T p_dd + b_a at the previous sample, under the same
-  command). Also used while no IMU reading has arrived.
+  torque drive the twist, with white acceleration noise (alpha_dd also d); the IMU becomes a measurement
+  (accelerometer of R(alpha)^T p_dd + b_a at the previous sample, under the same command). Also used
+  while no IMU reading has arrived.
 
 Updates, each gated by its squared Mahalanobis distance (chi-square at ``gate_probability``); a
 rejected one is counted and not applied:
@@ -37,14 +44,16 @@ rejected one is counted and not applied:
   wheel heading re-anchors on alpha.
   The pivot's quantization error e_p is no white noise -- it stays while the pivot reading stays (on
   every straight of the corridor), and a white model would let repeated readings of one quantized angle
-  shrink alpha's variance far below its error -- so it is a state: drawn afresh when the reading
-  changes, its variance growing with the pivot's own motion while the reading stays. Floored readings are first moved to the centre of their count
+  shrink alpha's variance far below its error -- so it is a state: it moves by minus the pivot's motion
+  while the reading stays, jumps with the reading, and is kept inside the count by truncating its
+  Gaussian (``_pivot_quantization``). Floored readings are first moved to the centre of their count
   (``encoder_quantization``), so the error is zero-mean. The wheels' share of the heading's
   quantization error renews with every count they roll and is taken as white. e_p also enters the
   chassis heading theta = alpha - phi_p of the joint-rate update.
 * ``zupt`` (3): twist = 0 when no joint moved more than ``standstill_angle`` for ``standstill_window``
   and the gyro agrees; its sigma is the rate that window allows (standstill_angle r / window).
-* ``gyro`` (1), ``accel`` (2): the IMU as measurement (``model`` prediction only).
+* ``gyro`` (1): alpha_dot + b_g, at every new IMU reading. ``accel`` (2): the accelerometer as a
+  measurement (``model`` prediction only).
 * ``fix`` (3): an absolute pose with its covariance (``PoseEKF.fix``), alpha residual wrapped.
 
 alpha stays continuous (never wrapped to +-pi, like the recordings); every angle *residual* is wrapped.
@@ -394,16 +403,18 @@ class PoseEKF:
             self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
 
     def _pivot_quantization(self, phi_p: float, dt: float) -> None:
-        """e_p = reading - true pivot angle: it moves by minus the pivot's motion (the other half of the
+        """e_p = reading - true pivot angle: it moves by minus the pivot's motion (the second half of the
         trapezoid, with the rates after the prediction), jumps by the reading's change, and lies inside the
         count, |e_p| <= h = sqrt(3) pivot_angle_sigma (half a count).
 
-        A new reading is new information: the Gaussian is truncated to the count and its moments matched
-        (``kernels.truncate``; an edge just crossed pins e_p near that edge). While the reading stays the
-        constraint is the one already used, and truncating again would count it again (through e_p's
-        correlations, e.g. with kappa); only e_p's own spread is kept within the count's: its variance at
-        most the uniform's, its mean inside [-h, h], the other states' moments untouched. A prediction that
-        left the count altogether (model error) or a jump of several counts re-draws e_p."""
+        The count constraint enters by truncating the Gaussian to [-h, h] and matching its moments
+        (``kernels.truncate``; the other states follow by their regression on e_p): when the reading changes
+        (new information: an edge crossed slowly pins e_p near that edge), and while it stays only when the
+        Gaussian has outgrown the count (variance above the uniform's, or mean outside it) -- truncating a
+        Gaussian that already carries the constraint again would count it again at every sample and shrink
+        every state correlated with e_p (kappa, alpha) without information. A jump of more than one count in
+        a sample (the pivot turning fast: the new fraction of a count is independent of the old) or a
+        prediction that left the count altogether re-draws e_p from the uniform's moments."""
         x, P = self.kf.x, self.kf.P
         kernels.pivot_error_step(x, P, self._phi_p, self._l1, 0.5 * dt)
         jump = phi_p - self._phi_p
