@@ -90,12 +90,17 @@ class EkfFeedback:
         self.initial_std = initial_std
         self.fixes = fixes
         self._imu_time = None
+        self._last = None
 
-    def gates(self) -> dict:
-        """Accepted and rejected updates so far per kind (encoders, heading, zupt, gyro, accel, fix)."""
-        return {"updates": dict(self.ekf.updates), "rejected": dict(self.ekf.rejected)}
+    def gates(self) -> dict | None:
+        """Accepted and rejected updates so far per kind (encoders, heading, zupt, gyro, accel, fix), from the
+        latest estimate (None before the first)."""
+        if self._last is None:
+            return None
+        return {"updates": dict(self._last.updates), "rejected": dict(self._last.rejected)}
 
     def _record(self, est, snapshot: Snapshot) -> StateEstimate:
+        self._last = est
         return StateEstimate(float(est.t), np.asarray(est.pose, dtype=float), np.asarray(est.twist, dtype=float),
                              np.asarray(est.std, dtype=float)[:6], float(snapshot.joint_pos[2]),
                              float(est.gyro_bias), dict(est.rejected), dict(est.updates))
