@@ -25,8 +25,9 @@ reference), the EKF's gate counts, NEES of pose + twist (6 dof) from the filter'
 time. Extras: ``--sweep`` the unmodelled-alpha_dd random walk against a plant with unmodelled pivot
 friction and torque-gain errors; ``--pivot-counts`` the direct 1 kHz corridor with a finer pivot encoder.
 
-    nice -n 10 python benchmarks/estimation_loop.py [--seeds 20] [--workers 1] [--json] > loop.json
-    python benchmarks/estimation_loop.py --markdown loop.json     # the tables of docs/estimation.md
+    nice -n 10 python benchmarks/estimation_loop.py [--seeds 20] [--backends ...] [--scenarios ...] [--plants ...]
+        [--sweep SEEDS] [--pivot SEEDS] [--workers 1] [--json] > loop.json
+    python benchmarks/estimation_loop.py --markdown loop*.json [--plot DIR]   # tables (runs merged), plots
 """
 from __future__ import annotations
 
@@ -345,20 +346,21 @@ def _settle(row, key="settle_mean", ns="not_settled"):
 def markdown(result: dict) -> str:
     rows = result["rows"]
     main = [r for r in rows if not r["config"] and not r["plant_effects"] and r["pivot_counts"] is None]
-    out = [f"Tracking through the loop runner, {result['seeds']} seeds for the EKF rows ({result['truth_seeds']} for "
-           f"truth feedback, which sensor noise does not reach); mean over seeds of each run's maximum. Tracking "
-           f"errors are of the true pose against the reference (x, y in mm, alpha in mrad), ratio = EKF / truth on "
-           f"the same back end; estimation error = estimate - truth; settle: mean over seeds per event (s; "
-           f"'(n not)': seeds that did not settle within the event's window).", "",
-           "| back end | scenario | feedback | track x | track y | track alpha | ratio x, y, alpha | est x | est y | "
-           "est alpha | NEES (bounds) | settle per event (s) | rejected per run |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    out = ["Tracking through the loop runner; mean over the seeds of each run's maximum (truth feedback, which "
+           "sensor noise does not reach, on fewer seeds). Tracking errors are of the true pose against the "
+           "reference (x, y in mm, alpha in mrad), ratio = EKF / truth on the same back end; estimation error = "
+           "estimate - truth (max); NEES of pose + twist (6 dof) with the two-sided 95 % bounds of that many runs' "
+           "average; settle: mean over seeds per event (s; '(n not)': seeds that did not settle within the "
+           "event's window).", "",
+           "| back end | scenario | feedback | seeds | track x | track y | track alpha | ratio x, y, alpha | est x | "
+           "est y | est alpha | NEES (bounds) | settle per event (s) | rejected per run |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted((r for r in main if r["plant"] == "nominal"),
                     key=lambda r: (BACKENDS.index(r["backend"]), SCENARIOS.index(r["scenario"]), r["feedback"] != "truth")):
         ratio = ", ".join(f"{r['ratio'][k]:.2f}" for k in ("x", "y", "alpha")) if "ratio" in r else "-"
         nees_s = f"{r['nees_mean']:.2f} ({r['nees_bounds'][0]:.2f}-{r['nees_bounds'][1]:.2f})" if "nees_mean" in r else "-"
         rej = ", ".join(f"{k} {v:g}" for k, v in r.get("rejected", {}).items() if v) or ("none" if "rejected" in r else "-")
-        out.append(f"| {r['backend']} | {r['scenario']} | {r['feedback']} | {_mm(r.get('track_max_x'))} | "
+        out.append(f"| {r['backend']} | {r['scenario']} | {r['feedback']} | {r['seeds']} | {_mm(r.get('track_max_x'))} | "
                    f"{_mm(r.get('track_max_y'))} | {_mm(r.get('track_max_alpha'))} | {ratio} | "
                    f"{_mm(r.get('est_max_x'))} | {_mm(r.get('est_max_y'))} | {_mm(r.get('est_max_alpha'))} | {nees_s} | "
                    f"{_settle(r)} | {rej} |")
@@ -374,13 +376,13 @@ def markdown(result: dict) -> str:
         out += ["", f"Slip bursts in the plant (k_slip {BURST_K} rad/(s N m) for {BURST_S} s at each burst time), EKF "
                     f"feedback, with and without a {FIX_HZ:g} Hz motion-capture fix (sigma {FIX_STD[0] * 1e3:g} mm, "
                     f"{FIX_STD[2] * 1e3:g} mrad); mean over seeds:", "",
-                "| back end | scenario | plant | est position max (mm) | worst seed | final | growth per burst (mm) | "
+                "| back end | scenario | plant | seeds | est position max (mm) | worst seed | final | growth per burst (mm) | "
                 "track x, y (mm), alpha (mrad) | rejected per run | fixes accepted | completed |",
-                "|---|---|---|---|---|---|---|---|---|---|---|"]
+                "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in sorted(bursts, key=lambda r: (BACKENDS.index(r["backend"]), SCENARIOS.index(r["scenario"]), r["plant"])):
             rej = ", ".join(f"{k} {v:g}" for k, v in r.get("rejected", {}).items() if v) or "none"
             steps = ", ".join(f"{v:+.2f}" for v in r.get("burst_steps_mm", []))
-            out.append(f"| {r['backend']} | {r['scenario']} | {r['plant']} | {_mm(r.get('est_pos_max'))} | "
+            out.append(f"| {r['backend']} | {r['scenario']} | {r['plant']} | {r['seeds']} | {_mm(r.get('est_pos_max'))} | "
                        f"{_mm(r.get('est_pos_max_worst'))} | {_mm(r.get('est_pos_final'))} | {steps} | "
                        f"{_mm(r.get('track_max_x'))}, {_mm(r.get('track_max_y'))}, {_mm(r.get('track_max_alpha'))} | "
                        f"{rej} | {r.get('fixes', 0):g} | {r['completed']}/{r['seeds']} |")
@@ -426,10 +428,17 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1, help="processes (default 1; the machine is shared)")
     ap.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the slip-burst plots into DIR")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
-    ap.add_argument("--markdown", type=Path, default=None, metavar="RESULT.json", help="print the tables of a result")
+    ap.add_argument("--markdown", type=Path, nargs="+", default=None, metavar="RESULT.json",
+                    help="print the tables of one or more saved --json results (their runs merged; with --plot, "
+                         "the plots too)")
     args = ap.parse_args(argv)
     if args.markdown:
-        print(markdown(json.loads(args.markdown.read_text())))
+        runs = [r for f in args.markdown for r in json.loads(f.read_text())["runs"]]
+        rows = summarize(runs)
+        attach_ratios(rows)
+        if args.plot:
+            print("\n".join(plots(args.plot, runs)), file=sys.stderr)
+        print(markdown({"rows": rows}))
         return 0
     jobs = []
     if not args.no_main:
@@ -443,7 +452,7 @@ def main(argv=None) -> int:
     rows = summarize(runs)
     attach_ratios(rows)
     result = {"seeds": args.seeds, "truth_seeds": args.truth_seeds, "config": EstimatorConfig.load().to_dict(),
-              "rows": rows}
+              "rows": rows, "runs": runs}
     if args.plot:
         result["plots"] = plots(args.plot, runs)
     if args.json:
