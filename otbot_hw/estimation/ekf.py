@@ -108,7 +108,7 @@ class Estimate:
     """What the EKF believes at t (s), after using that sample's sensors.
 
     pose (3,) x, y (m), alpha (rad) of the pivot P / platform in B; twist (3,) m/s, m/s, rad/s;
-    std (6,) their standard deviations; cov (11, 11) the full covariance (state order of the module
+    std (6,) their standard deviations; cov (12, 12) the full covariance (state order of the module
     docstring); gyro_bias (rad/s); standstill: a zero-velocity update was applied; nis: normalized
     innovation squared of each update kind this step (nan: none); rejected / updates: cumulative gate
     rejections / accepted updates per kind; accel_bias (2,) m/s^2 in B''.
