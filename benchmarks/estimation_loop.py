@@ -177,7 +177,15 @@ def one_run(backend: str, scenario: str, plant: str, feedback: str, seed: int, c
 
 
 def _job(args):
-    return one_run(*args[:5], **args[5])
+    """One run; a back end that could not be set up (e.g. an SDO timeout on a machine too loaded for the
+    simulated bus) is recorded as such, not the study lost."""
+    try:
+        return one_run(*args[:5], **args[5])
+    except Exception as exc:  # noqa: BLE001 -- reported in the result, never silently
+        return {"backend": args[0], "scenario": args[1], "plant": args[2], "feedback": args[3], "seed": args[4],
+                "completed": False, "fault": f"setup failed: {type(exc).__name__}: {exc}", "wall_s": 0.0,
+                "config": args[5].get("config") or {}, "plant_effects": args[5].get("plant_effects") or {},
+                "pivot_counts": args[5].get("pivot_counts")}
 
 
 def jobs_main(seeds: int, truth_seeds: int, backends, scenarios, plants) -> list:

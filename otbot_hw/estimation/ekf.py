@@ -45,8 +45,8 @@ rejected one is counted and not applied:
   The pivot's quantization error e_p is no white noise -- it stays while the pivot reading stays (on
   every straight of the corridor), and a white model would let repeated readings of one quantized angle
   shrink alpha's variance far below its error -- so it is a state: it moves by minus the pivot's motion
-  while the reading stays, jumps with the reading, and is kept inside the count by truncating its
-  Gaussian (``_pivot_quantization``). Floored readings are first moved to the centre of their count
+  while the reading stays, jumps with the reading (``_pivot_motion``), and is kept inside the count
+  (``_pivot_count``). Floored readings are first moved to the centre of their count
   (``encoder_quantization``), so the error is zero-mean. The wheels' share of the heading's
   quantization error renews with every count they roll and is taken as white. e_p also enters the
   chassis heading theta = alpha - phi_p of the joint-rate update.
@@ -320,7 +320,7 @@ class PoseEKF:
                                 self._var_alpha_dd, self._var[2], self._var[3], self._var_da, kf.F, kf.Q)
         else:
             self._predict_model(dt)
-        self._pivot_quantization(float(phi[2]), dt)
+        jump = self._pivot_motion(float(phi[2]), dt)
         self._t_prev, self._t = self._t, float(t)
         self._phi_p = float(phi[2])
         self._update_encoders(t, phi, phid)
@@ -330,6 +330,7 @@ class PoseEKF:
         if new_gyro:
             x = self.kf.x
             self._update("gyro", t, np.array([self._gyro[2] - x[VA] - x[BG]]), self._H_gyro, self._R_gyro)
+        self._pivot_count(jump)
         self._check_health(t)
         self._estimate = self._make_estimate()
         return self._estimate
@@ -402,31 +403,43 @@ class PoseEKF:
             self._heading_off_since = None
             self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
 
-    def _pivot_quantization(self, phi_p: float, dt: float) -> None:
-        """e_p = reading - true pivot angle: it moves by minus the pivot's motion (the second half of the
-        trapezoid, with the rates after the prediction), jumps by the reading's change, and lies inside the
-        count, |e_p| <= h = sqrt(3) pivot_angle_sigma (half a count).
-
-        The count constraint enters by truncating the Gaussian to [-h, h] and matching its moments
-        (``kernels.truncate``; the other states follow by their regression on e_p): when the reading changes
-        (new information: an edge crossed slowly pins e_p near that edge), and while it stays only when the
-        Gaussian has outgrown the count (variance above the uniform's, or mean outside it) -- truncating a
-        Gaussian that already carries the constraint again would count it again at every sample and shrink
-        every state correlated with e_p (kappa, alpha) without information. A jump of more than one count in
-        a sample (the pivot turning fast: the new fraction of a count is independent of the old) or a
-        prediction that left the count altogether re-draws e_p from the uniform's moments."""
+    def _pivot_motion(self, phi_p: float, dt: float) -> float:
+        """e_p = reading - true pivot angle moves by minus the pivot's motion (the second half of the
+        trapezoid, with the rates after the prediction) and jumps by the reading's change (returned, rad).
+        A jump of more than one count in a sample -- the pivot turning fast: the new fraction of a count is
+        independent of the old -- re-draws e_p from the uniform's moments."""
         x, P = self.kf.x, self.kf.P
         kernels.pivot_error_step(x, P, self._phi_p, self._l1, 0.5 * dt)
         jump = phi_p - self._phi_p
-        h = self._half_width_p
         x[EP] += jump
-        if not (jump != 0.0 or P[EP, EP] > self._var_q or abs(x[EP]) > h):
-            return  # the constraint holds already: truncating again would count it twice
-        if abs(jump) > 1.5 * self._count_p or not kernels.truncate(x, P, EP, -h, h):
-            P[EP, :] = 0.0
-            P[:, EP] = 0.0
-            P[EP, EP] = self._var_q
-            x[EP] = 0.0
+        if abs(jump) > 1.5 * self._count_p:
+            self._redraw_pivot_error()
+            return 0.0
+        return jump
+
+    def _pivot_count(self, jump: float) -> None:
+        """The count constraint |e_p| <= h = sqrt(3) pivot_angle_sigma (half a count), applied after the
+        sample's measurements, when it is new information: the reading changed (an edge crossed slowly pins
+        e_p near that edge) or the mean left the count. Then the Gaussian is truncated to [-h, h] and its
+        moments matched (``kernels.truncate``; the other states follow by their regression on e_p). While
+        the reading stays with the mean inside, the constraint is the one already used: applying it again
+        at every sample -- by truncation, or by capping e_p's variance at the uniform's -- counts it again
+        and shrinks every state correlated with e_p (kappa, alpha) without information (measured: pose
+        NEES 10-14 on some seeds where it is 3-7 without). A mean that left the count so far that the
+        interval holds no probability (model error) re-draws e_p."""
+        x, P = self.kf.x, self.kf.P
+        h = self._half_width_p
+        if jump == 0.0 and abs(x[EP]) <= h:
+            return
+        if not kernels.truncate(x, P, EP, -h, h):
+            self._redraw_pivot_error()
+
+    def _redraw_pivot_error(self) -> None:
+        P = self.kf.P
+        P[EP, :] = 0.0
+        P[:, EP] = 0.0
+        P[EP, EP] = self._var_q
+        self.kf.x[EP] = 0.0
 
     def _detect_standstill(self, t: float, phi: np.ndarray) -> bool:
         cfg = self.config
