@@ -84,8 +84,8 @@ def parts(rec) -> dict:
 
     def predict():
         reset()
-        kernels.predict_imu(kf.x, kf.P, acc[0], acc[1], 0.0, 0.01, 0.01, ekf._var[0], ekf._var_alpha_dd, ekf._var[2],
-                            ekf._var[3], ekf._var_da, kf.F, kf.Q)
+        kernels.predict_imu(kf.x, kf.P, acc[0], acc[1], 0.0, 0.01, ekf._var_alpha_dd, ekf._var[2], ekf._var[3],
+                            ekf._var_da, kf.F, kf.Q)
 
     def yaw_model():
         kernels.yaw_acceleration(kf.x, ekf._phi_p, rec.torque[k - 1], acc[0], acc[1], ekf._prm)

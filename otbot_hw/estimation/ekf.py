@@ -18,9 +18,11 @@ Prediction (``EstimatorConfig.prediction``; the IMU was chosen by measurement, d
 
 * ``imu``: the specific force in B'' less its bias, rotated by alpha, drives x_dot, y_dot. The reading
   taken at t_{k-1} (just after it, under the command of [t_{k-1}, t_k)) drives the step to t_k; a reading
-  held over several steps (an IMU slower than the loop) keeps driving them, its noise counted once per
-  IMU period, corrected by the acceleration change the paper's model gives for the torque change since
-  the reading. The yaw rate is no IMU input: alpha_dd comes from the paper's model under the commanded
+  held over several steps (an IMU slower than the loop) keeps driving them, corrected by the acceleration
+  change the paper's model gives for the torque change since the reading. The reading's own noise is
+  the state (n_ax, n_ay), drawn afresh with each new reading and constant while it is held: white
+  process noise in its place let a 1 kHz loop average ten copies of one noisy reading against the
+  wheel rates (the twist overconfident by 2-3x). The yaw rate is no IMU input: alpha_dd comes from the paper's model under the commanded
   torque (``kernels.yaw_acceleration``), with the unknown horizontal force at the pivot eliminated by the
   accelerometer's measured acceleration (the model is linear in it), plus the state d -- the torques
   the model does not know (friction, torque-gain errors), a random walk -- and white noise
@@ -78,10 +80,10 @@ from otbot_hw.estimation.config import EstimatorConfig
 from otbot_hw.model import compiled
 from otbot_hw.params import OtbotParams
 
-N_STATE = 12
-X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA = range(N_STATE)
+N_STATE = 14
+X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA, NAX, NAY = range(N_STATE)
 STATE_NAMES = ("x", "y", "alpha", "x_dot", "y_dot", "alpha_dot", "gyro_bias", "accel_bias_x", "accel_bias_y",
-               "kappa", "pivot_quantization", "alpha_dd_unmodelled")
+               "kappa", "pivot_quantization", "alpha_dd_unmodelled", "accel_noise_x", "accel_noise_y")
 #: Update kinds and their dimensions.
 UPDATE_KINDS = {"encoders": 3, "heading": 1, "zupt": 3, "gyro": 1, "accel": 2, "fix": 3}
 TWO_PI = 2 * math.pi
@@ -162,6 +164,9 @@ class PoseEKF:
         self._var_q = cfg.pivot_angle_sigma ** 2  # the pivot angle's quantization variance (rad^2)
         self._half_width_p = math.sqrt(3.0) * cfg.pivot_angle_sigma  # half a count: the reading's error bound
         self._count_p = 2 * self._half_width_p
+        #: what the pivot count constraint may correct: the angles and the position, never the rates
+        self._count_corrects = np.zeros(N_STATE, dtype=np.bool_)
+        self._count_corrects[[X, Y, A, KAPPA, EP]] = True
         #: added to the angle readings: half a count for floored readings (the count's centre)
         half = 0.5 * math.sqrt(12) if cfg.encoder_quantization == "floor" else 0.0
         self._half_count = half * np.array([cfg.wheel_angle_sigma, cfg.wheel_angle_sigma, cfg.pivot_angle_sigma])
@@ -222,6 +227,7 @@ class PoseEKF:
         P[BG, BG] = cfg.gyro_bias_std ** 2
         P[BAX, BAX] = P[BAY, BAY] = cfg.accel_bias_std ** 2
         P[DA, DA] = cfg.angular_disturbance_std ** 2
+        P[NAX, NAX] = P[NAY, NAY] = cfg.accel_sigma ** 2
         # kappa comes from the first (quantized) reading: its error is alpha's plus that reading's
         P[EP, EP] = P[KAPPA, EP] = P[EP, KAPPA] = self._var_q
         P[KAPPA, KAPPA] = P[A, A] + self._var_q + self._R_heading[0, 0]
@@ -235,8 +241,8 @@ class PoseEKF:
         self._acc = self._gyro = None            # newest IMU reading (B'')
         self._acc_t = self._acc_u = None         # its time, and the torque it was taken under
         self._acc_held = self._gyro_held = None  # the reading that drives the current step
+        self._acc_noise_of = None                # the reading whose noise the states NAX, NAY are
         self._imu_t = None
-        self._imu_period = self.period
         self._torque = None
         self.rejected = dict.fromkeys(UPDATE_KINDS, 0)
         self.updates = dict.fromkeys(UPDATE_KINDS, 0)
@@ -316,8 +322,15 @@ class PoseEKF:
                 gx, gy = fx - x[BAX], fy - x[BAY]
                 add = kernels.yaw_acceleration(x, self._phi_p, self._torque, c * gx - s * gy, s * gx + c * gy,
                                                self._prm)
-            kernels.predict_imu(kf.x, kf.P, fx, fy, add, dt, self._imu_period, self._var[0],
-                                self._var_alpha_dd, self._var[2], self._var[3], self._var_da, kf.F, kf.Q)
+            if self._acc_held is not self._acc_noise_of:  # a new reading drives: its own noise, drawn afresh
+                self._acc_noise_of = self._acc_held
+                P = kf.P
+                P[NAX:NAY + 1, :] = 0.0
+                P[:, NAX:NAY + 1] = 0.0
+                P[NAX, NAX] = P[NAY, NAY] = self._var[0]
+                kf.x[NAX] = kf.x[NAY] = 0.0
+            kernels.predict_imu(kf.x, kf.P, fx, fy, add, dt, self._var_alpha_dd, self._var[2], self._var[3],
+                                self._var_da, kf.F, kf.Q)
         else:
             self._predict_model(dt)
         jump = self._pivot_motion(float(phi[2]), dt)
@@ -367,8 +380,6 @@ class PoseEKF:
             raise EstimatorFault(f"IMU sample at t = {t} s lacks {'accel' if acc is None else 'gyro'}")
         a = _vector(acc, 3, "imu_accel", t)
         g = _vector(gyro, 3, "imu_gyro", t)
-        if self._imu_t is not None and t > self._imu_t:
-            self._imu_period = t - self._imu_t
         self._imu_t = t
         self._acc, self._gyro = a, g
         self._acc_t, self._acc_u = t, None  # the torque the reading was taken under is known one step later
@@ -431,7 +442,7 @@ class PoseEKF:
         h = self._half_width_p
         if jump == 0.0 and abs(x[EP]) <= h:
             return
-        if not kernels.truncate(x, P, EP, -h, h):
+        if not kernels.truncate(x, P, EP, -h, h, self._count_corrects):
             self._redraw_pivot_error()
 
     def _redraw_pivot_error(self) -> None:

@@ -14,7 +14,7 @@ from numba import njit
 
 from otbot_hw.model import compiled
 
-X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA = range(12)
+X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA, NAX, NAY = range(14)
 
 
 @njit(cache=True)
@@ -26,20 +26,21 @@ def all_finite(a) -> bool:
 
 
 @njit(cache=True)
-def predict_imu(x, P, fx, fy, alpha_dd, dt, hold, accel_var, alpha_dd_var, bg_walk2, ba_walk2, da_walk2, F, Q):
+def predict_imu(x, P, fx, fy, alpha_dd, dt, alpha_dd_var, bg_walk2, ba_walk2, da_walk2, F, Q):
     """Strapdown step in place: x_dd, y_dd = R(alpha_mid)(f'' - b_a) from the specific force (fx, fy) in
     B''; alpha_dot driven by ``alpha_dd`` (rad/s^2, the model's, ``yaw_acceleration``) plus the state d
     (the model's unknown share, a random walk of density ``da_walk2`` ((rad/s^2)^2/s)) and white noise of
-    variance density ``alpha_dd_var`` ((rad/s^2)^2/Hz); alpha by the exact integral. ``hold``: the IMU
-    sample period (s) -- the reading's noise is spread over the steps it drives. F and Q are (n, n) work
-    arrays; on return they hold the step's transition and process noise. The gyro is a measurement
-    (``PoseEKF``), not an input."""
+    variance density ``alpha_dd_var`` ((rad/s^2)^2/Hz); alpha by the exact integral. The reading's own
+    noise is the state (NAX, NAY), subtracted like the bias: it stays while the reading drives the steps
+    (an IMU slower than the loop holds it) and ``PoseEKF`` re-draws it with every new reading. F and Q
+    are (n, n) work arrays; on return they hold the step's transition and process noise. The gyro is a
+    measurement (``PoseEKF``), not an input."""
     n = x.shape[0]
     h2 = 0.5 * dt * dt
     alpha_dd = alpha_dd + x[DA]
     am = x[A] + 0.5 * dt * x[VA] + 0.25 * dt * dt * alpha_dd
     c, s = math.cos(am), math.sin(am)
-    gx, gy = fx - x[BAX], fy - x[BAY]
+    gx, gy = fx - x[BAX] - x[NAX], fy - x[BAY] - x[NAY]
     ax, ay = c * gx - s * gy, s * gx + c * gy
     dax, day = -ay, ax
     F[:, :] = 0.0
@@ -67,16 +68,17 @@ def predict_imu(x, P, fx, fy, alpha_dd, dt, hold, accel_var, alpha_dd_var, bg_wa
     F[VX, BAY] = dt * s
     F[VY, BAX] = -dt * s
     F[VY, BAY] = -dt * c
+    for k in range(2):  # the driving reading's own noise (NAX, NAY) enters like the bias
+        F[X, NAX + k] = F[X, BAX + k]
+        F[Y, NAX + k] = F[Y, BAX + k]
+        F[VX, NAX + k] = F[VX, BAX + k]
+        F[VY, NAX + k] = F[VY, BAX + k]
     x[X] += x[VX] * dt + h2 * ax
     x[Y] += x[VY] * dt + h2 * ay
     x[VX] += ax * dt
     x[VY] += ay * dt
     x[A] += x[VA] * dt + h2 * alpha_dd
     x[VA] += alpha_dd * dt
-    qv = accel_var * dt * max(hold, dt)
-    Q[X, X] = Q[Y, Y] = qv * 0.25 * dt * dt
-    Q[X, VX] = Q[VX, X] = Q[Y, VY] = Q[VY, Y] = qv * 0.5 * dt
-    Q[VX, VX] = Q[VY, VY] = qv
     Q[A, A] = alpha_dd_var * dt * dt * dt / 3.0
     Q[A, VA] = Q[VA, A] = alpha_dd_var * dt * dt / 2.0
     Q[VA, VA] = alpha_dd_var * dt
@@ -285,11 +287,12 @@ _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
 @njit(cache=True)
-def truncate(x, P, i, lo, hi):
-    """Truncate the Gaussian (x, P) to lo <= x[i] <= hi and match its first two moments, in place (density
-    truncation, Simon & Simon 2010: x[i]'s mean and variance become the truncated normal's; every other
-    component follows by its regression on x[i], exact for a joint Gaussian). Returns False, leaving x and
-    P as they were, when the interval holds (next to) no probability."""
+def truncate(x, P, i, lo, hi, correct):
+    """Truncate the Gaussian (x, P) to lo <= x[i] <= hi and match x[i]'s first two moments, in place (density
+    truncation, Simon & Simon 2010), applied as the scalar Gaussian measurement of x[i] that gives exactly
+    those moments. States with ``correct[k]`` False are considered (Schmidt: zero gain, their covariance
+    kept consistent); with all True every other state follows by its regression on x[i], exact for a joint
+    Gaussian. Returns False, leaving x and P as they were, when the interval holds (next to) no probability."""
     mu, var = x[i], P[i, i]
     if var <= 0.0:
         return lo <= mu <= hi
@@ -307,15 +310,22 @@ def truncate(x, P, i, lo, hi):
     d = (pa - pb) / z
     mean = mu + sd * d
     new_var = var * max(1.0 + (a * pa - b * pb) / z - d * d, 1e-12)
+    info = 1.0 / new_var - 1.0 / var
+    if not info > 0.0:
+        return True
+    r = 1.0 / info  # the measurement of x[i] with these posterior moments
+    s_ = var + r
+    meas = mu + (mean - mu) * s_ / var
     n = x.shape[0]
     col = np.empty(n)
-    for k in range(n):
-        col[k] = P[k, i] / var
-    shift = mean - mu
-    dv = new_var - var
-    for k in range(n):
-        x[k] += col[k] * shift
-    for r in range(n):
+    k = np.empty(n)
+    for j in range(n):
+        col[j] = P[j, i]
+        k[j] = col[j] / s_ if correct[j] else 0.0
+    nu = meas - mu
+    for j in range(n):
+        x[j] += k[j] * nu
+    for r_ in range(n):
         for c in range(n):
-            P[r, c] += dv * col[r] * col[c]
+            P[r_, c] += -k[r_] * col[c] - col[r_] * k[c] + k[r_] * s_ * k[c]
     return True
