@@ -3,7 +3,7 @@
 Measured on the 100 Hz corridor (closed loop on the true state, paper noise): ``PoseEKF.step`` with the
 IMU prediction (the default) and with the dynamic-model prediction, each step timed alone (median and
 percentiles, so other jobs on the machine show as a tail, not as a shift); its parts; and, for the same
-12-state / 3-measurement algebra, filterpy's generic ``ExtendedKalmanFilter.predict`` + ``update`` and
+14-state / 3-measurement algebra, filterpy's generic ``ExtendedKalmanFilter.predict`` + ``update`` and
 the same gated update written in plain numpy -- what the compiled kernels replace.
 
     python benchmarks/estimation.py [--repeat 3] [--json]

@@ -1,12 +1,14 @@
 """Extended Kalman filter for the platform pose and twist of Otbot (filterpy ``ExtendedKalmanFilter``).
 
-State (12,), ground frame B unless said otherwise::
+State (14,), ground frame B unless said otherwise::
 
     0 x, 1 y (m)            pivot P               6 b_g (rad/s)          gyro z bias
     2 alpha (rad)           platform heading      7 b_ax, 8 b_ay (m/s^2) accelerometer bias in B''
     3 x_dot, 4 y_dot (m/s)                        9 kappa (rad)          wheel-heading offset
     5 alpha_dot (rad/s)                           10 e_p (rad)           pivot encoder quantization error
                                                   11 d (rad/s^2)         alpha_dd the model does not know
+                                                  12 n_ax, 13 n_ay       noise of the driving accelerometer
+                                                     (m/s^2)             reading, B''
 
 The filterpy object ``kf`` holds the state ``kf.x``, its covariance ``kf.P`` and the last step's
 transition ``kf.F`` and process noise ``kf.Q``. Its generic predict/update are not used: they neither
@@ -110,7 +112,7 @@ class Estimate:
     """What the EKF believes at t (s), after using that sample's sensors.
 
     pose (3,) x, y (m), alpha (rad) of the pivot P / platform in B; twist (3,) m/s, m/s, rad/s;
-    std (6,) their standard deviations; cov (12, 12) the full covariance (state order of the module
+    std (6,) their standard deviations; cov (14, 14) the full covariance (state order of the module
     docstring); gyro_bias (rad/s); standstill: a zero-velocity update was applied; nis: normalized
     innovation squared of each update kind this step (nan: none); rejected / updates: cumulative gate
     rejections / accepted updates per kind; accel_bias (2,) m/s^2 in B''.

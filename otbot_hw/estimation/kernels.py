@@ -1,6 +1,6 @@
 """Compiled (numba) hot path of the pose EKF: the IMU prediction and the gated Kalman update.
 
-numpy spends most of a step of a 12-state filter in call overhead (tens of small arrays per step,
+numpy spends most of a step of a 14-state filter in call overhead (tens of small arrays per step,
 ~1 us each), not in arithmetic; these kernels do the same algebra on caller-owned arrays in place
 (``benchmarks/estimation.py`` measures both). The filter's logic -- which update when, gates,
 re-anchoring, faults -- stays in ``otbot_hw.estimation.ekf``. State order as there.
