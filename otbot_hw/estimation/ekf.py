@@ -166,7 +166,7 @@ class PoseEKF:
         self._var_q = cfg.pivot_angle_sigma ** 2  # the pivot angle's quantization variance (rad^2)
         self._half_width_p = math.sqrt(3.0) * cfg.pivot_angle_sigma  # half a count: the reading's error bound
         self._count_p = 2 * self._half_width_p
-        #: what the pivot count constraint may correct: the angles and the position, never the rates
+        #: what an improbable pivot count constraint may still correct: the angles and the position
         self._count_corrects = np.zeros(N_STATE, dtype=np.bool_)
         self._count_corrects[[X, Y, A, KAPPA, EP]] = True
         #: added to the angle readings: half a count for floored readings (the count's centre)
@@ -444,7 +444,7 @@ class PoseEKF:
         h = self._half_width_p
         if jump == 0.0 and abs(x[EP]) <= h:
             return
-        if not kernels.truncate(x, P, EP, -h, h, self._count_corrects):
+        if not kernels.truncate(x, P, EP, -h, h, self._count_corrects, 1.0 - self.config.gate_probability):
             self._redraw_pivot_error()
 
     def _redraw_pivot_error(self) -> None:

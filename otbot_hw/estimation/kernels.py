@@ -287,12 +287,14 @@ _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
 @njit(cache=True)
-def truncate(x, P, i, lo, hi, correct):
+def truncate(x, P, i, lo, hi, correct, plausible=0.0):
     """Truncate the Gaussian (x, P) to lo <= x[i] <= hi and match x[i]'s first two moments, in place (density
     truncation, Simon & Simon 2010), applied as the scalar Gaussian measurement of x[i] that gives exactly
-    those moments. States with ``correct[k]`` False are considered (Schmidt: zero gain, their covariance
-    kept consistent); with all True every other state follows by its regression on x[i], exact for a joint
-    Gaussian. Returns False, leaving x and P as they were, when the interval holds (next to) no probability."""
+    those moments. Every other state follows by its regression on x[i] (exact for a joint Gaussian) --
+    unless the interval holds less than ``plausible`` of x[i]'s probability: then the states with
+    ``correct[k]`` False are considered (Schmidt: zero gain, their covariance kept consistent), as so
+    improbable a constraint says the linear regression does not hold there. Returns False, leaving x and
+    P as they were, when the interval holds (next to) no probability."""
     mu, var = x[i], P[i, i]
     if var <= 0.0:
         return lo <= mu <= hi
@@ -319,9 +321,10 @@ def truncate(x, P, i, lo, hi, correct):
     n = x.shape[0]
     col = np.empty(n)
     k = np.empty(n)
+    everything = z >= plausible
     for j in range(n):
         col[j] = P[j, i]
-        k[j] = col[j] / s_ if correct[j] else 0.0
+        k[j] = col[j] / s_ if (everything or correct[j]) else 0.0
     nu = meas - mu
     for j in range(n):
         x[j] += k[j] * nu
