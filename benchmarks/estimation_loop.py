@@ -27,7 +27,8 @@ friction and torque-gain errors; ``--pivot-counts`` the direct 1 kHz corridor wi
 
     nice -n 10 python benchmarks/estimation_loop.py [--seeds 20] [--backends ...] [--scenarios ...] [--plants ...]
         [--sweep SEEDS] [--pivot SEEDS] [--workers 1] [--json] > loop.json
-    python benchmarks/estimation_loop.py --markdown loop*.json [--plot DIR]   # tables (runs merged), plots
+    python benchmarks/estimation_loop.py --markdown loop*.json [--plot DIR] [--save MERGED.json]
+                                          # tables (runs merged), plots, the merged result
 """
 from __future__ import annotations
 
@@ -435,6 +436,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-main", action="store_true", help="only the --sweep / --pivot extras")
     ap.add_argument("--workers", type=int, default=1, help="processes (default 1; the machine is shared)")
     ap.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the slip-burst plots into DIR")
+    ap.add_argument("--save", type=Path, default=None, metavar="MERGED.json",
+                    help="with --markdown: write the merged runs (no traces) and their summary rows")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--markdown", type=Path, nargs="+", default=None, metavar="RESULT.json",
                     help="print the tables of one or more saved --json results (their runs merged; with --plot, "
@@ -446,6 +449,9 @@ def main(argv=None) -> int:
         attach_ratios(rows)
         if args.plot:
             print("\n".join(plots(args.plot, runs)), file=sys.stderr)
+        if args.save:
+            lean = [{k: v for k, v in r.items() if k != "trace"} for r in runs]
+            args.save.write_text(json.dumps({"rows": rows, "runs": lean}))
         print(markdown({"rows": rows}))
         return 0
     jobs = []
