@@ -437,21 +437,24 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1, help="processes (default 1; the machine is shared)")
     ap.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the slip-burst plots into DIR")
     ap.add_argument("--save", type=Path, default=None, metavar="MERGED.json",
-                    help="with --markdown: write the merged runs (no traces) and their summary rows")
+                    help="with --markdown: write the summary rows of the merged runs (what the tables print)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--markdown", type=Path, nargs="+", default=None, metavar="RESULT.json",
                     help="print the tables of one or more saved --json results (their runs merged; with --plot, "
                          "the plots too)")
     args = ap.parse_args(argv)
     if args.markdown:
-        runs = [r for f in args.markdown for r in json.loads(f.read_text())["runs"]]
-        rows = summarize(runs)
-        attach_ratios(rows)
+        data = [json.loads(f.read_text()) for f in args.markdown]
+        runs = [r for d in data for r in d.get("runs", [])]
+        if runs:
+            rows = summarize(runs)
+            attach_ratios(rows)
+        else:  # a saved summary (--save)
+            rows = [r for d in data for r in d["rows"]]
         if args.plot:
             print("\n".join(plots(args.plot, runs)), file=sys.stderr)
         if args.save:
-            lean = [{k: v for k, v in r.items() if k != "trace"} for r in runs]
-            args.save.write_text(json.dumps({"rows": rows, "runs": lean}))
+            args.save.write_text(json.dumps({"rows": rows}))
         print(markdown({"rows": rows}))
         return 0
     jobs = []
