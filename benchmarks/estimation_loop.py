@@ -368,7 +368,7 @@ def markdown(result: dict) -> str:
                     key=lambda r: (BACKENDS.index(r["backend"]), SCENARIOS.index(r["scenario"]), r["feedback"] != "truth")):
         ratio = ", ".join(f"{r['ratio'][k]:.2f}" for k in ("x", "y", "alpha")) if "ratio" in r else "-"
         nees_s = f"{r['nees_mean']:.2f} ({r['nees_bounds'][0]:.2f}-{r['nees_bounds'][1]:.2f})" if "nees_mean" in r else "-"
-        rej = ", ".join(f"{k} {v:g}" for k, v in r.get("rejected", {}).items() if v) or ("none" if "rejected" in r else "-")
+        rej = ", ".join(f"{k} {v:.3g}" for k, v in r.get("rejected", {}).items() if v) or ("none" if "rejected" in r else "-")
         out.append(f"| {r['backend']} | {r['scenario']} | {r['feedback']} | {r['seeds']} | {_mm(r.get('track_max_x'))} | "
                    f"{_mm(r.get('track_max_y'))} | {_mm(r.get('track_max_alpha'))} | {ratio} | "
                    f"{_mm(r.get('est_max_x'))} | {_mm(r.get('est_max_y'))} | {_mm(r.get('est_max_alpha'))} | {nees_s} | "
@@ -389,7 +389,7 @@ def markdown(result: dict) -> str:
                 "track x, y (mm), alpha (mrad) | rejected per run | fixes accepted | completed |",
                 "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in sorted(bursts, key=lambda r: (BACKENDS.index(r["backend"]), SCENARIOS.index(r["scenario"]), r["plant"])):
-            rej = ", ".join(f"{k} {v:g}" for k, v in r.get("rejected", {}).items() if v) or "none"
+            rej = ", ".join(f"{k} {v:.3g}" for k, v in r.get("rejected", {}).items() if v) or "none"
             steps = ", ".join(f"{v:+.2f}" for v in r.get("burst_steps_mm", []))
             out.append(f"| {r['backend']} | {r['scenario']} | {r['plant']} | {r['seeds']} | {_mm(r.get('est_pos_max'))} | "
                        f"{_mm(r.get('est_pos_max_worst'))} | {_mm(r.get('est_pos_final'))} | {steps} | "
@@ -404,7 +404,7 @@ def markdown(result: dict) -> str:
                 "est alpha max (mrad) | NEES | rejected per run | completed |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in sorted(sweep, key=lambda r: (r["config"].get("angular_disturbance_walk", 0), bool(r["plant_effects"]),
                                               r["feedback"])):
-            rej = ", ".join(f"{k} {v:g}" for k, v in r.get("rejected", {}).items() if v) or "none"
+            rej = ", ".join(f"{k} {v:.3g}" for k, v in r.get("rejected", {}).items() if v) or "none"
             w = r["config"].get("angular_disturbance_walk", "-")
             ratio = f"{r['ratio']['alpha']:.2f}" if "ratio" in r else "-"
             nees_s = f"{r['nees_mean']:.1f}" if "nees_mean" in r else "-"
