@@ -3,7 +3,7 @@
 Measured on the 100 Hz corridor (closed loop on the true state, paper noise): ``PoseEKF.step`` with the
 IMU prediction (the default) and with the dynamic-model prediction, each step timed alone (median and
 percentiles, so other jobs on the machine show as a tail, not as a shift); its parts; and, for the same
-11-state / 3-measurement algebra, filterpy's generic ``ExtendedKalmanFilter.predict`` + ``update`` and
+14-state / 3-measurement algebra, filterpy's generic ``ExtendedKalmanFilter.predict`` + ``update`` and
 the same gated update written in plain numpy -- what the compiled kernels replace.
 
     python benchmarks/estimation.py [--repeat 3] [--json]
@@ -84,24 +84,30 @@ def parts(rec) -> dict:
 
     def predict():
         reset()
-        kernels.predict_imu(kf.x, kf.P, acc[0], acc[1], gyro[2], True, 0.01, 0.01, *ekf._var, kf.F, kf.Q)
+        kernels.predict_imu(kf.x, kf.P, acc[0], acc[1], 0.0, 0.01, ekf._var_alpha_dd, ekf._var[2], ekf._var[3],
+                            ekf._var_da, kf.F, kf.Q)
+
+    def yaw_model():
+        kernels.yaw_acceleration(kf.x, ekf._phi_p, rec.torque[k - 1], acc[0], acc[1], ekf._prm)
 
     def update():
         reset()
         ekf._update_encoders(rec.t[k], phi, phid)
 
     out = {"predict (compiled kernel)": time_call(predict) - time_call(reset),
+           "model alpha_dd, pivot force eliminated (compiled)": time_call(yaw_model),
            "joint-rate + heading updates": time_call(update) - time_call(reset),
            "estimate record (copies for the caller)": time_call(ekf._make_estimate)}
 
     # the same algebra through filterpy's generic EKF and through plain numpy
     from filterpy.kalman import ExtendedKalmanFilter
 
-    H = np.zeros((3, 11))
+    n = len(x0)
+    H = np.zeros((3, n))
     nu = np.zeros(3)
     kernels.joint_rates(x0, phi[2], ekf._l1, ekf._l2, ekf._r, H, nu, phid)
     z = H @ x0 + nu
-    generic = ExtendedKalmanFilter(dim_x=11, dim_z=3)
+    generic = ExtendedKalmanFilter(dim_x=n, dim_z=3)
     generic.x, generic.P, generic.F, generic.Q, generic.R = x0.copy(), P0.copy(), kf.F.copy(), kf.Q.copy(), ekf._R_rates
 
     def filterpy_cycle():

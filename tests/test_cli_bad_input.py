@@ -123,6 +123,12 @@ BAD_INPUT = [
     ("track", "corridor --sim --plot {ok}", "exists and is not a folder"),
     ("track", "corridor --sim --params {ok}", "not a text file"),
     ("track", "corridor --sim --error-bounds 1,2", "--error-bounds needs 6 comma-separated numbers"),
+    ("track", "corridor --sim --fixes 0", "argument --fixes: must be a finite number of Hz > 0"),
+    ("track", "corridor --sim --fixes 1 --feedback truth", "--fixes feeds the EKF: use --feedback ekf"),
+    ("track", "corridor --bus config --fixes 1", "act on a simulated robot (--sim, --bus sim)"),
+    ("track", "corridor --sim --fixes 1 --fix-std 0.002,0,0.002", "--fix-std needs 3 numbers > 0"),
+    ("track", "corridor --sim --slip-burst 2:0.3", "--slip-burst needs T0:DURATION:K_SLIP"),
+    ("track", "corridor --sim --slip-burst 2:-1:0.05", "DURATION > 0 s"),
     # --- plan
     ("plan", "--out {missing}/p.csv", "folder {missing} does not exist"),
     ("plan", "--out {folder}", "is a folder; give a file name"),

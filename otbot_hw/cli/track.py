@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
-from otbot_hw.cli import CliError, add_json_flag, progress
+from otbot_hw.cli import CliError, add_json_flag, checks, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
 from otbot_hw.cli.checks import output_file, output_folder
 
@@ -54,6 +55,14 @@ def register(sub) -> None:
                    help="refuse (exit 2) a trajectory whose torque bound can exceed a motor limit")
     p.add_argument("--no-robustness", action="store_true",
                    help="skip the robustness reruns (platform params 20 %% off, unmodelled friction)")
+    p.add_argument("--fixes", type=checks.rate, default=None, metavar="HZ",
+                   help="feed the EKF absolute pose fixes from a simulated motion-capture system at HZ Hz (its own "
+                        "white noise, --fix-std; --sim and --bus sim with --feedback ekf)")
+    p.add_argument("--fix-std", default="0.002,0.002,0.002", metavar="SX,SY,SA",
+                   help="noise std of the simulated motion capture: x, y in m, alpha in rad (default 0.002,0.002,0.002)")
+    p.add_argument("--slip-burst", action="append", default=None, metavar="T0:DURATION:K_SLIP",
+                   help="a burst of wheel slip in the simulated robot: the extended model's k_slip (rad/(s N m)) for "
+                        "DURATION s from T0 s of robot time (repeatable; --sim and --bus sim)")
     p.add_argument("--out", type=Path, default=None, metavar="RUN.mcap", help="record the run (project MCAP format)")
     p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write PNG plots into DIR")
     p.add_argument("--animate", type=Path, default=None, metavar="OUT.gif", help="write a GIF animation")
@@ -95,6 +104,21 @@ def check_feedback(kind: str, feedback: str) -> None:
             raise CliError(f"--feedback ekf: {exc}; use --feedback truth on a simulated back end") from None
 
 
+def parse_bursts(items) -> list[tuple[float, float, float]]:
+    """--slip-burst T0:DURATION:K_SLIP values as (t0 s, duration s, k_slip rad/(s N m)); CliError if malformed."""
+    out = []
+    for text in items or ():
+        parts = text.split(":")
+        try:
+            t0, dur, k = (float(v) for v in parts)
+        except ValueError:
+            raise CliError(f"--slip-burst needs T0:DURATION:K_SLIP (s, s, rad/(s N m)), got {text!r}") from None
+        if not all(map(math.isfinite, (t0, dur, k))) or t0 < 0 or dur <= 0 or not 0 < k <= 1:
+            raise CliError(f"--slip-burst {text!r}: T0 >= 0 s, DURATION > 0 s and 0 < K_SLIP <= 1 rad/(s N m)")
+        out.append((t0, dur, k))
+    return out
+
+
 def make_backend(kind: str, args, quiet: bool):
     """The back end of ``kind`` configured from the command line."""
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend, DirectBackend
@@ -116,7 +140,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.control.gains import gains_from_tstab
     from otbot_hw.control.scenarios import SCENARIOS, build_spec
     from otbot_hw.control.trajectories import TrajectoryError
-    from otbot_hw.model.effects import ExtendedModel
+    from otbot_hw.model.effects import EFFECT_INDEX, ExtendedModel
     from otbot_hw.motors import load_motor_limits
     from otbot_hw.robot import RobotError
     from otbot_hw.runtime.supervisor import SafetyConfig
@@ -127,6 +151,15 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError("--plant-params sets the simulated robot (--sim, --bus sim); the configured bus runs the "
                        "robot that is there")
     check_feedback(kind, args.feedback)
+    fix_std = parse_vector(args.fix_std, 3, "--fix-std")
+    if any(v <= 0 for v in fix_std):
+        raise CliError(f"--fix-std needs 3 numbers > 0 (m, m, rad), got {args.fix_std!r}")
+    bursts = parse_bursts(args.slip_burst)
+    if (args.fixes is not None or bursts) and kind == "bus config":
+        raise CliError("--fixes and --slip-burst act on a simulated robot (--sim, --bus sim); the configured bus "
+                       "runs the robot that is there")
+    if args.fixes is not None and args.feedback != "ekf":
+        raise CliError("--fixes feeds the EKF: use --feedback ekf")
     if args.scenario not in SCENARIOS and not Path(args.scenario).exists():
         raise CliError(f"unknown scenario {args.scenario!r}: use {', '.join(SCENARIOS)} or an existing CSV file")
     output_file(args.animate, "--animate", suffix=".gif")
@@ -157,6 +190,25 @@ def run(args: argparse.Namespace) -> dict:
                                f"({len(rep.violations)} violation(s))")
         safety = SafetyConfig.load(args.config)
         backend = make_backend(kind, args, args.json)
+        fixes = None
+        if args.fixes is not None:
+            from sim.mocap import MotionCapture
+
+            fixes = MotionCapture(args.fixes, fix_std, seed=10_000 + args.seed)
+        if bursts:
+            import numpy as np
+
+            from otbot_hw.model.effects import effect_vector
+            from sim.effect_schedule import EffectSchedule, with_schedule
+
+            base = plant if plant is not None else model
+            eff = np.array(base.eff if hasattr(base, "eff") else effect_vector(), dtype=float)
+            eff[EFFECT_INDEX["k_slip"]] = max(k for _, _, k in bursts)
+            plant = ExtendedModel(getattr(base, "params", base), eff)
+            entries = [(0.0, {"k_slip": 0.0})]
+            for t0, dur, k in sorted(bursts):
+                entries += [(t0, {"k_slip": k}), (t0 + dur, {"k_slip": 0.0})]
+            backend = with_schedule(backend, EffectSchedule(entries))
         meta = {"params": params.to_dict(), "command": "otbot track"}
         if plant is not None:
             meta["plant"] = plant.to_dict() if hasattr(plant, "to_dict") else None
@@ -165,7 +217,7 @@ def run(args: argparse.Namespace) -> dict:
         result = run_scenario(args.scenario, params, limits, t_stab=tstab, robustness=not args.no_robustness,
                               plot_dir=args.plot, animate=args.animate, progress=say, error_bounds=eb, spec=spec,
                               plant=plant, effects=effects, backend=backend, feedback=args.feedback, safety=safety,
-                              path=args.out, metadata=meta, config_path=args.config)
+                              path=args.out, metadata=meta, config_path=args.config, fixes=fixes)
         if effects is not None:
             result["compensated_effects"] = model.active_effects()
     except TrajectoryError as exc:

@@ -45,9 +45,14 @@ class EstimatorConfig:
     becomes a measurement). accel_sigma (m/s^2) and gyro_sigma (rad/s): white noise per IMU sample;
     encoder_rate_sigma (rad/s), wheel_angle_sigma and pivot_angle_sigma (rad): per encoder sample. gyro_bias_std (rad/s)
     and accel_bias_std (m/s^2): prior std of the turn-on biases; gyro_bias_walk (rad/s/sqrt(s)) and
-    accel_bias_walk (m/s^2/sqrt(s)): their random walk. model_accel_density ((m/s^2)/sqrt(Hz)) and
-    model_angular_density ((rad/s^2)/sqrt(Hz)): white acceleration error of the dynamic model
-    (prediction ``model`` only). gate_probability: chi-square probability of the Mahalanobis gate.
+    accel_bias_walk (m/s^2/sqrt(s)): their random walk. model_accel_density ((m/s^2)/sqrt(Hz)): white
+    acceleration error of the dynamic model's x, y rows (prediction ``model`` only);
+    model_angular_density ((rad/s^2)/sqrt(Hz)): white error of its alpha row, which drives alpha_dot in
+    both predictions; angular_disturbance_std (rad/s^2) and angular_disturbance_walk
+    (rad/s^2/sqrt(s)): prior and random walk of the state d, the alpha_dd of torques the model does not
+    know (friction, torque-gain errors; the walk sized so that 0.5 N m of unmodelled pivot friction and
+    5 % torque-gain errors keep the filter consistent, docs/estimation.md). gate_probability:
+    chi-square probability of the Mahalanobis gate.
     standstill_window (s) / standstill_angle (rad): the robot stands when no joint moved more than
     standstill_angle for standstill_window. imu_timeout (s): longest IMU silence before a fault.
     encoder_quantization: ``floor`` (an angle reading is the lower edge of its count, as the drives and
@@ -68,7 +73,9 @@ class EstimatorConfig:
     accel_bias_std: float = 0.02
     accel_bias_walk: float = 1e-3
     model_accel_density: float = 0.5
-    model_angular_density: float = 0.5
+    model_angular_density: float = 0.003
+    angular_disturbance_std: float = 0.5
+    angular_disturbance_walk: float = 0.3
     gate_probability: float = 0.9999
     standstill_window: float = 0.2
     standstill_angle: float = 2 * 2 * math.pi / PIVOT_ENCODER_COUNTS
@@ -140,8 +147,9 @@ UNITS = {
     "pivot_angle_sigma": "rad",
     "gyro_bias_std": "rad/s", "gyro_bias_walk": "rad/s/sqrt(s)", "accel_bias_std": "m/s^2",
     "accel_bias_walk": "m/s^2/sqrt(s)", "model_accel_density": "m/s^2/sqrt(Hz)",
-    "model_angular_density": "rad/s^2/sqrt(Hz)", "gate_probability": "1", "standstill_window": "s",
+    "model_angular_density": "rad/s^2/sqrt(Hz)", "angular_disturbance_std": "rad/s^2",
+    "angular_disturbance_walk": "rad/s^2/sqrt(s)", "gate_probability": "1", "standstill_window": "s",
     "standstill_angle": "rad", "imu_timeout": "s",
 }
-_NONNEGATIVE = {"gyro_bias_walk", "accel_bias_walk"}
+_NONNEGATIVE = {"gyro_bias_walk", "accel_bias_walk", "angular_disturbance_walk"}
 _WORDS = {"prediction", "encoder_quantization"}

@@ -1,11 +1,14 @@
 """Extended Kalman filter for the platform pose and twist of Otbot (filterpy ``ExtendedKalmanFilter``).
 
-State (11,), ground frame B unless said otherwise::
+State (14,), ground frame B unless said otherwise::
 
     0 x, 1 y (m)            pivot P               6 b_g (rad/s)          gyro z bias
     2 alpha (rad)           platform heading      7 b_ax, 8 b_ay (m/s^2) accelerometer bias in B''
     3 x_dot, 4 y_dot (m/s)                        9 kappa (rad)          wheel-heading offset
     5 alpha_dot (rad/s)                           10 e_p (rad)           pivot encoder quantization error
+                                                  11 d (rad/s^2)         alpha_dd the model does not know
+                                                  12 n_ax, 13 n_ay       noise of the driving accelerometer
+                                                     (m/s^2)             reading, B''
 
 The filterpy object ``kf`` holds the state ``kf.x``, its covariance ``kf.P`` and the last step's
 transition ``kf.F`` and process noise ``kf.Q``. Its generic predict/update are not used: they neither
@@ -15,15 +18,23 @@ update are compiled kernels (``otbot_hw.estimation.kernels``) working on that st
 
 Prediction (``EstimatorConfig.prediction``; the IMU was chosen by measurement, docs/estimation.md):
 
-* ``imu``: the specific force in B'' less its bias, rotated by alpha, drives x_dot, y_dot; alpha_dot is
-  the newest gyro reading less its bias, alpha the trapezoid of the rates. The reading taken at t_{k-1}
-  (just after it, under the command of [t_{k-1}, t_k)) drives the step to t_k; a reading held over
-  several steps (an IMU slower than the loop) keeps driving them, its noise counted once per IMU period,
-  corrected by the acceleration change the paper's model gives for the torque change since the reading.
+* ``imu``: the specific force in B'' less its bias, rotated by alpha, drives x_dot, y_dot. The reading
+  taken at t_{k-1} (just after it, under the command of [t_{k-1}, t_k)) drives the step to t_k; a reading
+  held over several steps (an IMU slower than the loop) keeps driving them, corrected by the acceleration
+  change the paper's model gives for the torque change since the reading. The reading's own noise is
+  the state (n_ax, n_ay), drawn afresh with each new reading and constant while it is held: white
+  process noise in its place let a 1 kHz loop average ten copies of one noisy reading against the
+  wheel rates (the twist overconfident by 2-3x). The yaw rate is no IMU input: alpha_dd comes from the paper's model under the commanded
+  torque (``kernels.yaw_acceleration``), with the unknown horizontal force at the pivot eliminated by the
+  accelerometer's measured acceleration (the model is linear in it), plus the state d -- the torques
+  the model does not know (friction, torque-gain errors), a random walk -- and white noise
+  (``model_angular_density``); the gyro is a measurement of alpha_dot + b_g. A gyro reading fed as the
+  rate itself put its white noise (13.7 mrad/s per sample) into alpha_dot unfiltered, and the control law
+  turned it into platform motion (docs/estimation.md, "In the loop").
 * ``model``: the paper's multiplier-free dynamics (``otbot_hw.model.compiled``) under the commanded
-  torque drive the twist, with white acceleration noise; the IMU becomes a measurement (gyro of
-  alpha_dot + b_g; accelerometer of R(alpha)^T p_dd + b_a at the previous sample, under the same
-  command). Also used while no IMU reading has arrived.
+  torque drive the twist, with white acceleration noise (alpha_dd also d); the IMU becomes a measurement
+  (accelerometer of R(alpha)^T p_dd + b_a at the previous sample, under the same command). Also used
+  while no IMU reading has arrived.
 
 Updates, each gated by its squared Mahalanobis distance (chi-square at ``gate_probability``); a
 rejected one is counted and not applied:
@@ -37,14 +48,16 @@ rejected one is counted and not applied:
   wheel heading re-anchors on alpha.
   The pivot's quantization error e_p is no white noise -- it stays while the pivot reading stays (on
   every straight of the corridor), and a white model would let repeated readings of one quantized angle
-  shrink alpha's variance far below its error -- so it is a state: drawn afresh when the reading
-  changes, its variance growing with the pivot's own motion while the reading stays. Floored readings are first moved to the centre of their count
+  shrink alpha's variance far below its error -- so it is a state: it moves by minus the pivot's motion
+  while the reading stays, jumps with the reading (``_pivot_motion``), and is kept inside the count
+  (``_pivot_count``). Floored readings are first moved to the centre of their count
   (``encoder_quantization``), so the error is zero-mean. The wheels' share of the heading's
   quantization error renews with every count they roll and is taken as white. e_p also enters the
   chassis heading theta = alpha - phi_p of the joint-rate update.
 * ``zupt`` (3): twist = 0 when no joint moved more than ``standstill_angle`` for ``standstill_window``
   and the gyro agrees; its sigma is the rate that window allows (standstill_angle r / window).
-* ``gyro`` (1), ``accel`` (2): the IMU as measurement (``model`` prediction only).
+* ``gyro`` (1): alpha_dot + b_g, at every new IMU reading. ``accel`` (2): the accelerometer as a
+  measurement (``model`` prediction only).
 * ``fix`` (3): an absolute pose with its covariance (``PoseEKF.fix``), alpha residual wrapped.
 
 alpha stays continuous (never wrapped to +-pi, like the recordings); every angle *residual* is wrapped.
@@ -69,10 +82,10 @@ from otbot_hw.estimation.config import EstimatorConfig
 from otbot_hw.model import compiled
 from otbot_hw.params import OtbotParams
 
-N_STATE = 11
-X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP = range(N_STATE)
+N_STATE = 14
+X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA, NAX, NAY = range(N_STATE)
 STATE_NAMES = ("x", "y", "alpha", "x_dot", "y_dot", "alpha_dot", "gyro_bias", "accel_bias_x", "accel_bias_y",
-               "kappa", "pivot_quantization")
+               "kappa", "pivot_quantization", "alpha_dd_unmodelled", "accel_noise_x", "accel_noise_y")
 #: Update kinds and their dimensions.
 UPDATE_KINDS = {"encoders": 3, "heading": 1, "zupt": 3, "gyro": 1, "accel": 2, "fix": 3}
 TWO_PI = 2 * math.pi
@@ -99,7 +112,7 @@ class Estimate:
     """What the EKF believes at t (s), after using that sample's sensors.
 
     pose (3,) x, y (m), alpha (rad) of the pivot P / platform in B; twist (3,) m/s, m/s, rad/s;
-    std (6,) their standard deviations; cov (11, 11) the full covariance (state order of the module
+    std (6,) their standard deviations; cov (14, 14) the full covariance (state order of the module
     docstring); gyro_bias (rad/s); standstill: a zero-velocity update was applied; nis: normalized
     innovation squared of each update kind this step (nan: none); rejected / updates: cumulative gate
     rejections / accepted updates per kind; accel_bias (2,) m/s^2 in B''.
@@ -151,6 +164,11 @@ class PoseEKF:
         self._prm = params.as_array()
         self.gate = {kind: float(chi2.ppf(cfg.gate_probability, dof)) for kind, dof in UPDATE_KINDS.items()}
         self._var_q = cfg.pivot_angle_sigma ** 2  # the pivot angle's quantization variance (rad^2)
+        self._half_width_p = math.sqrt(3.0) * cfg.pivot_angle_sigma  # half a count: the reading's error bound
+        self._count_p = 2 * self._half_width_p
+        #: what an improbable pivot count constraint may still correct: the angles and the position
+        self._count_corrects = np.zeros(N_STATE, dtype=np.bool_)
+        self._count_corrects[[X, Y, A, KAPPA, EP]] = True
         #: added to the angle readings: half a count for floored readings (the count's centre)
         half = 0.5 * math.sqrt(12) if cfg.encoder_quantization == "floor" else 0.0
         self._half_count = half * np.array([cfg.wheel_angle_sigma, cfg.wheel_angle_sigma, cfg.pivot_angle_sigma])
@@ -162,6 +180,8 @@ class PoseEKF:
         self._R_gyro = np.array([[cfg.gyro_sigma ** 2]])
         self._R_accel = np.eye(2) * cfg.accel_sigma ** 2
         self._var = (cfg.accel_sigma ** 2, cfg.gyro_sigma ** 2, cfg.gyro_bias_walk ** 2, cfg.accel_bias_walk ** 2)
+        self._var_alpha_dd = cfg.model_angular_density ** 2
+        self._var_da = cfg.angular_disturbance_walk ** 2
         # work arrays of the hot path
         self.kf.F = np.eye(N_STATE)
         self.kf.Q = np.zeros((N_STATE, N_STATE))
@@ -208,6 +228,8 @@ class PoseEKF:
         P[[VX, VY, VA], [VX, VY, VA]] = np.square(INITIAL_TWIST_STD)
         P[BG, BG] = cfg.gyro_bias_std ** 2
         P[BAX, BAX] = P[BAY, BAY] = cfg.accel_bias_std ** 2
+        P[DA, DA] = cfg.angular_disturbance_std ** 2
+        P[NAX, NAX] = P[NAY, NAY] = cfg.accel_sigma ** 2
         # kappa comes from the first (quantized) reading: its error is alpha's plus that reading's
         P[EP, EP] = P[KAPPA, EP] = P[EP, KAPPA] = self._var_q
         P[KAPPA, KAPPA] = P[A, A] + self._var_q + self._R_heading[0, 0]
@@ -221,8 +243,8 @@ class PoseEKF:
         self._acc = self._gyro = None            # newest IMU reading (B'')
         self._acc_t = self._acc_u = None         # its time, and the torque it was taken under
         self._acc_held = self._gyro_held = None  # the reading that drives the current step
+        self._acc_noise_of = None                # the reading whose noise the states NAX, NAY are
         self._imu_t = None
-        self._imu_period = self.period
         self._torque = None
         self.rejected = dict.fromkeys(UPDATE_KINDS, 0)
         self.updates = dict.fromkeys(UPDATE_KINDS, 0)
@@ -284,6 +306,8 @@ class PoseEKF:
                                  f"at t = {t} s")
         self._acc_held = acc_prev if acc_prev is not None else self._acc
         self._gyro_held = gyro_prev if gyro_prev is not None else self._gyro
+        # the pivot's motion under its reading, trapezoid: half with the rates before the prediction ...
+        kernels.pivot_error_step(self.kf.x, self.kf.P, self._phi_p, self._l1, 0.5 * dt)
         if self.prediction == "imu":
             kf = self.kf
             fx, fy = self._acc_held[0], self._acc_held[1]
@@ -293,20 +317,35 @@ class PoseEKF:
                         self._acc_u = self._torque
                 elif held_u is not None:  # an older reading still driving: add what the torque changed since
                     fx, fy = self._held_force_correction(fx, fy, held_u)
-            kernels.predict_imu(kf.x, kf.P, fx, fy, self._gyro[2], new_gyro, dt,
-                                self._imu_period, *self._var, kf.F, kf.Q)
+            add = 0.0
+            if self._torque is not None:
+                x = kf.x
+                c, s = math.cos(x[A]), math.sin(x[A])
+                gx, gy = fx - x[BAX], fy - x[BAY]
+                add = kernels.yaw_acceleration(x, self._phi_p, self._torque, c * gx - s * gy, s * gx + c * gy,
+                                               self._prm)
+            if self._acc_held is not self._acc_noise_of:  # a new reading drives: its own noise, drawn afresh
+                self._acc_noise_of = self._acc_held
+                P = kf.P
+                P[NAX:NAY + 1, :] = 0.0
+                P[:, NAX:NAY + 1] = 0.0
+                P[NAX, NAX] = P[NAY, NAY] = self._var[0]
+                kf.x[NAX] = kf.x[NAY] = 0.0
+            kernels.predict_imu(kf.x, kf.P, fx, fy, add, dt, self._var_alpha_dd, self._var[2], self._var[3],
+                                self._var_da, kf.F, kf.Q)
         else:
             self._predict_model(dt)
-        self._renew_quantization(float(phi[2]), dt)
+        jump = self._pivot_motion(float(phi[2]), dt)
         self._t_prev, self._t = self._t, float(t)
         self._phi_p = float(phi[2])
         self._update_encoders(t, phi, phid)
         self._standstill = self._detect_standstill(t, phi)
         if self._standstill:
             self._update("zupt", t, -self.kf.x[3:6], self._H_zupt, self._R_zupt)
-        if self.prediction == "model" and new_gyro:
+        if new_gyro:
             x = self.kf.x
             self._update("gyro", t, np.array([self._gyro[2] - x[VA] - x[BG]]), self._H_gyro, self._R_gyro)
+        self._pivot_count(jump)
         self._check_health(t)
         self._estimate = self._make_estimate()
         return self._estimate
@@ -343,8 +382,6 @@ class PoseEKF:
             raise EstimatorFault(f"IMU sample at t = {t} s lacks {'accel' if acc is None else 'gyro'}")
         a = _vector(acc, 3, "imu_accel", t)
         g = _vector(gyro, 3, "imu_gyro", t)
-        if self._imu_t is not None and t > self._imu_t:
-            self._imu_period = t - self._imu_t
         self._imu_t = t
         self._acc, self._gyro = a, g
         self._acc_t, self._acc_u = t, None  # the torque the reading was taken under is known one step later
@@ -379,20 +416,43 @@ class PoseEKF:
             self._heading_off_since = None
             self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
 
-    def _renew_quantization(self, phi_p: float, dt: float) -> None:
-        """e_p is drawn afresh when the pivot reading changes; while the reading stays, the error moves only
-        by the pivot's own motion under it: its variance grows by (phi_p_dot dt)^2 per step (phi_p_dot from
-        the twist by M_IIK's last row; at most one count's variance per step)."""
-        P, x = self.kf.P, self.kf.x
-        if phi_p != self._phi_p:
-            P[EP, :] = 0.0
-            P[:, EP] = 0.0
-            P[EP, EP] = self._var_q
-            x[EP] = 0.0
+    def _pivot_motion(self, phi_p: float, dt: float) -> float:
+        """e_p = reading - true pivot angle moves by minus the pivot's motion (the second half of the
+        trapezoid, with the rates after the prediction) and jumps by the reading's change (returned, rad).
+        A jump of more than one count in a sample -- the pivot turning fast: the new fraction of a count is
+        independent of the old -- re-draws e_p from the uniform's moments."""
+        x, P = self.kf.x, self.kf.P
+        kernels.pivot_error_step(x, P, self._phi_p, self._l1, 0.5 * dt)
+        jump = phi_p - self._phi_p
+        x[EP] += jump
+        if abs(jump) > 1.5 * self._count_p:
+            self._redraw_pivot_error()
+            return 0.0
+        return jump
+
+    def _pivot_count(self, jump: float) -> None:
+        """The count constraint |e_p| <= h = sqrt(3) pivot_angle_sigma (half a count), applied after the
+        sample's measurements, when it is new information: the reading changed (an edge crossed slowly pins
+        e_p near that edge) or the mean left the count. Then the Gaussian is truncated to [-h, h] and its
+        moments matched (``kernels.truncate``; the other states follow by their regression on e_p). While
+        the reading stays with the mean inside, the constraint is the one already used: applying it again
+        at every sample -- by truncation, or by capping e_p's variance at the uniform's -- counts it again
+        and shrinks every state correlated with e_p (kappa, alpha) without information (measured: pose
+        NEES 10-14 on some seeds where it is 3-7 without). A mean that left the count so far that the
+        interval holds no probability (model error) re-draws e_p."""
+        x, P = self.kf.x, self.kf.P
+        h = self._half_width_p
+        if jump == 0.0 and abs(x[EP]) <= h:
             return
-        th = x[A] - phi_p + x[EP]
-        rate = (math.sin(th) * x[VX] - math.cos(th) * x[VY]) / self._l1 + x[VA]
-        P[EP, EP] += min(self._var_q, (rate * dt) ** 2)
+        if not kernels.truncate(x, P, EP, -h, h, self._count_corrects, 1.0 - self.config.gate_probability):
+            self._redraw_pivot_error()
+
+    def _redraw_pivot_error(self) -> None:
+        P = self.kf.P
+        P[EP, :] = 0.0
+        P[:, EP] = 0.0
+        P[EP, EP] = self._var_q
+        self.kf.x[EP] = 0.0
 
     def _detect_standstill(self, t: float, phi: np.ndarray) -> bool:
         cfg = self.config
@@ -467,9 +527,13 @@ class PoseEKF:
         cols = [A, VX, VY, VA]
         F[np.ix_([X, Y, A], cols)] += h2 * J
         F[np.ix_([VX, VY, VA], cols)] += dt * J
+        F[A, DA], F[VA, DA] = h2, dt
         x[0:3] += x[3:6] * dt + h2 * f0
         x[3:6] += f0 * dt
+        x[A] += h2 * x[DA]
+        x[VA] += dt * x[DA]
         Q = np.zeros((N_STATE, N_STATE))
+        Q[DA, DA] = self._var_da * dt
         for (p, v), q in (((X, VX), cfg.model_accel_density), ((Y, VY), cfg.model_accel_density),
                           ((A, VA), cfg.model_angular_density)):
             q2 = q * q

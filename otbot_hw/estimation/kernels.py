@@ -1,6 +1,6 @@
 """Compiled (numba) hot path of the pose EKF: the IMU prediction and the gated Kalman update.
 
-numpy spends most of a step of an 11-state filter in call overhead (tens of small arrays per step,
+numpy spends most of a step of a 14-state filter in call overhead (tens of small arrays per step,
 ~1 us each), not in arithmetic; these kernels do the same algebra on caller-owned arrays in place
 (``benchmarks/estimation.py`` measures both). The filter's logic -- which update when, gates,
 re-anchoring, faults -- stays in ``otbot_hw.estimation.ekf``. State order as there.
@@ -12,7 +12,9 @@ import math
 import numpy as np
 from numba import njit
 
-X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP = range(11)
+from otbot_hw.model import compiled
+
+X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA, NAX, NAY = range(14)
 
 
 @njit(cache=True)
@@ -24,30 +26,40 @@ def all_finite(a) -> bool:
 
 
 @njit(cache=True)
-def predict_imu(x, P, fx, fy, w_new, new_gyro, dt, hold, accel_var, gyro_var, bg_walk2, ba_walk2, F, Q):
-    """Strapdown step in place: x_dd, y_dd = R(alpha_mid)(f'' - b_a), alpha by the trapezoid of the
-    previous rate and the new gyro reading less b_g (or the previous rate when no new reading).
-    ``hold``: the IMU sample period (s) -- the reading's noise is spread over the steps it drives.
-    F and Q are (11, 11) work arrays; on return they hold the step's transition and process noise."""
-    bg = x[BG]
-    va0 = x[VA]
-    va1 = w_new - bg if new_gyro else va0
-    am = x[A] + 0.25 * (va0 + va1) * dt
+def predict_imu(x, P, fx, fy, alpha_dd, dt, alpha_dd_var, bg_walk2, ba_walk2, da_walk2, F, Q):
+    """Strapdown step in place: x_dd, y_dd = R(alpha_mid)(f'' - b_a) from the specific force (fx, fy) in
+    B''; alpha_dot driven by ``alpha_dd`` (rad/s^2, the model's, ``yaw_acceleration``) plus the state d
+    (the model's unknown share, a random walk of density ``da_walk2`` ((rad/s^2)^2/s)) and white noise of
+    variance density ``alpha_dd_var`` ((rad/s^2)^2/Hz); alpha by the exact integral. The reading's own
+    noise is the state (NAX, NAY), subtracted like the bias: it stays while the reading drives the steps
+    (an IMU slower than the loop holds it) and ``PoseEKF`` re-draws it with every new reading. F and Q
+    are (n, n) work arrays; on return they hold the step's transition and process noise. The gyro is a
+    measurement (``PoseEKF``), not an input."""
+    n = x.shape[0]
+    h2 = 0.5 * dt * dt
+    alpha_dd = alpha_dd + x[DA]
+    am = x[A] + 0.5 * dt * x[VA] + 0.25 * dt * dt * alpha_dd
     c, s = math.cos(am), math.sin(am)
-    gx, gy = fx - x[BAX], fy - x[BAY]
+    gx, gy = fx - x[BAX] - x[NAX], fy - x[BAY] - x[NAY]
     ax, ay = c * gx - s * gy, s * gx + c * gy
     dax, day = -ay, ax
-    h2 = 0.5 * dt * dt
     F[:, :] = 0.0
     Q[:, :] = 0.0
-    for i in range(11):
+    for i in range(n):
         F[i, i] = 1.0
     F[X, VX] = dt
     F[Y, VY] = dt
+    F[A, VA] = dt
+    F[A, DA] = h2
+    F[VA, DA] = dt
     F[X, A] = h2 * dax
     F[Y, A] = h2 * day
     F[VX, A] = dt * dax
     F[VY, A] = dt * day
+    F[X, VA] = 0.5 * dt * h2 * dax
+    F[Y, VA] = 0.5 * dt * h2 * day
+    F[VX, VA] = 0.5 * dt * dt * dax
+    F[VY, VA] = 0.5 * dt * dt * day
     F[X, BAX] = -h2 * c
     F[X, BAY] = h2 * s
     F[Y, BAX] = -h2 * s
@@ -56,45 +68,80 @@ def predict_imu(x, P, fx, fy, w_new, new_gyro, dt, hold, accel_var, gyro_var, bg
     F[VX, BAY] = dt * s
     F[VY, BAX] = -dt * s
     F[VY, BAY] = -dt * c
+    for k in range(2):  # the driving reading's own noise (NAX, NAY) enters like the bias
+        F[X, NAX + k] = F[X, BAX + k]
+        F[Y, NAX + k] = F[Y, BAX + k]
+        F[VX, NAX + k] = F[VX, BAX + k]
+        F[VY, NAX + k] = F[VY, BAX + k]
     x[X] += x[VX] * dt + h2 * ax
     x[Y] += x[VY] * dt + h2 * ay
     x[VX] += ax * dt
     x[VY] += ay * dt
-    qv = accel_var * dt * max(hold, dt)
-    Q[X, X] = Q[Y, Y] = qv * 0.25 * dt * dt
-    Q[X, VX] = Q[VX, X] = Q[Y, VY] = Q[VY, Y] = qv * 0.5 * dt
-    Q[VX, VX] = Q[VY, VY] = qv
-    if new_gyro:
-        F[A, VA] = 0.5 * dt
-        F[A, BG] = -0.5 * dt
-        F[VA, VA] = 0.0
-        F[VA, BG] = -1.0
-        Q[A, A] = 0.25 * dt * dt * gyro_var
-        Q[A, VA] = Q[VA, A] = 0.5 * dt * gyro_var
-        Q[VA, VA] = gyro_var
-        x[A] += 0.5 * (va0 + va1) * dt
-        x[VA] = va1
-    else:
-        F[A, VA] = dt
-        x[A] += va0 * dt
+    x[A] += x[VA] * dt + h2 * alpha_dd
+    x[VA] += alpha_dd * dt
+    Q[A, A] = alpha_dd_var * dt * dt * dt / 3.0
+    Q[A, VA] = Q[VA, A] = alpha_dd_var * dt * dt / 2.0
+    Q[VA, VA] = alpha_dd_var * dt
     Q[BG, BG] = bg_walk2 * dt
     Q[BAX, BAX] = Q[BAY, BAY] = ba_walk2 * dt
-    FP = np.zeros((11, 11))
-    for i in range(11):
-        for k in range(11):
+    Q[DA, DA] = da_walk2 * dt
+    FP = np.zeros((n, n))
+    for i in range(n):
+        for k in range(n):
             f = F[i, k]
             if f != 0.0:
-                for j in range(11):
+                for j in range(n):
                     FP[i, j] += f * P[k, j]
-    for i in range(11):
-        for j in range(i, 11):
+    for i in range(n):
+        for j in range(i, n):
             acc = Q[i, j]
-            for k in range(11):
+            for k in range(n):
                 f = F[j, k]
                 if f != 0.0:
                     acc += FP[i, k] * f
             P[i, j] = acc
             P[j, i] = acc
+
+
+@njit(cache=True)
+def yaw_acceleration(x, phi_p, u, ax, ay, prm):
+    """alpha_dd (rad/s^2) of the paper's model at the filter state ``x`` (pose, twist; the pivot at the
+    reading ``phi_p`` less e_p) under the joint torques ``u`` (3,) N m, with the unknown horizontal force
+    at the pivot eliminated by the pivot's measured acceleration (ax, ay) m/s^2 (ground frame): the
+    model is linear in that force, so the force that makes its x_dd, y_dd equal the measured ones is
+    solved for and its share of alpha_dd added. Returns the model's alpha_dd without a force when the
+    2x2 system is singular."""
+    l1, l2, r = prm[0], prm[1], prm[2]
+    q = np.zeros(12)
+    q[0], q[1], q[2] = x[X], x[Y], x[A]
+    q[5] = phi_p - x[EP]
+    vx, vy, va = x[VX], x[VY], x[VA]
+    th = x[A] - q[5]
+    c, si = math.cos(th), math.sin(th)
+    q[6], q[7], q[8] = vx, vy, va
+    q[9] = ((l1 * c - l2 * si) * vx + (l2 * c + l1 * si) * vy) / (r * l1)
+    q[10] = ((l1 * c + l2 * si) * vx + (-l2 * c + l1 * si) * vy) / (r * l1)
+    q[11] = (si * vx - c * vy) / l1 + va
+    gen = np.zeros(6)
+    f = np.zeros(2)
+    a0 = np.empty(6)
+    a1 = np.empty(6)
+    a2 = np.empty(6)
+    compiled._accel_into(q, u, f, gen, prm, a0)
+    f[0] = 1.0
+    compiled._accel_into(q, u, f, gen, prm, a1)
+    f[0] = 0.0
+    f[1] = 1.0
+    compiled._accel_into(q, u, f, gen, prm, a2)
+    b00, b01 = a1[0] - a0[0], a2[0] - a0[0]
+    b10, b11 = a1[1] - a0[1], a2[1] - a0[1]
+    det = b00 * b11 - b01 * b10
+    if abs(det) < 1e-12:
+        return a0[2]
+    rx, ry = ax - a0[0], ay - a0[1]
+    fx = (b11 * rx - b01 * ry) / det
+    fy = (-b10 * rx + b00 * ry) / det
+    return a0[2] + fx * (a1[2] - a0[2]) + fy * (a2[2] - a0[2])
 
 
 @njit(cache=True)
@@ -179,7 +226,7 @@ def gated_update(x, P, nu, H, R, gate, force, update_accel_bias):
 @njit(cache=True)
 def joint_rates(x, phi_p, l1, l2, r, H, nu, phid):
     """Innovation of the joint rates phi_dot - M_IIK(theta) p_dot into ``nu`` (3,) and its Jacobian into
-    ``H`` (3, 11) (paper §2.3.2). theta = alpha - phi_p, the pivot angle being the reading ``phi_p`` less
+    ``H`` (3, n) (paper §2.3.2). theta = alpha - phi_p, the pivot angle being the reading ``phi_p`` less
     its quantization error e_p (a state)."""
     th = x[A] - phi_p + x[EP]
     c, s = math.cos(th), math.sin(th)
@@ -199,3 +246,89 @@ def joint_rates(x, phi_p, l1, l2, r, H, nu, phid):
     nu[0] = phid[0] - (m00 * vx + m01 * vy)
     nu[1] = phid[1] - (m10 * vx + m11 * vy)
     nu[2] = phid[2] - (m20 * vx + m21 * vy + va)
+
+
+@njit(cache=True)
+def pivot_error_step(x, P, phi_p, l1, dt):
+    """While the pivot reading ``phi_p`` stays, its error e_p = reading - true angle moves by minus the
+    pivot's motion: e_p -= phi_p_dot dt, phi_p_dot = (sin th x_dot - cos th y_dot) / l1 + alpha_dot
+    (M_IIK's last row, th = alpha - phi_p + e_p). In place: x[EP] and P = G P G^T, G the identity but for
+    the row of e_p."""
+    th = x[A] - phi_p + x[EP]
+    c, s = math.cos(th), math.sin(th)
+    vx, vy = x[VX], x[VY]
+    x[EP] -= ((s * vx - c * vy) / l1 + x[VA]) * dt
+    n = P.shape[0]
+    g = np.zeros(n)
+    g[EP] = 1.0
+    dth = -dt * (c * vx + s * vy) / l1
+    g[A] += dth
+    g[EP] += dth
+    g[VX] = -dt * s / l1
+    g[VY] = dt * c / l1
+    g[VA] = -dt
+    row = np.zeros(n)
+    for j in range(n):
+        acc = 0.0
+        for k in range(n):
+            acc += g[k] * P[k, j]
+        row[j] = acc
+    pee = 0.0
+    for k in range(n):
+        pee += row[k] * g[k]
+    for j in range(n):
+        P[EP, j] = row[j]
+        P[j, EP] = row[j]
+    P[EP, EP] = pee
+
+
+_SQRT2 = math.sqrt(2.0)
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+
+
+@njit(cache=True)
+def truncate(x, P, i, lo, hi, correct, plausible=0.0):
+    """Truncate the Gaussian (x, P) to lo <= x[i] <= hi and match x[i]'s first two moments, in place (density
+    truncation, Simon & Simon 2010), applied as the scalar Gaussian measurement of x[i] that gives exactly
+    those moments. Every other state follows by its regression on x[i] (exact for a joint Gaussian) --
+    unless the interval holds less than ``plausible`` of x[i]'s probability: then the states with
+    ``correct[k]`` False are considered (Schmidt: zero gain, their covariance kept consistent), as so
+    improbable a constraint says the linear regression does not hold there. Returns False, leaving x and
+    P as they were, when the interval holds (next to) no probability."""
+    mu, var = x[i], P[i, i]
+    if var <= 0.0:
+        return lo <= mu <= hi
+    sd = math.sqrt(var)
+    a, b = (lo - mu) / sd, (hi - mu) / sd
+    if a > 0.0:  # both bounds above the mean: upper tails (no cancellation)
+        z = 0.5 * (math.erfc(a / _SQRT2) - math.erfc(b / _SQRT2))
+    elif b < 0.0:
+        z = 0.5 * (math.erfc(-b / _SQRT2) - math.erfc(-a / _SQRT2))
+    else:
+        z = 1.0 - 0.5 * (math.erfc(-a / _SQRT2) + math.erfc(b / _SQRT2))
+    if z < 1e-12:
+        return False
+    pa, pb = _INV_SQRT_2PI * math.exp(-0.5 * a * a), _INV_SQRT_2PI * math.exp(-0.5 * b * b)
+    d = (pa - pb) / z
+    mean = mu + sd * d
+    new_var = var * max(1.0 + (a * pa - b * pb) / z - d * d, 1e-12)
+    info = 1.0 / new_var - 1.0 / var
+    if not info > 0.0:
+        return True
+    r = 1.0 / info  # the measurement of x[i] with these posterior moments
+    s_ = var + r
+    meas = mu + (mean - mu) * s_ / var
+    n = x.shape[0]
+    col = np.empty(n)
+    k = np.empty(n)
+    everything = z >= plausible
+    for j in range(n):
+        col[j] = P[j, i]
+        k[j] = col[j] / s_ if (everything or correct[j]) else 0.0
+    nu = meas - mu
+    for j in range(n):
+        x[j] += k[j] * nu
+    for r_ in range(n):
+        for c in range(n):
+            P[r_, c] += -k[r_] * col[c] - col[r_] * k[c] + k[r_] * s_ * k[c]
+    return True

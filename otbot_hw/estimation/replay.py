@@ -19,7 +19,7 @@ from otbot_hw.recording import TOPIC_IMU, TOPIC_JOINTS, Recording, RecordingErro
 
 @dataclass
 class EstimationRun:
-    """The EKF's output over a recording: per sample k, pose, twist (N, 3), std (N, 6), cov (N, 11, 11),
+    """The EKF's output over a recording: per sample k, pose, twist (N, 3), std (N, 6), cov (N, 14, 14),
     gyro_bias (N,), standstill (N,) bool; nis {kind: (N,)} (nan where not updated); innovations:
     (t, kind, nis, accepted) of every attempted update; gate {kind: threshold}; rejected, updates:
     final counts per kind; prediction: what drove the prediction (imu or model); notes: what the

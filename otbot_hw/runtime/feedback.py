@@ -6,8 +6,10 @@ controller is fed (``TaskState(p=pose, p_dot=twist, phi_p)``) and the loop recor
 
 * ``EkfFeedback``: ``otbot_hw.estimation.PoseEKF`` (filterpy EKF; see ESTIMATOR contract): initialized
   at the first sample with the known start pose, then one ``step`` per sample with the encoders, the
-  IMU only when it brought a new reading, and the command held over the last period. Its
-  ``EstimatorFault`` (NaN or stale data, diverged filter) is a loop fault. phi_p is the pivot encoder.
+  IMU only when it brought a new reading, and the command held over the last period; then, when an
+  absolute pose source (``fixes``, e.g. ``sim.mocap.MotionCapture``) has a fix for this sample, that
+  fix with its covariance (gated like every update). Its ``EstimatorFault`` (NaN or stale data,
+  diverged filter) is a loop fault. phi_p is the pivot encoder.
 * ``TruthFeedback``: the back end's ``Robot.truth()`` (a simulator); std 0. Only for simulations: a
   robot without ground truth makes it raise ``FeedbackUnavailable``.
 """
@@ -75,19 +77,30 @@ def load_ekf():
 class EkfFeedback:
     """The pose EKF on the snapshot's sensors. ``params``: the controller's ``OtbotParams``;
     ``period`` s; ``initial_pose`` (3,) the known start pose (m, m, rad); ``config``: an
-    ``EstimatorConfig`` (default: its own defaults, the sensor model's sigma)."""
+    ``EstimatorConfig`` (default: its own defaults, the sensor model's sigma); ``fixes``: an absolute
+    pose source, ``poll(sample_index, period, robot)`` -> (pose (3,) m, m, rad; cov (3, 3)) or None."""
 
     name = "ekf"
 
-    def __init__(self, params, period: float, initial_pose, config=None, initial_std=None):
+    def __init__(self, params, period: float, initial_pose, config=None, initial_std=None, fixes=None):
         PoseEKF, _, EstimatorFault = load_ekf()
         self.faults = (EstimatorFault,)
         self.ekf = PoseEKF(getattr(params, "params", params), period, config)
         self.initial_pose = np.asarray(initial_pose, dtype=float).reshape(3)
         self.initial_std = initial_std
+        self.fixes = fixes
         self._imu_time = None
+        self._last = None
+
+    def gates(self) -> dict | None:
+        """Accepted and rejected updates so far per kind (encoders, heading, zupt, gyro, accel, fix), from the
+        latest estimate (None before the first)."""
+        if self._last is None:
+            return None
+        return {"updates": dict(self._last.updates), "rejected": dict(self._last.rejected)}
 
     def _record(self, est, snapshot: Snapshot) -> StateEstimate:
+        self._last = est
         return StateEstimate(float(est.t), np.asarray(est.pose, dtype=float), np.asarray(est.twist, dtype=float),
                              np.asarray(est.std, dtype=float)[:6], float(snapshot.joint_pos[2]),
                              float(est.gyro_bias), dict(est.rejected), dict(est.updates))
@@ -105,4 +118,9 @@ class EkfFeedback:
         est = self.ekf.step(snapshot.t, snapshot.joint_pos, snapshot.joint_vel,
                             snapshot.imu_accel if fresh else None, snapshot.imu_gyro if fresh else None,
                             torque=u_prev)
+        if self.fixes is not None:
+            fix = self.fixes.poll(snapshot.cycle, robot.period, robot)
+            if fix is not None:
+                self.ekf.fix(snapshot.t, *fix)
+                est = self.ekf.estimate
         return self._record(est, snapshot)

@@ -42,7 +42,8 @@ class TrackingRun:
     u_cmd (law output before limiting), u (commanded), u_traj, u_corr (N, 3) N m; reference p_ref,
     pd_ref (N+1, 3); estimate est_pose, est_twist (N+1, 3) (None in open loop); f (N, 2) N the pivot
     forces held with u where the back end knows them (else None); ``loop``: the runner's
-    result (recording in robot time, stats, fault)."""
+    result (recording in robot time, stats, fault); ``gates``: the EKF's accepted and rejected
+    updates per kind ({"updates": {...}, "rejected": {...}}; None without an EKF)."""
 
     t: np.ndarray
     x: np.ndarray
@@ -59,6 +60,7 @@ class TrackingRun:
     est_twist: np.ndarray | None = None
     saturation: list = field(default_factory=list)
     f: np.ndarray | None = None
+    gates: dict | None = None
 
     @property
     def e_p(self) -> np.ndarray:
@@ -112,17 +114,19 @@ class TrackingRun:
                    saturation=sat, f=None if rec.truth_force is None else rec.truth_force[cmd])
 
 
-def make_feedback(kind: str | None, params, period: float, start_pose, config_path=None):
+def make_feedback(kind: str | None, params, period: float, start_pose, config_path=None, fixes=None):
     """The feedback source by name: "ekf" (``EkfFeedback`` with the controller's parameters and the
-    ``estimator:`` section of the hardware configuration ``config_path``, default config/robot.yaml),
-    "truth", or None."""
+    ``estimator:`` section of the hardware configuration ``config_path``, default config/robot.yaml,
+    and the absolute pose source ``fixes``), "truth", or None."""
     if kind is None:
         return None
+    if fixes is not None and kind != "ekf":
+        raise ValueError("absolute pose fixes feed the EKF: use feedback 'ekf'")
     if kind == "truth":
         return TruthFeedback()
     if kind == "ekf":
         _, EstimatorConfig, _ = load_ekf()
-        return EkfFeedback(params, period, start_pose, EstimatorConfig.load(config_path))
+        return EkfFeedback(params, period, start_pose, EstimatorConfig.load(config_path), fixes=fixes)
     raise ValueError(f"unknown feedback {kind!r} (ekf, truth)")
 
 
@@ -145,7 +149,7 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
                     duration: float | None = None, safety: SafetyConfig | None = None,
                     progress: Callable[[str], None] | None = None, path: str | Path | None = None,
                     metadata: dict | None = None, predict: bool = True,
-                    rate_hz: float | None = None, config_path=None) -> TrackingRun:
+                    rate_hz: float | None = None, config_path=None, fixes=None) -> TrackingRun:
     """Track a ``DesiredTrajectory`` with the computed-torque ``law`` through the loop runner.
 
     ``plant``: the simulated robot (``OtbotParams`` or ``ExtendedModel``; default the law's
@@ -154,7 +158,8 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
     feedback object (``start``/``step`` -> ``StateEstimate``); ``x0``: start state (default rest at
     p_d(0), chassis heading 0); ``duration`` s (default the reference's); ``safety``: the supervisor's
     limits (default ``SafetyConfig()``); ``path``: MCAP recording; ``predict``: see ``TrackingController``;
-    ``config_path``: the hardware YAML whose ``estimator:`` section configures the EKF."""
+    ``config_path``: the hardware YAML whose ``estimator:`` section configures the EKF; ``fixes``: an
+    absolute pose source for the EKF (``EkfFeedback``)."""
     backend = backend or DirectBackend(rate=rate_hz or 1000.0)
     plant = plant if plant is not None else law.model
     limits = limits if limits is not None else MotorLimits(np.full(3, 1e9))
@@ -167,7 +172,8 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
     with backend.open(plant if sim else None, x0=x0 if sim else None, forces=forces if sim else None) as robot:
         period = robot.period
         controller = TrackingController(law, reference, period, predict=predict)
-        fb = make_feedback(feedback, law.params, period, x0[:3], config_path) if isinstance(feedback, str) else feedback
+        fb = (make_feedback(feedback, law.params, period, x0[:3], config_path, fixes) if isinstance(feedback, str)
+              else feedback)
         sup = Supervisor(limits, safety, period, realtime=backend.realtime,
                          on_saturation=(lambda e: progress(
                              f"saturation: {e.motor} at t = {e.t_start - (controller.origin or 0.0):.3f} s (requested "
@@ -176,7 +182,9 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
                             progress=progress if (progress is not None and T > LONG_RUN_S) else None,
                             progress_every=10.0)
         res = runner.run(int(round(T / period)) + 2)
-    return TrackingRun.from_loop(res, controller.origin, period)
+    run = TrackingRun.from_loop(res, controller.origin, period)
+    run.gates = fb.gates() if hasattr(fb, "gates") else None
+    return run
 
 
 def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: Gains,
@@ -184,7 +192,7 @@ def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: G
           forces: ForceSchedule | None | str = "spec", progress: Callable[[str], None] | None = None,
           plant=None, effects: np.ndarray | None = None, safety: SafetyConfig | None = None,
           path: str | Path | None = None, metadata: dict | None = None, predict: bool = True,
-          rate_hz: float | None = None, config_path=None) -> TrackingRun:
+          rate_hz: float | None = None, config_path=None, fixes=None) -> TrackingRun:
     """Track ``spec`` once with the controller believing ``params`` (see ``controller_params``) and
     ``variant``'s plant; ``effects``: an effect vector the controller compensates; the rest as
     ``track_reference``."""
@@ -197,7 +205,7 @@ def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: G
     return track_reference(spec.reference, ComputedTorqueController(ctrl, gains), plant_v, limits, backend, feedback,
                            x0=spec.x0, forces=spec.forces if forces == "spec" else forces, safety=safety,
                            progress=progress, path=path, metadata=meta, predict=predict, rate_hz=rate_hz,
-                           config_path=config_path)
+                           config_path=config_path, fixes=fixes)
 
 
 def replay_torques(torques, times, plant, x0, rate_hz: float, duration: float):
@@ -228,11 +236,13 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
                  error_bounds=None, progress: Callable[[str], None] | None = None,
                  spec: ScenarioSpec | None = None, plant=None, effects: np.ndarray | None = None,
                  backend=None, feedback: str = "truth", safety: SafetyConfig | None = None,
-                 path: str | Path | None = None, metadata: dict | None = None, config_path=None) -> dict:
+                 path: str | Path | None = None, metadata: dict | None = None, config_path=None,
+                 fixes=None) -> dict:
     """Run scenario ``name`` (or a CSV path, or a prebuilt ``spec``); returns the JSON summary
     (see ``otbot track --help``). ``backend`` default: ``DirectBackend(rate_hz)`` (exact sensors);
     robustness and isolated-force reruns use the same back end when it is a simulator, and are
-    skipped on the configured bus (its robot cannot be changed)."""
+    skipped on the configured bus (its robot cannot be changed). ``fixes``: an absolute pose source
+    for the EKF (e.g. ``sim.mocap.MotionCapture``)."""
     say = progress or (lambda m: None)
     backend = backend or DirectBackend(rate=rate_hz)
     gains = gains_from_tstab(t_stab)
@@ -249,7 +259,8 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
             say(f"feasibility: {v['motor']} may exceed {v['limit_Nm']:g} N m on "
                 f"[{v['t_start']:.2f}, {v['t_end']:.2f}] s (bound {v['bound_Nm']:.1f} N m)")
     say(f"closed loop on {backend.name} at {backend.rate:g} Hz, feedback {feedback}, {spec.reference.duration:.1f} s ...")
-    kw = dict(backend=backend, feedback=feedback, plant=plant, effects=effects, safety=safety, config_path=config_path)
+    kw = dict(backend=backend, feedback=feedback, plant=plant, effects=effects, safety=safety, config_path=config_path,
+              fixes=fixes)
     run = track(spec, params, limits, gains, "nominal", progress=progress, path=path, metadata=metadata, **kw)
     if len(run.t) < 2:  # stopped before it tracked anything
         return {**result, "completed": False, "fault": run.loop.fault.to_dict() if run.loop.fault else None,
@@ -260,6 +271,10 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
     result["bus"] = {"sim": None, "bus sim": "sim", "bus config": "config"}.get(backend.name)
     result["backend"] = backend.describe()
     result["estimation_error"] = run.estimation_error()
+    result["gates"] = run.gates
+    if fixes is not None:
+        result["fixes"] = {**fixes.describe(), "accepted": (run.gates or {}).get("updates", {}).get("fix", 0),
+                           "rejected": (run.gates or {}).get("rejected", {}).get("fix", 0)}
     result["loop"] = run.loop.stats.to_dict()
     result["wall_time_s"] = run.wall_time_s
     result["completed"] = run.completed
