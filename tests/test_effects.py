@@ -65,32 +65,33 @@ def test_coulomb_friction_dissipates_power_c_times_speed(params):
 
 def test_gain_saturation_and_lag_shape_the_delivered_torque(params):
     U = np.tile([10.0, -2.0, 4.0], (50, 1))
-    eff = fx.effect_vector({"k_r": -0.1, "u_max": 8.0, "T_i": 0.03})
+    eff = fx.ExtendedModel.paper(params).with_values({"k_r": -0.1, "u_max": 8.0, "T_i": 0.03}).eff
     tr = simulate_extended(params, eff, U, 0.01, fixture="stand")
     assert tr.tau[-1] == pytest.approx([8.0, -2.0, 4.0], abs=1e-4)  # 9 N m clipped to 8
     assert tr.tau[3, 2] == pytest.approx(4.0 * (1 - np.exp(-0.03 / 0.03)), rel=1e-9)
 
 
-def test_wheel_radius_asymmetry_conserves_energy_and_scales_encoders(params):
-    """Unequal radii: work of the motors on the real wheel angles = change of the true kinetic energy
-    (wheel inertia on phi = rho psi), and the encoders read phi_i = psi_i / (1 +- dr)."""
-    dr = 0.03
+@pytest.mark.parametrize("dr_r,dr_l", [(0.03, -0.03), (0.04, 0.0)])
+def test_unequal_wheel_radii_conserve_energy_and_scale_encoders(params, dr_r, dr_l):
+    """Unequal radii (opposite changes, or one wheel only): work of the motors on the real wheel angles
+    = change of the true kinetic energy (wheel inertia on phi = rho psi), and the encoders read
+    phi_i = psi_i / (1 + dr_i)."""
     p = params.replace(b_w=0.0, b_p=0.0)
-    eff = fx.effect_vector({"dr": dr})
+    eff = fx.effect_vector({"dr_r": dr_r, "dr_l": dr_l})
     U = _torques(300)
     tr = simulate_extended(p, eff, U, 0.01)
     s = fx.sensor_outputs(tr, p, eff)
-    assert np.allclose(s["joint_pos"][:, 0], tr.x[:, 3] / (1 + dr), rtol=1e-12)
-    assert np.allclose(s["joint_pos"][:, 1], tr.x[:, 4] / (1 - dr), rtol=1e-12)
+    assert np.allclose(s["joint_pos"][:, 0], tr.x[:, 3] / (1 + dr_r), rtol=1e-12)
+    assert np.allclose(s["joint_pos"][:, 1], tr.x[:, 4] / (1 + dr_l), rtol=1e-12)
     phi = s["joint_pos"]
     work = np.sum(U * np.diff(phi, axis=0))
-    rho = np.array([1 / (1 + dr), 1 / (1 - dr)])
+    rho = np.array([1 / (1 + dr_r), 1 / (1 + dr_l)])
 
     def true_ke(x):
         return kinetic_energy(x[:6], x[6:], p) + 0.5 * p.I_a * np.sum((rho ** 2 - 1) * x[9:11] ** 2)
 
     assert true_ke(tr.x[-1]) - true_ke(tr.x[0]) == pytest.approx(work, rel=1e-6)
-    # and the paper's model (dr = 0) would not balance these encoder readings
+    # and the paper's model (equal radii) would not balance these encoder readings
     ref = simulate_extended(p, fx.effect_vector(), U, 0.01)
     assert abs(np.sum(U * np.diff(ref.x[:, 3:6], axis=0)) - work) > 1e-3 * abs(work)
 

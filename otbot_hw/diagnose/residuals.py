@@ -47,8 +47,10 @@ class Motion:
 def delivered_torque_intervals(u: np.ndarray, dt: float, eff: np.ndarray, tau0: np.ndarray) -> np.ndarray:
     """Mean delivered torque (N, 3) over each ZOH interval [t_k, t_k+1) (gain, saturation, exact lag)."""
     tc = u * (1.0 + eff[[fx.K_R, fx.K_L, fx.K_P]])
-    if eff[fx.U_MAX] > 0:
-        tc = np.clip(tc, -eff[fx.U_MAX], eff[fx.U_MAX])
+    for i in range(3):
+        m = eff[fx.U_MAX_R + i]
+        if m > 0:
+            tc[:, i] = np.clip(tc[:, i], -m, m)
     T = eff[fx.T_I]
     if T <= 0:
         return tc
@@ -116,21 +118,23 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
         vel = start_rates(data, vel)
     tau_i = delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data))
     tau = integral_rate(data, tau_i)
-    rho = (1.0 / (1.0 + eff[fx.DR]), 1.0 / (1.0 - eff[fx.DR]))
+    rho = (1.0 / (1.0 + eff[fx.DR_R]), 1.0 / (1.0 + eff[fx.DR_L]))
     for i in range(2):
         s = 1.0 + eff[fx.E_R + i]
         pos[:, i] /= s
         vel[:, i] /= s
         acc[:, i] /= s
-    if eff[fx.K_SLIP] != 0.0 and data.fixture == "floor":
-        # slip rate k * transmitted torque (friction neglected here); its integral and derivative
-        k = eff[fx.K_SLIP]
-        slip_ang = np.vstack([np.zeros((1, 3)), np.cumsum(tau_i[:-1] * data.dt, axis=0)]) * k
-        tau_d = data.smooth(tau, deriv=1)
+    if (eff[fx.K_SLIP] != 0.0 or eff[fx.T_TRAC] != 0.0) and data.fixture == "floor":
+        # the slip law on the delivered torque (motor friction neglected here); its integral and derivative
+        b = p.b_w + eff[fx.DB_W] * np.array([1.0, -1.0])
+        rate_i = np.column_stack([fx.slip_rate(np.ascontiguousarray(tau_i[:, i]), b[i], eff) for i in range(2)])
+        slip_ang = np.vstack([np.zeros((1, 2)), np.cumsum(rate_i[:-1] * data.dt, axis=0)])
+        rate = integral_rate(data, rate_i)
+        rate_d = data.smooth(rate, deriv=1)
         for i in range(2):
             pos[:, i] -= slip_ang[:, i]
-            vel[:, i] -= k * tau[:, i]
-            acc[:, i] -= k * tau_d[:, i]
+            vel[:, i] -= rate[:, i]
+            acc[:, i] -= rate_d[:, i]
     for i in range(2):
         pos[:, i] /= rho[i]
         vel[:, i] /= rho[i]
@@ -241,8 +245,9 @@ def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     p, eff = model.params, model.eff
     head = (data.enc_pos[:8].tobytes(), None if data.enc_vel is None else data.enc_vel[:8].tobytes(),
             data.u[:8].tobytes(), data.dt)
-    key = (id(data), len(data), head, p.l1, p.l2, p.r, tuple(eff[[fx.E_R, fx.E_L, fx.DR, fx.K_SLIP, fx.K_R, fx.K_L,
-                                                          fx.K_P, fx.U_MAX, fx.T_I]]))
+    key = (id(data), len(data), head, p.l1, p.l2, p.r, p.b_w,
+           tuple(eff[[fx.E_R, fx.E_L, fx.DR_R, fx.DR_L, fx.K_SLIP, fx.T_TRAC, fx.DB_W, fx.K_R, fx.K_L, fx.K_P,
+                      fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]]))
     if key not in _X0_CACHE:
         if len(_X0_CACHE) > 4096:
             _X0_CACHE.clear()

@@ -37,7 +37,8 @@ AMBIGUOUS_DBIC = 10.0
 MAX_CANDIDATES = 3
 SHORTLIST_FRACTION = 0.1
 LATER_ROUND_FACTOR = 5.0
-MIN_FIT_GAIN = 0.5  # percentage points: an accepted effect must visibly improve some channel's fit
+MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
+NESTED_NFEV = 12  # function evaluations per free parameter (+1) of a nested fit
 
 
 def _guess_from_coefficients(v, coef) -> dict[str, float]:
@@ -55,19 +56,6 @@ def _guess_from_coefficients(v, coef) -> dict[str, float]:
         guess[k] = float(val * np.clip(-coef[0], 0.05, 2.0))
     return guess
 
-def _fit_percent(recordings: list[DiagnosisData], model: ExtendedModel) -> np.ndarray:
-    """Fit % (NRMSE) of every (recording, channel) in a fixed order."""
-    from otbot_hw.diagnose.residuals import simulate_outputs
-
-    out = []
-    for d in recordings:
-        sim = simulate_outputs(d, model)
-        for ch in d.channels():
-            y = d.measured(ch)
-            den = np.linalg.norm(y - y.mean())
-            out.append(100.0 * (1.0 - np.linalg.norm(y - sim[ch]) / den) if den > 0 else 0.0)
-    return np.array(out)
-MAX_EFFECTS = 2
 
 FLOOR_NOMINAL = ("m_c", "I_c", "x_B", "y_B", "I_p", "b_w", "b_p")
 STAND_NOMINAL = ("I_a", "b_w", "I_p", "b_p")
@@ -112,17 +100,22 @@ class Variant:
     fixed: dict[str, float] = field(default_factory=dict)  # profiled nonlinear parameters
 
 
+SATURATION_MOTORS = {"u_max": (0, 1, 2), "u_max_r": (0,), "u_max_l": (1,), "u_max_p": (2,)}
+SATURATION_GRID = (0.9, 0.75, 0.6)  # fractions of the largest recorded command of the motor(s)
+
+
 def _variants(recordings: list[DiagnosisData], effects: list[cat.Effect]) -> list[Variant]:
-    umax = max(float(np.max(np.abs(d.u))) for d in recordings)
+    """Screening column groups: every effect at its catalog step, nonlinear parameters on their grid
+    (saturation levels: fractions of the largest recorded command of the motors concerned)."""
     out = []
     for e in effects:
         step = dict(e.magnitudes[0])
-        if e.name == "torque_saturation":
-            for frac in (0.9, 0.75, 0.6):
-                out.append(Variant(e.name, {}, (), {"u_max": frac * umax}))
-        elif e.grids:
+        if e.grids:
             (gname, grid), = e.grids.items()
-            lin = tuple(p for p in e.parameters if p != gname)
+            if gname in SATURATION_MOTORS:
+                top = max(float(np.max(np.abs(d.u[:, list(SATURATION_MOTORS[gname])]))) for d in recordings)
+                grid = tuple(f * top for f in SATURATION_GRID)
+            lin = tuple(p for p in e.parameters if p != gname and p in step)
             for g in grid:
                 if lin:
                     out.append(Variant(e.name, {p: step[p] for p in lin}, lin, {gname: g}))
@@ -220,7 +213,7 @@ def screen(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: 
     A_sel = np.zeros((len(z0), 0))
     cur = bic0
     res = z0
-    for _ in range(MAX_EFFECTS + 1):
+    for _ in range(MAX_ROUNDS + 1):
         best = None
         for e, i in best_var.items():
             if e in selected:
@@ -329,7 +322,8 @@ def holdout_cost(holdout: list[DiagnosisData], model: ExtendedModel) -> float:
 
 @dataclass
 class Candidate:
-    """A nested fit of one effect: the fit, its BIC gain over the base model, its held-out gain."""
+    """A nested fit of one effect: the fit, its BIC gain over the base model, its held-out gain, the
+    correlation factor of its residuals (``refit.correlation_factor``) and its physical significance."""
 
     effect: str
     fit: FitResult
@@ -338,12 +332,20 @@ class Candidate:
     dholdout: float
     screen_dbic: float
     sim_screen_dbic: float = float("nan")
-    fit_gain: float = float("nan")  # largest fit-% gain of any channel (fitting or held-out), percentage points
+    kappa: float = 1.0
+    significance: dict = field(default_factory=dict)
+    parameters: tuple[str, ...] = ()
+
+    @property
+    def evidence(self) -> float:
+        """BIC gain in effective samples: Delta BIC / kappa (negative = evidence for the effect)."""
+        return self.dbic / max(self.kappa, 1.0)
 
 
 @dataclass
 class Selection:
-    """Accepted effects (in order), ambiguous groups, every candidate tried and the final fit."""
+    """Accepted effects (in order), ambiguous groups, effects detected but too small to matter, every
+    candidate tried and the final fit."""
 
     accepted: list[Candidate]
     ambiguous: list[list[Candidate]]
@@ -352,76 +354,124 @@ class Selection:
     base_fit: FitResult
     final_fit: FitResult
     sim_screenings: list[dict[str, float]] = field(default_factory=list)
+    small: list[Candidate] = field(default_factory=list)
+    effects: dict[str, cat.Effect] = field(default_factory=dict)  # the catalog entries as applied
 
 
-def _effect_guess(e: cat.Effect, screening: Screening, sim_guess: dict | None = None) -> dict[str, float]:
-    """Start values: the simulation screening's step when it has one, else the equation screening's."""
+def _effect_guess(e: cat.Effect, screening: Screening, sim_guess: dict | None = None,
+                  model: ExtendedModel | None = None) -> dict[str, float]:
+    """Start values: the simulation screening's step when it has one, else the equation screening's,
+    else half the catalog step, else (a position) the model's value."""
     g = dict(screening.guesses.get(e.name, {}))
     g.update(sim_guess or {})
     out = {}
     for p in e.parameters:
         lo, hi = parameter_bounds(p)
-        v = g.get(p, e.magnitudes[0][p] * 0.5)
+        default = e.magnitudes[0][p] * 0.5 if p in e.magnitudes[0] else (model.get(p) if model is not None else 0.0)
+        v = g.get(p, default)
         span = hi - lo
         out[p] = float(np.clip(v, lo + 1e-3 * span, hi - 1e-3 * span))
     return out
 
 
+# --- the selection rules (pure functions: pinned by tests/test_diagnose_rules.py) ---------------
+
+def shortlist(equation_gains: dict[str, float], simulation_gains: dict[str, float], round_index: int) -> list[str]:
+    """Effects worth a nested fit: from each screening (equation residuals, simulation score test) the
+    ``MAX_CANDIDATES`` best whose BIC gain beats the bar (``SCREEN_DBIC``, ``LATER_ROUND_FACTOR`` times
+    that after the first round: residuals are then smaller and relatively more correlated) and reaches
+    ``SHORTLIST_FRACTION`` of that screening's best gain."""
+    bar = SCREEN_DBIC * (1 if round_index == 0 else LATER_ROUND_FACTOR)
+    out: list[str] = []
+    for gains in (equation_gains, simulation_gains):
+        ranked = sorted((d, e) for e, d in gains.items() if d < -bar)
+        out += [e for d, e in ranked[:MAX_CANDIDATES] if d <= SHORTLIST_FRACTION * ranked[0][0] and e not in out]
+    return out
+
+
+def has_evidence(c: Candidate) -> bool:
+    """Accepted by evidence: the BIC gain in effective samples beats ``ACCEPT_DBIC`` and held-out
+    recordings (if any) are not predicted worse."""
+    return c.evidence < -ACCEPT_DBIC and not (c.dholdout > 0)
+
+
+def ambiguous_group(best: Candidate, others: list[Candidate]) -> list[Candidate]:
+    """The best candidate and those the data cannot tell from it: BIC within ``AMBIGUOUS_DBIC``
+    effective samples (the best fit's correlation factor deflates the difference)."""
+    return [best] + [c for c in others if c is not best and (c.dbic - best.dbic) / max(best.kappa, 1.0)
+                     < AMBIGUOUS_DBIC]
+
+
+def matters(c: Candidate) -> bool:
+    """Whether an effect with evidence matters physically (``significance.significance``)."""
+    return bool(c.significance.get("matters"))
+
+
+def _kappa(recordings: list[DiagnosisData], fit: FitResult) -> float:
+    from otbot_hw.diagnose.refit import correlation_factor
+
+    return correlation_factor(weighted_residuals(recordings, fit.model, fit.sigma))
+
+
 def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_fit: FitResult,
-           nominal_free: list[str], progress=lambda msg: None) -> Selection:
-    """Greedy forward selection of effects (screen, nested fits, accept by BIC + held-out)."""
+           nominal_free: list[str], progress=lambda msg: None, casters_configured: bool = True) -> Selection:
+    """Greedy forward selection of effects: screen, nested fits, accept by evidence, judge by physics.
+
+    Each round adds the best candidate with evidence (``has_evidence``): alone, or as an ambiguous
+    group (carried on with its best member, its members excluded from later rounds), or -- when it
+    does not matter physically -- listed as detected but small and left out of the model. The search
+    goes on after each of these, up to ``MAX_ROUNDS`` rounds."""
+    from otbot_hw.diagnose.significance import significance
+
     fixtures = {d.fixture for d in recordings}
-    effects = cat.applicable(fixtures)
+    effects = cat.applicable(fixtures, casters_configured)
+    by_name = {e.name: e for e in effects}
     current = base_fit
     current_names = list(nominal_free)
     accepted: list[Candidate] = []
     ambiguous: list[list[Candidate]] = []
+    small: list[Candidate] = []
     tried: list[Candidate] = []
     screenings: list[Screening] = []
     sim_screens: list[dict[str, float]] = []
     used: set[str] = set()
-    for _round in range(MAX_EFFECTS):
+    for round_index in range(MAX_ROUNDS):
         sc = screen(recordings, current.model, nominal_free, effects, exclude=used)
         screenings.append(sc)
         ss = screen_simulation(recordings, current.model, nominal_free, effects, exclude=used)
         sim_screens.append({e: d for e, (d, _) in ss.items()})
-        # after the first effect, residuals are smaller and relatively more correlated: later rounds
-        # need LATER_ROUND_FACTOR times the screening evidence before a nested fit is tried
-        bar = SCREEN_DBIC * (1 if _round == 0 else LATER_ROUND_FACTOR)
-        shortlist = []
-        for gains in ({e: d for e, d in sc.single.items()}, {e: d for e, (d, _) in ss.items()}):
-            ranked = sorted((d, e) for e, d in gains.items() if d < -bar)
-            # candidates explaining at least SHORTLIST_FRACTION of the best one's gain
-            shortlist += [e for d, e in ranked[:MAX_CANDIDATES] if d <= SHORTLIST_FRACTION * ranked[0][0]
-                          and e not in shortlist]
-        if not shortlist:
-            progress("[diagnose] screening: no effect explains the equation or simulation residuals")
+        names = shortlist(sc.single, {e: d for e, (d, _) in ss.items()}, round_index)
+        if not names:
+            progress("[diagnose] screening: no further effect explains the equation or simulation residuals")
             break
-        progress(f"[diagnose] screening shortlist: {', '.join(shortlist)}")
+        progress(f"[diagnose] screening shortlist: {', '.join(names)}")
         aic0, bic0 = information_criteria(current.rss, current.n_samples, current.n_params)
         ho0 = holdout_cost(holdout, current.model)
         cands = []
-        for name in shortlist:
-            e = cat.effect(name)
-            guess = _effect_guess(e, sc, ss.get(name, (0.0, {}))[1])
+        for name in names:
+            e = by_name[name]
+            guess = _effect_guess(e, sc, ss.get(name, (0.0, {}))[1], current.model)
             progress(f"[diagnose] nested fit: + {name} (start {guess})")
-            fit = refit(recordings, current.model, current_names + list(e.parameters), guess=guess)
+            fit = refit(recordings, current.model, current_names + list(e.parameters), guess=guess,
+                        max_nfev=NESTED_NFEV * (len(current_names) + len(e.parameters) + 1))
             aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
             cand = Candidate(name, fit, bic - bic0, aic - aic0, holdout_cost(holdout, fit.model) - ho0,
-                             sc.single.get(name, float("nan")), ss.get(name, (float("nan"), {}))[0])
-            progress(f"[diagnose]   {name}: dBIC {cand.dbic:.1f}, held-out d(cost) {cand.dholdout:.1f}")  # noqa
+                             sc.single.get(name, float("nan")), ss.get(name, (float("nan"), {}))[0],
+                             parameters=tuple(e.parameters))
+            if cand.dbic < -ACCEPT_DBIC:
+                cand.kappa = _kappa(recordings, fit)
+            progress(f"[diagnose]   {name}: dBIC {cand.dbic:.1f} (kappa {cand.kappa:.1f}), "
+                     f"held-out d(cost) {cand.dholdout:.1f}")
             cands.append(cand)
             tried.append(cand)
-        base_fit_pct = _fit_percent(recordings + holdout, current.model)
-        for c in cands:
-            c.fit_gain = max(np.subtract(_fit_percent(recordings + holdout, c.fit.model), base_fit_pct))
-        good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0) and c.fit_gain >= MIN_FIT_GAIN]
+        good = [c for c in cands if has_evidence(c)]
         if good:
             # guard against an under-converged base fit: refit the base model from the best candidate's
             # nominal values; the gain must survive against this polished base
             best0 = min(good, key=lambda c: c.dbic)
             start = current.model.with_values({n: best0.fit.values[n] for n in current_names})
-            polished = refit(recordings, start, current_names)
+            polished = refit(recordings, start, current_names,
+                             max_nfev=NESTED_NFEV * (len(current_names) + 1))
             aic_p, bic_p = information_criteria(polished.rss, polished.n_samples, polished.n_params)
             if bic_p < bic0 - 0.1:
                 progress(f"[diagnose] base refit from the candidate's nominal values gains {bic0 - bic_p:.1f} BIC")
@@ -432,19 +482,27 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
                     if np.isfinite(ho0) and np.isfinite(ho_p):
                         c.dholdout += ho0 - ho_p
                 current, bic0, aic0, ho0 = polished, bic_p, aic_p, ho_p
-                good = [c for c in cands if c.dbic < -ACCEPT_DBIC and not (c.dholdout > 0)
-                        and c.fit_gain >= MIN_FIT_GAIN]
+                good = [c for c in cands if has_evidence(c)]
         if not good:
             break
         good.sort(key=lambda c: c.dbic)
         best = good[0]
-        group = [c for c in good if c.dbic - best.dbic < AMBIGUOUS_DBIC]
+        group = ambiguous_group(best, good[1:])
+        for c in group:
+            vals = {p: c.fit.values[p] for p in c.parameters}
+            c.significance = significance(c.effect, vals, {p: c.fit.std.get(p, float("nan")) for p in c.parameters},
+                                          c.fit.model, recordings)
+        used.update(c.effect for c in group)
+        if not matters(best):
+            progress(f"[diagnose] {best.effect}: detected, small ({best.significance['statement']})")
+            small.append(best)
+            continue
         if len(group) > 1:
             ambiguous.append(group)
-            current = best.fit  # predictions equivalent on this data; names withheld
-            break
-        accepted.append(best)
-        used.add(best.effect)
+            progress(f"[diagnose] ambiguous: {', '.join(c.effect for c in group)}; the search goes on with "
+                     f"{best.effect}")
+        else:
+            accepted.append(best)
         current = best.fit
         current_names = list(best.fit.names)
-    return Selection(accepted, ambiguous, tried, screenings, base_fit, current, sim_screens)
+    return Selection(accepted, ambiguous, tried, screenings, base_fit, current, sim_screens, small, by_name)
