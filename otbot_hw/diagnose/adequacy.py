@@ -74,6 +74,12 @@ def noise_ratios(recordings: list[DiagnosisData], fit_model) -> dict[tuple[str, 
     return {k: float(np.sqrt(np.mean(r ** 2))) for k, r in res.items()}
 
 
+def above_noise(ratios: dict[tuple[str, str], float], limit: float, label: str) -> list[dict]:
+    """(recording, channel) entries whose residual RMS / noise ratio exceeds ``limit``."""
+    return [{"set": label, "recording": name, "channel": ch, "noise_ratio": r, "limit": limit}
+            for (name, ch), r in ratios.items() if not r <= limit]
+
+
 def on_bound(values: dict[str, float]) -> list[dict]:
     """Free parameters within ``BOUND_FRACTION`` of the range of a finite bound. A lower bound of
     exactly 0 is not counted: there 0 is a physical value (that part of the effect is absent, e.g.
@@ -111,12 +117,8 @@ def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final:
     """Judge the final model (see module doc)."""
     channels = []
     for label, recs, limit in (("fitting", recordings, NOISE_RATIO_FITTING), ("heldout", holdout, NOISE_RATIO_HELDOUT)):
-        if not recs:
-            continue
-        for (name, ch), ratio in noise_ratios(recs, final.model).items():
-            if not ratio <= limit:
-                channels.append({"set": label, "recording": name, "channel": ch, "noise_ratio": ratio,
-                                 "limit": limit})
+        if recs:
+            channels += above_noise(noise_ratios(recs, final.model), limit, label)
     bound = on_bound(final.values)
     moved = implausible_shifts({n: v for n, v in final.values.items() if hasattr(given, n)}, given)
     adequate = not (channels or bound or moved)

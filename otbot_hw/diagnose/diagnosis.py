@@ -33,6 +33,7 @@ from otbot_hw.model.effects import ExtendedModel, parameter_unit
 from otbot_hw.params import OtbotParams
 
 
+FINAL_NFEV = 20  # iterations of the final fit, started from the last nested fit
 CORRELATION_NOTE = 0.95  # |correlation| of an effect and a nominal parameter worth reporting
 STD_INFLATION_WARN = 2.0  # HAC / white-noise std above this: warn about model-form error
 
@@ -137,6 +138,9 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
     progress(f"[diagnose] located {len(windows)} flagged window(s)")
     sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured)
     final = sel.final_fit
+    if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
+        final = refit(recordings, final.model, final.names, max_nfev=FINAL_NFEV)
+        progress(f"[diagnose] final fit: {final.message} ({final.nfev} evaluations)")
     # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
     std = dict(final.std)
     inflation = 1.0

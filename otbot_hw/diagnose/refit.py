@@ -80,11 +80,12 @@ def _typical(name: str) -> float:
 
 def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: list[str],
           guess: dict[str, float] | None = None, bounds: dict[str, tuple[float, float]] | None = None,
-          max_nfev: int | None = None) -> FitResult:
+          max_nfev: int | None = None, tol: float = 1e-7) -> FitResult:
     """Fit ``free_names`` of ``model`` (others held) to ``recordings`` by simulation output error.
 
     ``guess``: start values (default: the model's); ``bounds``: per-name (lo, hi) (default: the
-    physical bounds of each parameter). Returns the fitted model and statistics.
+    physical bounds of each parameter); ``tol``: the fitter's relative tolerances (cost, step).
+    Returns the fitted model and statistics.
     """
     sigmas = channel_sigmas(recordings)
     names = list(free_names)
@@ -106,7 +107,7 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
         pm, diagnosis_experiments(recordings, model, sigmas), names, pm.vector(model),
         guess=dict(zip(names, x_start)), bounds=bnd,
         scale={n: max(abs(x), _typical(n)) for n, x in zip(names, x_start)},
-        noise="residuals", max_nfev=max_nfev or 30 * (len(names) + 1), tol=1e-7,
+        noise="residuals", max_nfev=max_nfev or 30 * (len(names) + 1), tol=tol,
         residual_tolerance=None, check_identifiability=False, integration_tol=None)
     rss, nobs = {}, {}
     for d in recordings:

@@ -156,10 +156,11 @@ def cat_experiment(name: str) -> str:
 
 
 def _fmt(v: float, s: float) -> str:
+    from otbot_hw.diagnose.significance import format_with_std
+
     if s is None or not np.isfinite(s):
         return f"{v:.4g} (std not identifiable)"
-    digits = max(0, -int(np.floor(np.log10(abs(s)))) + 1) if s > 0 else 4
-    return f"{v:.{digits}f} ± {s:.{digits}f}"
+    return format_with_std(v, s)
 
 
 def plot_residuals(path: Path, data: DiagnosisData, before: ExtendedModel, after: ExtendedModel,

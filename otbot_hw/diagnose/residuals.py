@@ -178,7 +178,7 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
     return Motion(q=q, qd=qd, qdd=qdd, a_meas=a_meas, tau=tau)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _torque_residual(Q, QD, A, TAU, eff, prm, fixture):
     n = Q.shape[0]
     out = np.zeros((n, 3))

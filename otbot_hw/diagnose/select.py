@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import zip_longest
 
 import numpy as np
 
@@ -29,6 +30,7 @@ from otbot_hw.diagnose import catalog as cat
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.diagnose.refit import FitResult, refit, weighted_residuals
 from otbot_hw.diagnose.residuals import estimate_motion, imu_residual, torque_residual
+from otbot_hw.identification.model import map_prediction_rows
 from otbot_hw.model.effects import ExtendedModel, parameter_bounds
 
 SCREEN_DBIC = 10.0
@@ -37,8 +39,10 @@ AMBIGUOUS_DBIC = 10.0
 MAX_CANDIDATES = 3
 SHORTLIST_FRACTION = 0.1
 LATER_ROUND_FACTOR = 5.0
+MAX_NESTED = 4  # nested fits per round, taken alternately from the two screenings' shortlists
 MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
-NESTED_NFEV = 12  # function evaluations per free parameter (+1) of a nested fit
+NESTED_NFEV = 12  # iterations (function evaluations) of a nested fit
+NESTED_TOL = 1e-5  # relative cost/step tolerance of a nested fit (1e-5 of a cost ~ N: < 0.1 BIC)
 
 
 def _guess_from_coefficients(v, coef) -> dict[str, float]:
@@ -156,12 +160,18 @@ def screen(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: 
     zv = vec(base)
     n_ch = z.shape[0]
     L = max(d.window for d in recordings)
+    variants = [v for v in _variants(recordings, effects) if v.effect not in exclude]
+    # every perturbed model's residuals at once, on the prediction threads (the kernels release the GIL)
+    steps = {n: 1e-4 * max(abs(model.get(n)), 1e-2) for n in nominal_free}
+    models = [model.with_values({n: model.get(n) + h}) for n, h in steps.items()]
+    layout = []
+    for i, v in enumerate(variants):
+        for p in (v.linear or (None,)):
+            layout.append(i)
+            models.append(model.with_values({**v.fixed, p: v.values[p]} if p is not None else v.fixed))
+    stacks = map_prediction_rows(lambda j: vec(_stack(recordings, models[j], trim)), len(models))
     # nominal columns
-    nom_cols = []
-    for n in nominal_free:
-        h = 1e-4 * max(abs(model.get(n)), 1e-2)
-        st = _stack(recordings, model.with_values({n: model.get(n) + h}), trim)
-        nom_cols.append((vec(st) - zv) / h)
+    nom_cols = [(stacks[j] - zv) / h for j, h in enumerate(steps.values())]
     Y = np.column_stack(nom_cols) if nom_cols else np.zeros((len(zv), 0))
     if Y.shape[1]:
         Qn, Rn = np.linalg.qr(Y)
@@ -182,18 +192,10 @@ def screen(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: 
         return sum(n_eff * np.log(max(res[c] @ res[c], 1e-300) / n_ch) for c in (chans[j] for j in active)) \
             + k * np.log(n_eff * len(active))
 
-    variants = [v for v in _variants(recordings, effects) if v.effect not in exclude]
-    cols = {}
-    for i, v in enumerate(variants):
-        cs = []
-        if v.linear:
-            for p in v.linear:
-                st = _stack(recordings, model.with_values({**v.fixed, p: v.values[p]}), trim)
-                cs.append(proj(vec(st) - zv))
-        else:
-            st = _stack(recordings, model.with_values(v.fixed), trim)
-            cs.append(proj(vec(st) - zv))
-        cols[i] = np.column_stack(cs)
+    per_variant: dict[int, list] = {}
+    for i, st in zip(layout, stacks[len(steps):]):
+        per_variant.setdefault(i, []).append(proj(st - zv))
+    cols = {i: np.column_stack(cs) for i, cs in per_variant.items()}
     bic0 = bic(z0, 0)
     single: dict[str, float] = {}
     guesses: dict[str, dict[str, float]] = {}
@@ -257,10 +259,19 @@ def screen_simulation(recordings: list[DiagnosisData], model: ExtendedModel, nom
         res = weighted_residuals(recordings, m, sig)
         return np.concatenate([res[k] for k in keys])
 
-    cols = []
+    variants = [v for v in _variants(recordings, effects) if v.effect not in exclude]
+    models, layout = [], []
     for n in nominal_free:
-        h = 1e-4 * max(abs(model.get(n)), 1e-2)
-        cols.append(vec(model.with_values({n: model.get(n) + h})) - r0)
+        models.append(model.with_values({n: model.get(n) + 1e-4 * max(abs(model.get(n)), 1e-2)}))
+    for i, v in enumerate(variants):
+        for p in (v.linear or (None,)):
+            try:
+                models.append(model.with_values({**v.fixed, p: v.values[p]} if p is not None else v.fixed))
+            except ValueError:
+                continue
+            layout.append(i)
+    outputs = map_prediction_rows(lambda j: vec(models[j]) - r0, len(models))
+    cols = outputs[:len(nominal_free)]
     Qn = np.zeros((len(r0), 0))
     if cols:
         Qn, Rn = np.linalg.qr(np.column_stack(cols))
@@ -274,22 +285,11 @@ def screen_simulation(recordings: list[DiagnosisData], model: ExtendedModel, nom
 
     b0 = bic(z0, 0)
     out: dict[str, tuple[float, dict]] = {}
-    for v in _variants(recordings, effects):
-        if v.effect in exclude:
-            continue
-        A = []
-        names = list(v.linear) if v.linear else [None]
-        for p in names:
-            vals = dict(v.fixed)
-            if p is not None:
-                vals[p] = v.values[p]
-            try:
-                d = vec(model.with_values(vals)) - r0
-            except ValueError:
-                continue
-            A.append(d - Qn @ (Qn.T @ d))
-        if not A:
-            continue
+    per_variant: dict[int, list] = {}
+    for i, d in zip(layout, outputs[len(nominal_free):]):
+        per_variant.setdefault(i, []).append(d - Qn @ (Qn.T @ d))
+    for i, A in per_variant.items():
+        v = variants[i]
         A = np.column_stack(A)
         coef, *_ = np.linalg.lstsq(A, z0, rcond=None)
         # the simulated output changes by A coef; the residual by -A coef
@@ -380,13 +380,18 @@ def shortlist(equation_gains: dict[str, float], simulation_gains: dict[str, floa
     """Effects worth a nested fit: from each screening (equation residuals, simulation score test) the
     ``MAX_CANDIDATES`` best whose BIC gain beats the bar (``SCREEN_DBIC``, ``LATER_ROUND_FACTOR`` times
     that after the first round: residuals are then smaller and relatively more correlated) and reaches
-    ``SHORTLIST_FRACTION`` of that screening's best gain."""
+    ``SHORTLIST_FRACTION`` of that screening's best gain; merged alternately, at most ``MAX_NESTED``."""
     bar = SCREEN_DBIC * (1 if round_index == 0 else LATER_ROUND_FACTOR)
-    out: list[str] = []
+    lists = []
     for gains in (equation_gains, simulation_gains):
         ranked = sorted((d, e) for e, d in gains.items() if d < -bar)
-        out += [e for d, e in ranked[:MAX_CANDIDATES] if d <= SHORTLIST_FRACTION * ranked[0][0] and e not in out]
-    return out
+        lists.append([e for d, e in ranked[:MAX_CANDIDATES] if d <= SHORTLIST_FRACTION * ranked[0][0]])
+    out: list[str] = []
+    for pair in zip_longest(*lists):  # alternately, so both screenings are heard within MAX_NESTED
+        for e in pair:
+            if e is not None and e not in out:
+                out.append(e)
+    return out[:MAX_NESTED]
 
 
 def has_evidence(c: Candidate) -> bool:
@@ -452,8 +457,8 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             e = by_name[name]
             guess = _effect_guess(e, sc, ss.get(name, (0.0, {}))[1], current.model)
             progress(f"[diagnose] nested fit: + {name} (start {guess})")
-            fit = refit(recordings, current.model, current_names + list(e.parameters), guess=guess,
-                        max_nfev=NESTED_NFEV * (len(current_names) + len(e.parameters) + 1))
+            fit = refit(recordings, current.model, current_names + [p for p in e.parameters if p not in current_names],
+                        guess=guess, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
             aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
             cand = Candidate(name, fit, bic - bic0, aic - aic0, holdout_cost(holdout, fit.model) - ho0,
                              sc.single.get(name, float("nan")), ss.get(name, (float("nan"), {}))[0],
@@ -470,8 +475,7 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             # nominal values; the gain must survive against this polished base
             best0 = min(good, key=lambda c: c.dbic)
             start = current.model.with_values({n: best0.fit.values[n] for n in current_names})
-            polished = refit(recordings, start, current_names,
-                             max_nfev=NESTED_NFEV * (len(current_names) + 1))
+            polished = refit(recordings, start, current_names, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
             aic_p, bic_p = information_criteria(polished.rss, polished.n_samples, polished.n_params)
             if bic_p < bic0 - 0.1:
                 progress(f"[diagnose] base refit from the candidate's nominal values gains {bic0 - bic_p:.1f} BIC")

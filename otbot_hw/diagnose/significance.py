@@ -50,11 +50,16 @@ def motion_scales(recordings: list[DiagnosisData], r: float) -> dict[str, np.nda
             "v_rms": float(np.sqrt(np.mean(v ** 2))), "u": u}
 
 
-def _fmt(v: float, s: float | None) -> str:
+def format_with_std(v: float, s: float | None) -> str:
+    """``v ± s`` to the precision of s (one significant digit, two when it starts with 1)."""
     if s is None or not np.isfinite(s) or s <= 0:
-        return f"{v:.3g}"
-    digits = max(0, -int(np.floor(np.log10(abs(s)))) + 1)
+        return f"{v:.4g}"
+    e = int(np.floor(np.log10(abs(s))))
+    digits = max(0, -e + (1 if abs(s) / 10.0 ** e < 2 else 0))
     return f"{v:.{digits}f} ± {s:.{digits}f}"
+
+
+_fmt = format_with_std
 
 
 def _z(values: dict, std: dict, names) -> float:
@@ -73,8 +78,9 @@ def significance(name: str, values: dict[str, float], std: dict[str, float], mod
     def torque(t_joint: float, motors, what: str, main: tuple[str, ...]):
         ref = float(np.mean(u_rms[list(motors)]))
         frac = abs(t_joint) / ref if ref > 0 else float("inf")
-        return (f"{what}: {abs(t_joint):.3g} N m at the {'wheels' if motors == WHEELS else 'pivot'}, "
-                f"{100 * frac:.1f} % of their RMS command", "torque fraction", frac, "1", TORQUE_FRACTION, main)
+        where = "each wheel motor" if motors == WHEELS else "the pivot motor"
+        return (f"{what}{abs(t_joint):.3g} N m at {where}, {100 * frac:.1f} % of its RMS command",
+                "torque fraction", frac, "1", TORQUE_FRACTION, main)
 
     def clipped(levels: dict[int, float]):
         u = sc["u"]
@@ -87,56 +93,53 @@ def significance(name: str, values: dict[str, float], std: dict[str, float], mod
         return frac, share
 
     v = values
-    f = {k: _fmt(v[k], std.get(k)) for k in v}
+    f = {k: _fmt(v[k], std.get(k)) for k in v}  # values with their std, for positions quoted in statements
     if name == "coulomb_wheels":
-        out = torque(v["c_w"], WHEELS, f"wheel Coulomb friction {f['c_w']} N m", ("c_w",))
+        out = torque(v["c_w"], WHEELS, "takes ", ("c_w",))
     elif name == "coulomb_pivot":
-        out = torque(v["c_p"], PIVOT, f"pivot Coulomb friction {f['c_p']} N m", ("c_p",))
+        out = torque(v["c_p"], PIVOT, "takes ", ("c_p",))
     elif name == "stribeck_wheels":
-        out = torque(v["s_w"], WHEELS, f"Stribeck excess {f['s_w']} N m below {v['v_s']:.2g} rad/s", ("s_w",))
+        out = torque(v["s_w"], WHEELS, f"near standstill (below ~{v['v_s']:.2g} rad/s) takes up to ", ("s_w",))
     elif name == "rolling_resistance":
-        out = torque(v["c_rr"] * (p.m_c + p.m_p) * GRAVITY * 0.5 * p.r, WHEELS,
-                     f"rolling resistance c_rr = {f['c_rr']}", ("c_rr",))
+        out = torque(v["c_rr"] * (p.m_c + p.m_p) * GRAVITY * 0.5 * p.r, WHEELS, "takes ", ("c_rr",))
     elif name == "caster_drag":
         where = ""
         if "x_c1" in v:
             known = all(np.isfinite(std.get(k, np.nan)) and std[k] < 0.1 for k in ("x_c1", "y_c1"))
-            where = (f" at ({f['x_c1']}, {f['y_c1']}) m in B'" if known
-                     else " (caster position not determined by the data)")
-        out = torque(v["f_cst"] * p.r / 2, WHEELS, f"caster drag {f['f_cst']} N{where}", ("f_cst",))
+            where = (f"caster at ({f['x_c1']}, {f['y_c1']}) m in B'; " if known
+                     else "caster position not determined by the data; ")
+        out = torque(v["f_cst"] * p.r / 2, WHEELS, f"{where}takes ", ("f_cst",))
     elif name == "floor_slope":
         g = float(np.hypot(v["g_x"], v["g_y"]))
         out = torque((p.m_c + p.m_p) * g * p.r / 2, WHEELS,
-                     f"floor slope {g:.3g} m/s² ({np.rad2deg(np.arcsin(min(g / GRAVITY, 1.0))):.2f}°): "
-                     f"{(p.m_c + p.m_p) * g:.3g} N downhill", ("g_x", "g_y"))
+                     f"a {np.rad2deg(np.arcsin(min(g / GRAVITY, 1.0))):.2f}° slope pulls {(p.m_c + p.m_p) * g:.3g} N "
+                     "downhill: ", ("g_x", "g_y"))
     elif name == "air_drag":
         out = torque(v["c_air"] * sc["v_rms"] ** 2 * p.r / 2, WHEELS,
-                     f"air drag {f['c_air']} N s²/m²: {v['c_air'] * sc['v_rms'] ** 2:.3g} N at the RMS speed "
-                     f"{sc['v_rms']:.2g} m/s", ("c_air",))
+                     f"{v['c_air'] * sc['v_rms'] ** 2:.3g} N at the RMS speed {sc['v_rms']:.2g} m/s: ", ("c_air",))
     elif name in ("gain_right", "gain_left", "gain_pivot"):
         k = {"gain_right": "k_r", "gain_left": "k_l", "gain_pivot": "k_p"}[name]
         motor = {"gain_right": "right wheel", "gain_left": "left wheel", "gain_pivot": "pivot"}[name]
-        out = (f"{motor} motor delivers {100 * (1 + v[k]):.1f} % of its command ({k} = {f[k]})",
+        out = (f"the {motor} motor delivers {100 * (1 + v[k]):.1f} % of its command",
                "torque fraction", abs(v[k]), "1", TORQUE_FRACTION, (k,))
     elif name in ("torque_saturation", "saturation_right", "saturation_left", "saturation_pivot"):
         keys = {"torque_saturation": {0: "u_max", 1: "u_max", 2: "u_max"}, "saturation_right": {0: "u_max_r"},
                 "saturation_left": {1: "u_max_l"}, "saturation_pivot": {2: "u_max_p"}}[name]
         frac, share = clipped({i: v[k] for i, k in keys.items()})
         k0 = next(iter(keys.values()))
-        out = (f"torque limit {f[k0]} N m clips {100 * share:.1f} % of the commands, {100 * frac:.1f} % of the "
-               "RMS torque", "torque fraction", frac, "1", TORQUE_FRACTION, (k0,))
+        out = (f"the limit clips {100 * share:.1f} % of the commands, {100 * frac:.1f} % of the RMS torque",
+               "torque fraction", frac, "1", TORQUE_FRACTION, (k0,))
     elif name == "traction_limit":
         u = sc["u"][:, :2]
         T = v["t_trac"]
         lost = np.sqrt(np.mean((u - T * np.tanh(u / T)) ** 2)) / max(float(np.mean(u_rms[:2])), 1e-12)
-        out = (f"traction saturates at {f['t_trac']} N m per wheel (creep k_slip = {f['k_slip']} rad/(s N m)): "
-               f"{100 * lost:.1f} % of the RMS wheel torque does not reach the ground", "torque fraction",
+        out = (f"{100 * lost:.1f} % of the RMS wheel torque does not reach the ground", "torque fraction",
                float(lost), "1", TORQUE_FRACTION, ("t_trac",))
     elif name == "wheel_friction_asymmetry":
-        out = torque(v["db_w"] * float(np.mean(w_rms[:2])), WHEELS,
-                     f"wheel viscous friction differs by {f['db_w']} N m s/rad", ("db_w",))
+        out = torque(v["db_w"] * float(np.mean(w_rms[:2])), WHEELS, "at the RMS wheel speed the difference is ",
+                     ("db_w",))
     elif name == "current_lag":
-        out = (f"current loop lags the commands by T_i = {_fmt(1e3 * v['T_i'], 1e3 * std.get('T_i', np.nan))} ms",
+        out = (f"the motor torques follow the commands {_fmt(1e3 * v['T_i'], 1e3 * std.get('T_i', np.nan))} ms late",
                "delay", v["T_i"], "s", DELAY, ("T_i",))
     elif name == "imu_latency":
         out = (f"IMU samples are {_fmt(1e3 * v['d_imu'], 1e3 * std.get('d_imu', np.nan))} ms old", "delay",
@@ -152,17 +155,16 @@ def significance(name: str, values: dict[str, float], std: dict[str, float], mod
     elif name == "imu_lever_arm":
         d = float(np.hypot(v["d_x"], v["d_y"]))
         known = all(np.isfinite(std.get(k, np.nan)) for k in ("d_x", "d_y"))
-        out = (f"IMU {100 * d:.2g} cm from the pivot at ({f['d_x']}, {f['d_y']}) m in B''"
+        out = (f"the IMU sits {100 * d:.2g} cm from the pivot"
                + ("" if known else " (position not determined by the data)"), "distance", d, "m", LEVER_ARM,
                ("d_x", "d_y"))
     elif name == "imu_misalignment":
-        out = (f"IMU turned by {_fmt(np.rad2deg(v['psi']), np.rad2deg(std.get('psi', np.nan)))}° about the "
+        out = (f"the IMU is turned by {_fmt(np.rad2deg(v['psi']), np.rad2deg(std.get('psi', np.nan)))}° about the "
                "vertical: that share of each acceleration appears on the other axis", "angle", abs(v["psi"]), "rad",
                MISALIGNMENT, ("psi",))
     elif name == "encoder_scale":
         e = max(abs(v["e_r"]), abs(v["e_l"]))
-        out = (f"wheel encoders read {100 * v['e_r']:+.2f} % (right), {100 * v['e_l']:+.2f} % (left): odometry "
-               f"off by up to {100 * e:.2g} % of the distance", "odometry fraction", e, "1", ODOMETRY_FRACTION,
+        out = (f"odometry off by up to {100 * e:.2g} % of the distance", "odometry fraction", e, "1", ODOMETRY_FRACTION,
                ("e_r", "e_l"))
     elif name == "wheel_radii":
         e = max(abs(v["dr_r"]), abs(v["dr_l"]))
@@ -174,7 +176,7 @@ def significance(name: str, values: dict[str, float], std: dict[str, float], mod
     elif name == "wheel_slip":
         ref = float(np.mean(w_rms[:2]))
         e = v["k_slip"] * float(np.mean(u_rms[:2])) / ref if ref > 0 else float("inf")
-        out = (f"wheels slip {f['k_slip']} rad/s per N m: odometry {100 * e:.2g} % long at the RMS torque",
+        out = (f"odometry {100 * e:.2g} % long at the RMS torque",
                "odometry fraction", e, "1", ODOMETRY_FRACTION, ("k_slip",))
     else:
         raise KeyError(f"no physical significance rule for effect '{name}'")
