@@ -104,7 +104,8 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
                          message="nothing to fit", sigma=sigmas)
     pm = ExtendedPredictionModel(model, tied=[n for n in names if n in TIED_PARAMS])
     fit = fit_parameters(
-        pm, diagnosis_experiments(recordings, model, sigmas), names, pm.vector(model),
+        pm, diagnosis_experiments(recordings, model.with_values(dict(zip(names, x_start))), sigmas), names,
+        pm.vector(model),
         guess=dict(zip(names, x_start)), bounds=bnd,
         scale={n: max(abs(x), _typical(n)) for n, x in zip(names, x_start)},
         noise="residuals", max_nfev=max_nfev or 30 * (len(names) + 1), tol=tol,
