@@ -178,13 +178,13 @@ def seeds(rep: int) -> tuple[int, int]:
     return 31 + 2 * rep, 32 + 2 * rep
 
 
-def make_recordings(case: Case, rep: int, folder: Path) -> list[Path]:
+def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATION) -> list[Path]:
     """Fitting (piecewise-constant torques) and held-out (smooth torques) recordings of one case."""
     world, p = world_of(case, ir.load_params())
     paths = []
     for kind, seed in zip(("piecewise", "smooth"), seeds(rep)):
         path = folder / f"{case.label}_{rep}_{'fit' if kind == 'piecewise' else 'heldout'}.mcap"
-        ir.record(path, world, kind, seed, DURATION, DT, params=p)
+        ir.record(path, world, kind, seed, duration, DT, params=p)
         paths.append(path)
     return paths
 
@@ -242,8 +242,8 @@ def score(case: Case, r: dict) -> dict:
     return {"right": right, "found": found, "errors": errors, "extra": extra, "estimate": est}
 
 
-def run_case(case: Case | str, rep: int = 0, keep: Path | None = None) -> dict:
-    """Simulate, write, load and diagnose one case on seed pair ``rep``."""
+def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration: float = DURATION) -> dict:
+    """Simulate, write, load and diagnose one case on seed pair ``rep`` (recordings of ``duration`` s)."""
     from otbot_hw.diagnose.data import load
     from otbot_hw.diagnose.diagnosis import diagnose
     from otbot_hw.recording import read_recording
@@ -253,7 +253,7 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(keep) if keep else Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        paths = make_recordings(case, rep, folder)
+        paths = make_recordings(case, rep, folder, duration)
         assert read_recording(paths[0]).truth_q is None
         t_sim = time.perf_counter() - t0
         P, geometry = tool_inputs(case)

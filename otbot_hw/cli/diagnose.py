@@ -143,6 +143,12 @@ def run(args: argparse.Namespace) -> dict:
         if not quiet:
             for r in runs:
                 print(f"{r['recording']}: {r.get('verdict', 'error: ' + str(r.get('error')))}")
+        inadequate = [r["recording"] for r in runs if r.get("model_adequate") is False]
+        if inadequate:
+            if quiet:
+                print(json.dumps({"runs": runs}, allow_nan=False))
+            print("otbot diagnose: model inadequate for " + ", ".join(inadequate), file=sys.stderr)
+            raise SystemExit(1)
         return {"runs": runs}
     recs = load(fitting)
     hold = load(held)
