@@ -127,7 +127,7 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
     if (eff[fx.K_SLIP] != 0.0 or eff[fx.T_TRAC] != 0.0) and data.fixture == "floor":
         # the slip law on the delivered torque (motor friction neglected here); its integral and derivative
         b = p.b_w + eff[fx.DB_W] * np.array([1.0, -1.0])
-        rate_i = np.column_stack([fx.slip_rate(np.ascontiguousarray(tau_i[:, i]), b[i], eff) for i in range(2)])
+        rate_i = np.column_stack([fx.slip_rate_series(np.ascontiguousarray(tau_i[:, i]), b[i], eff) for i in range(2)])
         slip_ang = np.vstack([np.zeros((1, 2)), np.cumsum(rate_i[:-1] * data.dt, axis=0)])
         rate = integral_rate(data, rate_i)
         rate_d = data.smooth(rate, deriv=1)

@@ -59,13 +59,15 @@ Modelling choices (documented, not hidden):
   on psi_i act the torque rho_i (tau_i - friction(phi_dot_i)) with rho_i = r / r_i, the
   wheel inertia becomes rho_i^2 I_a (one fixed-point correction of the accelerations),
   and the encoders read phi_i = rho_i psi_i.
-* Wheel slip is a quasi-static longitudinal slip law (wheel inertia neglected in the split):
-  tau_tr_i = delivered torque minus motor friction at the rolling speed is passed to the
-  ground as tau_g = t_trac tanh(tau_tr / t_trac) (tau_g = tau_tr without a traction limit);
-  the contact creeps at s_dot = k_slip * tau_g, and when traction saturates the wheel spins
-  up until the motor's viscous friction takes the excess: s_dot += (tau_tr - tau_g) / b_i.
-  The body is driven by tau_g; the encoders read psi_i + s_i: odometry and IMU disagree,
-  energy is lost at the contact. Slip states s_r, s_l (rad) are integrated.
+* Wheel slip is a quasi-static longitudinal slip law (wheel inertia neglected in the split;
+  ``slip_state``): tau_tr_i = delivered torque minus motor friction at the rolling speed.
+  Without a traction limit the contact creeps at s_dot = k_slip * tau_tr and passes tau_tr.
+  With one, the traction curve tau_g(s_dot) = t_trac tanh(s_dot / (k_slip t_trac)) (linear
+  creep k_slip at small slip, saturating at t_trac) and the wheel's balance
+  tau_tr - b_i s_dot = tau_g give s_dot: creep below the limit, spin-up above it until the
+  motor's viscous friction takes the excess. The body is driven by tau_g; the encoders read
+  psi_i + s_i: odometry and IMU disagree, energy is lost at the contact. Slip states s_r, s_l
+  (rad) are integrated.
 * Casters: ``n_cst`` contacts at (x_ci, y_ci) in the chassis frame B' (the robot
   configuration's ``casters``, ``otbot_hw.diagnose.geometry``; default one at
   ``CASTER_POSITION``), each with drag f_cst / n_cst opposing its contact velocity.
@@ -217,23 +219,48 @@ def _rhos(eff):
     return 1.0 / (1.0 + eff[DR_R]), 1.0 / (1.0 + eff[DR_L])
 
 
+K_SLIP_MIN = 1e-4  # rad/(s N m): creep of the traction curve when k_slip = 0 (rigid up to the limit)
+
+
 @njit(cache=True)
-def ground_torque(tau_tr, eff):
-    """Torque (N m) a wheel passes to the ground for transmitted torque tau_tr: saturates at t_trac."""
+def slip_state(tau_tr, b_i, eff):
+    """(slip rate sigma rad/s, ground torque tau_g N m) of a wheel transmitting tau_tr.
+
+    Without a traction limit: tau_g = tau_tr and sigma = k_slip tau_g (linear creep). With one
+    (t_trac > 0) the traction curve tau_g(sigma) = t_trac tanh(sigma / (k_slip t_trac)) and the
+    wheel's balance tau_tr - b_i sigma = tau_g(sigma) (the motor's viscous friction acts on the
+    spin rolling + sigma) give sigma, solved by safeguarded Newton (the balance is monotone):
+    creep below the limit, spin-up until the viscous friction takes the excess above it."""
     T = eff[T_TRAC]
-    if T > 0.0:
-        return T * np.tanh(tau_tr / T)
-    return tau_tr
+    k = eff[K_SLIP]
+    if T <= 0.0:
+        return k * tau_tr, tau_tr
+    kk = max(k, K_SLIP_MIN)
+    b = max(b_i, 1e-3)
+    # g(s) = tau_tr - b s - T tanh(s / (kk T)) decreases; the root lies between 0 and tau_tr / b
+    lo, hi = min(0.0, tau_tr / b), max(0.0, tau_tr / b)
+    s = min(max(kk * tau_tr, lo), hi) if abs(tau_tr) < T else (tau_tr - np.sign(tau_tr) * T) / b
+    for _ in range(60):
+        th = np.tanh(s / (kk * T))
+        g = tau_tr - b * s - T * th
+        if abs(g) < 1e-12 * (1.0 + abs(tau_tr)):
+            break
+        if g > 0.0:
+            lo = s
+        else:
+            hi = s
+        dg = -b - (1.0 - th * th) / kk
+        s_new = s - g / dg
+        s = s_new if lo < s_new < hi else 0.5 * (lo + hi)
+    return s, T * np.tanh(s / (kk * T))
 
 
 @njit(cache=True)
-def slip_rate(tau_tr, b_i, eff):
-    """Slip rate (rad/s) of a wheel over its rolling angle: creep k_slip tau_g, plus the spin-up the
-    motor's viscous friction b_i balances when traction saturates (tau_tr - tau_g) / b_i."""
-    tg = ground_torque(tau_tr, eff)
-    out = eff[K_SLIP] * tg
-    if eff[T_TRAC] > 0.0:
-        out += (tau_tr - tg) / max(b_i, 1e-3)
+def slip_rate_series(tau_tr, b_i, eff):
+    """Slip rates (N,) for transmitted torques tau_tr (N,) (``slip_state``)."""
+    out = np.empty(len(tau_tr))
+    for j in range(len(tau_tr)):
+        out[j] = slip_state(tau_tr[j], b_i, eff)[0]
     return out
 
 
@@ -254,7 +281,7 @@ def effect_force(x, tau, eff, prm, fixture):
         w = rho[i] * psid
         b_i = bw + eff[DB_W] * (1.0 if i == 0 else -1.0)
         t_tr = tau[i] - b_i * w - _motor_friction(w, i, eff, prm)
-        motor = rho[i] * (ground_torque(t_tr, eff) if traction else t_tr)
+        motor = rho[i] * (slip_state(t_tr, b_i, eff)[1] if traction else t_tr)
         gen[3 + i] = motor - (tau[i] - bw * psid)
     gen[5] = -_motor_friction(x[11], 2, eff, prm)
     a = x[2]
@@ -375,7 +402,7 @@ def slip_rates(x, tau, eff, prm, fixture):
     for i in range(2):
         w = rho[i] * x[9 + i]
         b_i = prm[_BW] + eff[DB_W] * (1.0 if i == 0 else -1.0)
-        out[i] = slip_rate(tau[i] - b_i * w - _motor_friction(w, i, eff, prm), b_i, eff)
+        out[i] = slip_state(tau[i] - b_i * w - _motor_friction(w, i, eff, prm), b_i, eff)[0]
     return out
 
 
@@ -474,10 +501,49 @@ def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.n
         scale = 1.0 + eff[E_R + i]
         pos[:, i] = scale * (rho[i] * x[:, 3 + i] + traj.slip[:, i])
         vel[:, i] = scale * (rho[i] * x[:, 9 + i] + slip_d[:, i])
-    acc, gyro = imu_from_motion(x[:, 2], x[:, 8], qdd[:, 0], qdd[:, 1], qdd[:, 2], eff,
-                                floor=traj.fixture == "floor")
-    acc, gyro = delay(traj.t, acc, eff[D_IMU]), delay(traj.t, gyro, eff[D_IMU])
+    floor = traj.fixture == "floor"
+    acc, gyro = imu_from_motion(x[:, 2], x[:, 8], qdd[:, 0], qdd[:, 1], qdd[:, 2], eff, floor=floor)
+    if eff[D_IMU] > 0.0:
+        # the IMU reads the motion d_imu earlier, inside some ZOH interval: interpolate between that
+        # interval's own ends (sample j with command u_j, sample j+1 still under u_j), not across the
+        # torque step at a sample
+        ql = left_accelerations(traj, params, eff)
+        acc_l, _ = imu_from_motion(x[:, 2], x[:, 8], ql[:, 0], ql[:, 1], ql[:, 2], eff, floor=floor)
+        acc = delay_held(traj.t, acc, acc_l, eff[D_IMU])
+        gyro = delay(traj.t, gyro, eff[D_IMU])
     return {"joint_pos": pos, "joint_vel": vel, "imu_accel": acc, "imu_gyro": gyro}
+
+
+def left_accelerations(traj, params: OtbotParams, eff: np.ndarray) -> np.ndarray:
+    """q_ddot (N, 6) at each sample under the *previous* interval's delivered torque (the left limit at
+    a command step; equal to ``traj.qdd`` with a current-loop lag, whose torque is continuous). The
+    pivot force enters the accelerations linearly, so it cancels in the correction and is not needed."""
+    from otbot_hw.model.fixtures import fixture_code
+
+    if eff[T_I] > 0.0 or len(traj.x) < 2:
+        return traj.qdd.copy()
+    tau_l = traj.tau.copy()
+    tau_l[1:] = np.array([actuated_torque(u, eff) for u in traj.u[:-1]])
+    tau_l[0] = traj.tau[0]
+    code = fixture_code(traj.fixture)
+    prm = params.as_array()
+    zero = np.zeros((len(traj.x), 2))
+    right = ext_sample_accelerations(traj.x, np.ascontiguousarray(traj.tau), zero, eff, prm, code)
+    left = ext_sample_accelerations(traj.x, tau_l, zero, eff, prm, code)
+    return traj.qdd + (left - right)
+
+
+def delay_held(t: np.ndarray, right: np.ndarray, left: np.ndarray, d: float) -> np.ndarray:
+    """A signal sampled d seconds late whose samples jump at the sample instants: ``right`` (N, k) just
+    after each sample, ``left`` (N, k) just before; inside interval j the value runs linearly from
+    right[j] to left[j + 1]. Held at its first value before t_0."""
+    dt = t[1] - t[0]
+    tq = t - d
+    j = np.clip(np.floor((tq - t[0]) / dt + 1e-9).astype(int), 0, len(t) - 2)
+    f = np.clip((tq - t[j]) / dt, 0.0, 1.0)[:, None]
+    out = (1.0 - f) * right[j] + f * left[j + 1]
+    out[tq <= t[0]] = right[0]
+    return out
 
 
 def imu_from_motion(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor: bool = True):
