@@ -34,7 +34,7 @@ from otbot_hw.params import OtbotParams
 
 
 FINAL_NFEV = 20  # iterations of the final fit, started from the last nested fit
-CORRELATION_NOTE = 0.95  # |correlation| of an effect and a nominal parameter worth reporting
+CORRELATION_NOTE = 0.98  # |correlation| of an effect and a nominal parameter worth reporting
 STD_INFLATION_WARN = 2.0  # HAC / white-noise std above this: warn about model-form error
 
 

@@ -199,9 +199,11 @@ def _torque_residual(Q, QD, A, TAU, eff, prm, fixture):
                 B[j, i] = ai[lo + j] - a0[j]
         d = a0 - A[k]
         if fixture == compiled.LOCKED:
-            out[k, 2] = d[2] / B[2, 2]
-        else:
+            out[k, 2] = d[2] / B[2, 2] if B[2, 2] != 0.0 else 0.0
+        elif abs(np.linalg.det(B)) > 1e-12:
             out[k] = np.linalg.solve(B, d)
+        else:  # a torque that does not move the robot (saturated traction): the least-norm torque
+            out[k] = np.linalg.lstsq(B, d)[0]
     return out
 
 

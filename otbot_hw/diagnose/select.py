@@ -21,6 +21,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from itertools import zip_longest
 
@@ -40,6 +41,7 @@ MAX_CANDIDATES = 3
 SHORTLIST_FRACTION = 0.1
 LATER_ROUND_FACTOR = 5.0
 MAX_NESTED = 4  # nested fits per round, taken alternately from the two screenings' shortlists
+MAX_LOOKALIKES = 2  # catalog look-alikes of the best candidate fitted beside it before it is named
 MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
 NESTED_NFEV = 12  # iterations (function evaluations) of a nested fit
 NESTED_TOL = 1e-5  # relative cost/step tolerance of a nested fit (1e-5 of a cost ~ N: < 0.1 BIC)
@@ -418,95 +420,205 @@ def _kappa(recordings: list[DiagnosisData], fit: FitResult) -> float:
     return correlation_factor(weighted_residuals(recordings, fit.model, fit.sigma))
 
 
+def fitting_evidence(c: Candidate) -> bool:
+    """BIC evidence on the fitting recordings alone (``has_evidence`` without the held-out test)."""
+    return c.evidence < -ACCEPT_DBIC
+
+
+def pair_adds(pair: Candidate, first: Candidate) -> bool:
+    """A second effect fitted beside ``first`` adds evidence: the pair's BIC beats the first alone by
+    ``ACCEPT_DBIC`` effective samples, and it predicts the held-out runs no worse than the first alone."""
+    return (pair.dbic - first.dbic) / max(pair.kappa, 1.0) < -ACCEPT_DBIC and not (pair.dholdout > first.dholdout)
+
+
+class _Search:
+    """State of one selection: the data, the base the next candidates are fitted on, what was found."""
+
+    def __init__(self, recordings, holdout, base_fit, nominal_free, progress, casters_configured):
+        self.recordings, self.holdout, self.progress = recordings, holdout, progress
+        self.nominal_free = nominal_free
+        effects = cat.applicable({d.fixture for d in recordings}, casters_configured)
+        self.effects = effects
+        self.by_name = {e.name: e for e in effects}
+        self.current = base_fit
+        self.accepted: list[Candidate] = []
+        self.ambiguous: list[list[Candidate]] = []
+        self.small: list[Candidate] = []
+        self.tried: list[Candidate] = []
+        self.screenings: list[Screening] = []
+        self.sim_screens: list[dict[str, float]] = []
+        self.used: set[str] = set()
+
+    def reference(self, fit: FitResult) -> tuple[float, float, float]:
+        aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
+        return aic, bic, holdout_cost(self.holdout, fit.model)
+
+    def nested(self, name: str, on: FitResult, ref: tuple, guess: dict, screen_gains=(np.nan, np.nan)) -> Candidate:
+        """Fit effect ``name`` beside the model of ``on``; evidence against the reference (AIC, BIC, held-out)."""
+        e = self.by_name[name]
+        names = list(on.names) + [p for p in e.parameters if p not in on.names]
+        self.progress(f"[diagnose] nested fit: + {name} (start {guess})")
+        fit = refit(self.recordings, on.model, names, guess=guess, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
+        aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
+        c = Candidate(name, fit, bic - ref[1], aic - ref[0], holdout_cost(self.holdout, fit.model) - ref[2],
+                      screen_gains[0], screen_gains[1], parameters=tuple(e.parameters))
+        if c.dbic < -ACCEPT_DBIC:
+            c.kappa = _kappa(self.recordings, fit)
+        self.progress(f"[diagnose]   {name}: dBIC {c.dbic:.1f} (kappa {c.kappa:.1f}), held-out d(cost) {c.dholdout:.1f}")
+        self.tried.append(c)
+        return c
+
+    def round(self, on: FitResult, ref: tuple, round_index: int, exclude: set[str]) -> list[Candidate]:
+        """Screen from the model of ``on`` and fit the shortlist beside it."""
+        sc = screen(self.recordings, on.model, self.nominal_free, self.effects, exclude=exclude)
+        self.screenings.append(sc)
+        ss = screen_simulation(self.recordings, on.model, self.nominal_free, self.effects, exclude=exclude)
+        self.sim_screens.append({e: d for e, (d, _) in ss.items()})
+        names = shortlist(sc.single, {e: d for e, (d, _) in ss.items()}, round_index)
+        if not names:
+            self.progress("[diagnose] screening: no further effect explains the equation or simulation residuals")
+            return []
+        self.progress(f"[diagnose] screening shortlist: {', '.join(names)}")
+        return [self.nested(n, on, ref, _effect_guess(self.by_name[n], sc, ss.get(n, (0.0, {}))[1], on.model),
+                            (sc.single.get(n, np.nan), ss.get(n, (np.nan, {}))[0])) for n in names]
+
+    def lookalikes(self, best: Candidate, cands: list[Candidate], on: FitResult, ref: tuple,
+                   exclude: set[str]) -> list[Candidate]:
+        """Fit the best candidate's catalog look-alikes (up to ``MAX_LOOKALIKES``) that the screening did not
+        shortlist, beside the same model: before a name is given, the effects it is known to be mistaken
+        for get the same chance (e.g. a gain error of the other motor, an encoder scale for a radius)."""
+        done = {c.effect for c in cands} | exclude
+        out = []
+        for name in [n for n in self.by_name[best.effect].lookalikes if n in self.by_name and n not in done][
+                :MAX_LOOKALIKES]:
+            e = self.by_name[name]
+            out.append(self.nested(name, on, ref, {p: e.magnitudes[0].get(p, on.model.get(p)) * 0.5
+                                                   for p in e.parameters}))
+        return out
+
+    def polish(self, good: list[Candidate], cands: list[Candidate], ref: tuple) -> tuple:
+        """Guard against an under-converged base fit: refit the base from the best candidate's nominal
+        values; the gains must survive against this polished base (returns the new reference)."""
+        best0 = min(good, key=lambda c: c.dbic)
+        names = self.current.names
+        start = self.current.model.with_values({n: best0.fit.values[n] for n in names})
+        polished = refit(self.recordings, start, names, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
+        new = self.reference(polished)
+        if new[1] < ref[1] - 0.1:
+            self.progress(f"[diagnose] base refit from the candidate's nominal values gains {ref[1] - new[1]:.1f} BIC")
+            for c in cands:
+                c.dbic += ref[1] - new[1]
+                c.daic += ref[0] - new[0]
+                if np.isfinite(ref[2]) and np.isfinite(new[2]):
+                    c.dholdout += ref[2] - new[2]
+            self.current = polished
+            return new
+        return ref
+
+    def judge(self, c: Candidate) -> None:
+        from otbot_hw.diagnose.significance import significance
+
+        vals = {p: c.fit.values[p] for p in c.parameters}
+        c.significance = significance(c.effect, vals, {p: c.fit.std.get(p, float("nan")) for p in c.parameters},
+                                      c.fit.model, self.recordings)
+
+    def take(self, best: Candidate, others: list[Candidate], group: list[Candidate] | None = None) -> None:
+        """Add ``best`` (with the candidates the data cannot tell from it: ``group``, default
+        ``ambiguous_group(best, others)``) to the findings."""
+        group = group or ambiguous_group(best, others)
+        for c in group:
+            self.judge(c)
+        self.used.update(c.effect for c in group)
+        if not matters(best):
+            self.progress(f"[diagnose] {best.effect}: detected, small ({best.significance['statement']})")
+            self.small.append(best)
+            return
+        if len(group) > 1:
+            self.ambiguous.append(group)
+            self.progress(f"[diagnose] ambiguous: {', '.join(c.effect for c in group)}; the search goes on with "
+                          f"{best.effect}")
+        else:
+            self.accepted.append(best)
+        self.current = best.fit
+
+    def second_beside(self, first: Candidate, cands: list[Candidate], ref: tuple) -> Candidate | None:
+        """Fit the next-best candidate with fitting evidence beside ``first`` (two effects at once);
+        the pair's candidate when it adds evidence (``pair_adds``)."""
+        others = sorted((c for c in cands if c is not first and fitting_evidence(c)
+                         and not set(c.parameters) & set(first.parameters)
+                         and c.effect not in ambiguous_effects(first, cands)), key=lambda c: c.dbic)
+        if not others:
+            return None
+        second = others[0]
+        guess = {p: second.fit.values[p] for p in second.parameters}
+        pair = self.nested(second.effect, first.fit, ref, guess, (second.screen_dbic, second.sim_screen_dbic))
+        if pair.dbic < -ACCEPT_DBIC and pair.kappa == 1.0:
+            pair.kappa = _kappa(self.recordings, pair.fit)
+        return pair if pair_adds(pair, first) else None
+
+
+def ambiguous_effects(best: Candidate, cands: list[Candidate]) -> set[str]:
+    """Names the data cannot tell from ``best`` among ``cands`` (``ambiguous_group``)."""
+    return {c.effect for c in ambiguous_group(best, [c for c in cands if c is not best])}
+
+
 def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_fit: FitResult,
            nominal_free: list[str], progress=lambda msg: None, casters_configured: bool = True) -> Selection:
     """Greedy forward selection of effects: screen, nested fits, accept by evidence, judge by physics.
 
     Each round adds the best candidate with evidence (``has_evidence``): alone, or as an ambiguous
     group (carried on with its best member, its members excluded from later rounds), or -- when it
-    does not matter physically -- listed as detected but small and left out of the model. The search
-    goes on after each of these, up to ``MAX_ROUNDS`` rounds."""
-    from otbot_hw.diagnose.significance import significance
-
-    fixtures = {d.fixture for d in recordings}
-    effects = cat.applicable(fixtures, casters_configured)
-    by_name = {e.name: e for e in effects}
-    current = base_fit
-    current_names = list(nominal_free)
-    accepted: list[Candidate] = []
-    ambiguous: list[list[Candidate]] = []
-    small: list[Candidate] = []
-    tried: list[Candidate] = []
-    screenings: list[Screening] = []
-    sim_screens: list[dict[str, float]] = []
-    used: set[str] = set()
+    does not matter physically -- listed as detected but small and left out of the model. Two effects
+    at once: when a second candidate also has evidence, it is fitted beside the best and kept when the
+    pair adds evidence (``pair_adds``); when the best has evidence on the fitting data but predicts the
+    held-out runs worse (a second effect it cannot stand in for), it is carried provisionally for one
+    round and kept only if an effect beside it passes both tests. The search goes on after each of
+    these, up to ``MAX_ROUNDS`` rounds."""
+    S = _Search(recordings, holdout, base_fit, nominal_free, progress, casters_configured)
+    provisional: Candidate | None = None
+    ref = S.reference(S.current)
     for round_index in range(MAX_ROUNDS):
-        sc = screen(recordings, current.model, nominal_free, effects, exclude=used)
-        screenings.append(sc)
-        ss = screen_simulation(recordings, current.model, nominal_free, effects, exclude=used)
-        sim_screens.append({e: d for e, (d, _) in ss.items()})
-        names = shortlist(sc.single, {e: d for e, (d, _) in ss.items()}, round_index)
-        if not names:
-            progress("[diagnose] screening: no further effect explains the equation or simulation residuals")
-            break
-        progress(f"[diagnose] screening shortlist: {', '.join(names)}")
-        aic0, bic0 = information_criteria(current.rss, current.n_samples, current.n_params)
-        ho0 = holdout_cost(holdout, current.model)
-        cands = []
-        for name in names:
-            e = by_name[name]
-            guess = _effect_guess(e, sc, ss.get(name, (0.0, {}))[1], current.model)
-            progress(f"[diagnose] nested fit: + {name} (start {guess})")
-            fit = refit(recordings, current.model, current_names + [p for p in e.parameters if p not in current_names],
-                        guess=guess, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
-            aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
-            cand = Candidate(name, fit, bic - bic0, aic - aic0, holdout_cost(holdout, fit.model) - ho0,
-                             sc.single.get(name, float("nan")), ss.get(name, (float("nan"), {}))[0],
-                             parameters=tuple(e.parameters))
-            if cand.dbic < -ACCEPT_DBIC:
-                cand.kappa = _kappa(recordings, fit)
-            progress(f"[diagnose]   {name}: dBIC {cand.dbic:.1f} (kappa {cand.kappa:.1f}), "
-                     f"held-out d(cost) {cand.dholdout:.1f}")
-            cands.append(cand)
-            tried.append(cand)
+        on = provisional.fit if provisional else S.current
+        cands = S.round(on, ref, round_index, S.used | ({provisional.effect} if provisional else set()))
         good = [c for c in cands if has_evidence(c)]
         if good:
-            # guard against an under-converged base fit: refit the base model from the best candidate's
-            # nominal values; the gain must survive against this polished base
-            best0 = min(good, key=lambda c: c.dbic)
-            start = current.model.with_values({n: best0.fit.values[n] for n in current_names})
-            polished = refit(recordings, start, current_names, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
-            aic_p, bic_p = information_criteria(polished.rss, polished.n_samples, polished.n_params)
-            if bic_p < bic0 - 0.1:
-                progress(f"[diagnose] base refit from the candidate's nominal values gains {bic0 - bic_p:.1f} BIC")
-                ho_p = holdout_cost(holdout, polished.model)
-                for c in cands:
-                    c.dbic += bic0 - bic_p
-                    c.daic += aic0 - aic_p
-                    if np.isfinite(ho0) and np.isfinite(ho_p):
-                        c.dholdout += ho0 - ho_p
-                current, bic0, aic0, ho0 = polished, bic_p, aic_p, ho_p
-                good = [c for c in cands if has_evidence(c)]
+            ref = S.polish(good, cands, ref)
+            good = [c for c in cands if has_evidence(c)]
+        if good:
+            exclude = S.used | ({provisional.effect} if provisional else set())
+            cands += S.lookalikes(min(good, key=lambda c: c.dbic), cands, on, ref, exclude)
+            good = [c for c in cands if has_evidence(c)]
         if not good:
+            fit_only = [c for c in cands if fitting_evidence(c)]
+            if provisional is None and fit_only and round_index + 1 < MAX_ROUNDS:
+                provisional = min(fit_only, key=lambda c: c.dbic)
+                progress(f"[diagnose] {provisional.effect} explains the fitting data but not the held-out runs: "
+                         "carried provisionally, to try a second effect beside it")
+                continue
             break
         good.sort(key=lambda c: c.dbic)
         best = good[0]
-        group = ambiguous_group(best, good[1:])
-        for c in group:
-            vals = {p: c.fit.values[p] for p in c.parameters}
-            c.significance = significance(c.effect, vals, {p: c.fit.std.get(p, float("nan")) for p in c.parameters},
-                                          c.fit.model, recordings)
-        used.update(c.effect for c in group)
-        if not matters(best):
-            progress(f"[diagnose] {best.effect}: detected, small ({best.significance['statement']})")
-            small.append(best)
+        if provisional is not None:
+            # the pair passed where the provisional effect alone did not: both are findings
+            first = dataclasses.replace(provisional, fit=best.fit, dbic=provisional.dbic,
+                                        dholdout=min(provisional.dholdout, best.dholdout))
+            S.take(first, [])
+            S.used.add(first.effect)
+            provisional = None
+            S.take(best, good[1:])
+            ref = S.reference(S.current)
             continue
-        if len(group) > 1:
-            ambiguous.append(group)
-            progress(f"[diagnose] ambiguous: {', '.join(c.effect for c in group)}; the search goes on with "
-                     f"{best.effect}")
+        pair = S.second_beside(best, cands, ref) if round_index + 1 < MAX_ROUNDS else None
+        if pair is not None:
+            single = next(c for c in cands if c.effect == pair.effect)
+            pair.dbic -= best.dbic  # the second effect's own evidence, beside the first
+            progress(f"[diagnose] {pair.effect} beside {best.effect}: the pair adds {-pair.dbic:.0f} BIC")
+            S.take(dataclasses.replace(best, fit=pair.fit), [c for c in good[1:] if c.effect != pair.effect])
+            # the second effect's look-alikes: as hard to tell from it alone as from each other
+            look = [c for c in ambiguous_group(single, [c for c in good if c is not best and c is not single])[1:]]
+            S.take(pair, [], [pair] + look)
         else:
-            accepted.append(best)
-        current = best.fit
-        current_names = list(best.fit.names)
-    return Selection(accepted, ambiguous, tried, screenings, base_fit, current, sim_screens, small, by_name)
+            S.take(best, good[1:])
+        ref = S.reference(S.current)
+    return Selection(S.accepted, S.ambiguous, S.tried, S.screenings, base_fit, S.current, S.sim_screens, S.small,
+                     S.by_name)
