@@ -137,3 +137,13 @@ def test_shortlist_alternates_between_the_screenings_up_to_max_nested():
     eq = {"a": -900.0, "b": -800.0, "c": -700.0}
     sim = {"a": -500.0, "x": -400.0, "y": -300.0}
     assert sel.shortlist(eq, sim, 0) == ["a", "b", "x", "c"][:sel.MAX_NESTED]
+
+
+def test_a_second_effect_beside_the_first_needs_its_own_evidence_and_no_worse_held_out():
+    first = _cand(-5000.0, dholdout=-3000.0)
+    assert sel.pair_adds(_cand(-5010.5, dholdout=-3000.0), first)
+    assert not sel.pair_adds(_cand(-5009.5, dholdout=-3000.0), first)
+    assert not sel.pair_adds(_cand(-6000.0, dholdout=-2999.0), first)  # predicts the held-out runs worse
+    assert sel.pair_adds(_cand(-5021.0, kappa=2.0, dholdout=-3100.0), first)
+    assert not sel.pair_adds(_cand(-5019.0, kappa=2.0, dholdout=-3100.0), first)
+    assert sel.fitting_evidence(_cand(-10.5, dholdout=+100.0)) and not sel.fitting_evidence(_cand(-9.5))

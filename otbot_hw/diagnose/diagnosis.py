@@ -101,9 +101,10 @@ def _correlated_nominal(fit, effect_params, nominal: list[str], limit: float = C
     return out
 
 
-def _candidate_json(c, effects: dict, std: dict | None = None) -> dict:
+def _candidate_json(c, effects: dict, std: dict | None = None, fit=None) -> dict:
+    """A candidate's JSON entry; values from ``fit`` (default its own nested fit), ``std`` likewise."""
     e = effects.get(c.effect) or cat.effect(c.effect)
-    fit = c.fit
+    fit = fit or c.fit
     out = {"name": e.name, "title": e.title, "category": e.category,
            "parameters": _params_json(fit, e.parameters, std),
            "significance": c.significance,
@@ -157,7 +158,7 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
     progress(f"[diagnose] model adequate: {adequacy.adequate}")
     effects = []
     for c in sel.accepted:
-        item = _candidate_json(c, sel.effects, std)
+        item = _candidate_json(c, sel.effects, std, final)
         item["evidence"]["lookalikes_tried"] = [t.effect for t in sel.tried if t.effect != c.effect]
         item["trades_off_against"] = _correlated_nominal(final, sel.effects[c.effect].parameters, nominal_free)
         effects.append(item)
@@ -168,7 +169,9 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
             e = sel.effects[c.effect]
             if any(o.effect in e.lookalikes for o in grp) or not exps:
                 exps.append(e.separating_experiment)
-        ambiguous.append({"candidates": [_candidate_json(c, sel.effects) for c in grp],
+        # the group's best member is in the final model: its values and std from the final fit
+        ambiguous.append({"candidates": [_candidate_json(c, sel.effects, *((std, final) if i == 0 else ()))
+                                         for i, c in enumerate(grp)],
                           "bic_margin": AMBIGUOUS_DBIC, "residual_correlation_factor": grp[0].kappa,
                           "experiment": "; ".join(dict.fromkeys(exps))})
     small = [_candidate_json(c, sel.effects) for c in sel.small]

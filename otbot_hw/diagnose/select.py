@@ -44,6 +44,7 @@ MAX_NESTED = 4  # nested fits per round, taken alternately from the two screenin
 MAX_LOOKALIKES = 2  # catalog look-alikes of the best candidate fitted beside it before it is named
 MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
 NESTED_NFEV = 12  # iterations (function evaluations) of a nested fit
+QUICK_NFEV = 5  # ... after which a candidate without BIC evidence is given up
 NESTED_TOL = 1e-5  # relative cost/step tolerance of a nested fit (1e-5 of a cost ~ N: < 0.1 BIC)
 
 
@@ -458,8 +459,11 @@ class _Search:
         e = self.by_name[name]
         names = list(on.names) + [p for p in e.parameters if p not in on.names]
         self.progress(f"[diagnose] nested fit: + {name} (start {guess})")
-        fit = refit(self.recordings, on.model, names, guess=guess, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
+        fit = refit(self.recordings, on.model, names, guess=guess, max_nfev=QUICK_NFEV, tol=NESTED_TOL)
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
+        if fit.nfev >= QUICK_NFEV and bic - ref[1] < -ACCEPT_DBIC:  # promising and not converged yet: go on
+            fit = refit(self.recordings, fit.model, names, max_nfev=NESTED_NFEV - QUICK_NFEV, tol=NESTED_TOL)
+            aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
         c = Candidate(name, fit, bic - ref[1], aic - ref[0], holdout_cost(self.holdout, fit.model) - ref[2],
                       screen_gains[0], screen_gains[1], parameters=tuple(e.parameters))
         if c.dbic < -ACCEPT_DBIC:
