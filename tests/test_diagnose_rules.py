@@ -146,3 +146,15 @@ def test_a_second_effect_beside_the_first_needs_its_own_evidence_and_no_worse_he
     assert sel.pair_adds(_cand(-5021.0, kappa=2.0, dholdout=-3100.0), first)
     assert not sel.pair_adds(_cand(-5019.0, kappa=2.0, dholdout=-3100.0), first)
     assert sel.fitting_evidence(_cand(-10.5, dholdout=+100.0)) and not sel.fitting_evidence(_cand(-9.5))
+
+
+def test_white_residuals_end_the_search():
+    assert sel.white(_cand(-100.0, kappa=1.19)) and not sel.white(_cand(-100.0, kappa=1.21))
+
+
+def test_a_candidate_that_only_adds_a_parameter_is_not_a_look_alike():
+    slip = sel.Candidate("wheel_slip", None, -1000.0, -1000.0, -1.0, 0.0, parameters=("k_slip",))
+    limit = sel.Candidate("traction_limit", None, -1001.0, -1001.0, -1.0, 0.0, parameters=("k_slip", "t_trac"))
+    enc = sel.Candidate("encoder_scale", None, -995.0, -995.0, -1.0, 0.0, parameters=("e_r", "e_l"))
+    assert [c.effect for c in sel.ambiguous_group(limit, [slip, enc])] == ["wheel_slip", "encoder_scale"]
+    assert [c.effect for c in sel.ambiguous_group(slip, [limit])] == ["wheel_slip"]

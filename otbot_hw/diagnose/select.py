@@ -45,6 +45,7 @@ MAX_LOOKALIKES = 2  # catalog look-alikes of the best candidate fitted beside it
 MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
 NESTED_NFEV = 12  # iterations (function evaluations) of a nested fit
 QUICK_NFEV = 5  # ... after which a candidate without BIC evidence is given up
+KAPPA_WHITE = 1.2  # residual correlation factor of white residuals: nothing left for a further effect
 NESTED_TOL = 1e-5  # relative cost/step tolerance of a nested fit (1e-5 of a cost ~ N: < 0.1 BIC)
 
 
@@ -405,9 +406,15 @@ def has_evidence(c: Candidate) -> bool:
 
 def ambiguous_group(best: Candidate, others: list[Candidate]) -> list[Candidate]:
     """The best candidate and those the data cannot tell from it: BIC within ``AMBIGUOUS_DBIC``
-    effective samples (the best fit's correlation factor deflates the difference)."""
-    return [best] + [c for c in others if c is not best and (c.dbic - best.dbic) / max(best.kappa, 1.0)
-                     < AMBIGUOUS_DBIC]
+    effective samples (the best fit's correlation factor deflates the difference). A candidate that
+    only adds parameters to another one in the group (wheel slip with a traction limit vs wheel slip)
+    is not a look-alike but the same explanation with an unneeded parameter: the simpler one stands
+    for both."""
+    near = [best] + [c for c in others if c is not best
+                     and (c.dbic - best.dbic) / max(best.kappa, 1.0) < AMBIGUOUS_DBIC]
+    keep = [c for c in near if not any(set(o.parameters) < set(c.parameters) for o in near)]
+    lead = best if best in keep else min(keep, key=lambda c: c.dbic)
+    return [lead] + [c for c in keep if c is not lead]
 
 
 def matters(c: Candidate) -> bool:
@@ -530,6 +537,7 @@ class _Search:
         """Add ``best`` (with the candidates the data cannot tell from it: ``group``, default
         ``ambiguous_group(best, others)``) to the findings."""
         group = group or ambiguous_group(best, others)
+        best = group[0]  # the simplest of nested explanations leads
         for c in group:
             self.judge(c)
         self.used.update(c.effect for c in group)
@@ -559,6 +567,11 @@ class _Search:
         if pair.dbic < -ACCEPT_DBIC and pair.kappa == 1.0:
             pair.kappa = _kappa(self.recordings, pair.fit)
         return pair if pair_adds(pair, first) else None
+
+
+def white(c: Candidate) -> bool:
+    """The candidate's residuals are white (``KAPPA_WHITE``): the model explains the data to the noise."""
+    return c.kappa <= KAPPA_WHITE
 
 
 def ambiguous_effects(best: Candidate, cands: list[Candidate]) -> set[str]:
@@ -593,8 +606,10 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             cands += S.lookalikes(min(good, key=lambda c: c.dbic), cands, on, ref, exclude)
             good = [c for c in cands if has_evidence(c)]
         if not good:
+            # the first round's best explains the fitting data but predicts the held-out runs worse: a
+            # second effect it cannot stand in for may be at work
             fit_only = [c for c in cands if fitting_evidence(c)]
-            if provisional is None and fit_only and round_index + 1 < MAX_ROUNDS:
+            if provisional is None and fit_only and round_index == 0:
                 provisional = min(fit_only, key=lambda c: c.dbic)
                 progress(f"[diagnose] {provisional.effect} explains the fitting data but not the held-out runs: "
                          "carried provisionally, to try a second effect beside it")
@@ -612,7 +627,8 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             S.take(best, good[1:])
             ref = S.reference(S.current)
             continue
-        pair = S.second_beside(best, cands, ref) if round_index + 1 < MAX_ROUNDS else None
+        # a second effect beside the best only when the best leaves structure (correlated residuals)
+        pair = S.second_beside(best, cands, ref) if round_index + 1 < MAX_ROUNDS and not white(best) else None
         if pair is not None:
             single = next(c for c in cands if c.effect == pair.effect)
             pair.dbic -= best.dbic  # the second effect's own evidence, beside the first
@@ -623,6 +639,9 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             S.take(pair, [], [pair] + look)
         else:
             S.take(best, good[1:])
+        if white(best) and S.current is best.fit:
+            progress(f"[diagnose] residuals white after {best.effect} (kappa {best.kappa:.2f}): search done")
+            break
         ref = S.reference(S.current)
     return Selection(S.accepted, S.ambiguous, S.tried, S.screenings, base_fit, S.current, S.sim_screens, S.small,
                      S.by_name)
