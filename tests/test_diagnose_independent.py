@@ -2,8 +2,8 @@
 that imports nothing from otbot_hw (own 9x9 dynamics from body kinematics, nearly hard friction signs, own
 sensor model, plain mcap writer, no truth topic). Small fast version of benchmarks/diagnose_independent.py:
 the simulator against the project's model, a gyro bias that the fit-% yardstick used to drop, a one-sided
-wheel radius change and clean runs on two seeds (5 s recordings)."""
-import importlib.util
+wheel radius change and a clean run (5 s recordings)."""
+import importlib
 import sys
 from pathlib import Path
 
@@ -16,10 +16,7 @@ ROOT = Path(__file__).resolve().parent.parent
 @pytest.fixture(scope="module")
 def independent():
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("diagnose_independent", ROOT / "benchmarks" / "diagnose_independent.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return importlib.import_module("diagnose_independent")
 
 
 def test_independent_simulator_is_independent_and_agrees_with_the_papers_model(independent):
@@ -47,8 +44,7 @@ def test_one_wheel_radius_change_is_sized_or_reported_with_its_look_alikes(indep
     assert r["right"], (r["verdict"], r["errors"])
 
 
-@pytest.mark.parametrize("rep", [0, 1])
-def test_independent_negative_controls_add_nothing(independent, rep):
-    r = independent.run_case("none", rep=rep, duration=5.0)
+def test_independent_negative_control_adds_nothing(independent):
+    r = independent.run_case("none", rep=1, duration=5.0)
     assert r["right"] and r["named"] == [] and r["ambiguous"] == [] and r["model_adequate"], r["verdict"]
     assert r["verdict"].startswith("No missing physics found")
