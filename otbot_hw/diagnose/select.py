@@ -461,14 +461,18 @@ class _Search:
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
         return aic, bic, holdout_cost(self.holdout, fit.model)
 
-    def nested(self, name: str, on: FitResult, ref: tuple, guess: dict, screen_gains=(np.nan, np.nan)) -> Candidate:
-        """Fit effect ``name`` beside the model of ``on``; evidence against the reference (AIC, BIC, held-out)."""
+    def nested(self, name: str, on: FitResult, ref: tuple, guess: dict, screen_gains=(np.nan, np.nan),
+               beside: float | None = None) -> Candidate:
+        """Fit effect ``name`` beside the model of ``on``; evidence against the reference (AIC, BIC, held-out).
+        The fit goes on after the quick look only while it shows BIC evidence -- against the reference, or
+        against ``beside`` (the BIC gain of the effect already in ``on``) for a second effect."""
         e = self.by_name[name]
         names = list(on.names) + [p for p in e.parameters if p not in on.names]
         self.progress(f"[diagnose] nested fit: + {name} (start {guess})")
         fit = refit(self.recordings, on.model, names, guess=guess, max_nfev=QUICK_NFEV, tol=NESTED_TOL)
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
-        if fit.nfev >= QUICK_NFEV and bic - ref[1] < -ACCEPT_DBIC:  # promising and not converged yet: go on
+        bar = ref[1] + (beside if beside is not None else 0.0)
+        if fit.nfev >= QUICK_NFEV and bic - bar < -ACCEPT_DBIC:  # promising and not converged yet: go on
             fit = refit(self.recordings, fit.model, names, max_nfev=NESTED_NFEV - QUICK_NFEV, tol=NESTED_TOL)
             aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
         c = Candidate(name, fit, bic - ref[1], aic - ref[0], holdout_cost(self.holdout, fit.model) - ref[2],
@@ -563,7 +567,8 @@ class _Search:
             return None
         second = others[0]
         guess = {p: second.fit.values[p] for p in second.parameters}
-        pair = self.nested(second.effect, first.fit, ref, guess, (second.screen_dbic, second.sim_screen_dbic))
+        pair = self.nested(second.effect, first.fit, ref, guess, (second.screen_dbic, second.sim_screen_dbic),
+                           beside=first.dbic)
         if pair.dbic < -ACCEPT_DBIC and pair.kappa == 1.0:
             pair.kappa = _kappa(self.recordings, pair.fit)
         return pair if pair_adds(pair, first) else None
@@ -639,8 +644,9 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             S.take(pair, [], [pair] + look)
         else:
             S.take(best, good[1:])
-        if white(best) and S.current is best.fit:
-            progress(f"[diagnose] residuals white after {best.effect} (kappa {best.kappa:.2f}): search done")
+        last = pair or best
+        if white(last) and S.current is last.fit:
+            progress(f"[diagnose] residuals white after {last.effect} (kappa {last.kappa:.2f}): search done")
             break
         ref = S.reference(S.current)
     return Selection(S.accepted, S.ambiguous, S.tried, S.screenings, base_fit, S.current, S.sim_screens, S.small,
