@@ -253,7 +253,9 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(keep) if keep else Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        paths = make_recordings(case, rep, folder, duration)
+        paths = [folder / f"{case.label}_{rep}_{k}.mcap" for k in ("fit", "heldout")]
+        if not (keep and duration == DURATION and all(p.exists() for p in paths)):  # kept recordings are reused
+            paths = make_recordings(case, rep, folder, duration)
         assert read_recording(paths[0]).truth_q is None
         t_sim = time.perf_counter() - t0
         P, geometry = tool_inputs(case)

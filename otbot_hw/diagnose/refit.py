@@ -141,8 +141,8 @@ MAX_LAG_FRACTION = 0.25  # longest autocorrelation lag considered, fraction of t
 
 
 def _autocorr(r: np.ndarray, max_lag: int) -> np.ndarray:
-    """Autocorrelation rho_1..rho_max_lag of one residual series (FFT)."""
-    r = r - r.mean()
+    """Autocorrelation rho_1..rho_max_lag of one residual series about zero, not about its mean (FFT):
+    the residuals of a right model have zero mean, so an offset (an IMU bias left out) is structure."""
     n = len(r)
     f = np.fft.rfft(r, 2 * n)
     ac = np.fft.irfft(f * np.conj(f))[:max_lag + 1]

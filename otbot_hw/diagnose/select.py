@@ -636,12 +636,19 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
         pair = S.second_beside(best, cands, ref) if round_index + 1 < MAX_ROUNDS and not white(best) else None
         if pair is not None:
             single = next(c for c in cands if c.effect == pair.effect)
-            pair.dbic -= best.dbic  # the second effect's own evidence, beside the first
+            # the second effect's look-alikes (as hard to tell from it alone) get their own fit beside the first
+            alike = [c for c in ambiguous_group(single, [c for c in good if c is not best and c is not single])
+                     if c is not single]
+            beside = [S.nested(c.effect, best.fit, ref, {p: c.fit.values[p] for p in c.parameters},
+                               (c.screen_dbic, c.sim_screen_dbic), beside=best.dbic) for c in alike]
+            for c in [pair] + beside:
+                c.dbic -= best.dbic  # each second effect's own evidence, beside the first
             progress(f"[diagnose] {pair.effect} beside {best.effect}: the pair adds {-pair.dbic:.0f} BIC")
-            S.take(dataclasses.replace(best, fit=pair.fit), [c for c in good[1:] if c.effect != pair.effect])
-            # the second effect's look-alikes: as hard to tell from it alone as from each other
-            look = [c for c in ambiguous_group(single, [c for c in good if c is not best and c is not single])[1:]]
-            S.take(pair, [], [pair] + look)
+            # the first's look-alikes are judged with the correlation the pair leaves (the second effect's
+            # residual inflated every single fit's alike)
+            S.take(dataclasses.replace(best, fit=pair.fit, kappa=pair.kappa),
+                   [c for c in good[1:] if c.effect != pair.effect])
+            S.take(pair, beside)
         else:
             S.take(best, good[1:])
         last = pair or best
