@@ -12,12 +12,25 @@
    parameters (Stribeck speed, saturation level, lag, latency) are profiled on a grid.
    A second screen, ``screen_simulation``, is a score test on the simulation residuals
    (one linearised Gauss-Newton step per effect); the shortlist is the union of both.
-2. **Nested fits**: the best screened candidates are re-identified jointly with the free
-   nominal parameters by simulation output error through ``refit.refit``. An effect is
-   accepted when its BIC beats the nominal model by ``ACCEPT_DBIC``, with held-out
-   recordings when it predicts them better, and when it matters: some channel's fit (fitting
-   or held-out) improves by at least ``MIN_FIT_GAIN`` percentage points. Candidates within ``AMBIGUOUS_DBIC`` of the
-   best one are reported as ambiguous with the experiment that separates them.
+2. **Nested fits**: the shortlisted candidates (``shortlist``) are re-identified jointly with
+   the free nominal parameters by simulation output error through ``refit.refit`` (a quick
+   look of ``QUICK_NFEV`` iterations, continued only with evidence). The rules, pure
+   functions pinned by ``tests/test_diagnose_rules.py``:
+
+   * ``has_evidence``: BIC beats the base by ``ACCEPT_DBIC`` *effective* samples (divided by
+     the residual correlation factor kappa = N / N_eff, ``refit.correlation_factor``) and the
+     held-out recordings are not predicted worse;
+   * ``ambiguous_group``: candidates within ``AMBIGUOUS_DBIC`` effective samples of the best
+     (a candidate that only adds parameters to another is not a look-alike);
+   * ``matters``: the effect's physical significance (``significance.py``) -- torque, drift,
+     odometry, delay -- not a channel's fit %; with evidence but not mattering it is listed as
+     detected but small;
+   * ``pair_adds``: a second effect fitted beside the best adds evidence of its own;
+   * ``white``: residuals white (kappa <= ``KAPPA_WHITE``): nothing left to search for.
+
+   Before a name is given, the best candidate's catalog look-alikes get a nested fit too. The
+   search goes on after an accepted effect, an ambiguous group or a small detection, up to
+   ``MAX_ROUNDS`` rounds (``choose``).
 """
 from __future__ import annotations
 
