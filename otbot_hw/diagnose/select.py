@@ -55,6 +55,7 @@ SHORTLIST_FRACTION = 0.1
 LATER_ROUND_FACTOR = 5.0
 MAX_NESTED = 4  # nested fits per round, taken alternately from the two screenings' shortlists
 MAX_LOOKALIKES = 2  # catalog look-alikes of the best candidate fitted beside it before it is named
+MAX_PAIR_TRIES = 2  # second candidates fitted beside a best that leaves correlated residuals
 MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
 NESTED_NFEV = 12  # iterations (function evaluations) of a nested fit
 QUICK_NFEV = 5  # ... after which a candidate without BIC evidence is given up
@@ -571,30 +572,29 @@ class _Search:
         self.current = best.fit
 
     def second_beside(self, first: Candidate, cands: list[Candidate], ref: tuple) -> Candidate | None:
-        """Fit the next-best candidate with fitting evidence beside ``first`` (two effects at once);
-        the pair's candidate when it adds evidence (``pair_adds``)."""
+        """Fit a second candidate with fitting evidence beside ``first`` (two effects at once) and return the
+        pair's candidate when it adds evidence (``pair_adds``). Tried in order: candidates that are not
+        catalog look-alikes of ``first`` (other physics, likely the rest of the residual), then its
+        look-alikes, each by BIC gain; at most ``MAX_PAIR_TRIES``. Before this, nothing is grouped as
+        ambiguous: two effects that each leave correlated residuals may both be there."""
+        look = set(self.by_name[first.effect].lookalikes)
         others = sorted((c for c in cands if c is not first and fitting_evidence(c)
-                         and not set(c.parameters) & set(first.parameters)
-                         and c.effect not in ambiguous_effects(first, cands)), key=lambda c: c.dbic)
-        if not others:
-            return None
-        second = others[0]
-        guess = {p: second.fit.values[p] for p in second.parameters}
-        pair = self.nested(second.effect, first.fit, ref, guess, (second.screen_dbic, second.sim_screen_dbic),
-                           beside=first.dbic)
-        if pair.dbic < -ACCEPT_DBIC and pair.kappa == 1.0:
-            pair.kappa = _kappa(self.recordings, pair.fit)
-        return pair if pair_adds(pair, first) else None
+                         and not set(c.parameters) & set(first.parameters)),
+                        key=lambda c: (c.effect in look, c.dbic))
+        for second in others[:MAX_PAIR_TRIES]:
+            guess = {p: second.fit.values[p] for p in second.parameters}
+            pair = self.nested(second.effect, first.fit, ref, guess, (second.screen_dbic, second.sim_screen_dbic),
+                               beside=first.dbic)
+            if pair.dbic < -ACCEPT_DBIC and pair.kappa == 1.0:
+                pair.kappa = _kappa(self.recordings, pair.fit)
+            if pair_adds(pair, first):
+                return pair
+        return None
 
 
 def white(c: Candidate) -> bool:
     """The candidate's residuals are white (``KAPPA_WHITE``): the model explains the data to the noise."""
     return c.kappa <= KAPPA_WHITE
-
-
-def ambiguous_effects(best: Candidate, cands: list[Candidate]) -> set[str]:
-    """Names the data cannot tell from ``best`` among ``cands`` (``ambiguous_group``)."""
-    return {c.effect for c in ambiguous_group(best, [c for c in cands if c is not best])}
 
 
 def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_fit: FitResult,
@@ -650,8 +650,9 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
         if pair is not None:
             single = next(c for c in cands if c.effect == pair.effect)
             # the second effect's look-alikes (as hard to tell from it alone) get their own fit beside the first
-            alike = [c for c in ambiguous_group(single, [c for c in good if c is not best and c is not single])
-                     if c is not single]
+            alike = [c for c in good if c is not best and c is not single
+                     and abs(c.dbic - single.dbic) / max(single.kappa, 1.0) < AMBIGUOUS_DBIC
+                     and not set(c.parameters) & set(best.parameters)]
             beside = [S.nested(c.effect, best.fit, ref, {p: c.fit.values[p] for p in c.parameters},
                                (c.screen_dbic, c.sim_screen_dbic), beside=best.dbic) for c in alike]
             for c in [pair] + beside:
