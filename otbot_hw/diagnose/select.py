@@ -548,8 +548,9 @@ class _Search:
         from otbot_hw.diagnose.significance import significance
 
         vals = {p: c.fit.values[p] for p in c.parameters}
+        # what the effect does over every run at hand, held-out ones included (their speeds and torques)
         c.significance = significance(c.effect, vals, {p: c.fit.std.get(p, float("nan")) for p in c.parameters},
-                                      c.fit.model, self.recordings)
+                                      c.fit.model, self.recordings + self.holdout)
 
     def take(self, best: Candidate, others: list[Candidate], group: list[Candidate] | None = None) -> None:
         """Add ``best`` (with the candidates the data cannot tell from it: ``group``, default
@@ -634,7 +635,19 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
                 continue
             break
         good.sort(key=lambda c: c.dbic)
-        best = good[0]
+        # the best candidate that matters physically leads; better-evidenced ones that do not matter are listed
+        # as detected but small; when none matters, nothing on this model does: the search ends
+        for c in good:
+            S.judge(c)
+        lead = next((c for c in good if matters(c)), None)
+        for c in good[:good.index(lead) if lead is not None else len(good)]:
+            progress(f"[diagnose] {c.effect}: detected, small ({c.significance['statement']})")
+            S.small.append(c)
+            S.used.add(c.effect)
+        if lead is None:
+            break
+        good = good[good.index(lead):]
+        best = lead
         if provisional is not None:
             # the pair passed where the provisional effect alone did not: both are findings
             first = dataclasses.replace(provisional, fit=best.fit, dbic=provisional.dbic,

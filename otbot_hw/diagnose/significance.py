@@ -39,15 +39,17 @@ Z_MIN = 2.0
 WHEELS, PIVOT = (0, 1), (2,)
 
 
-def motion_scales(recordings: list[DiagnosisData], r: float) -> dict[str, np.ndarray | float]:
-    """RMS command per motor (N m), RMS joint speed per motor (rad/s), RMS pivot speed (m/s, ~ r x
-    mean wheel speed), over the recordings."""
+def motion_scales(recordings: list[DiagnosisData], r: float, l1: float, l2: float) -> dict[str, np.ndarray | float]:
+    """RMS command per motor (N m), RMS joint speed per motor (rad/s) and RMS speed of the pivot P (m/s:
+    the axle midpoint's r (w_r + w_l) / 2 along the chassis axis and l1 theta_dot across it), over the
+    recordings."""
     u = np.concatenate([d.u for d in recordings])
     w = np.concatenate([np.where(np.isfinite(d.enc_vel), d.enc_vel, 0.0) if d.enc_vel is not None
                         else np.zeros_like(d.u) for d in recordings])
     v = r * 0.5 * (w[:, 0] + w[:, 1])
+    thd = r * (w[:, 0] - w[:, 1]) / (2 * l2)
     return {"u_rms": np.sqrt(np.mean(u ** 2, axis=0)), "w_rms": np.sqrt(np.mean(w ** 2, axis=0)),
-            "v_rms": float(np.sqrt(np.mean(v ** 2))), "u": u}
+            "v_rms": float(np.sqrt(np.mean(v ** 2 + (l1 * thd) ** 2))), "u": u}
 
 
 def format_with_std(v: float, s: float | None) -> str:
@@ -70,9 +72,10 @@ def _z(values: dict, std: dict, names) -> float:
 def significance(name: str, values: dict[str, float], std: dict[str, float], model: ExtendedModel,
                  recordings: list[DiagnosisData]) -> dict:
     """Physical impact of effect ``name`` with fitted ``values`` (± ``std``) on ``model``'s robot in these
-    recordings: {statement, quantity, value, unit, threshold, size_over_std, matters}."""
+    recordings (the diagnosis passes fitting and held-out runs: the motion the robot does):
+    {statement, quantity, value, unit, threshold, size_over_std, matters}."""
     p = model.params
-    sc = motion_scales(recordings, p.r)
+    sc = motion_scales(recordings, p.r, p.l1, p.l2)
     u_rms, w_rms = sc["u_rms"], sc["w_rms"]
 
     def torque(t_joint: float, motors, what: str, main: tuple[str, ...]):
