@@ -33,10 +33,11 @@ def run_case(effect_name: str, magnitude_index: int, seed: int, scale: float = 1
 
     params = nominal()
     values = {} if effect_name == "none" else dict(cat.effect(effect_name).magnitudes[magnitude_index])
-    # scale the effect's size (not the Stribeck speed, which is a shape parameter)
-    values = {k: (v if k == "v_s" else (v if k == "u_max" else v * scale)) for k, v in values.items()}
-    if "u_max" in values and scale != 1.0:
-        values["u_max"] = 4.0 - (4.0 - values["u_max"]) * scale  # clip less of the 4 N m peaks
+    # scale the effect's size (not the Stribeck speed, which is a shape parameter); limits (saturation,
+    # traction) clip less of the 4 N m peaks
+    limits = ("u_max", "u_max_r", "u_max_l", "u_max_p", "t_trac")
+    values = {k: (v if k == "v_s" else (4.0 - (4.0 - v) * scale if k in limits else v * scale))
+              for k, v in values.items()}
     fit = [from_recording(concealed_recording(params, values, "multisine", 10.0, seed=100 * seed + 1), "multisine"),
            from_recording(concealed_recording(params, values, "stand", 4.0, seed=100 * seed + 2), "stand")]
     held = [from_recording(concealed_recording(params, values, "tracking", 10.0, seed=100 * seed + 3), "tracking")]
@@ -60,7 +61,8 @@ def run_case(effect_name: str, magnitude_index: int, seed: int, scale: float = 1
                         src = c["parameters"]
         if src:
             est = {k: v["value"] for k, v in src.items()}
-            rel = max(abs(est[k] - v) / abs(v) for k, v in values.items())
+            size = max(abs(v) for v in values.values())  # a zero true value is judged against the effect's size
+            rel = max(abs(est[k] - v) / (abs(v) if v != 0 else size) for k, v in values.items())
     hb, ha = r["fit_before"]["heldout"], r["fit_after"]["heldout"]
     return {"true": effect_name, "magnitude": magnitude_index, "seed": seed, "values": values, "named": named,
             "ambiguous": amb, "estimate": est, "max_rel_error": rel,

@@ -15,16 +15,18 @@ from otbot_hw.simulation.concealed import concealed_recording
 P = nominal()
 
 
-def _sets(values, seed=7, stand=False):
-    fit = [from_recording(concealed_recording(P, values, "multisine", 6.0, seed=seed), "multisine")]
+def _sets(values, seed=7, stand=False, duration=5.0):
+    fit = [from_recording(concealed_recording(P, values, "multisine", duration, seed=seed), "multisine")]
     if stand:
-        fit.append(from_recording(concealed_recording(P, values, "stand", 2.0, seed=seed + 1), "stand"))
-    held = [from_recording(concealed_recording(P, values, "tracking", 6.0, seed=seed + 2), "tracking")]
+        fit.append(from_recording(concealed_recording(P, values, "stand", 1.5, seed=seed + 1), "stand"))
+    held = [from_recording(concealed_recording(P, values, "tracking", duration, seed=seed + 2), "tracking")]
     return fit, held
 
 
 def _check_found(result, name, truth):
+    assert result["model_adequate"], result["verdict"]
     assert [e["name"] for e in result["effects"]] == [name], result["verdict"]
+    assert result["effects"][0]["significance"]["matters"] is True
     got = result["effects"][0]["parameters"]
     for k, v in truth.items():
         assert got[k]["value"] == pytest.approx(v, rel=0.2), (k, got[k])
@@ -60,9 +62,11 @@ def test_concealed_effect_is_found_named_and_sized(name, truth):
     _check_found(r, name, truth)
 
 
-def test_negative_control_adds_nothing():
-    fit, held = _sets({}, seed=5)
+@pytest.mark.parametrize("seed", [5, 6, 8])
+def test_negative_control_adds_nothing(seed):
+    fit, held = _sets({}, seed=seed, duration=4.0)
     r = diagnose(fit, P, held)
+    assert r["model_adequate"] and r["detected_small"] == []
     assert r["effects"] == [] and r["ambiguous"] == []
     assert r["verdict"].startswith("No missing physics found")
     for ch, v in r["fit_after"]["fitting"].items():
@@ -257,3 +261,78 @@ def test_fleet_runs_on_the_shared_executor_serial_and_dask(tmp_path, capsys):
         assert main(["diagnose", str(paths[0]), *argv]) == 2
         cap = capsys.readouterr()
         assert cap.out == "" and "--" in cap.err
+
+
+def _write(tmp_path, name, values, kind, duration, seed, params=P):
+    path = tmp_path / name
+    write_recording(path, concealed_recording(params, values, kind, duration, seed=seed))
+    return path
+
+
+def test_wrong_parameter_file_gives_model_inadequate_and_exit_1_not_a_finding(tmp_path, capsys):
+    """The file claims a 15 kg platform load that the robot does not carry (the diagnosis takes m_p, x_F,
+    y_F as known): no effect is named, the platform parameters are suspected, exit code 1."""
+    fit = _write(tmp_path, "fit.mcap", {}, "multisine", 4.0, 31)
+    held = _write(tmp_path, "held.mcap", {}, "tracking", 4.0, 32)
+    wrong = tmp_path / "wrong.yaml"
+    P.with_load(15.0, 0.12, 0.05, 0.2).save(wrong)
+    with pytest.raises(SystemExit) as exc:
+        main(["diagnose", str(fit), "--holdout", str(held), "--params", str(wrong), "--json",
+              "--out", str(tmp_path / "model.yaml")])
+    assert exc.value.code == 1
+    cap = capsys.readouterr()
+    r = json.loads(cap.out)
+    assert r["model_adequate"] is False and r["effects"] == [] and r["ambiguous"] == []
+    assert {"m_p", "x_F", "y_F"} <= set(r["suspect_parameters"])
+    assert r["adequacy"]["channels"] or r["adequacy"]["moved"] or r["adequacy"]["on_bound"]
+    assert r["verdict"].startswith("Model inadequate") and "step 3" in r["verdict"]
+    assert "model inadequate" in cap.err and not (tmp_path / "model.yaml").exists()
+    # the right file: the same recordings are adequate and nothing is named
+    r = diagnose(from_recording_path(fit), P, from_recording_path(held))
+    assert r["model_adequate"] is True and r["effects"] == [] and r["suspect_parameters"] == []
+
+
+def from_recording_path(path):
+    from otbot_hw.diagnose.data import load
+
+    return load([path])
+
+
+def test_truncated_recording_is_diagnosed_on_its_complete_samples(tmp_path, capsys):
+    full = _write(tmp_path, "full.mcap", {}, "multisine", 3.0, 33)
+    cut = tmp_path / "cut.mcap"
+    data = full.read_bytes()
+    cut.write_bytes(data[:int(0.7 * len(data))])
+    assert main(["diagnose", str(cut), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    (t,) = r["truncated_recordings"]
+    assert t["recording"] == str(cut) and 100 < t["complete_samples"] < 301
+    assert f"cut short: diagnosed on its {t['complete_samples']} complete samples" in r["verdict"]
+    assert any("cut short" in w for w in r["warnings"])
+
+
+def test_robot_configuration_gives_caster_and_imu_geometry(tmp_path, capsys):
+    from otbot_hw.diagnose.geometry import load_geometry
+    from otbot_hw.params import ParameterError
+
+    default = load_geometry()  # config/robot.yaml: positions not configured, so they are fitted
+    assert default.casters == () and default.imu_position is None
+    good = tmp_path / "robot.yaml"
+    good.write_text("casters:\n  - {x: {value: 0.35, unit: m}, y: {value: 0.12, unit: m}}\n"
+                    "  - {x: {value: 0.35, unit: m}, y: {value: -0.12, unit: m}}\n"
+                    "imu:\n  mounting:\n    position: {x: {value: 0.08, unit: m}, y: {value: -0.04, unit: m}}\n")
+    g = load_geometry(good)
+    assert g.casters == ((0.35, 0.12), (0.35, -0.12)) and g.imu_position == (0.08, -0.04)
+    assert g.effect_values() == {"n_cst": 2.0, "x_c1": 0.35, "y_c1": 0.12, "x_c2": 0.35, "y_c2": -0.12,
+                                 "d_x": 0.08, "d_y": -0.04}
+    for text, message in (("casters: []", "list of 1 to 4"),
+                          ("casters:\n  - {x: {value: 0.3, unit: cm}, y: {value: 0, unit: m}}", "unit must be 'm'"),
+                          ("casters:\n  - {x: {value: 3.0, unit: m}, y: {value: 0, unit: m}}", "farther than"),
+                          ("imu:\n  mounting:\n    position: {x: {value: 0.1, unit: m}}", "imu.mounting.position")):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(text + "\n")
+        with pytest.raises(ParameterError, match=message):
+            load_geometry(bad)
+    fit = _write(tmp_path, "fit.mcap", {}, "multisine", 1.0, 34)
+    assert main(["diagnose", str(fit), "--robot", str(tmp_path / "bad.yaml")]) == 2
+    assert "imu.mounting.position" in capsys.readouterr().err

@@ -65,32 +65,33 @@ def test_coulomb_friction_dissipates_power_c_times_speed(params):
 
 def test_gain_saturation_and_lag_shape_the_delivered_torque(params):
     U = np.tile([10.0, -2.0, 4.0], (50, 1))
-    eff = fx.effect_vector({"k_r": -0.1, "u_max": 8.0, "T_i": 0.03})
+    eff = fx.ExtendedModel.paper(params).with_values({"k_r": -0.1, "u_max": 8.0, "T_i": 0.03}).eff
     tr = simulate_extended(params, eff, U, 0.01, fixture="stand")
     assert tr.tau[-1] == pytest.approx([8.0, -2.0, 4.0], abs=1e-4)  # 9 N m clipped to 8
     assert tr.tau[3, 2] == pytest.approx(4.0 * (1 - np.exp(-0.03 / 0.03)), rel=1e-9)
 
 
-def test_wheel_radius_asymmetry_conserves_energy_and_scales_encoders(params):
-    """Unequal radii: work of the motors on the real wheel angles = change of the true kinetic energy
-    (wheel inertia on phi = rho psi), and the encoders read phi_i = psi_i / (1 +- dr)."""
-    dr = 0.03
+@pytest.mark.parametrize("dr_r,dr_l", [(0.03, -0.03), (0.04, 0.0)])
+def test_unequal_wheel_radii_conserve_energy_and_scale_encoders(params, dr_r, dr_l):
+    """Unequal radii (opposite changes, or one wheel only): work of the motors on the real wheel angles
+    = change of the true kinetic energy (wheel inertia on phi = rho psi), and the encoders read
+    phi_i = psi_i / (1 + dr_i)."""
     p = params.replace(b_w=0.0, b_p=0.0)
-    eff = fx.effect_vector({"dr": dr})
+    eff = fx.effect_vector({"dr_r": dr_r, "dr_l": dr_l})
     U = _torques(300)
     tr = simulate_extended(p, eff, U, 0.01)
     s = fx.sensor_outputs(tr, p, eff)
-    assert np.allclose(s["joint_pos"][:, 0], tr.x[:, 3] / (1 + dr), rtol=1e-12)
-    assert np.allclose(s["joint_pos"][:, 1], tr.x[:, 4] / (1 - dr), rtol=1e-12)
+    assert np.allclose(s["joint_pos"][:, 0], tr.x[:, 3] / (1 + dr_r), rtol=1e-12)
+    assert np.allclose(s["joint_pos"][:, 1], tr.x[:, 4] / (1 + dr_l), rtol=1e-12)
     phi = s["joint_pos"]
     work = np.sum(U * np.diff(phi, axis=0))
-    rho = np.array([1 / (1 + dr), 1 / (1 - dr)])
+    rho = np.array([1 / (1 + dr_r), 1 / (1 + dr_l)])
 
     def true_ke(x):
         return kinetic_energy(x[:6], x[6:], p) + 0.5 * p.I_a * np.sum((rho ** 2 - 1) * x[9:11] ** 2)
 
     assert true_ke(tr.x[-1]) - true_ke(tr.x[0]) == pytest.approx(work, rel=1e-6)
-    # and the paper's model (dr = 0) would not balance these encoder readings
+    # and the paper's model (equal radii) would not balance these encoder readings
     ref = simulate_extended(p, fx.effect_vector(), U, 0.01)
     assert abs(np.sum(U * np.diff(ref.x[:, 3:6], axis=0)) - work) > 1e-3 * abs(work)
 
@@ -132,3 +133,95 @@ def test_runs_test_flags_structured_residuals_only():
     assert runs_test(white)[1] > 0.01
     drift = np.sin(np.linspace(0, 6, 400)) + 0.1 * rng.standard_normal(400)
     assert runs_test(drift)[1] < 1e-6
+
+
+def test_each_motor_saturates_at_its_own_limit():
+    eff = fx.effect_vector({"u_max_r": 3.0, "u_max_p": 1.5})
+    assert np.allclose(fx.actuated_torque(np.array([5.0, -7.0, -2.0]), eff), [3.0, -7.0, -1.5])
+    tied = fx.ExtendedModel.paper(nominal_params()).with_values({"u_max": 2.0})
+    assert tied.get("u_max") == 2.0 and np.allclose(tied.eff[[fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P]], 2.0)
+
+
+def nominal_params():
+    from otbot_hw.params import nominal
+
+    return nominal()
+
+
+@pytest.mark.parametrize("tau_tr", [0.5, 2.0, 2.9, 3.5, 8.0, -6.0, 0.0])
+def test_traction_limited_slip_solves_the_wheel_balance(tau_tr):
+    """sigma solves tau_tr - b sigma = T tanh(sigma / (k T)); the ground torque never exceeds T; below the
+    limit the wheel creeps k tau, above it spins up until viscous friction takes the excess."""
+    k, T, b = 0.02, 3.0, 0.18
+    eff = fx.effect_vector({"k_slip": k, "t_trac": T})
+    sigma, tg = fx.slip_state(tau_tr, b, eff)
+    assert tau_tr - b * sigma == pytest.approx(T * np.tanh(sigma / (k * T)), abs=1e-9)
+    assert tg == pytest.approx(tau_tr - b * sigma, abs=1e-9) and abs(tg) <= T
+    if abs(tg) < 0.999 * T:
+        assert sigma == pytest.approx(k * T * np.arctanh(tg / T), rel=1e-7, abs=1e-12)  # on the traction curve
+    if abs(tau_tr) < 0.2 * T:
+        assert sigma == pytest.approx(k * tau_tr, rel=0.03)  # linear creep
+    if abs(tau_tr) > 2 * T:
+        assert sigma == pytest.approx((tau_tr - np.sign(tau_tr) * T) / b, rel=0.01)
+    # no traction limit: the linear creep law
+    assert fx.slip_state(tau_tr, b, fx.effect_vector({"k_slip": k})) == pytest.approx((k * tau_tr, tau_tr))
+
+
+def test_saturated_traction_limits_the_body_and_races_the_encoders(params):
+    U = np.tile([8.0, 8.0, 0.0], (60, 1))
+    lim = fx.effect_vector({"k_slip": 0.02, "t_trac": 3.0})
+    tr = simulate_extended(params, lim, U, 0.01)
+    free = simulate_extended(params, fx.effect_vector({"k_slip": 0.02}), U, 0.01)
+    assert np.max(np.abs(tr.qdd[:, 0])) < 0.45 * np.max(np.abs(free.qdd[:, 0]))  # ~3 of 8 N m reach the ground
+    s = fx.sensor_outputs(tr, params, lim)
+    assert np.all(s["joint_vel"][10:, :2] > tr.x[10:, 9:11] + 5.0)  # the wheels spin far ahead of rolling
+
+
+def test_caster_drag_dissipates_exactly_its_contact_power(params):
+    """Q . q_dot of the caster forces = -sum f_j |v_j|^2 / sqrt(|v_j|^2 + w^2) at the contact points, wherever
+    the casters are; two casters symmetric about the chassis axis give no turning moment in straight driving."""
+    rng = np.random.default_rng(4)
+    casters = {"n_cst": 2, "x_c1": 0.35, "y_c1": 0.12, "x_c2": -0.4, "y_c2": -0.05, "f_cst": 6.0}
+    eff = fx.effect_vector(casters)
+    prm = params.as_array()
+    for _ in range(5):
+        x = np.zeros(12)
+        x[:6] = rng.normal(size=6)
+        x[6:] = fx_admissible_state(params, x[:6], rng.normal(size=3))
+        gen = fx.effect_force(x, np.zeros(3), eff, prm, compiled.FLOOR)
+        th, thd = x[2] - x[5], x[8] - x[11]
+        power = 0.0
+        width = max(fx.WIDTH_MIN_CASTER, fx.WIDTH_PER_N_CASTER * 6.0)
+        for cx, cy in ((0.35, 0.12), (-0.4, -0.05)):
+            r = np.array([np.cos(th) * cx - np.sin(th) * cy, np.sin(th) * cx + np.cos(th) * cy])
+            v = x[6:8] + thd * np.array([-r[1], r[0]])
+            power -= 3.0 * (v @ v) / np.sqrt(v @ v + width ** 2)
+        assert gen @ x[6:] == pytest.approx(power, rel=1e-9)
+    sym = fx.effect_vector({"n_cst": 2, "x_c1": 0.35, "y_c1": 0.12, "x_c2": 0.35, "y_c2": -0.12, "f_cst": 6.0})
+    x = np.zeros(12)
+    x[6:] = fx_admissible_state(params, np.zeros(6), np.array([2.0, 2.0, 0.0]))  # straight, no pivot motion
+    gen = fx.effect_force(x, np.zeros(3), sym, prm, compiled.FLOOR)
+    assert abs(gen[2]) < 1e-12 and gen[0] == pytest.approx(-6.0, rel=1e-3)
+
+
+def fx_admissible_state(p, q, phid):
+    from otbot_hw.model.kinematics import admissible_velocity
+    return admissible_velocity(q, phid, p)
+
+
+@pytest.mark.parametrize("c,fixture", [(0.3, "stand"), (2.0, "stand"), (0.3, "floor"), (2.0, "floor")])
+def test_friction_sign_narrow_in_proportion_and_stable(params, c, fixture):
+    """The sign width follows the friction level (0.3 N m: 0.0075 rad/s at a wheel) and RK4 at the default
+    step stays stable at every level: a wheel coasting down under Coulomb friction comes to rest and stays
+    within one width of zero, without chatter."""
+    eff = fx.effect_vector({"c_r": c, "c_l": c, "c_p": c})
+    assert fx.sign_width(0, eff, params.as_array()) == pytest.approx(max(0.002, 0.025 * c))
+    assert fx.sign_width(2, eff, params.as_array()) == pytest.approx(max(0.001, 0.005 * c))
+    x0 = np.zeros(12)
+    x0[6:] = fx_admissible_state(params, np.zeros(6), np.array([0.5, -0.4, 0.1])) if fixture == "floor" \
+        else np.array([0, 0, 0.1, 0.5, -0.4, 0.1])
+    tr = simulate_extended(params, eff, np.zeros((600, 3)), 0.01, x0=x0, fixture=fixture)
+    w = tr.x[-100:, 9:12]
+    assert np.all(np.isfinite(tr.x))
+    assert np.max(np.abs(w[:, :2])) <= fx.sign_width(0, eff, params.as_array())
+    assert np.max(np.abs(w[:, 2])) <= fx.sign_width(2, eff, params.as_array())

@@ -19,7 +19,7 @@ from otbot_hw.simulation.simulator import ExtendedStepper, Stepper, make_stepper
 
 P = nominal()
 PHYSICS = {"c_w": 0.3, "c_p": 0.2, "s_w": 0.1, "v_s": 0.4, "c_rr": 0.01, "f_cst": 3.0, "g_x": 0.05, "g_y": -0.03,
-           "c_air": 10.0, "db_w": 0.03, "dr": 0.02, "k_r": -0.1, "k_l": 0.05, "k_p": 0.08}
+           "c_air": 10.0, "db_w": 0.03, "dr_r": 0.02, "dr_l": -0.01, "k_r": -0.1, "k_l": 0.05, "k_p": 0.08}
 
 
 def test_model_file_round_trips_and_paper_commands_refuse_it(tmp_path):
@@ -57,7 +57,7 @@ def test_effects_enter_the_task_space_model_as_delta_transpose_gen_and_are_compe
     extended model accelerate exactly like the paper model under the law's torque (dr = 0)."""
     rng = np.random.default_rng(3)
     prm = P.as_array()
-    eff = fx.ExtendedModel.paper(P).with_values({k: v for k, v in PHYSICS.items() if k != "dr"}).eff
+    eff = fx.ExtendedModel.paper(P).with_values({k: v for k, v in PHYSICS.items() if not k.startswith("dr")}).eff
     eff_dr = fx.ExtendedModel.paper(P).with_values(PHYSICS).eff
     for _ in range(20):
         p, pd, phi = rng.uniform(-1, 1, 3), rng.uniform(-0.5, 0.5, 3), rng.uniform(-3, 3)

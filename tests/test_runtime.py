@@ -326,7 +326,7 @@ def test_extended_plant_behind_the_bus_steps_the_effects_and_shows_the_sensor_ef
 def test_stepper_sensors_equal_the_batch_sensor_model():
     """Sample-by-sample sensor effects (DirectSimRobot, Plant) = the batch ``sensor_outputs`` of the
     same extended run (lever arm, misalignment, biases, latency, slip, radius/scale errors, lag)."""
-    m = fx.ExtendedModel.paper(P).with_values({"k_slip": 0.02, "dr": 0.03, "e_l": -0.02, "b_ax": 0.1, "d_x": 0.05,
+    m = fx.ExtendedModel.paper(P).with_values({"k_slip": 0.02, "dr_r": 0.03, "dr_l": -0.03, "e_l": -0.02, "b_ax": 0.1, "d_x": 0.05,
                                                "psi": 0.1, "d_imu": 0.015, "T_i": 0.02, "g_x": 0.1})
     rng = np.random.default_rng(0)
     U = np.repeat(rng.uniform(-8, 8, (15, 3)), 6, axis=0)

@@ -9,6 +9,7 @@ default, ``--demo-effect`` to choose another catalog effect or ``none``).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -27,11 +28,17 @@ def register(sub) -> None:
             "(simulation residuals of encoder rates w_* in rad/s, IMU a_x, a_y in m/s^2 and g_z in rad/s; "
             "inverse-dynamics torque residuals in N m), choose missing effects from the catalog by BIC and "
             "held-out prediction, refit them with the nominal parameters (values with one-sigma std, SI units) "
-            "and report the fit before/after. Only commands, encoders and IMU are used; /otbot/truth is ignored."),
+            "and report the fit before/after. Only commands, encoders and IMU are used; /otbot/truth is ignored. "
+            "Exit 1 when the model is inadequate (no catalog effect brings it to the noise level, an estimate on its "
+            "bound or an implausible refit): no finding is named, the suspect parameters are listed."),
     )
     p.add_argument("recordings", nargs="*", type=Path, metavar="RECORDING", help="fitting recordings (.mcap)")
     p.add_argument("--params", type=Path, default=None,
                    help="identified parameter file (default config/otbot.yaml)")
+    p.add_argument("--robot", type=Path, default=None, metavar="ROBOT.yaml",
+                   help="hardware configuration with the effect geometry (default config/robot.yaml): 'casters' "
+                        "(contact points in the chassis frame B', m) and 'imu.mounting.position' (B'', m); where "
+                        "absent, the diagnosis fits the positions")
     p.add_argument("--holdout", nargs="+", type=Path, default=[], metavar="RECORDING",
                    help="held-out recordings: used only to judge prediction")
     p.add_argument("--report", type=Path, default=None, metavar="DIR",
@@ -91,6 +98,7 @@ def demo_recordings(effect_name: str, out_dir: Path, seed: int = 0) -> tuple[lis
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.diagnose.data import load
     from otbot_hw.diagnose.diagnosis import diagnose
+    from otbot_hw.diagnose.geometry import load_geometry
     from otbot_hw.params import OtbotParams, nominal
 
     quiet = args.json
@@ -115,6 +123,7 @@ def run(args: argparse.Namespace) -> dict:
     if overlap:
         raise CliError(f"recording(s) both fitting and held-out: {sorted(overlap)}")
     params = OtbotParams.load(args.params) if args.params else nominal()
+    geometry = load_geometry(args.robot)
     if args.out is not None:
         if args.each:
             raise CliError("--out writes one model; it does not apply with --each")
@@ -134,26 +143,39 @@ def run(args: argparse.Namespace) -> dict:
         except (ConnectionError, OSError, ValueError) as exc:
             raise CliError(f"--scheduler: {exc}") from None
         with ex:
-            runs = diagnose_each(list(fitting), params, list(held), executor=ex, progress=say)
+            runs = diagnose_each(list(fitting), params, list(held), executor=ex, progress=say, geometry=geometry)
         if not quiet:
             for r in runs:
                 print(f"{r['recording']}: {r.get('verdict', 'error: ' + str(r.get('error')))}")
+        inadequate = [r["recording"] for r in runs if r.get("model_adequate") is False]
+        if inadequate:
+            if quiet:
+                print(json.dumps({"runs": runs}, allow_nan=False))
+            print("otbot diagnose: model inadequate for " + ", ".join(inadequate), file=sys.stderr)
+            raise SystemExit(1)
         return {"runs": runs}
     recs = load(fitting)
     hold = load(held)
     for d in recs + hold:
         for ch, why in d.unusable.items():
             say(f"[diagnose] {d.name}: channel {ch} not used: {why}")
-    result = diagnose(recs, params, hold, report_dir=args.report, progress=say, model_out=args.out)
+    for d in recs + hold:
+        if d.truncated:
+            say(f"[diagnose] {d.name}: cut short; diagnosed on its {len(d)} complete samples")
+    result = diagnose(recs, params, hold, report_dir=args.report, progress=say, model_out=args.out, geometry=geometry)
     if truth is not None:
         result["demo_truth"] = truth
     if args.report:
-        import json
-
         args.report.mkdir(parents=True, exist_ok=True)
         (args.report / "diagnosis.json").write_text(json.dumps(result, indent=1, allow_nan=False))
     if not quiet:
         _print_summary(result)
+    if not result["model_adequate"]:
+        if quiet:
+            print(json.dumps(result, allow_nan=False))
+        print("otbot diagnose: model inadequate: suspect " + ", ".join(result["suspect_parameters"]) +
+              (" (no model file written)" if args.out is not None else ""), file=sys.stderr)
+        raise SystemExit(1)
     return result
 
 

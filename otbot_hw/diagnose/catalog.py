@@ -11,7 +11,7 @@ paper's model still converges with a plausible fit percentage.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from otbot_hw.model.effects import parameter_bounds, parameter_unit
 
@@ -31,7 +31,8 @@ class Effect:
     separating_experiment: str
     magnitudes: tuple[dict[str, float], ...]
     floor_only: bool = False
-    #: parameters profiled on a grid in screening (nonlinear), with their grid
+    #: parameters profiled on a grid in screening (nonlinear), with their grid (empty grid: the
+    #: saturation levels, set from the recorded commands)
     grids: dict[str, tuple[float, ...]] = field(default_factory=dict)
 
     def units(self) -> dict[str, str]:
@@ -75,18 +76,29 @@ CATALOG: tuple[Effect, ...] = (
            "repeat the run on the stand: rolling resistance needs ground contact, motor friction does not; "
            "or add a known load (it scales with weight)", ({"c_rr": 0.0015}, {"c_rr": 0.003}), floor_only=True),
     Effect("caster_drag", "caster-wheel drag", "floor",
-           "force f_cst opposing the velocity of the caster contact (at CASTER_POSITION in B')", ("f_cst",),
+           "force f_cst shared by the casters, each opposing the velocity of its contact point (positions from "
+           "the robot configuration's casters, else one caster at a fitted (x_c1, y_c1) in B')", ("f_cst",),
            "both wheel residuals resist translation; a turning moment appears when the chassis rotates",
            "decelerations along the chassis axis", ("rolling_resistance", "coulomb_wheels"),
            "turn in place (wheels counter-rotating) vs drive straight: caster drag scales with caster speed, "
            "rolling resistance with wheel speed sign", ({"f_cst": 2.0}, {"f_cst": 4.0}), floor_only=True),
     Effect("wheel_slip", "longitudinal wheel slip", "floor",
-           "the contact slips at k_slip * transmitted torque: encoders count more than the wheel rolls",
+           "the contact creeps at k_slip * ground torque: encoders count more than the wheel rolls",
            ("k_slip",), "torque residual ~ -b_w k_slip tau (small)",
            "encoder-predicted accelerations exceed the IMU's in proportion to torque changes",
-           ("encoder_scale", "wheel_radius_asymmetry"),
+           ("encoder_scale", "wheel_radii", "traction_limit"),
            "drive with large then small torques at the same speed: slip depends on torque, scale errors do not",
            ({"k_slip": 0.03}, {"k_slip": 0.06}), floor_only=True),
+    Effect("traction_limit", "wheel slip with saturating traction", "floor",
+           "ground torque t_trac tanh(tau_tr / t_trac): above the traction limit the wheel spins up "
+           "(slip rate k_slip tau_g + (tau_tr - tau_g) / b_w)", ("k_slip", "t_trac"),
+           "wheel residuals = transmitted minus traction-limited torque at high torque",
+           "IMU accelerations flatten at high wheel torque while the encoders race ahead",
+           ("wheel_slip", "torque_saturation", "encoder_scale"),
+           "accelerate hard from rest on the same floor at several torques: traction saturates above a torque "
+           "that scales with the load, a drive limit does not move the encoders ahead of the IMU",
+           ({"k_slip": 0.02, "t_trac": 3.0}, {"k_slip": 0.02, "t_trac": 2.5}), floor_only=True,
+           grids={"t_trac": (2.0, 3.0, 4.5)}),
     Effect("floor_slope", "a sloped floor (gravity component)", "floor",
            "gravity component (g_x, g_y) in the floor plane, ground frame of the recording start",
            ("g_x", "g_y"), "torque residual follows the heading: downhill force projected on the wheels",
@@ -99,22 +111,41 @@ CATALOG: tuple[Effect, ...] = (
            ({"c_air": 15.0}, {"c_air": 30.0}), floor_only=True),
     Effect("gain_right", "a torque-constant (gain) error of the right wheel motor", "actuator",
            "delivered torque = (1 + k_r) * command", ("k_r",), "right-wheel residual proportional to its command",
-           "robot turns more/less than predicted under equal wheel torques", ("gain_left", "wheel_radius_asymmetry"),
+           "robot turns more/less than predicted under equal wheel torques", ("gain_left", "wheel_radii"),
            "run the right wheel alone on the stand with known inertia: gain scales the acceleration",
            ({"k_r": -0.05}, {"k_r": -0.1})),
     Effect("gain_left", "a torque-constant (gain) error of the left wheel motor", "actuator",
            "delivered torque = (1 + k_l) * command", ("k_l",), "left-wheel residual proportional to its command",
-           "robot turns more/less than predicted under equal wheel torques", ("gain_right", "wheel_radius_asymmetry"),
+           "robot turns more/less than predicted under equal wheel torques", ("gain_right", "wheel_radii"),
            "run the left wheel alone on the stand with known inertia", ({"k_l": -0.05}, {"k_l": -0.1})),
     Effect("gain_pivot", "a torque-constant (gain) error of the pivot motor", "actuator",
            "delivered torque = (1 + k_p) * command", ("k_p",), "pivot residual proportional to its command",
            "platform turns more/less than predicted", ("coulomb_pivot",),
            "pivot steps with a known added inertia (load) on the platform", ({"k_p": -0.05}, {"k_p": -0.1})),
     Effect("torque_saturation", "torque saturation of the drives", "actuator",
-           "delivered torque clipped to +-u_max", ("u_max",),
+           "delivered torque of every motor clipped to +-u_max", ("u_max",),
            "residual = command - u_max only while |command| > u_max", "accelerations flatten at high torque",
-           ("gain_right", "gain_left", "gain_pivot"), "torque staircase up to the limit on the stand",
+           ("gain_right", "gain_left", "gain_pivot", "saturation_right", "saturation_left", "saturation_pivot"),
+           "torque staircase up to the limit on the stand, one motor at a time",
            ({"u_max": 3.6}, {"u_max": 3.2}), grids={"u_max": ()}),
+    Effect("saturation_right", "torque saturation of the right wheel motor", "actuator",
+           "right motor's delivered torque clipped to +-u_max_r", ("u_max_r",),
+           "right-wheel residual = command - u_max_r only while |command| > u_max_r",
+           "accelerations flatten when the right wheel's command is high", ("gain_right", "torque_saturation"),
+           "torque staircase on the right wheel alone (stand): a limit clips, a gain error scales",
+           ({"u_max_r": 3.4}, {"u_max_r": 3.0}), grids={"u_max_r": ()}),
+    Effect("saturation_left", "torque saturation of the left wheel motor", "actuator",
+           "left motor's delivered torque clipped to +-u_max_l", ("u_max_l",),
+           "left-wheel residual = command - u_max_l only while |command| > u_max_l",
+           "accelerations flatten when the left wheel's command is high", ("gain_left", "torque_saturation"),
+           "torque staircase on the left wheel alone (stand): a limit clips, a gain error scales",
+           ({"u_max_l": 3.4}, {"u_max_l": 3.0}), grids={"u_max_l": ()}),
+    Effect("saturation_pivot", "torque saturation of the pivot motor", "actuator",
+           "pivot motor's delivered torque clipped to +-u_max_p", ("u_max_p",),
+           "pivot residual = command - u_max_p only while |command| > u_max_p",
+           "platform accelerations flatten when the pivot command is high", ("gain_pivot", "torque_saturation"),
+           "pivot torque staircase with locked wheels: a limit clips, a gain error scales",
+           ({"u_max_p": 2.2}, {"u_max_p": 1.9}), grids={"u_max_p": ()}),
     Effect("current_lag", "a current-loop lag of the drives", "actuator",
            "delivered torque follows the command through a first-order lag, time constant T_i", ("T_i",),
            "residual ~ T_i d(tau)/dt: spikes right after torque steps", "accelerations lag torque steps by T_i",
@@ -139,20 +170,24 @@ CATALOG: tuple[Effect, ...] = (
            ({"d_imu": 0.02}, {"d_imu": 0.04}), grids={"d_imu": (0.01, 0.03, 0.08)}),
     Effect("encoder_scale", "a wheel-encoder scale error", "sensor", "wheel encoder readings = (1 + e) * angle",
            ("e_r", "e_l"), "residual from misjudged wheel accelerations (inertia-weighted)",
-           "encoder-predicted accelerations scaled against the IMU", ("wheel_radius_asymmetry", "wheel_slip"),
-           "roll a measured distance: scale errors in the count, radius errors also in the force",
+           "encoder-predicted accelerations scaled against the IMU", ("wheel_radii", "wheel_slip"),
+           "roll straight over a measured distance: a scale error changes the count, a radius also the distance "
+           "per wheel turn and the force",
            ({"e_r": 0.02, "e_l": -0.01}, {"e_r": 0.04, "e_l": -0.02})),
     Effect("wheel_friction_asymmetry", "different viscous friction on the two wheels", "asymmetry",
            "b_right = b_w + db_w, b_left = b_w - db_w", ("db_w",),
            "opposite residuals on the wheels proportional to their speeds", "slow yaw drift in straight runs",
            ("gain_right", "gain_left"), "spin each wheel on the stand and compare coast-downs",
            ({"db_w": 0.03}, {"db_w": 0.06})),
-    Effect("wheel_radius_asymmetry", "different wheel radii", "asymmetry",
-           "r_right = r (1 + dr), r_left = r (1 - dr): J uses r_i; encoders count the rolling angle / rho",
-           ("dr",), "torque residual from the mis-scaled lever of each wheel",
-           "turn-rate and a_x mismatch vs encoders in straight runs", ("encoder_scale", "gain_right"),
-           "roll straight a measured distance: unequal radii curve the path with equal wheel counts",
-           ({"dr": 0.015}, {"dr": 0.03}), floor_only=True),
+    Effect("wheel_radii", "wheel radii that differ from the nominal radius", "asymmetry",
+           "r_right = r (1 + dr_r), r_left = r (1 + dr_l): one wheel or both; the rolling kinematics use r_i, "
+           "the encoders count the wheel angle", ("dr_r", "dr_l"),
+           "torque residual from the mis-scaled lever of each wheel",
+           "turn-rate and a_x mismatch vs encoders in straight runs", ("encoder_scale", "gain_right", "gain_left"),
+           "roll straight over a measured distance and turn in place by a measured angle: radii change the "
+           "distance per wheel turn and curve the path; an encoder scale error changes the count only; "
+           "a mass change changes neither",
+           ({"dr_r": 0.015, "dr_l": -0.015}, {"dr_r": 0.03, "dr_l": 0.0}), floor_only=True),
 )
 
 BY_NAME: dict[str, Effect] = {e.name: e for e in CATALOG}
@@ -166,6 +201,20 @@ def effect(name: str) -> Effect:
         raise KeyError(f"unknown effect '{name}' (catalog: {', '.join(BY_NAME)})") from None
 
 
-def applicable(fixtures: set[str]) -> list[Effect]:
-    """Effects that can act in recordings made on these fixtures (floor-only effects need the floor)."""
-    return [e for e in CATALOG if not e.floor_only or "floor" in fixtures]
+#: parameters of the caster position, fitted with the drag when the robot configuration has no casters
+CASTER_POSITION_PARAMS = ("x_c1", "y_c1")
+
+
+def applicable(fixtures: set[str], casters_configured: bool = True) -> list[Effect]:
+    """Effects that can act in recordings made on these fixtures (floor-only effects need the floor).
+
+    ``casters_configured``: the robot configuration gives the caster positions; else the caster drag
+    is fitted with one caster's position (x_c1, y_c1) in B', screened on its ``grids``."""
+    out = []
+    for e in CATALOG:
+        if e.floor_only and "floor" not in fixtures:
+            continue
+        if e.name == "caster_drag" and not casters_configured:
+            e = replace(e, parameters=e.parameters + CASTER_POSITION_PARAMS, grids={"x_c1": (0.3, -0.45)})
+        out.append(e)
+    return out

@@ -44,6 +44,7 @@ class DiagnosisData:
     fixture: str
     unusable: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    truncated: bool = False  # the file was cut short; these are its complete samples
 
     def __len__(self) -> int:
         return len(self.t)
@@ -88,7 +89,7 @@ class DiagnosisData:
         pick = (lambda a: None if a is None else a[sl].copy())
         return DiagnosisData(f"{self.name}[{k0}:{k1}]", self.t[sl] - self.t[k0], self.dt, self.u[sl].copy(),
                              self.enc_pos[sl].copy(), pick(self.enc_vel), pick(self.imu_acc), pick(self.imu_gyro),
-                             self.fixture, dict(self.unusable), list(self.notes))
+                             self.fixture, dict(self.unusable), list(self.notes), self.truncated)
 
 
 def from_recording(rec: Recording, name: str = "recording") -> DiagnosisData:
@@ -160,8 +161,8 @@ def from_recording(rec: Recording, name: str = "recording") -> DiagnosisData:
         for ch in ("w_r", "w_l"):
             unusable.setdefault(ch, "wheels are locked on this fixture")
     if rec.truncated:
-        notes.append("the file was cut short; its complete samples are used")
-    return DiagnosisData(name, t - t[0], dt, u, pos, vel, acc, gyro, fixture, unusable, notes)
+        notes.append(f"the file was cut short: diagnosed on its {n} complete samples ({t[-1] - t[0]:.3g} s)")
+    return DiagnosisData(name, t - t[0], dt, u, pos, vel, acc, gyro, fixture, unusable, notes, bool(rec.truncated))
 
 
 def load(paths: list[str | Path]) -> list[DiagnosisData]:

@@ -3,27 +3,39 @@
 1. nominal fit ("before"): re-identify the free nominal parameters on the fitting
    recordings (``refit``), starting from the given parameters;
 2. locate: flag the windows where the nominal model and the recordings part ways;
-3. select: screen the catalog, nested fits, accept / report ambiguous (``select``);
-4. evidence: before/after statistics per channel on fitting and held-out recordings,
-   the nominal-parameter shift, a verdict, optional PNG plots.
+3. select: screen the catalog, nested fits, accept by evidence, judge by physics (``select``,
+   ``significance``); report ambiguous groups and small detections;
+4. judge the final model (``adequacy``): at the noise level, nothing on a bound, nominal
+   parameters plausible -- else "model inadequate" and no finding is named;
+5. evidence: before/after statistics per channel on fitting and held-out recordings,
+   the nominal-parameter shift, standard deviations that hold with correlated residuals
+   (``refit.robust_std``), a verdict, optional PNG plots.
 
 Returns one JSON-ready dict (see ``docs/diagnose.md`` for the fields).
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
 import numpy as np
 
 from otbot_hw.diagnose import catalog as cat
+from otbot_hw.diagnose.adequacy import assess
 from otbot_hw.diagnose.data import DiagnosisData
+from otbot_hw.diagnose.geometry import EffectGeometry
 from otbot_hw.diagnose.locate import locate, summarize
-from otbot_hw.diagnose.refit import refit
+from otbot_hw.diagnose.refit import refit, robust_std
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
 from otbot_hw.diagnose.select import AMBIGUOUS_DBIC, choose, free_nominal
 from otbot_hw.model.effects import ExtendedModel, parameter_unit
 from otbot_hw.params import OtbotParams
+
+
+FINAL_NFEV = 20  # iterations of the final fit, started from the last nested fit
+CORRELATION_NOTE = 0.98  # |correlation| of an effect and a nominal parameter worth reporting
+STD_INFLATION_WARN = 2.0  # HAC / white-noise std above this: warn about model-form error
 
 
 def _json_safe(obj):
@@ -45,8 +57,9 @@ def _finite(v):
     return None if v is None or not np.isfinite(v) else float(v)
 
 
-def _params_json(fit, names):
-    return {n: {"value": float(fit.values[n]), "std": _finite(fit.std.get(n)), "unit": parameter_unit(n)}
+def _params_json(fit, names, std: dict | None = None):
+    std = fit.std if std is None else std
+    return {n: {"value": float(fit.values[n]), "std": _finite(std.get(n)), "unit": parameter_unit(n)}
             for n in names}
 
 
@@ -73,47 +86,101 @@ def save_model(path: Path, fit, effects: list[dict], ambiguous: list[dict], reco
     model.save(path, header="\n".join(lines), effect_std={n: s for n, s in fit.std.items() if n not in PARAM_INDEX})
 
 
+def _correlated_nominal(fit, effect_params, nominal: list[str], limit: float = CORRELATION_NOTE) -> list[dict]:
+    """Nominal parameters an effect parameter trades off against in the fit (|correlation| >= limit)."""
+    if fit.correlation is None or not np.all(np.isfinite(fit.correlation)):
+        return []
+    idx = {n: i for i, n in enumerate(fit.names)}
+    out = []
+    for p in effect_params:
+        for n in nominal:
+            if p in idx and n in idx:
+                c = float(fit.correlation[idx[p], idx[n]])
+                if abs(c) >= limit:
+                    out.append({"effect_parameter": p, "nominal_parameter": n, "correlation": c})
+    return out
+
+
+def _candidate_json(c, effects: dict, std: dict | None = None, fit=None) -> dict:
+    """A candidate's JSON entry; values from ``fit`` (default its own nested fit), ``std`` likewise."""
+    e = effects.get(c.effect) or cat.effect(c.effect)
+    fit = fit or c.fit
+    out = {"name": e.name, "title": e.title, "category": e.category,
+           "parameters": _params_json(fit, e.parameters, std),
+           "significance": c.significance,
+           "evidence": {"delta_bic": c.dbic, "delta_aic": c.daic, "residual_correlation_factor": c.kappa,
+                        "effective_delta_bic": c.evidence, "screening_delta_bic": c.screen_dbic,
+                        "simulation_screening_delta_bic": c.sim_screen_dbic,
+                        "heldout_delta_cost": _finite(c.dholdout)}}
+    return out
+
+
 def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list[DiagnosisData] | None = None,
-             report_dir: Path | None = None, progress=lambda msg: None, model_out: Path | None = None) -> dict:
+             report_dir: Path | None = None, progress=lambda msg: None, model_out: Path | None = None,
+             geometry: EffectGeometry | None = None) -> dict:
     """Diagnose ``recordings`` against ``params``; ``holdout`` recordings judge prediction only.
-    ``model_out``: also write the diagnosed model there (``save_model``)."""
+    ``geometry``: caster and IMU positions from the robot configuration (default: none known).
+    ``model_out``: also write the diagnosed model there (``save_model``; not when the model is inadequate)."""
     t_start = time.perf_counter()
     holdout = holdout or []
+    geometry = geometry or EffectGeometry()
     if not recordings:
         raise ValueError("diagnose needs at least one fitting recording")
     unusable = {d.name: dict(d.unusable) for d in recordings + holdout if d.unusable}
     notes = {d.name: list(d.notes) for d in recordings + holdout if d.notes}
+    truncated = [{"recording": d.name, "complete_samples": len(d), "duration_s": float(d.t[-1])}
+                 for d in recordings + holdout if d.truncated]
     nominal_free = free_nominal(recordings)
+    start = ExtendedModel.paper(params).with_values(geometry.effect_values())
     progress(f"[diagnose] nominal fit of {', '.join(nominal_free)} on {len(recordings)} recording(s)")
-    base = refit(recordings, ExtendedModel.paper(params), nominal_free)
+    base = refit(recordings, start, nominal_free)
     progress(f"[diagnose] nominal fit: {base.message} ({base.nfev} evaluations)")
     windows = locate(recordings + holdout, base.model)
     progress(f"[diagnose] located {len(windows)} flagged window(s)")
-    sel = choose(recordings, holdout, base, nominal_free, progress)
+    sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured)
     final = sel.final_fit
+    if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
+        final = refit(recordings, final.model, final.names, max_nfev=FINAL_NFEV)
+        progress(f"[diagnose] final fit: {final.message} ({final.nfev} evaluations)")
+    # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
+    std = dict(final.std)
+    inflation = 1.0
+    if sel.accepted or sel.ambiguous:
+        hac = robust_std(recordings, final)
+        for n, s_hac in hac.items():
+            s0 = std.get(n, float("nan"))
+            if np.isfinite(s_hac) and np.isfinite(s0) and s0 > 0:
+                inflation = max(inflation, s_hac / s0)
+                std[n] = max(s0, s_hac)
+            elif not np.isfinite(s_hac):
+                std[n] = float("nan")
+    adequacy = assess(recordings, holdout, final, params)
+    progress(f"[diagnose] model adequate: {adequacy.adequate}")
     effects = []
     for c in sel.accepted:
-        e = cat.effect(c.effect)
-        effects.append({"name": e.name, "title": e.title, "category": e.category,
-                        "parameters": _params_json(final, e.parameters),
-                        "evidence": {"delta_bic": c.dbic, "delta_aic": c.daic, "screening_delta_bic": c.screen_dbic,
-                                     "simulation_screening_delta_bic": c.sim_screen_dbic,
-                                     "max_fit_gain_percent": c.fit_gain,
-                                     "heldout_delta_cost": _finite(c.dholdout),
-                                     "lookalikes_tried": [t.effect for t in sel.tried if t.effect != c.effect]}})
+        item = _candidate_json(c, sel.effects, std, final)
+        item["evidence"]["lookalikes_tried"] = [t.effect for t in sel.tried if t.effect != c.effect]
+        item["trades_off_against"] = _correlated_nominal(final, sel.effects[c.effect].parameters, nominal_free)
+        effects.append(item)
     ambiguous = []
     for grp in sel.ambiguous:
         exps = []
         for c in grp:
-            e = cat.effect(c.effect)
+            e = sel.effects[c.effect]
             if any(o.effect in e.lookalikes for o in grp) or not exps:
                 exps.append(e.separating_experiment)
-        ambiguous.append({
-            "candidates": [{"name": c.effect, "title": cat.effect(c.effect).title,
-                            "parameters": _params_json(c.fit, cat.effect(c.effect).parameters),
-                            "delta_bic": c.dbic, "heldout_delta_cost": _finite(c.dholdout)} for c in grp],
-            "bic_margin": AMBIGUOUS_DBIC,
-            "experiment": "; ".join(dict.fromkeys(exps))})
+        # the group's best member is in the final model: its values and std from the final fit
+        ambiguous.append({"candidates": [_candidate_json(c, sel.effects, *((std, final) if i == 0 else ()))
+                                         for i, c in enumerate(grp)],
+                          "bic_margin": AMBIGUOUS_DBIC, "residual_correlation_factor": grp[0].kappa,
+                          "experiment": "; ".join(dict.fromkeys(exps))})
+    small = [_candidate_json(c, sel.effects) for c in sel.small]
+    withheld = []
+    if not adequacy.adequate:
+        withheld = [{"name": e["name"], "parameters": e["parameters"]} for e in effects] + \
+                   [{"name": g["candidates"][0]["name"], "parameters": g["candidates"][0]["parameters"],
+                     "ambiguous_with": [c["name"] for c in g["candidates"][1:]]} for g in ambiguous]
+        effects, ambiguous = [], []
     k_before, k_after = base.n_params, final.n_params
     fit_before = {"fitting": channel_stats(recordings, base.model, k_before),
                   "heldout": channel_stats(holdout, base.model, k_before)}
@@ -122,23 +189,42 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
     shift = {}
     for n in nominal_free:
         b, a = base.values[n], final.values.get(n, base.values[n])
-        shift[n] = {"before": b, "before_std": _finite(base.std.get(n)), "after": a,
-                    "after_std": _finite(final.std.get(n)), "shift": a - b, "unit": parameter_unit(n)}
+        shift[n] = {"file": float(getattr(params, n)), "before": b, "before_std": _finite(base.std.get(n)),
+                    "after": a, "after_std": _finite(std.get(n, final.std.get(n))), "shift": a - b,
+                    "unit": parameter_unit(n)}
+    warnings = []
+    if inflation > STD_INFLATION_WARN:
+        warnings.append(f"the residuals of the final fit are correlated (model-form error the catalog does not "
+                        f"capture): standard deviations are the HAC estimates, up to {inflation:.1f} x the "
+                        "white-noise ones")
+    for t in truncated:
+        warnings.append(f"{t['recording']} was cut short: diagnosed on its {t['complete_samples']} complete samples "
+                        f"({t['duration_s']:.3g} s)")
     result = {
+        "model_adequate": adequacy.adequate,
         "effects": effects,
         "ambiguous": ambiguous,
+        "detected_small": small,
+        "withheld": withheld,
+        "adequacy": adequacy.to_dict(),
+        "suspect_parameters": adequacy.suspect_parameters,
+        "geometry": geometry.to_dict(),
         "located": [w.to_dict() for w in windows],
         "located_summary": summarize(windows),
         "fit_before": fit_before,
         "fit_after": fit_after,
         "nominal_shift": shift,
+        "std_inflation": inflation,
         "screening": [{"equation_residual_delta_bic": dict(sorted(s.single.items(), key=lambda kv: kv[1])),
                        "greedy_selection": s.selected,
                        "simulation_score_delta_bic": dict(sorted(ss.items(), key=lambda kv: kv[1]))}
                       for s, ss in zip(sel.screenings, sel.sim_screenings + [{}] * len(sel.screenings))],
-        "candidates": [{"name": c.effect, "delta_bic": c.dbic, "delta_aic": c.daic, "max_fit_gain_percent": c.fit_gain,
-                        "heldout_delta_cost": _finite(c.dholdout),
-                        "parameters": _params_json(c.fit, cat.effect(c.effect).parameters)} for c in sel.tried],
+        "candidates": [{"name": c.effect, "delta_bic": c.dbic, "delta_aic": c.daic,
+                        "residual_correlation_factor": c.kappa, "heldout_delta_cost": _finite(c.dholdout),
+                        "parameters": _params_json(c.fit, c.parameters)}
+                       for c in sel.tried],
+        "truncated_recordings": truncated,
+        "warnings": warnings,
         "unusable_channels": unusable,
         "notes": notes,
         "recordings": [d.name for d in recordings],
@@ -154,8 +240,8 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
             plots.append(plot_residuals(report_dir / f"residuals_{tag}_{i}.png", d, base.model, final.model,
                                         windows, f"{Path(d.name).name} ({tag})"))
         result["plots"] = plots
-    if model_out is not None:
-        save_model(Path(model_out), final, effects, ambiguous, result["recordings"])
+    if model_out is not None and adequacy.adequate:
+        save_model(Path(model_out), dataclasses.replace(final, std=std), effects, ambiguous, result["recordings"])
         result["model_file"] = str(model_out)
     result["elapsed_s"] = time.perf_counter() - t_start
     return _json_safe(result)

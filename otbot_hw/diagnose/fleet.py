@@ -28,7 +28,7 @@ def diagnose_task(task: dict[str, Any]) -> dict:
     if task.get("threads"):
         set_prediction_threads(task["threads"])
     try:
-        r = diagnose([task["data"]], task["params"], task["holdout"])
+        r = diagnose([task["data"]], task["params"], task["holdout"], geometry=task.get("geometry"))
     except ValueError as exc:  # includes bad-input errors raised by the diagnosis
         r = {"error": f"{task['recording']}: {exc}"}
     r["recording"] = task["recording"]
@@ -37,11 +37,12 @@ def diagnose_task(task: dict[str, Any]) -> dict:
 
 def diagnose_each(paths: list[Path], params: OtbotParams, holdout: list[Path] | None = None,
                   executor: Executor | None = None, scheduler: str | None = None, workers: int | None = None,
-                  progress=lambda msg: None) -> list[dict]:
+                  progress=lambda msg: None, geometry=None) -> list[dict]:
     """One diagnosis per recording, in the order of ``paths``; unreadable recordings give ``{error}``.
 
     Runs on ``executor`` when given, else on ``make_executor(scheduler, workers)`` (closed afterwards).
     ``holdout`` recordings judge every diagnosis; an unreadable one raises ``RecordingError``.
+    ``geometry``: caster and IMU positions (``geometry.EffectGeometry``) of the robot.
     """
     from otbot_hw.diagnose.data import load
     from otbot_hw.recording import RecordingError
@@ -54,7 +55,7 @@ def diagnose_each(paths: list[Path], params: OtbotParams, holdout: list[Path] | 
         except RecordingError as exc:
             out[str(p)] = {"recording": str(p), "error": str(exc)}
             continue
-        tasks.append({"recording": str(p), "data": data, "params": params, "holdout": held})
+        tasks.append({"recording": str(p), "data": data, "params": params, "holdout": held, "geometry": geometry})
     own = executor is None
     ex = make_executor(scheduler, workers) if own else executor
     try:

@@ -30,8 +30,7 @@ import numpy as np
 
 from otbot_hw.diagnose.data import CHANNELS as DIAGNOSIS_CHANNELS
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.residuals import initial_state, simulate_outputs
-from otbot_hw.simulation.simulator import default_substeps
+from otbot_hw.diagnose.residuals import diagnosis_substeps, initial_state, simulate_outputs
 from otbot_hw.identification.experiment import Experiment
 from otbot_hw.identification.model import map_prediction_rows
 from otbot_hw.model.effects import EFFECT_PARAM_NAMES, TIED_PARAMS, ExtendedModel
@@ -97,7 +96,8 @@ class ExtendedPredictionModel:
 def diagnosis_experiments(recordings: Sequence[DiagnosisData], model: ExtendedModel,
                           sigmas: dict[tuple[str, str], float]) -> list[DiagnosisExperiment]:
     """One fitter experiment per recording: its usable channels, weighted by ``sigmas[(name, channel)]``
-    (units of the channel), x0 from the encoders under ``model``, the diagnosis's RK4 step."""
+    (units of the channel), x0 from the encoders under ``model``, the diagnosis's RK4 step for ``model``
+    (``residuals.diagnosis_substeps``; pass the model at the fit's start values)."""
     out = []
     for d in recordings:
         chans = d.channels()
@@ -106,5 +106,5 @@ def diagnosis_experiments(recordings: Sequence[DiagnosisData], model: ExtendedMo
             measured={FITTER_CHANNEL[c]: np.asarray(d.measured(c), dtype=float) for c in chans},
             sigma={FITTER_CHANNEL[c]: float(sigmas[(d.name, c)]) for c in chans},
             sigma_source={FITTER_CHANNEL[c]: "given" for c in chans},
-            x0=initial_state(d, model), substeps=default_substeps(d.dt, d.fixture)))
+            x0=initial_state(d, model), substeps=diagnosis_substeps(d.dt, d.fixture, model.eff)))
     return out

@@ -43,6 +43,7 @@ class FitResult:
     success: bool
     message: str
     sigma: dict[tuple[str, str], float] = field(default_factory=dict)
+    correlation: np.ndarray | None = None  # of the free names, from the fitter's covariance
 
     @property
     def n_params(self) -> int:
@@ -79,11 +80,12 @@ def _typical(name: str) -> float:
 
 def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: list[str],
           guess: dict[str, float] | None = None, bounds: dict[str, tuple[float, float]] | None = None,
-          max_nfev: int | None = None) -> FitResult:
+          max_nfev: int | None = None, tol: float = 1e-7) -> FitResult:
     """Fit ``free_names`` of ``model`` (others held) to ``recordings`` by simulation output error.
 
     ``guess``: start values (default: the model's); ``bounds``: per-name (lo, hi) (default: the
-    physical bounds of each parameter). Returns the fitted model and statistics.
+    physical bounds of each parameter); ``tol``: the fitter's relative tolerances (cost, step).
+    Returns the fitted model and statistics.
     """
     sigmas = channel_sigmas(recordings)
     names = list(free_names)
@@ -102,10 +104,11 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
                          message="nothing to fit", sigma=sigmas)
     pm = ExtendedPredictionModel(model, tied=[n for n in names if n in TIED_PARAMS])
     fit = fit_parameters(
-        pm, diagnosis_experiments(recordings, model, sigmas), names, pm.vector(model),
+        pm, diagnosis_experiments(recordings, model.with_values(dict(zip(names, x_start))), sigmas), names,
+        pm.vector(model),
         guess=dict(zip(names, x_start)), bounds=bnd,
         scale={n: max(abs(x), _typical(n)) for n, x in zip(names, x_start)},
-        noise="residuals", max_nfev=max_nfev or 30 * (len(names) + 1), tol=1e-7,
+        noise="residuals", max_nfev=max_nfev or 30 * (len(names) + 1), tol=tol,
         residual_tolerance=None, check_identifiability=False, integration_tol=None)
     rss, nobs = {}, {}
     for d in recordings:
@@ -118,7 +121,7 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
         std = {n: float("nan") for n in names}
     return FitResult(names=names, values=dict(fit.estimate), std=std, model=model.with_values(fit.estimate),
                      rss=rss, n_samples=nobs, nfev=fit.nfev, success=fit.optimizer_status > 0,
-                     message=fit.message, sigma=sigmas)
+                     message=fit.message, sigma=sigmas, correlation=np.asarray(fit.correlation))
 
 
 def _determined(cov: np.ndarray) -> bool:
@@ -130,3 +133,88 @@ def _determined(cov: np.ndarray) -> bool:
     if not np.all(d > 0):
         return False
     return bool(np.linalg.cond(cov / np.outer(d, d)) < 1.0 / RANK_TOL ** 2)
+
+
+# --- residual correlation: evidence and standard deviations that survive model-form error ----------
+
+MAX_LAG_FRACTION = 0.25  # longest autocorrelation lag considered, fraction of the block length
+
+
+def _autocorr(r: np.ndarray, max_lag: int) -> np.ndarray:
+    """Autocorrelation rho_1..rho_max_lag of one residual series about zero, not about its mean (FFT):
+    the residuals of a right model have zero mean, so an offset (an IMU bias left out) is structure."""
+    n = len(r)
+    f = np.fft.rfft(r, 2 * n)
+    ac = np.fft.irfft(f * np.conj(f))[:max_lag + 1]
+    return ac[1:] / ac[0] if ac[0] > 0 else np.zeros(max_lag)
+
+
+def bandwidth(r: np.ndarray) -> int:
+    """Lag (samples) after which a residual series is uncorrelated: the first lag whose
+    autocorrelation falls below 0.05, at least 1, at most ``MAX_LAG_FRACTION`` of its length."""
+    max_lag = max(1, int(MAX_LAG_FRACTION * len(r)))
+    rho = _autocorr(r, max_lag)
+    below = np.nonzero(rho < 0.05)[0]
+    return int(below[0] + 1) if len(below) else max_lag
+
+
+def correlation_factor(residuals: dict) -> float:
+    """N / N_eff of the residuals: the variance inflation of sums of correlated residuals,
+    1 + 2 sum_l (1 - l / (L + 1)) rho_l (Bartlett weights, L = ``bandwidth``), averaged over the
+    (recording, channel) series weighted by their squared residuals; 1 for white residuals.
+
+    Information criteria count every sample as independent; with correlated residuals (a model
+    that is still wrong somewhere) their differences are inflated by about this factor."""
+    num = den = 0.0
+    for r in residuals.values():
+        r = np.asarray(r, dtype=float)
+        if len(r) < 8:
+            continue
+        L = bandwidth(r)
+        rho = _autocorr(r, L)
+        k = 1.0 + 2.0 * float(np.sum((1.0 - np.arange(1, L + 1) / (L + 1)) * rho))
+        w = float(r @ r)
+        num += w * max(k, 1.0)
+        den += w
+    return num / den if den > 0 else 1.0
+
+
+def robust_std(recordings: list[DiagnosisData], fit: FitResult) -> dict[str, float]:
+    """Standard deviations of the free parameters that hold when the residuals are correlated
+    (model-form error): the Newey-West (HAC) sandwich (J^T J)^-1 M (J^T J)^-1 with the score
+    autocovariances M summed per (recording, channel) up to its ``bandwidth`` with Bartlett weights.
+    J by forward differences of the noise-weighted residuals. NaN where the data do not determine
+    the parameters. For white residuals it equals the usual estimate."""
+    names = fit.names
+    if not names:
+        return {}
+    base = weighted_residuals(recordings, fit.model, fit.sigma)
+    keys = list(base)
+    cols = []
+    for n in names:
+        x = fit.values[n]
+        lo, hi = parameter_bounds(n)
+        h = 1e-4 * max(abs(x), _typical(n))
+        if x + h > hi:
+            h = -h
+        res = weighted_residuals(recordings, fit.model.with_values({n: x + h}), fit.sigma)
+        cols.append({k: (base[k] - res[k]) / h for k in keys})  # d(simulated)/d theta, in sigma units
+    J = {k: np.column_stack([c[k] for c in cols]) for k in keys}
+    A = sum(J[k].T @ J[k] for k in keys)
+    meat = np.zeros_like(A)
+    for k in keys:
+        g = J[k] * base[k][:, None]  # score contributions, one row per sample
+        L = bandwidth(base[k])
+        m = g.T @ g
+        for lag in range(1, L + 1):
+            c = g[lag:].T @ g[:-lag]
+            m += (1.0 - lag / (L + 1)) * (c + c.T)
+        meat += m
+    try:
+        B = np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        return {n: float("nan") for n in names}
+    cov = B @ meat @ B
+    if not _determined(cov):
+        return {n: float("nan") for n in names}
+    return {n: float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}

@@ -87,14 +87,41 @@ def channel_stats(recordings: list[DiagnosisData], model: ExtendedModel, k: int)
 def verdict(result: dict) -> str:
     """One plain-language paragraph from the diagnosis JSON."""
     parts = []
+    for t in result.get("truncated_recordings", []):
+        parts.append(f"{t['recording']} was cut short: diagnosed on its {t['complete_samples']} complete samples.")
+    if not result.get("model_adequate", True):
+        ad = result["adequacy"]
+        why = []
+        if ad["channels"]:
+            worst = max(ad["channels"], key=lambda c: c["noise_ratio"])
+            chans = sorted({c["channel"] for c in ad["channels"]})
+            why.append(f"channels {', '.join(chans)} stay above the noise level (worst: {worst['channel']} of "
+                       f"{worst['recording']} ({worst['set']}), residual RMS {worst['noise_ratio']:.1f} x noise)")
+        if ad["on_bound"]:
+            why.append("estimates on a bound: " + ", ".join(f"{b['parameter']} = {b['value']:.4g}"
+                                                           for b in ad["on_bound"]))
+        if ad["moved"]:
+            why.append("implausible refit: " + ", ".join(f"{m['parameter']} {m['file']:.4g} -> {m['refit']:.4g} "
+                                                         f"({m['change']}, limit {m['limit']})" for m in ad["moved"]))
+        withheld = ", ".join(w["name"] for w in result.get("withheld", []))
+        parts.append("Model inadequate: no catalog effect brings the model to the data -- " + "; ".join(why) + "."
+                     + (f" Not named ({withheld} would be fitted, but on a wrong model)." if withheld else "")
+                     + f" Suspect parameters: {', '.join(result['suspect_parameters'])}. To do: {ad['advice']}.")
+        return " ".join(parts)
     for e in result["effects"]:
         ps = ", ".join(f"{n} = {_fmt(v['value'], v['std'])} {v['unit']}" for n, v in e["parameters"].items())
-        parts.append(f"Left out: {e['title']}, {ps}.")
+        sig = e.get("significance", {}).get("statement")
+        parts.append(f"Left out: {e['title']}, {ps}" + (f" ({sig})." if sig else "."))
+        for t in e.get("trades_off_against", []):
+            parts.append(f"Its {t['effect_parameter']} trades off against {t['nominal_parameter']} (correlation "
+                         f"{t['correlation']:.2f}): {cat_experiment(e['name'])}.")
     for grp in result["ambiguous"]:
         names = " / ".join(c["title"] for c in grp["candidates"])
-        parts.append(f"The data cannot tell apart {names} (BIC within {grp['bic_margin']:.0f}); "
+        parts.append(f"The data cannot tell apart {names} (BIC within {grp['bic_margin']:.0f} effective samples); "
                      f"to separate them: {grp['experiment']}.")
-    if parts:
+    for e in result.get("detected_small", []):
+        parts.append(f"Detected, small: {e['title']}: {e['significance']['statement']}.")
+    if result["effects"] or result["ambiguous"]:
         # relative shift of parameters that are not near zero (a centre-of-mass offset of 1 mm moving
         # to 0 is no evidence)
         moved = [(abs(v["shift"]) / max(abs(v["before"]), abs(v["after"])), n, v)
@@ -104,10 +131,11 @@ def verdict(result: dict) -> str:
         if moved:
             _, n, v = max(moved, key=lambda m: m[0])
             parts.append(f"The nominal fit had absorbed it: {n} {v['before']:.4g} -> {v['after']:.4g} {v['unit']}.")
-    if not parts:
+    if not (result["effects"] or result["ambiguous"] or result.get("detected_small")):
         parts.append("No missing physics found: no catalog effect improves the model by the evidence threshold.")
     key = "heldout" if result["fit_before"].get("heldout") else "fitting"
     before, after = result["fit_before"].get(key, {}), result["fit_after"].get(key, {})
+
     def ok(v):
         return v is not None and np.isfinite(v)
 
@@ -116,14 +144,23 @@ def verdict(result: dict) -> str:
         ch = max(usable, key=lambda c: after[c]["fit_percent"] - before[c]["fit_percent"])
         label = "Held-out" if key == "heldout" else "Fitting"
         parts.append(f"{label} fit of {ch}: {before[ch]['fit_percent']:.0f} % -> {after[ch]['fit_percent']:.0f} %.")
+    parts += [w[0].upper() + w[1:] + "." for w in result.get("warnings", []) if "cut short" not in w]
     return " ".join(parts)
 
 
+def cat_experiment(name: str) -> str:
+    """The separating experiment of catalog effect ``name``."""
+    from otbot_hw.diagnose.catalog import effect
+
+    return effect(name).separating_experiment
+
+
 def _fmt(v: float, s: float) -> str:
+    from otbot_hw.diagnose.significance import format_with_std
+
     if s is None or not np.isfinite(s):
         return f"{v:.4g} (std not identifiable)"
-    digits = max(0, -int(np.floor(np.log10(abs(s)))) + 1) if s > 0 else 4
-    return f"{v:.{digits}f} ± {s:.{digits}f}"
+    return format_with_std(v, s)
 
 
 def plot_residuals(path: Path, data: DiagnosisData, before: ExtendedModel, after: ExtendedModel,

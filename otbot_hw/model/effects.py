@@ -17,14 +17,19 @@ s_w            N m        Stribeck excess friction at both wheel motors, s_w exp
 v_s            rad/s      Stribeck velocity (only used when s_w != 0)
 c_rr           1          rolling-resistance coefficient: torque c_rr (m_c+m_p) g / 2 r per wheel
 f_cst          N          caster drag: a Coulomb-like force at the caster point opposing its velocity
-k_slip         rad/(s N m) longitudinal slip: wheel spins k_slip * (transmitted torque) faster than it rolls
+k_slip         rad/(s N m) longitudinal slip: wheel spins k_slip * (ground torque) faster than it rolls
 g_x, g_y       m/s^2      floor slope: in-plane gravity component, ground frame (recording start frame)
 c_air          N s^2/m^2  air drag at the pivot: F = -c_air |v| v
 k_r, k_l, k_p  1          torque gain error: delivered torque = (1 + k) * command
-u_max          N m        torque saturation of every motor (0 = none)
+u_max_r, ...   N m        torque saturation of the right/left wheel and pivot motors (0 = none;
+  u_max_l,                ``u_max`` sets all three)
+  u_max_p
 T_i            s          current-loop lag: first-order lag of the delivered torque (0 = none)
 db_w           N m s/rad  viscous asymmetry: b_right = b_w + db_w, b_left = b_w - db_w
-dr             1          wheel radius asymmetry: r_right = r (1 + dr), r_left = r (1 - dr)
+dr_r, dr_l     1          wheel radii: r_right = r (1 + dr_r), r_left = r (1 + dr_l) (r: the nominal radius)
+t_trac         N m        traction limit of each wheel: ground torque t_trac tanh(tau_tr / t_trac) (0 = none)
+n_cst          1          number of casters (1..4) sharing the caster drag f_cst equally
+x_c1 .. y_c4   m          caster contact points in the chassis frame B' (from the robot configuration)
 b_ax, b_ay     m/s^2      IMU accelerometer bias (x, y of the IMU frame)
 b_gz           rad/s      gyro bias (z)
 d_x, d_y       m          IMU position in the platform frame B'' (lever arm from the pivot)
@@ -36,25 +41,36 @@ e_r, e_l       1          encoder scale error of the wheel encoders: reading = (
 Modelling choices (documented, not hidden):
 
 * Signs are smoothed, sgn(w) ~ tanh(w / width) and the caster's direction
-  v / sqrt(|v|^2 + ``SIGN_SPEED``^2), so the extended model stays smooth for integration
-  and least squares. Real Coulomb friction is (nearly) discontinuous, and a wide tanh
-  under-predicts it whenever the joint turns slower than the width (a fit then inflates c),
-  so each width is about the narrowest the RK4 step (``otbot_hw.simulation.simulator.default_substeps``:
-  2.5 ms, 0.5 ms on the stand) keeps stable for a Coulomb level up to its 2 N m bound on
-  the joint's smallest effective inertia (``sign_width``): ``SIGN_RATE_PIVOT`` at the pivot
-  (>= 0.31 kg m^2 on the floor), ``SIGN_RATE_WHEEL`` at a wheel (>= 0.048 kg m^2 on the
-  floor, chassis reflected; I_a = 0.0104 kg m^2 spinning free on the stand).
+  v / sqrt(|v|^2 + width_v^2), so the extended model stays smooth for integration and least
+  squares. Real Coulomb friction is (nearly) discontinuous, and a wide tanh under-predicts it
+  whenever the joint turns slower than the width (a fit then inflates c). The stiffness of a
+  smoothed sign is level / (width * I_eff), so each width is proportional to the joint's
+  friction level at zero speed (Coulomb + Stribeck + rolling resistance; ``sign_width``):
+  the narrowest the RK4 step (``otbot_hw.simulation.simulator.default_substeps``: 2.5 ms,
+  0.5 ms on the stand) keeps stable on the joint's smallest effective inertia at *every*
+  level, h * level / (width * I_eff) <= 2.1: ``WIDTH_PER_NM_WHEEL`` rad/s per N m at a wheel
+  (I_eff >= 0.048 kg m^2 on the floor, chassis reflected; I_a = 0.0104 kg m^2 free on the
+  stand), ``WIDTH_PER_NM_PIVOT`` at the pivot (>= 0.31 kg m^2), never below ``WIDTH_MIN_*``.
+  A 0.3 N m Coulomb friction is smoothed over 0.0075 rad/s at a wheel and 0.0015 rad/s at
+  the pivot (the widths were fixed 0.05 and 0.01 rad/s, sized for the 2 N m bound, and
+  biased sharper real friction: Stribeck sizes +33 %).
 * Different wheel radii break the paper's J. The compiled model is kept by working in
   *rolling angles* psi_i = (r_i / r) phi_i, for which J is the paper's with radius r:
   on psi_i act the torque rho_i (tau_i - friction(phi_dot_i)) with rho_i = r / r_i, the
   wheel inertia becomes rho_i^2 I_a (one fixed-point correction of the accelerations),
   and the encoders read phi_i = rho_i psi_i.
-* Wheel slip is a quasi-static longitudinal slip-velocity law: the contact slips with
-  r * s_dot_i = r * k_slip * tau_tr_i, tau_tr_i = delivered torque minus motor friction
-  (wheel inertia neglected in the split). The ground force equals the transmitted force,
-  so the body moves as without slip, but the encoders read psi_i + s_i: odometry and IMU
-  disagree, energy is lost at the contact. Slip states s_r, s_l (rad) are integrated.
-* Caster: one effective caster at ``CASTER_POSITION`` in the chassis frame B'.
+* Wheel slip is a quasi-static longitudinal slip law (wheel inertia neglected in the split;
+  ``slip_state``): tau_tr_i = delivered torque minus motor friction at the rolling speed.
+  Without a traction limit the contact creeps at s_dot = k_slip * tau_tr and passes tau_tr.
+  With one, the traction curve tau_g(s_dot) = t_trac tanh(s_dot / (k_slip t_trac)) (linear
+  creep k_slip at small slip, saturating at t_trac) and the wheel's balance
+  tau_tr - b_i s_dot = tau_g give s_dot: creep below the limit, spin-up above it until the
+  motor's viscous friction takes the excess. The body is driven by tau_g; the encoders read
+  psi_i + s_i: odometry and IMU disagree, energy is lost at the contact. Slip states s_r, s_l
+  (rad) are integrated.
+* Casters: ``n_cst`` contacts at (x_ci, y_ci) in the chassis frame B' (the robot
+  configuration's ``casters``, ``otbot_hw.diagnose.geometry``; default one at
+  ``CASTER_POSITION``), each with drag f_cst / n_cst opposing its contact velocity.
 * Rolling resistance assumes the weight shared equally by the two wheels.
 * Current-loop lag is integrated exactly inside each zero-order-hold interval
   (tau_a(t) = tau_c + (tau_a0 - tau_c) exp(-t / T_i)), so small T_i never makes RK4 unstable.
@@ -72,10 +88,14 @@ from otbot_hw.model import compiled
 from otbot_hw.params import OtbotParams
 
 GRAVITY = 9.80665
-SIGN_RATE_PIVOT = 0.01  # rad/s, width of the smoothed friction sign at the pivot motor
-SIGN_RATE_WHEEL = 0.05  # rad/s, ... at a wheel motor
-SIGN_SPEED = 0.01  # m/s, width of the smoothed direction for the caster
-CASTER_POSITION = (0.15, 0.0)  # m, effective caster contact in the chassis frame B'
+WIDTH_PER_NM_PIVOT = 0.005  # rad/s per N m of friction level: smoothed sign width at the pivot motor
+WIDTH_PER_NM_WHEEL = 0.025  # rad/s per N m ... at a wheel motor
+WIDTH_MIN_PIVOT = 0.001  # rad/s, narrowest sign at the pivot
+WIDTH_MIN_WHEEL = 0.002  # rad/s, narrowest sign at a wheel
+WIDTH_PER_N_CASTER = 5e-5  # m/s per N of caster drag: smoothed direction of a caster contact
+WIDTH_MIN_CASTER = 1e-3  # m/s
+CASTER_POSITION = (0.15, 0.0)  # m, default single caster contact in the chassis frame B'
+MAX_CASTERS = 4
 
 #: (name, unit, lower bound, upper bound, description)
 EFFECT_PARAMS: tuple[tuple[str, str, float, float, str], ...] = (
@@ -93,10 +113,14 @@ EFFECT_PARAMS: tuple[tuple[str, str, float, float, str], ...] = (
     ("k_r", "1", -0.5, 0.5, "torque gain error, right wheel"),
     ("k_l", "1", -0.5, 0.5, "torque gain error, left wheel"),
     ("k_p", "1", -0.5, 0.5, "torque gain error, pivot"),
-    ("u_max", "N m", 0.0, 100.0, "torque saturation (0 = none)"),
+    ("u_max_r", "N m", 0.0, 100.0, "torque saturation, right wheel motor (0 = none)"),
+    ("u_max_l", "N m", 0.0, 100.0, "torque saturation, left wheel motor (0 = none)"),
+    ("u_max_p", "N m", 0.0, 100.0, "torque saturation, pivot motor (0 = none)"),
     ("T_i", "s", 0.0, 0.2, "current-loop time constant (0 = none)"),
     ("db_w", "N m s/rad", -0.2, 0.2, "viscous friction asymmetry of the wheels"),
-    ("dr", "1", -0.1, 0.1, "wheel radius asymmetry"),
+    ("dr_r", "1", -0.1, 0.1, "right wheel radius change relative to the nominal r"),
+    ("dr_l", "1", -0.1, 0.1, "left wheel radius change relative to the nominal r"),
+    ("t_trac", "N m", 0.0, 50.0, "traction limit per wheel (0 = none)"),
     ("b_ax", "m/s^2", -2.0, 2.0, "accelerometer bias x"),
     ("b_ay", "m/s^2", -2.0, 2.0, "accelerometer bias y"),
     ("b_gz", "rad/s", -0.5, 0.5, "gyro bias z"),
@@ -106,14 +130,19 @@ EFFECT_PARAMS: tuple[tuple[str, str, float, float, str], ...] = (
     ("d_imu", "s", 0.0, 0.1, "IMU latency"),
     ("e_r", "1", -0.2, 0.2, "right wheel encoder scale error"),
     ("e_l", "1", -0.2, 0.2, "left wheel encoder scale error"),
-)
+    ("n_cst", "1", 1.0, float(MAX_CASTERS), "number of casters"),
+) + tuple((f"{a}_c{i}", "m", -1.0, 1.0, f"caster {i} contact {a} in B'") for i in range(1, MAX_CASTERS + 1)
+          for a in ("x", "y"))
 EFFECT_PARAM_NAMES: tuple[str, ...] = tuple(p[0] for p in EFFECT_PARAMS)
 EFFECT_INDEX: dict[str, int] = {n: i for i, n in enumerate(EFFECT_PARAM_NAMES)}
 EFFECT_UNITS: dict[str, str] = {p[0]: p[1] for p in EFFECT_PARAMS}
 EFFECT_BOUNDS: dict[str, tuple[float, float]] = {p[0]: (p[2], p[3]) for p in EFFECT_PARAMS}
 N_EFFECT = len(EFFECT_PARAMS)
-(C_R, C_L, C_P, S_W, V_S, C_RR, F_CST, K_SLIP, G_X, G_Y, C_AIR, K_R, K_L, K_P, U_MAX, T_I, DB_W, DR,
- B_AX, B_AY, B_GZ, D_X, D_Y, PSI, D_IMU, E_R, E_L) = range(N_EFFECT)
+(C_R, C_L, C_P, S_W, V_S, C_RR, F_CST, K_SLIP, G_X, G_Y, C_AIR, K_R, K_L, K_P, U_MAX_R, U_MAX_L, U_MAX_P, T_I, DB_W,
+ DR_R, DR_L, T_TRAC, B_AX, B_AY, B_GZ, D_X, D_Y, PSI, D_IMU, E_R, E_L, N_CST) = range(N_EFFECT - 2 * MAX_CASTERS)
+X_C1 = N_CST + 1  # x_ci at X_C1 + 2 (i - 1), y_ci one after
+#: effect entries that describe where things are, not an effect (active only with their effect)
+GEOMETRY_PARAMS: tuple[str, ...] = ("n_cst",) + tuple(n for n in EFFECT_PARAM_NAMES if n[1:3] == "_c" and n[3:].isdigit())
 
 _L1, _L2, _IA, _BW, _R, _MC, _MP, _XB, _YB, _XF, _YF = 0, 1, 11, 12, 2, 3, 7, 5, 6, 9, 10
 
@@ -122,6 +151,8 @@ def effect_vector(values: dict[str, float] | None = None) -> np.ndarray:
     """Flat effect vector (N_EFFECT,) from ``{name: value}``; unnamed effects are 0 (v_s defaults 0.5)."""
     eff = np.zeros(N_EFFECT)
     eff[V_S] = 0.5
+    eff[N_CST] = 1.0
+    eff[X_C1], eff[X_C1 + 1] = CASTER_POSITION
     for k, v in (values or {}).items():
         if k not in EFFECT_INDEX:
             raise ValueError(f"unknown effect parameter '{k}' (known: {', '.join(EFFECT_PARAM_NAMES)})")
@@ -130,8 +161,11 @@ def effect_vector(values: dict[str, float] | None = None) -> np.ndarray:
         eff[EFFECT_INDEX[k]] = float(v)
     if eff[V_S] <= 0:
         raise ValueError(f"v_s must be > 0 rad/s, got {eff[V_S]}")
-    if abs(eff[DR]) >= 0.5:
-        raise ValueError(f"dr must be in (-0.5, 0.5), got {eff[DR]}")
+    for i in (DR_R, DR_L):
+        if abs(eff[i]) >= 0.5:
+            raise ValueError(f"{EFFECT_PARAM_NAMES[i]} must be in (-0.5, 0.5), got {eff[i]}")
+    if eff[N_CST] not in range(1, MAX_CASTERS + 1):
+        raise ValueError(f"n_cst must be a whole number of casters 1..{MAX_CASTERS}, got {eff[N_CST]}")
     return eff
 
 
@@ -141,28 +175,39 @@ def _sgn(v, w):
 
 
 @njit(cache=True)
-def sign_width(i):
-    """Width (rad/s) of the smoothed friction sign at motor i (0 r, 1 l, 2 p)."""
-    return SIGN_RATE_PIVOT if i == 2 else SIGN_RATE_WHEEL
+def rolling_torque(eff, prm):
+    """Rolling-resistance torque (N m) at each wheel: c_rr (m_c + m_p) g r / 2."""
+    return eff[C_RR] * (prm[_MC] + prm[_MP]) * GRAVITY * 0.5 * prm[_R]
+
+
+@njit(cache=True)
+def sign_width(i, eff, prm):
+    """Width (rad/s) of the smoothed friction sign at motor i (0 r, 1 l, 2 p): proportional to the
+    joint's friction level at zero speed, the narrowest RK4 keeps stable (module doc)."""
+    if i == 2:
+        return max(WIDTH_MIN_PIVOT, WIDTH_PER_NM_PIVOT * eff[C_P])
+    level = eff[C_R + i] + eff[S_W] + rolling_torque(eff, prm)
+    return max(WIDTH_MIN_WHEEL, WIDTH_PER_NM_WHEEL * level)
 
 
 @njit(cache=True)
 def actuated_torque(u, eff):
-    """Commanded torque (3,) -> torque the drives deliver in steady state (gain, then saturation)."""
+    """Commanded torque (3,) -> torque the drives deliver in steady state (gain, then each motor's saturation)."""
     out = np.empty(3)
     out[0] = (1.0 + eff[K_R]) * u[0]
     out[1] = (1.0 + eff[K_L]) * u[1]
     out[2] = (1.0 + eff[K_P]) * u[2]
-    if eff[U_MAX] > 0.0:
-        for i in range(3):
-            out[i] = min(max(out[i], -eff[U_MAX]), eff[U_MAX])
+    for i in range(3):
+        m = eff[U_MAX_R + i]
+        if m > 0.0:
+            out[i] = min(max(out[i], -m), m)
     return out
 
 
 @njit(cache=True)
-def _motor_friction(w, i, eff):
+def _motor_friction(w, i, eff, prm):
     """Non-viscous friction torque (N m) at motor i (0 r, 1 l, 2 p) turning at w rad/s (opposes w)."""
-    sg = _sgn(w, sign_width(i))
+    sg = _sgn(w, sign_width(i, eff, prm))
     t = eff[C_R + i] * sg
     if i < 2 and eff[S_W] != 0.0:
         t += eff[S_W] * np.exp(-(w / eff[V_S]) ** 2) * sg
@@ -170,8 +215,54 @@ def _motor_friction(w, i, eff):
 
 
 @njit(cache=True)
-def _rhos(eff):
-    return 1.0 / (1.0 + eff[DR]), 1.0 / (1.0 - eff[DR])
+def radius_ratios(eff):
+    """rho_i = r / r_i (right, left): the nominal radius over each wheel's own."""
+    return 1.0 / (1.0 + eff[DR_R]), 1.0 / (1.0 + eff[DR_L])
+
+
+K_SLIP_MIN = 1e-4  # rad/(s N m): creep of the traction curve when k_slip = 0 (rigid up to the limit)
+
+
+@njit(cache=True)
+def slip_state(tau_tr, b_i, eff):
+    """(slip rate sigma rad/s, ground torque tau_g N m) of a wheel transmitting tau_tr.
+
+    Without a traction limit: tau_g = tau_tr and sigma = k_slip tau_g (linear creep). With one
+    (t_trac > 0) the traction curve tau_g(sigma) = t_trac tanh(sigma / (k_slip t_trac)) and the
+    wheel's balance tau_tr - b_i sigma = tau_g(sigma) (the motor's viscous friction acts on the
+    spin rolling + sigma) give sigma, solved by safeguarded Newton (the balance is monotone):
+    creep below the limit, spin-up until the viscous friction takes the excess above it."""
+    T = eff[T_TRAC]
+    k = eff[K_SLIP]
+    if T <= 0.0:
+        return k * tau_tr, tau_tr
+    kk = max(k, K_SLIP_MIN)
+    b = max(b_i, 1e-3)
+    # g(s) = tau_tr - b s - T tanh(s / (kk T)) decreases; the root lies between 0 and tau_tr / b
+    lo, hi = min(0.0, tau_tr / b), max(0.0, tau_tr / b)
+    s = min(max(kk * tau_tr, lo), hi) if abs(tau_tr) < T else (tau_tr - np.sign(tau_tr) * T) / b
+    for _ in range(60):
+        th = np.tanh(s / (kk * T))
+        g = tau_tr - b * s - T * th
+        if abs(g) < 1e-12 * (1.0 + abs(tau_tr)):
+            break
+        if g > 0.0:
+            lo = s
+        else:
+            hi = s
+        dg = -b - (1.0 - th * th) / kk
+        s_new = s - g / dg
+        s = s_new if lo < s_new < hi else 0.5 * (lo + hi)
+    return s, T * np.tanh(s / (kk * T))
+
+
+@njit(cache=True)
+def slip_rate_series(tau_tr, b_i, eff):
+    """Slip rates (N,) for transmitted torques tau_tr (N,) (``slip_state``)."""
+    out = np.empty(len(tau_tr))
+    for j in range(len(tau_tr)):
+        out[j] = slip_state(tau_tr[j], b_i, eff)[0]
+    return out
 
 
 @njit(cache=True)
@@ -183,15 +274,17 @@ def effect_force(x, tau, eff, prm, fixture):
     """
     gen = np.zeros(6)
     bw = prm[_BW]
-    rho = _rhos(eff)
+    rho = radius_ratios(eff)
     # wheel motors, expressed on the rolling angles psi
+    traction = eff[T_TRAC] > 0.0 and fixture == compiled.FLOOR
     for i in range(2):
         psid = x[9 + i]
         w = rho[i] * psid
         b_i = bw + eff[DB_W] * (1.0 if i == 0 else -1.0)
-        motor = rho[i] * (tau[i] - b_i * w - _motor_friction(w, i, eff))
+        t_tr = tau[i] - b_i * w - _motor_friction(w, i, eff, prm)
+        motor = rho[i] * (slip_state(t_tr, b_i, eff)[1] if traction else t_tr)
         gen[3 + i] = motor - (tau[i] - bw * psid)
-    gen[5] = -_motor_friction(x[11], 2, eff)
+    gen[5] = -_motor_friction(x[11], 2, eff, prm)
     a = x[2]
     th = x[2] - x[5]
     ca, sa, ct, st = np.cos(a), np.sin(a), np.cos(th), np.sin(th)
@@ -214,24 +307,29 @@ def effect_force(x, tau, eff, prm, fixture):
         gen[5] -= mom_c
     # rolling resistance at both contacts, on the rolling angles
     if eff[C_RR] != 0.0:
-        t_rr = eff[C_RR] * (mc + mp) * GRAVITY * 0.5 * prm[_R]
-        gen[3] -= t_rr * _sgn(x[9], SIGN_RATE_WHEEL)
-        gen[4] -= t_rr * _sgn(x[10], SIGN_RATE_WHEEL)
-    # caster drag at C (CASTER_POSITION in B')
+        t_rr = rolling_torque(eff, prm)
+        gen[3] -= t_rr * _sgn(x[9], sign_width(0, eff, prm))
+        gen[4] -= t_rr * _sgn(x[10], sign_width(1, eff, prm))
+    # caster drag: f_cst / n_cst at each caster contact (x_ci, y_ci in B')
     if eff[F_CST] != 0.0:
-        rcx = ct * CASTER_POSITION[0] - st * CASTER_POSITION[1]
-        rcy = st * CASTER_POSITION[0] + ct * CASTER_POSITION[1]
+        n_c = int(eff[N_CST])
+        f_each = eff[F_CST] / n_c
+        width = max(WIDTH_MIN_CASTER, WIDTH_PER_N_CASTER * eff[F_CST])
         thd = x[8] - x[11]
-        vx = x[6] - thd * rcy
-        vy = x[7] + thd * rcx
-        nv = np.sqrt(vx * vx + vy * vy + SIGN_SPEED * SIGN_SPEED)
-        Fx = -eff[F_CST] * vx / nv
-        Fy = -eff[F_CST] * vy / nv
-        gen[0] += Fx
-        gen[1] += Fy
-        m = -rcy * Fx + rcx * Fy
-        gen[2] += m
-        gen[5] -= m
+        for j in range(n_c):
+            cx, cy = eff[X_C1 + 2 * j], eff[X_C1 + 2 * j + 1]
+            rcx = ct * cx - st * cy
+            rcy = st * cx + ct * cy
+            vx = x[6] - thd * rcy
+            vy = x[7] + thd * rcx
+            nv = np.sqrt(vx * vx + vy * vy + width * width)
+            Fx = -f_each * vx / nv
+            Fy = -f_each * vy / nv
+            gen[0] += Fx
+            gen[1] += Fy
+            m = -rcy * Fx + rcx * Fy
+            gen[2] += m
+            gen[5] -= m
     # air drag at the pivot
     if eff[C_AIR] != 0.0:
         sp = np.sqrt(x[6] * x[6] + x[7] * x[7])
@@ -261,9 +359,9 @@ def effect_joint_torque(x, tau, eff, prm, fixture):
 def compensated_command(x, u_task, eff, prm, fixture):
     """Command (3,) N m under which the extended model's drives act like the paper model's torque
     ``u_task``: the delivered torque tau solves tau + Delta^T gen(x, tau) = u_task (fixed point; gen
-    depends on tau only through a wheel-radius asymmetry, a contraction of factor |dr|), then each
+    depends on tau only through unequal wheel radii, a contraction of factor |dr_r|, |dr_l|), then each
     motor's gain error is divided out. Not compensated: saturation, current-loop lag, the inertia
-    change of unequal radii, slip and sensor effects."""
+    change of unequal radii, slip (and a traction limit) and sensor effects."""
     tau = u_task.copy()
     for _ in range(3):
         tau = u_task - effect_joint_torque(x, tau, eff, prm, fixture)
@@ -282,8 +380,8 @@ def ext_accelerations(x, tau, f, eff, prm, fixture):
         acc = compiled.accelerations(x, tau, f, gen, prm)
     else:
         acc = compiled.fixture_accelerations(x, tau, gen, prm, fixture)
-    if eff[DR] != 0.0:
-        rho = _rhos(eff)
+    if eff[DR_R] != 0.0 or eff[DR_L] != 0.0:
+        rho = radius_ratios(eff)
         g2 = gen.copy()
         for _ in range(2):  # fixed point for the wheel inertias rho^2 I_a
             for i in range(2):
@@ -299,13 +397,13 @@ def ext_accelerations(x, tau, f, eff, prm, fixture):
 def slip_rates(x, tau, eff, prm, fixture):
     """Slip rates (2,) rad/s of the wheel encoders relative to the rolling angles."""
     out = np.zeros(2)
-    if eff[K_SLIP] == 0.0 or fixture != compiled.FLOOR:
+    if (eff[K_SLIP] == 0.0 and eff[T_TRAC] == 0.0) or fixture != compiled.FLOOR:
         return out
-    rho = _rhos(eff)
+    rho = radius_ratios(eff)
     for i in range(2):
         w = rho[i] * x[9 + i]
         b_i = prm[_BW] + eff[DB_W] * (1.0 if i == 0 else -1.0)
-        out[i] = eff[K_SLIP] * (tau[i] - b_i * w - _motor_friction(w, i, eff))
+        out[i] = slip_state(tau[i] - b_i * w - _motor_friction(w, i, eff, prm), b_i, eff)[0]
     return out
 
 
@@ -391,11 +489,11 @@ def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.n
     (N, 3) m/s^2, rad/s in the IMU frame (= B'' rotated by psi), as the recording stores them.
     """
     x, qdd = traj.x, traj.qdd
-    rho = (1.0 / (1.0 + eff[DR]), 1.0 / (1.0 - eff[DR]))
+    rho = radius_ratios(eff)
     pos = x[:, 3:6].copy()
     vel = x[:, 9:12].copy()
     slip_d = np.zeros((len(x), 2))
-    if eff[K_SLIP] != 0.0:
+    if eff[K_SLIP] != 0.0 or eff[T_TRAC] != 0.0:
         from otbot_hw.model.fixtures import fixture_code
         code = fixture_code(traj.fixture)
         prm = params.as_array()
@@ -404,10 +502,49 @@ def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.n
         scale = 1.0 + eff[E_R + i]
         pos[:, i] = scale * (rho[i] * x[:, 3 + i] + traj.slip[:, i])
         vel[:, i] = scale * (rho[i] * x[:, 9 + i] + slip_d[:, i])
-    acc, gyro = imu_from_motion(x[:, 2], x[:, 8], qdd[:, 0], qdd[:, 1], qdd[:, 2], eff,
-                                floor=traj.fixture == "floor")
-    acc, gyro = delay(traj.t, acc, eff[D_IMU]), delay(traj.t, gyro, eff[D_IMU])
+    floor = traj.fixture == "floor"
+    acc, gyro = imu_from_motion(x[:, 2], x[:, 8], qdd[:, 0], qdd[:, 1], qdd[:, 2], eff, floor=floor)
+    if eff[D_IMU] > 0.0:
+        # the IMU reads the motion d_imu earlier, inside some ZOH interval: interpolate between that
+        # interval's own ends (sample j with command u_j, sample j+1 still under u_j), not across the
+        # torque step at a sample
+        ql = left_accelerations(traj, params, eff)
+        acc_l, _ = imu_from_motion(x[:, 2], x[:, 8], ql[:, 0], ql[:, 1], ql[:, 2], eff, floor=floor)
+        acc = delay_held(traj.t, acc, acc_l, eff[D_IMU])
+        gyro = delay(traj.t, gyro, eff[D_IMU])
     return {"joint_pos": pos, "joint_vel": vel, "imu_accel": acc, "imu_gyro": gyro}
+
+
+def left_accelerations(traj, params: OtbotParams, eff: np.ndarray) -> np.ndarray:
+    """q_ddot (N, 6) at each sample under the *previous* interval's delivered torque (the left limit at
+    a command step; equal to ``traj.qdd`` with a current-loop lag, whose torque is continuous). The
+    pivot force enters the accelerations linearly, so it cancels in the correction and is not needed."""
+    from otbot_hw.model.fixtures import fixture_code
+
+    if eff[T_I] > 0.0 or len(traj.x) < 2:
+        return traj.qdd.copy()
+    tau_l = traj.tau.copy()
+    tau_l[1:] = np.array([actuated_torque(u, eff) for u in traj.u[:-1]])
+    tau_l[0] = traj.tau[0]
+    code = fixture_code(traj.fixture)
+    prm = params.as_array()
+    zero = np.zeros((len(traj.x), 2))
+    right = ext_sample_accelerations(traj.x, np.ascontiguousarray(traj.tau), zero, eff, prm, code)
+    left = ext_sample_accelerations(traj.x, tau_l, zero, eff, prm, code)
+    return traj.qdd + (left - right)
+
+
+def delay_held(t: np.ndarray, right: np.ndarray, left: np.ndarray, d: float) -> np.ndarray:
+    """A signal sampled d seconds late whose samples jump at the sample instants: ``right`` (N, k) just
+    after each sample, ``left`` (N, k) just before; inside interval j the value runs linearly from
+    right[j] to left[j + 1]. Held at its first value before t_0."""
+    dt = t[1] - t[0]
+    tq = t - d
+    j = np.clip(np.floor((tq - t[0]) / dt + 1e-9).astype(int), 0, len(t) - 2)
+    f = np.clip((tq - t[j]) / dt, 0.0, 1.0)[:, None]
+    out = (1.0 - f) * right[j] + f * left[j + 1]
+    out[tq <= t[0]] = right[0]
+    return out
 
 
 def imu_from_motion(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor: bool = True):
@@ -446,7 +583,7 @@ def delay(t: np.ndarray, y: np.ndarray, d: float) -> np.ndarray:
 
 
 #: Catalog parameters that set several effect-vector entries at once (tied values).
-TIED_PARAMS: dict[str, tuple[str, ...]] = {"c_w": ("c_r", "c_l")}
+TIED_PARAMS: dict[str, tuple[str, ...]] = {"c_w": ("c_r", "c_l"), "u_max": ("u_max_r", "u_max_l", "u_max_p")}
 
 
 @dataclass(frozen=True)
@@ -484,10 +621,12 @@ class ExtendedModel:
         return ExtendedModel(params, eff)
 
     def active_effects(self) -> dict[str, float]:
-        """Effect entries that differ from the paper's model."""
+        """Effect entries that differ from the paper's model (the Stribeck speed only with Stribeck
+        friction, the caster geometry only with caster drag)."""
         base = effect_vector()
         return {n: float(self.eff[i]) for i, n in enumerate(EFFECT_PARAM_NAMES)
-                if self.eff[i] != base[i] and not (n == "v_s" and self.eff[S_W] == 0.0)}
+                if self.eff[i] != base[i] and not (n == "v_s" and self.eff[S_W] == 0.0)
+                and not (n in GEOMETRY_PARAMS and self.eff[F_CST] == 0.0)}
 
     # -- model files: the parameter YAML plus an optional ``effects`` section ----------------
     @classmethod

@@ -53,10 +53,10 @@ class StepperSensors:
         eff = self.eff
         if eff is None:
             return pos, vel
-        rho = (1.0 / (1.0 + eff[fx.DR]), 1.0 / (1.0 - eff[fx.DR]))
+        rho = fx.radius_ratios(eff)
         slip = self.stepper.slip
         slip_d = (fx.slip_rates(x, self.delivered_torque(u), eff, self.stepper._prm, self._code)
-                  if eff[fx.K_SLIP] != 0.0 else (0.0, 0.0))
+                  if eff[fx.K_SLIP] != 0.0 or eff[fx.T_TRAC] != 0.0 else (0.0, 0.0))
         for i in range(2):
             scale = 1.0 + eff[fx.E_R + i]
             pos[i] = scale * (rho[i] * x[3 + i] + slip[i])

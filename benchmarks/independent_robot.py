@@ -1,0 +1,375 @@
+"""An Otbot simulator written independently of ``otbot_hw`` (no import of its model, simulator,
+sensors or recording writer), to make recordings the diagnosis has never seen.
+
+* **Parameters**: read from ``config/otbot.yaml`` with plain ``yaml``.
+* **Dynamics**: Lagrange's equations with multipliers as one 9x9 linear system per
+  evaluation, built here from body kinematics: the mass matrix from the Jacobians of the two
+  centres of mass (chassis B, platform F) and the angular velocities (chassis theta_dot =
+  alpha_dot - phi_p_dot, platform alpha_dot, wheels), the velocity-product term from the
+  centripetal accelerations of B and F, the three rolling constraints from the velocities of
+  the wheel centres C_r, C_l (rolling with each wheel's own radius) and of the axle midpoint
+  M (no side slip). Integrated by scipy's adaptive RK45 (rtol 1e-8), restarted on every
+  zero-order-hold interval.
+* **Effects**, each in this file's own form: Coulomb friction with a nearly hard sign
+  (tanh(w / 0.005 rad/s)); Stribeck excess s exp(-(w/v_s)^2) with that sign; rolling resistance
+  as a force c_rr N at each wheel's contact, N = (m_c + m_p) g / 2; caster drag as forces at the
+  contact points of one or several casters (direction v / sqrt(|v|^2 + (1 mm/s)^2)); slip with
+  the traction torque T_max x / sqrt(1 + x^2), x = sigma / (k T_max) (sigma: wheel spin over
+  rolling rate; linear creep sigma = k tau_g for small torques, saturating at T_max), the spin
+  rate solved from the wheel's torque balance traction(sigma) = tau - friction(spin) - I_a psi_dd
+  at every evaluation, iterated with the 9x9 solve (quasi-static: the creep settles within
+  k I_a ~ 0.3 ms), the slip angles integrated; floor slope as
+  gravity on both centres of mass; quadratic air drag at the pivot; per-motor gain and hard
+  saturation, a first-order current lag as three integrated states; unequal wheel radii in the
+  constraints; viscous asymmetry of the wheels.
+* **Sensors**: encoders read the wheel spin angles (x (1 + e) for a scale error) and the pivot
+  angle; the IMU is the specific force of the sensor point D = P + R(alpha) d in axes turned by
+  psi, plus biases, sampled d_imu late (from the integrator's dense output); paper noise levels.
+* **Excitations**: random piecewise-constant torques (hold 0.15-0.8 s) for fitting, random
+  smooth sums of sines for held-out runs.
+* **Files**: the documented MCAP layout written with the plain ``mcap`` package.
+
+``tests/test_diagnose_independent.py`` checks this simulator against the project's model
+with no effect (they must agree: same physics, different derivation and integrator).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+ROOT = Path(__file__).resolve().parent.parent
+G = 9.80665
+SHARP = 0.005  # rad/s: width of the nearly hard friction sign
+CASTER_EPS = 1e-3  # m/s
+SIGMA_IMU = 1.37e-3 * np.sqrt(100.0)  # paper §4.3.2, m/s^2 and rad/s at 100 Hz
+SIGMA_ENC_RATE = 0.01  # rad/s
+
+
+def load_params(path: Path = ROOT / "config" / "otbot.yaml") -> dict[str, float]:
+    """{symbol: value} from the parameter YAML (sections of {value, unit} entries)."""
+    import yaml
+
+    data = yaml.safe_load(Path(path).read_text())
+    return {k: float(v["value"]) for sec in data.values() if isinstance(sec, dict) for k, v in sec.items()}
+
+
+def with_load(p: dict, mass: float, x: float, y: float, inertia: float = 0.0) -> dict:
+    """Platform parameters with a point-like load of ``inertia`` about its centre at (x, y) in B''."""
+    m = p["m_p"] + mass
+    xf, yf = (p["m_p"] * p["x_F"] + mass * x) / m, (p["m_p"] * p["y_F"] + mass * y) / m
+    ip = (p["I_p"] + p["m_p"] * ((p["x_F"] - xf) ** 2 + (p["y_F"] - yf) ** 2) + inertia
+          + mass * ((x - xf) ** 2 + (y - yf) ** 2))
+    return {**p, "m_p": m, "x_F": xf, "y_F": yf, "I_p": ip}
+
+
+@dataclass
+class World:
+    """What the simulated robot really has (this simulator's own terms; zero = absent)."""
+
+    coulomb_w: float = 0.0  # N m, both wheel motors
+    coulomb_p: float = 0.0  # N m, pivot motor
+    stribeck: tuple[float, float] = (0.0, 0.5)  # (s N m, v_s rad/s), wheel motors
+    c_rr: float = 0.0  # rolling-resistance coefficient
+    casters: tuple[tuple[float, float], ...] = ((0.15, 0.0),)  # contact points in B' (m)
+    caster_drag: float = 0.0  # N, shared equally by the casters
+    slip_k: float = 0.0  # rad/(s N m): creep rate per traction torque
+    slip_tmax: float = np.inf  # N m: traction limit per wheel
+    slope: tuple[float, float] = (0.0, 0.0)  # m/s^2, ground frame
+    c_air: float = 0.0  # N s^2/m^2
+    gain: tuple[float, float, float] = (0.0, 0.0, 0.0)  # delivered = (1 + k) command
+    u_max: tuple[float, float, float] = (np.inf, np.inf, np.inf)  # N m per motor
+    lag: float = 0.0  # s, current loop
+    db_w: float = 0.0  # N m s/rad: b_r = b_w + db, b_l = b_w - db
+    radius_change: tuple[float, float] = (0.0, 0.0)  # relative: r_i = r (1 + dr_i)
+    imu_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m/s^2, m/s^2, rad/s
+    imu_position: tuple[float, float] = (0.0, 0.0)  # m in B''
+    imu_yaw: float = 0.0  # rad
+    imu_latency: float = 0.0  # s
+    encoder_scale: tuple[float, float] = (0.0, 0.0)
+    params: dict = field(default_factory=dict)  # overrides of the nominal parameters (the true robot)
+
+
+def _rot(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s], [s, c]])
+
+
+class Otbot:
+    """The true robot: parameters ``p`` and effects ``w``; states q (6), q_dot (6) [+ lag torques (3)]
+    [+ slip rates (2), slip angles (2)]; wheel coordinates are rolling angles (= wheel angles without slip)."""
+
+    def __init__(self, p: dict, w: World):
+        self.p = {**p, **w.params}
+        self.w = w
+        self.slip = w.slip_k > 0 or np.isfinite(w.slip_tmax)
+        self.radii = (self.p["r"] * (1 + w.radius_change[0]), self.p["r"] * (1 + w.radius_change[1]))
+        self.n_lag = 3 if w.lag > 0 else 0
+
+    # -- kinematics of points of the chassis (B' coordinates c) and of the platform (B'' coordinates c)
+    def _chassis_point(self, q, qd, c):
+        th, thd = q[2] - q[5], qd[2] - qd[5]
+        d = _rot(th + np.pi / 2) @ c
+        J = np.zeros((2, 6))
+        J[:, :2] = np.eye(2)
+        J[:, 2], J[:, 5] = d, -d
+        return J, J @ qd, -thd ** 2 * (_rot(th) @ c)  # Jacobian, velocity, J_dot q_dot
+
+    def _platform_point(self, q, qd, c):
+        d = _rot(q[2] + np.pi / 2) @ c
+        J = np.zeros((2, 6))
+        J[:, :2] = np.eye(2)
+        J[:, 2] = d
+        return J, J @ qd, -qd[2] ** 2 * (_rot(q[2]) @ c)
+
+    def _wheel_friction(self, i, w):
+        """Motor friction torque (opposing) at wheel motor i turning at w rad/s."""
+        p, e = self.p, self.w
+        b = p["b_w"] + (e.db_w if i == 0 else -e.db_w)
+        sg = np.tanh(w / SHARP)
+        s, vs = e.stribeck
+        return b * w + e.coulomb_w * sg + s * np.exp(-(w / vs) ** 2) * sg
+
+    def traction(self, sigma):
+        """Traction torque (N m) for a spin-over-rolling rate sigma (rad/s)."""
+        k, T = self.w.slip_k, self.w.slip_tmax
+        if not np.isfinite(T):
+            return sigma / k
+        x = sigma / (k * T) if k > 0 else sigma * 1e6
+        return T * x / np.sqrt(1 + x * x)
+
+    def delivered(self, u):
+        """Torque the drives settle to for command u (gain, then each motor's saturation)."""
+        d = np.asarray(u, float) * (1.0 + np.asarray(self.w.gain))
+        return np.clip(d, -np.asarray(self.w.u_max), np.asarray(self.w.u_max))
+
+    def spin_over_rolling(self, i, rolling_rate, tau, inertial):
+        """Slip rate sigma (rad/s) of wheel i: root of tau - friction(rolling + sigma) - inertial - traction(sigma)
+        (decreasing in sigma; inertial = I_a psi_dd), bracketed and solved by Brent's method."""
+        from scipy.optimize import brentq
+
+        def g(s):
+            return tau - inertial - self._wheel_friction(i, rolling_rate + s) - self.traction(s)
+
+        lo, hi = -1.0, 1.0
+        while g(lo) < 0:
+            lo *= 4
+        while g(hi) > 0:
+            hi *= 4
+        return brentq(g, lo, hi, xtol=1e-12, rtol=1e-12)
+
+    def accelerations(self, q, qd, tau):
+        """(q_ddot (6,), slip rates sigma (2,) or None) from the 9x9 system."""
+        p, e = self.p, self.w
+        th = q[2] - q[5]
+        thd = qd[2] - qd[5]
+        e1, e2 = np.array([np.cos(th), np.sin(th)]), np.array([-np.sin(th), np.cos(th)])
+        JB, vB, aB0 = self._chassis_point(q, qd, np.array([p["x_B"], p["y_B"]]))
+        JF, vF, aF0 = self._platform_point(q, qd, np.array([p["x_F"], p["y_F"]]))
+        w_th = np.array([0, 0, 1.0, 0, 0, -1.0])
+        w_al = np.array([0, 0, 1.0, 0, 0, 0])
+        M = p["m_c"] * JB.T @ JB + p["m_p"] * JF.T @ JF + p["I_c"] * np.outer(w_th, w_th) \
+            + p["I_p"] * np.outer(w_al, w_al)
+        M[3, 3] += p["I_a"]
+        M[4, 4] += p["I_a"]
+        h = p["m_c"] * JB.T @ aB0 + p["m_p"] * JF.T @ aF0
+        Q = np.zeros(6)
+        # pivot motor
+        Q[5] += tau[2] - p["b_p"] * qd[5] - e.coulomb_p * np.tanh(qd[5] / SHARP)
+        # wheels: motor torque minus friction at the wheel's spin, on the rolling angle (= the wheel angle
+        # without slip); with slip the wheel spins sigma faster, sigma from the traction law (below)
+        sigma = np.zeros(2)
+        # constraints and their velocity terms
+        rows, bias = [], []
+        for i, (side, rad) in enumerate(((-1.0, self.radii[0]), (1.0, self.radii[1]))):
+            c = np.array([-p["l1"], side * p["l2"]])
+            Jc, vc, ac0 = self._chassis_point(q, qd, c)
+            row = e1 @ Jc
+            row[3 + i] -= rad
+            rows.append(row)
+            bias.append(thd * (e2 @ vc) + e1 @ ac0)
+            if e.c_rr:
+                n = (p["m_c"] + p["m_p"]) * G / 2
+                Q += Jc.T @ (-e.c_rr * n * np.tanh((e1 @ vc) / (SHARP * rad)) * e1)
+        Jm, vm, am0 = self._chassis_point(q, qd, np.array([-p["l1"], 0.0]))
+        rows.append(e2 @ Jm)
+        bias.append(-thd * (e1 @ vm) + e2 @ am0)
+        A = np.array(rows)
+        # floor effects
+        if e.caster_drag:
+            f = e.caster_drag / len(e.casters)
+            for c in e.casters:
+                Jc, vc, _ = self._chassis_point(q, qd, np.asarray(c, float))
+                Q += Jc.T @ (-f * vc / np.sqrt(vc @ vc + CASTER_EPS ** 2))
+        gs = np.asarray(e.slope, float)
+        if gs.any():
+            Q += JB.T @ (p["m_c"] * gs) + JF.T @ (p["m_p"] * gs)
+        if e.c_air:
+            v = qd[:2]
+            Q[:2] -= e.c_air * np.linalg.norm(v) * v
+        K = np.zeros((9, 9))
+        K[:6, :6], K[:6, 6:], K[6:, :6] = M, -A.T, A
+        psidd = np.zeros(2)
+        for _ in range(4 if self.slip else 1):
+            if self.slip:
+                sigma = np.array([self.spin_over_rolling(i, qd[3 + i], tau[i], p["I_a"] * psidd[i]) for i in range(2)])
+            Qw = Q.copy()
+            Qw[3] += tau[0] - self._wheel_friction(0, qd[3] + sigma[0])
+            Qw[4] += tau[1] - self._wheel_friction(1, qd[4] + sigma[1])
+            sol = np.linalg.solve(K, np.concatenate([Qw - h, -np.array(bias)]))
+            psidd = sol[3:5]
+        return sol[:6], (sigma if self.slip else None)
+
+    def rhs(self, z, u_del):
+        q, qd = z[:6], z[6:12]
+        k = 12
+        if self.n_lag:
+            tau = z[k:k + 3]
+            dtau = (u_del - tau) / self.w.lag
+            k += 3
+        else:
+            tau = u_del
+        qdd, sigma = self.accelerations(q, qd, tau)
+        out = [qd, qdd]
+        if self.n_lag:
+            out.append(dtau)
+        if self.slip:
+            out.append(sigma)
+        return np.concatenate(out)
+
+    def state_size(self) -> int:
+        return 12 + self.n_lag + (2 if self.slip else 0)
+
+    def run(self, U: np.ndarray, dt: float) -> dict:
+        """Simulate N ZOH intervals of commands U (N, 3) from rest: states and sensor-side signals at the
+        N + 1 sample instants and at the instants d_imu earlier (IMU latency)."""
+        n = len(U)
+        z = np.zeros(self.state_size())
+        sols, Z = [], [z.copy()]
+        for k in range(n):
+            ud = self.delivered(U[k])
+            sol = solve_ivp(lambda _t, s, ud=ud: self.rhs(s, ud), (k * dt, (k + 1) * dt), z, method="RK45",
+                            rtol=1e-8, atol=1e-10, dense_output=self.w.imu_latency > 0)
+            if not sol.success:
+                raise RuntimeError(f"interval {k}: {sol.message}")
+            z = sol.y[:, -1]
+            Z.append(z.copy())
+            sols.append(sol.sol)
+        Z = np.array(Z)
+        t = np.arange(n + 1) * dt
+
+        def state_at(tq):
+            """State at time tq and the interval whose command acts then (the sample's own at t_k)."""
+            k = int(np.floor(tq / dt + 1e-9))
+            if tq <= 0 or self.w.imu_latency == 0 or abs(tq - k * dt) < 1e-12:
+                k = min(max(k, 0), n)
+                return Z[k], min(k, n - 1)
+            return sols[k](tq), k
+
+        imu = [state_at(tq) for tq in t - self.w.imu_latency]
+        enc = [self._outputs(Z[k], U[min(k, n - 1)]) for k in range(n + 1)]
+        return {"t": t, "Z": Z, "imu_state": np.array([s for s, _ in imu]),
+                "qdd": np.array([self._outputs(s, U[k])[0] for s, k in imu]),
+                "sigma": np.array([s for _, s in enc])}
+
+    def _outputs(self, s, u):
+        """(q_ddot, slip rates) at state s with command u acting."""
+        tau = s[12:15] if self.n_lag else self.delivered(u)
+        qdd, sigma = self.accelerations(s[:6], s[6:12], tau)
+        return qdd, (sigma if sigma is not None else np.zeros(2))
+
+    def sensors(self, run: dict, rng: np.random.Generator) -> dict:
+        """Encoder angles/rates (N, 3) and IMU specific force/rate (N, 3), noisy."""
+        Z, e = run["Z"], self.w
+        pos, vel = Z[:, 3:6].copy(), Z[:, 9:12].copy()
+        if self.slip:
+            k = 12 + self.n_lag
+            pos[:, :2] += Z[:, k:k + 2]
+            vel[:, :2] += run["sigma"]
+        for i in range(2):
+            pos[:, i] *= 1.0 + e.encoder_scale[i]
+            vel[:, i] *= 1.0 + e.encoder_scale[i]
+        S, A = run["imu_state"], run["qdd"]
+        gs = np.asarray(e.slope, float)
+        d = np.asarray(e.imu_position, float)
+        acc = np.empty((len(S), 3))
+        for k in range(len(S)):
+            a, ad, add = S[k, 2], S[k, 8], A[k, 2]
+            aD = A[k, :2] + add * (_rot(a + np.pi / 2) @ d) - ad ** 2 * (_rot(a) @ d)
+            acc[k, :2] = _rot(a + e.imu_yaw).T @ (aD - gs) + np.asarray(e.imu_bias[:2])
+            acc[k, 2] = np.sqrt(G ** 2 - gs @ gs)
+        gyro = np.zeros((len(S), 3))
+        gyro[:, 2] = S[:, 8] + e.imu_bias[2]
+        acc += SIGMA_IMU * rng.standard_normal(acc.shape)
+        gyro += SIGMA_IMU * rng.standard_normal(gyro.shape)
+        vel += SIGMA_ENC_RATE * rng.standard_normal(vel.shape)
+        return {"pos": pos, "vel": vel, "acc": acc, "gyro": gyro}
+
+
+def piecewise_torques(duration: float, dt: float, seed: int) -> np.ndarray:
+    """Random piecewise-constant torques (N, 3): holds of 0.15-0.8 s, wheels within +-4 N m, pivot +-2.5 N m."""
+    rng = np.random.default_rng(seed)
+    n = int(round(duration / dt))
+    out = np.empty((n, 3))
+    k = 0
+    while k < n:
+        hold = int(rng.uniform(0.15, 0.8) / dt)
+        out[k:k + hold] = rng.uniform(-1, 1, 3) * np.array([4.0, 4.0, 2.5])
+        k += hold
+    return out
+
+
+def smooth_torques(duration: float, dt: float, seed: int) -> np.ndarray:
+    """Random smooth torques (N, 3): five sines 0.1-1.2 Hz per motor, peaks 3.5 (wheels) and 2 N m (pivot)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(round(duration / dt))) * dt
+    out = np.empty((len(t), 3))
+    for j, peak in enumerate((3.5, 3.5, 2.0)):
+        f = rng.uniform(0.1, 1.2, 5)
+        s = sum(rng.uniform(0.3, 1.0) * np.sin(2 * np.pi * fi * t + rng.uniform(0, 6.3)) for fi in f)
+        out[:, j] = peak * s / np.max(np.abs(s))
+    return out
+
+
+def write_mcap(path: Path, dt: float, U: np.ndarray, sens: dict, fixture: str = "floor") -> None:
+    """The documented format with the plain mcap writer (docs/recording-format.md §1-5): command, joints, IMU,
+    metadata format, format_version, sample_period, fixture, source only (no truth)."""
+    from mcap.writer import CompressionType, Writer
+
+    n = len(sens["pos"])
+    Uf = np.vstack([U, U[-1:]])
+    with open(path, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.NONE, use_chunking=False)
+        w.start(profile="otbot", library="independent test writer")
+        w.add_metadata("otbot", {"format": json.dumps("otbot-recording"), "format_version": "1",
+                                 "sample_period": json.dumps(dt), "fixture": json.dumps(fixture),
+                                 "source": json.dumps("benchmarks/independent_robot.py")})
+        ch = {}
+        for topic, schema in (("/otbot/command", "otbot.Command"), ("/otbot/joints", "otbot.Joints"),
+                              ("/otbot/imu", "otbot.Imu")):
+            sid = w.register_schema(name=schema, encoding="jsonschema", data=b"{}")
+            ch[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+        for k in range(n):
+            tk = k * dt
+            stamp = int(round(tk * 1e9))
+            msgs = {"/otbot/command": {"t": tk, "torque": [float(v) for v in Uf[k]]},
+                    "/otbot/joints": {"t": tk, "position": [float(v) for v in sens["pos"][k]],
+                                      "velocity": [float(v) for v in sens["vel"][k]]},
+                    "/otbot/imu": {"t": tk, "accel": [float(v) for v in sens["acc"][k]],
+                                   "gyro": [float(v) for v in sens["gyro"][k]]}}
+            for topic, m in msgs.items():
+                w.add_message(channel_id=ch[topic], log_time=stamp, publish_time=stamp, sequence=k,
+                              data=json.dumps(m).encode())
+        w.finish()
+
+
+def record(path: Path, world: World, kind: str, seed: int, duration: float = 10.0, dt: float = 0.01,
+           params: dict | None = None) -> None:
+    """Simulate one run (``kind`` piecewise / smooth torques) of the true robot and write it."""
+    U = piecewise_torques(duration, dt, seed) if kind == "piecewise" else smooth_torques(duration, dt, seed)
+    robot = Otbot(params or load_params(), world)
+    sens = robot.sensors(robot.run(U, dt), np.random.default_rng(seed + 1000))
+    write_mcap(path, dt, U, sens)

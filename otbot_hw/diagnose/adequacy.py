@@ -1,0 +1,138 @@
+"""Is the diagnosed model good enough to name anything?
+
+A finding is only as good as the model around it. When the parameter file is wrong where
+the diagnosis does not refit it (a platform load that is not there, a wrong geometry), the
+fit reaches for whatever catalog effect bends it closest -- a floor slope of 0.8 m/s², a
+chassis mass of 1.6e5 kg, a gain on its bound -- and still does not reach the data. So the
+final model is judged three ways before any effect is named:
+
+1. **noise level**: per (recording, channel), the RMS of the simulation residual against the
+   channel's white-noise level measured from the data (``DiagnosisData.noise_sigma``); a
+   model that explains the data leaves noise, so the ratio must stay below
+   ``NOISE_RATIO_FITTING`` on the fitting and ``NOISE_RATIO_HELDOUT`` on the held-out
+   recordings (prediction with estimated parameters and a new initial state);
+2. **bounds**: no free parameter (nominal or effect) may sit on a bound of its physical range;
+3. **plausibility**: the refit nominal parameters stay near the file's values -- relative
+   change below ``RELATIVE_SHIFT`` (masses, inertias, frictions), centre-of-mass offsets within
+   ``OFFSET_SHIFT``.
+
+Failing any of them gives "model inadequate" with the channels, the parameters under
+suspicion (those that moved or hit a bound, and the ones the diagnosis takes as known) and
+the identification step to redo.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from otbot_hw.diagnose.data import DiagnosisData
+from otbot_hw.diagnose.refit import FitResult, channel_sigmas, weighted_residuals
+from otbot_hw.model.effects import parameter_bounds
+from otbot_hw.params import OtbotParams
+
+NOISE_RATIO_FITTING = 1.5
+NOISE_RATIO_HELDOUT = 2.0
+BOUND_FRACTION = 1e-3  # of the bounded range: closer than this to a bound = on it
+RELATIVE_SHIFT = {"m_c": 0.3, "I_c": 0.6, "I_p": 0.6, "I_a": 0.6, "b_w": 1.0, "b_p": 1.0}
+OFFSET_SHIFT = {"x_B": 0.1, "y_B": 0.1}  # m
+#: parameters the diagnosis takes as known, by fixture: the suspects when nothing else moved
+KNOWN = {"floor": ("m_p", "x_F", "y_F", "l1", "l2", "r"), "stand": ("I_a", "b_w"), "locked": ("I_p", "b_p")}
+REDO = {"m_p": "step 3 (platform: otbot identify platform, with the load as it runs)",
+        "x_F": "step 3 (platform: otbot identify platform, with the load as it runs)",
+        "y_F": "step 3 (platform: otbot identify platform, with the load as it runs)",
+        "I_p": "step 3 (platform: otbot identify platform, with the load as it runs)",
+        "m_c": "step 2 (chassis: otbot identify chassis)", "I_c": "step 2 (chassis: otbot identify chassis)",
+        "x_B": "step 2 (chassis: otbot identify chassis)", "y_B": "step 2 (chassis: otbot identify chassis)",
+        "I_a": "step 1 (wheels on the stand: otbot identify wheel)",
+        "b_w": "step 1 (wheels on the stand: otbot identify wheel)",
+        "b_p": "step 1 (pivot with locked wheels: otbot identify pivot)",
+        "l1": "a measurement of the geometry (l1, l2, r) in config/otbot.yaml",
+        "l2": "a measurement of the geometry (l1, l2, r) in config/otbot.yaml",
+        "r": "a measurement of the geometry (l1, l2, r) in config/otbot.yaml"}
+
+
+@dataclass
+class Adequacy:
+    """Verdict on the final model: ``adequate``; channels above the noise level {set, recording, channel,
+    noise_ratio, limit}; parameters on a bound; nominal parameters that moved implausibly; suspects; advice."""
+
+    adequate: bool
+    channels: list[dict] = field(default_factory=list)
+    on_bound: list[dict] = field(default_factory=list)
+    moved: list[dict] = field(default_factory=list)
+    suspect_parameters: list[str] = field(default_factory=list)
+    advice: str = ""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def noise_ratios(recordings: list[DiagnosisData], fit_model) -> dict[tuple[str, str], float]:
+    """RMS of the simulation residual / the channel's white-noise level, per (recording, channel)."""
+    res = weighted_residuals(recordings, fit_model, channel_sigmas(recordings))
+    return {k: float(np.sqrt(np.mean(r ** 2))) for k, r in res.items()}
+
+
+def above_noise(ratios: dict[tuple[str, str], float], limit: float, label: str) -> list[dict]:
+    """(recording, channel) entries whose residual RMS / noise ratio exceeds ``limit``."""
+    return [{"set": label, "recording": name, "channel": ch, "noise_ratio": r, "limit": limit}
+            for (name, ch), r in ratios.items() if not r <= limit]
+
+
+def on_bound(values: dict[str, float]) -> list[dict]:
+    """Free parameters within ``BOUND_FRACTION`` of the range of a finite bound. A lower bound of
+    exactly 0 is not counted: there 0 is a physical value (that part of the effect is absent, e.g.
+    no creep below the traction limit), not a clipped estimate."""
+    out = []
+    for n, v in values.items():
+        lo, hi = parameter_bounds(n)
+        span = (hi - lo) if np.isfinite(hi - lo) else max(abs(v), 1.0)
+        for side, b in (("lower", lo), ("upper", hi)):
+            if np.isfinite(b) and abs(v - b) <= BOUND_FRACTION * span and not (side == "lower" and b == 0.0):
+                out.append({"parameter": n, "value": float(v), "bound": float(b), "side": side})
+    return out
+
+
+def implausible_shifts(values: dict[str, float], given: OtbotParams) -> list[dict]:
+    """Nominal parameters the refit moved further from the parameter file than is physically plausible."""
+    out = []
+    for n, v in values.items():
+        if n in RELATIVE_SHIFT:
+            ref = getattr(given, n)
+            rel = abs(v - ref) / abs(ref) if ref != 0 else float("inf")
+            if rel > RELATIVE_SHIFT[n]:
+                out.append({"parameter": n, "file": float(ref), "refit": float(v), "change": f"{100 * rel:.0f} %",
+                            "limit": f"{100 * RELATIVE_SHIFT[n]:.0f} %"})
+        elif n in OFFSET_SHIFT:
+            ref = getattr(given, n)
+            if abs(v - ref) > OFFSET_SHIFT[n]:
+                out.append({"parameter": n, "file": float(ref), "refit": float(v),
+                            "change": f"{abs(v - ref):.3f} m", "limit": f"{OFFSET_SHIFT[n]} m"})
+    return out
+
+
+def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final: FitResult,
+           given: OtbotParams) -> Adequacy:
+    """Judge the final model (see module doc)."""
+    channels = []
+    for label, recs, limit in (("fitting", recordings, NOISE_RATIO_FITTING), ("heldout", holdout, NOISE_RATIO_HELDOUT)):
+        if recs:
+            channels += above_noise(noise_ratios(recs, final.model), limit, label)
+    bound = on_bound(final.values)
+    moved = implausible_shifts({n: v for n, v in final.values.items() if hasattr(given, n)}, given)
+    adequate = not (channels or bound or moved)
+    suspects: list[str] = []
+    if not adequate:
+        suspects += [m["parameter"] for m in moved] + [b["parameter"] for b in bound]
+        for d in recordings:
+            suspects += list(KNOWN[d.fixture])
+        suspects = list(dict.fromkeys(s for s in suspects if hasattr(given, s)))
+    steps = list(dict.fromkeys(REDO[s] for s in suspects if s in REDO))
+    advice = ""
+    if not adequate:
+        advice = ("check the parameter file against the robot as it ran (the diagnosis refits "
+                  f"{', '.join(n for n in final.names if hasattr(given, n)) or 'no nominal parameter'} and takes "
+                  "the others as known), redo identification " + "; or ".join(steps[:3]) +
+                  ", then diagnose again; if the parameters are right, the missing physics is outside the catalog")
+    return Adequacy(adequate, channels, bound, moved, suspects, advice)

@@ -1,0 +1,160 @@
+"""The diagnosis's selection rules, pinned at their thresholds: each test sits just inside and just
+outside one rule, so changing a threshold (or flipping a comparison) fails it. Rules: screening bar
+(SCREEN_DBIC, LATER_ROUND_FACTOR), shortlist size and fraction (MAX_CANDIDATES, SHORTLIST_FRACTION),
+acceptance by evidence (ACCEPT_DBIC, its sign, held-out, residual correlation), ambiguity margin
+(AMBIGUOUS_DBIC), physical significance (TORQUE_FRACTION, HEADING_DRIFT, Z_MIN, ...), model adequacy
+(noise ratios, bounds, plausible refits). Pure functions on small inputs: fast."""
+import numpy as np
+import pytest
+
+from otbot_hw.diagnose import adequacy
+from otbot_hw.diagnose import select as sel
+from otbot_hw.diagnose import significance as sig
+from otbot_hw.diagnose.data import DiagnosisData
+from otbot_hw.model.effects import ExtendedModel
+from otbot_hw.params import nominal
+
+P = nominal()
+
+
+def test_screening_bar_admits_gains_beyond_it_only():
+    assert sel.shortlist({"a": -10.5, "b": -9.5}, {}, 0) == ["a"]
+    assert sel.shortlist({}, {"a": -9.5}, 0) == []
+    # later rounds need LATER_ROUND_FACTOR times the evidence
+    assert sel.shortlist({"a": -49.0, "b": -51.0}, {}, 1) == ["b"]
+    assert sel.shortlist({"a": -49.0}, {"c": -52.0}, 2) == ["c"]
+
+
+def test_shortlist_keeps_the_best_three_within_a_tenth_of_the_best_gain():
+    eq = {"a": -1000.0, "b": -99.0, "c": -101.0}
+    assert sel.shortlist(eq, {}, 0) == ["a", "c"]
+    many = {"a": -500.0, "b": -400.0, "c": -300.0, "d": -200.0}
+    assert sel.shortlist(many, {}, 0) == ["a", "b", "c"]
+    # the two screenings are merged without repeats, equation screening first
+    assert sel.shortlist({"a": -100.0}, {"x": -50.0, "a": -60.0}, 0) == ["a", "x"]
+
+
+def _cand(dbic, kappa=1.0, dholdout=-1.0, name="e", significance=None):
+    return sel.Candidate(name, None, dbic, dbic, dholdout, float("nan"), kappa=kappa,
+                         significance=significance or {})
+
+
+def test_acceptance_needs_bic_evidence_in_effective_samples_and_no_worse_held_out():
+    assert sel.has_evidence(_cand(-10.5))
+    assert not sel.has_evidence(_cand(-9.5))
+    assert not sel.has_evidence(_cand(+50.0))
+    assert not sel.has_evidence(_cand(-50.0, dholdout=+0.5))  # predicts the held-out runs worse
+    assert sel.has_evidence(_cand(-50.0, dholdout=float("nan")))  # no held-out runs
+    # correlated residuals (kappa = N / N_eff) deflate the evidence
+    assert sel.has_evidence(_cand(-21.0, kappa=2.0)) and not sel.has_evidence(_cand(-19.0, kappa=2.0))
+
+
+def test_ambiguity_margin_in_effective_samples():
+    best = _cand(-1000.0, name="best")
+    near, far = _cand(-990.5, name="near"), _cand(-989.5, name="far")
+    assert [c.effect for c in sel.ambiguous_group(best, [near, far])] == ["best", "near"]
+    wide = _cand(-1000.0, kappa=3.0, name="best")
+    assert [c.effect for c in sel.ambiguous_group(wide, [_cand(-971.0, name="x"), _cand(-969.0, name="y")])] \
+        == ["best", "x"]
+
+
+def _recording(u_rms=2.0, w_rms=3.0, n=400):
+    """Commands and encoder rates with the given RMS (sine waves), no IMU."""
+    t = np.arange(n) * 0.01
+    s = np.sqrt(2) * np.sin(2 * np.pi * 0.5 * t)
+    u = np.column_stack([u_rms * s, u_rms * s, u_rms * s])
+    w = np.column_stack([w_rms * s, w_rms * s, w_rms * s])
+    return DiagnosisData("synthetic", t, 0.01, u, np.cumsum(w, 0) * 0.01, w, None, None, "floor")
+
+
+def _sig(name, values, std=None):
+    std = std or {k: abs(v) / 100 + 1e-12 for k, v in values.items()}
+    return sig.significance(name, values, std, ExtendedModel.paper(P), [_recording()])
+
+
+def test_torque_effects_matter_from_one_percent_of_the_command():
+    # RMS command 2 N m: the limit is 0.02 N m
+    assert _sig("coulomb_pivot", {"c_p": 0.021})["matters"]
+    assert not _sig("coulomb_pivot", {"c_p": 0.019})["matters"]
+    assert _sig("gain_left", {"k_l": -0.0105})["matters"]
+    assert not _sig("gain_left", {"k_l": -0.0095})["matters"]
+
+
+def test_gyro_bias_matters_by_heading_drift_not_by_fit_percent():
+    s = _sig("imu_bias", {"b_ax": 0.0, "b_ay": 0.0, "b_gz": 0.0059}, {"b_ax": 1e-3, "b_ay": 1e-3, "b_gz": 3e-4})
+    assert s["matters"] and "20° of heading per minute" in s["statement"] and "5.9 ± 0.3 mrad/s" in s["statement"]
+    per_min = np.deg2rad(1.0) / 60.0  # rad/s: 1 degree of heading per minute
+    zero = {"b_ax": 0.0, "b_ay": 0.0}
+    assert _sig("imu_bias", {**zero, "b_gz": 1.05 * per_min})["matters"]
+    assert not _sig("imu_bias", {**zero, "b_gz": 0.95 * per_min})["matters"]
+    acc = 2 * 0.05 / 10.0 ** 2  # m/s^2: 5 cm of position in 10 s
+    assert _sig("imu_bias", {"b_ax": 1.05 * acc, "b_ay": 0.0, "b_gz": 0.0})["matters"]
+    assert not _sig("imu_bias", {"b_ax": 0.95 * acc, "b_ay": 0.0, "b_gz": 0.0})["matters"]
+
+
+@pytest.mark.parametrize("name,param,limit", [
+    ("imu_misalignment", "psi", np.deg2rad(0.2)), ("imu_latency", "d_imu", 1e-3), ("current_lag", "T_i", 1e-3)])
+def test_geometry_and_delay_effects_matter_from_their_thresholds(name, param, limit):
+    assert _sig(name, {param: 1.05 * limit})["matters"]
+    assert not _sig(name, {param: 0.95 * limit})["matters"]
+
+
+def test_scale_lever_and_radius_thresholds():
+    f = 0.002  # 0.2 % of the distance
+    assert _sig("encoder_scale", {"e_r": 1.05 * f, "e_l": 0.0})["matters"]
+    assert not _sig("encoder_scale", {"e_r": 0.95 * f, "e_l": 0.0})["matters"]
+    assert _sig("wheel_radii", {"dr_r": 1.05 * f, "dr_l": 0.0})["matters"]
+    assert not _sig("wheel_radii", {"dr_r": 0.95 * f, "dr_l": 0.0})["matters"]
+    d = 0.01  # m
+    assert _sig("imu_lever_arm", {"d_x": 1.05 * d, "d_y": 0.0})["matters"]
+    assert not _sig("imu_lever_arm", {"d_x": 0.95 * d, "d_y": 0.0})["matters"]
+
+
+def test_an_effect_within_its_own_uncertainty_does_not_matter():
+    big = 0.5  # N m: far above the torque threshold
+    assert _sig("coulomb_pivot", {"c_p": big}, {"c_p": big / 1.9})["matters"] is False  # 1.9 sigma
+    assert _sig("coulomb_pivot", {"c_p": big}, {"c_p": big / 2.1})["matters"] is True
+
+
+def test_adequacy_noise_bounds_and_plausible_refits():
+    # residual RMS up to 1.5 x noise on the fitting recordings, 2 x on the held-out ones
+    ratios = {("r", "w_r"): 1.47, ("r", "a_x"): 1.53}
+    assert [c["channel"] for c in adequacy.above_noise(ratios, adequacy.NOISE_RATIO_FITTING, "fitting")] == ["a_x"]
+    held = {("h", "w_r"): 1.96, ("h", "a_x"): 2.04}
+    assert [c["channel"] for c in adequacy.above_noise(held, adequacy.NOISE_RATIO_HELDOUT, "heldout")] == ["a_x"]
+    # on a bound: within 1e-3 of the range (gains: -0.5 .. 0.5)
+    assert [b["parameter"] for b in adequacy.on_bound({"k_r": -0.4995, "k_l": -0.498})] == ["k_r"]
+    assert adequacy.on_bound({"c_p": 0.0}) == []  # zero friction: absent, not clipped
+    # the chassis mass may move 30 % from the file, a centre-of-mass coordinate 0.1 m
+    assert adequacy.implausible_shifts({"m_c": P.m_c * 1.29}, P) == []
+    assert [m["parameter"] for m in adequacy.implausible_shifts({"m_c": P.m_c * 1.31}, P)] == ["m_c"]
+    assert adequacy.implausible_shifts({"x_B": P.x_B + 0.098}, P) == []
+    assert len(adequacy.implausible_shifts({"x_B": P.x_B - 0.102}, P)) == 1
+
+
+def test_shortlist_alternates_between_the_screenings_up_to_max_nested():
+    eq = {"a": -900.0, "b": -800.0, "c": -700.0}
+    sim = {"a": -500.0, "x": -400.0, "y": -300.0}
+    assert sel.shortlist(eq, sim, 0) == ["a", "b", "x", "c"][:sel.MAX_NESTED]
+
+
+def test_a_second_effect_beside_the_first_needs_its_own_evidence_and_no_worse_held_out():
+    first = _cand(-5000.0, dholdout=-3000.0)
+    assert sel.pair_adds(_cand(-5010.5, dholdout=-3000.0), first)
+    assert not sel.pair_adds(_cand(-5009.5, dholdout=-3000.0), first)
+    assert not sel.pair_adds(_cand(-6000.0, dholdout=-2999.0), first)  # predicts the held-out runs worse
+    assert sel.pair_adds(_cand(-5021.0, kappa=2.0, dholdout=-3100.0), first)
+    assert not sel.pair_adds(_cand(-5019.0, kappa=2.0, dholdout=-3100.0), first)
+    assert sel.fitting_evidence(_cand(-10.5, dholdout=+100.0)) and not sel.fitting_evidence(_cand(-9.5))
+
+
+def test_white_residuals_end_the_search():
+    assert sel.white(_cand(-100.0, kappa=1.19)) and not sel.white(_cand(-100.0, kappa=1.21))
+
+
+def test_a_candidate_that_only_adds_a_parameter_is_not_a_look_alike():
+    slip = sel.Candidate("wheel_slip", None, -1000.0, -1000.0, -1.0, 0.0, parameters=("k_slip",))
+    limit = sel.Candidate("traction_limit", None, -1001.0, -1001.0, -1.0, 0.0, parameters=("k_slip", "t_trac"))
+    enc = sel.Candidate("encoder_scale", None, -995.0, -995.0, -1.0, 0.0, parameters=("e_r", "e_l"))
+    assert [c.effect for c in sel.ambiguous_group(limit, [slip, enc])] == ["wheel_slip", "encoder_scale"]
+    assert [c.effect for c in sel.ambiguous_group(slip, [limit])] == ["wheel_slip"]
