@@ -251,6 +251,17 @@ class OtbotParams:
         write_yaml(path, self.to_dict(), header)
 
 
+def finite_number(text: str, what: str, error: type[Exception] = ValueError) -> float:
+    """``float(text)``; ``error`` names ``what`` when the text is not a number or not finite."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise error(f"{what}: {text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise error(f"{what}: values must be finite, got {text!r}")
+    return v
+
+
 def parse_load(text: str) -> tuple[float, float, float, float]:
     """A load on the platform written 'KG@X,Y[,I]' -> (mass kg, x m, y m, own inertia kg m^2), the
     arguments of ``OtbotParams.with_load``. ``ValueError`` says what is wrong, without naming where the
@@ -261,16 +272,8 @@ def parse_load(text: str) -> tuple[float, float, float, float]:
     parts = [p.strip() for p in pos.split(",")]
     if len(parts) not in (2, 3):
         raise ValueError(f"position needs X,Y or X,Y,I, got {pos!r}")
-    vals = []
-    for what, items in (("mass", [kg.strip()]), ("position", parts)):
-        for item in items:
-            try:
-                v = float(item)
-            except ValueError:
-                raise ValueError(f"{what}: {item!r} is not a number") from None
-            if not math.isfinite(v):
-                raise ValueError(f"{what}: values must be finite, got {item!r}")
-            vals.append(v)
+    vals = [finite_number(item, what) for what, items in (("mass", [kg.strip()]), ("position", parts))
+            for item in items]
     mass, x, y = vals[:3]
     inertia = vals[3] if len(vals) == 4 else 0.0
     if mass < 0:

@@ -22,6 +22,8 @@ import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
 
+from otbot_hw.params import finite_number
+
 
 class CliError(Exception):
     """Bad input to a command: printed as ``otbot CMD: error: ...`` with exit code 2."""
@@ -122,16 +124,7 @@ def parse_vector(text: str, n: int, name: str) -> list[float]:
     parts = [s.strip() for s in text.split(",")]
     if len(parts) != n:
         raise CliError(f"{name} needs {n} comma-separated numbers, got {text!r}")
-    out = []
-    for s in parts:
-        try:
-            v = float(s)
-        except ValueError:
-            raise CliError(f"{name}: {s!r} is not a number") from None
-        if not math.isfinite(v):
-            raise CliError(f"{name}: values must be finite, got {s!r}")
-        out.append(v)
-    return out
+    return [finite_number(s, name, CliError) for s in parts]
 
 
 # --- output paths -----------------------------------------------------------------------------------

@@ -40,6 +40,8 @@ from typing import Sequence
 
 import numpy as np
 
+from otbot_hw.params import finite_number
+
 
 class TrajectoryError(ValueError):
     """A trajectory definition or file is unusable; the message names what and where."""
@@ -418,14 +420,7 @@ def csv_numbers(path, header: list[str], rows: list[list[str]], wanted: Sequence
         if len(row) != len(header):
             raise error(f"{path}: line {line} has {len(row)} fields, header has {len(header)}")
         for j, c in enumerate(wanted):
-            s = row[col[c]].strip()
-            try:
-                v = float(s)
-            except ValueError:
-                raise error(f"{path}: line {line}, column {c}: {s!r} is not a number") from None
-            if not math.isfinite(v):
-                raise error(f"{path}: line {line}, column {c}: value is {s} (must be finite)")
-            data[r, j] = v
+            data[r, j] = finite_number(row[col[c]].strip(), f"{path}: line {line}, column {c}", error)
     return data
 
 
