@@ -96,8 +96,12 @@ INITIAL_TWIST_STD = (0.01, 0.01, 0.01)
 REANCHOR_AFTER = 0.02
 #: Largest factor by which the adaptation may multiply the variance of d's walk (walk x 1000).
 WALK_SCALE_MAX = 1e6
-#: The yaw states whose covariance the adaptation inflates: alpha, alpha_dot, d.
-_YAW = [2, 5, 11]
+#: While the adapted walk variance is above this multiple of the configured one, the yaw prediction is
+#: suspect: a wheel heading that disagrees re-anchors alpha (the wheels are right), not kappa (slip).
+YAW_SUSPECT_SCALE = 2.0
+#: The yaw states whose covariance the adaptation inflates: alpha_dot, d (alpha too let a joint-rate update
+#: throw it by 0.1 rad on a 280 kg load; its error is re-anchored on the wheel heading instead).
+_YAW = [5, 11]
 #: Finite-difference step of the model Jacobians (rad, m/s, rad/s).
 _FD_STEP = 1e-6
 
@@ -422,7 +426,9 @@ class PoseEKF:
         if self._heading_off_since is None:
             self._heading_off_since = self._t_prev
         if t - self._heading_off_since >= REANCHOR_AFTER - 1e-9:
-            self.kf.P[KAPPA, KAPPA] += nu[0] * nu[0]
+            # slip moved kappa -- unless the gyro says the yaw prediction is wrong (the walk adapted): then alpha
+            i = A if self.walk_scale > YAW_SUSPECT_SCALE else KAPPA
+            self.kf.P[i, i] += nu[0] * nu[0]
             self._heading_off_since = None
             self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
 
