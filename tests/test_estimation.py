@@ -24,12 +24,17 @@ ROOT = Path(__file__).resolve().parents[1]
 RATE = 100.0
 
 
-@pytest.fixture(scope="module")
-def study():
-    spec = importlib.util.spec_from_file_location("estimation_accuracy", ROOT / "benchmarks" / "estimation_accuracy.py")
+def _benchmark(name: str):
+    """The module benchmarks/NAME.py."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(scope="module")
+def study():
+    return _benchmark("estimation_accuracy")
 
 
 @pytest.fixture(scope="module")
@@ -226,10 +231,7 @@ def test_imu_prediction_beats_the_model_prediction_through_slip_and_forces(study
 
 @pytest.fixture(scope="module")
 def robust():
-    spec = importlib.util.spec_from_file_location("estimation_robust", ROOT / "benchmarks" / "estimation_robust.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return _benchmark("estimation_robust")
 
 
 @pytest.mark.parametrize("programme, seed", [("step", 0), ("step", 3), ("corridor", 1)])
