@@ -244,7 +244,7 @@ def test_a_robot_that_differs_from_the_parameter_file_stays_consistent(robust, p
     error 2.9-3.1 rad, half the gyro and wheel updates rejected)."""
     r = robust.run_one(programme, seed, EstimatorConfig())
     assert r["load_kg"] > 20
-    assert r["alpha_max"] < 5e-3, r            # rad: the heading stays, nowhere near diverged
+    assert r["alpha_max"] < 1e-2, r            # rad: the heading stays (main: 2.9-3.1 rad)
     assert r["pos_max"] < 5e-3, r              # m
     assert r["rejected"]["gyro"] <= 10, r      # the gyro is not gated out
     assert r["rejected"]["encoders"] <= 10, r
@@ -255,4 +255,4 @@ def test_without_the_adaptation_the_wrong_model_starves_the_filter(robust):
     """The counter-check: the same robot without the adaptation and with a plain gate (main's EKF had
     neither) loses its heading -- the failure this mechanism is for exists in this data."""
     r = robust.run_one("step", 0, EstimatorConfig(walk_adaptation_window=0.0))
-    assert r["alpha_max"] > 5e-3 or r["nees"] > 40, r
+    assert r["alpha_max"] > 1e-2 or r["nees"] > 40, r
