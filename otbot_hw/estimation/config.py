@@ -52,7 +52,13 @@ class EstimatorConfig:
     (rad/s^2/sqrt(s)): prior and random walk of the state d, the alpha_dd of torques the model does not
     know (friction, torque-gain errors; the walk sized so that 0.5 N m of unmodelled pivot friction and
     5 % torque-gain errors keep the filter consistent, docs/estimation.md). gate_probability:
-    chi-square probability of the Mahalanobis gate.
+    chi-square probability of the Mahalanobis gate. walk_adaptation_window (s; 0 switches the
+    adaptation off) and walk_adaptation_decay (s): the walk of d adapts to a model that is wrong --
+    when the gyro's normalized innovations squared, averaged over about this window, exceed their
+    chi-square bound at gate_probability, the walk's variance is multiplied by that average at every
+    reading (covariance matching: the filter's alpha_dot prediction error made as large as the gyro
+    says it is), and relaxes back to the configured walk with this decay time once they do not
+    (docs/estimation.md, "A model that is wrong").
     standstill_window (s) / standstill_angle (rad): the robot stands when no joint moved more than
     standstill_angle for standstill_window. imu_timeout (s): longest IMU silence before a fault.
     encoder_quantization: ``floor`` (an angle reading is the lower edge of its count, as the drives and
@@ -77,6 +83,8 @@ class EstimatorConfig:
     angular_disturbance_std: float = 0.5
     angular_disturbance_walk: float = 0.3
     gate_probability: float = 0.9999
+    walk_adaptation_window: float = 0.1
+    walk_adaptation_decay: float = 1.0
     standstill_window: float = 0.2
     standstill_angle: float = 2 * 2 * math.pi / PIVOT_ENCODER_COUNTS
     imu_timeout: float = 0.5
@@ -150,6 +158,7 @@ UNITS = {
     "model_angular_density": "rad/s^2/sqrt(Hz)", "angular_disturbance_std": "rad/s^2",
     "angular_disturbance_walk": "rad/s^2/sqrt(s)", "gate_probability": "1", "standstill_window": "s",
     "standstill_angle": "rad", "imu_timeout": "s",
+    "walk_adaptation_window": "s", "walk_adaptation_decay": "s",
 }
-_NONNEGATIVE = {"gyro_bias_walk", "accel_bias_walk", "angular_disturbance_walk"}
+_NONNEGATIVE = {"gyro_bias_walk", "accel_bias_walk", "angular_disturbance_walk", "walk_adaptation_window"}
 _WORDS = {"prediction", "encoder_quantization"}

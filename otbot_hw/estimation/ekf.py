@@ -94,6 +94,14 @@ INITIAL_POSE_STD = (1e-6, 1e-6, 1e-6)
 INITIAL_TWIST_STD = (0.01, 0.01, 0.01)
 #: A wheel heading that disagrees this long (s) while the joint rates agree has moved: re-anchor it.
 REANCHOR_AFTER = 0.02
+#: Largest factor by which the adaptation may multiply the variance of d's walk (walk x 1000).
+WALK_SCALE_MAX = 1e6
+#: While the adapted walk variance is above this multiple of the configured one, the yaw prediction is
+#: suspect: a wheel heading that disagrees re-anchors alpha (the wheels are right), not kappa (slip).
+YAW_SUSPECT_SCALE = 2.0
+#: The yaw states whose covariance the adaptation inflates: alpha_dot, d (alpha too let a joint-rate update
+#: throw it by 0.1 rad on a 280 kg load; its error is re-anchored on the wheel heading instead).
+_YAW = [5, 11]
 #: Finite-difference step of the model Jacobians (rad, m/s, rad/s).
 _FD_STEP = 1e-6
 
@@ -182,6 +190,7 @@ class PoseEKF:
         self._var = (cfg.accel_sigma ** 2, cfg.gyro_sigma ** 2, cfg.gyro_bias_walk ** 2, cfg.accel_bias_walk ** 2)
         self._var_alpha_dd = cfg.model_angular_density ** 2
         self._var_da = cfg.angular_disturbance_walk ** 2
+        self._nis_bounds: dict[float, float] = {}  # averaged-NIS bound per averaging weight (adaptation)
         # work arrays of the hot path
         self.kf.F = np.eye(N_STATE)
         self.kf.Q = np.zeros((N_STATE, N_STATE))
@@ -251,6 +260,10 @@ class PoseEKF:
         self._nis = dict.fromkeys(UPDATE_KINDS, math.nan)
         self._standstill = False
         self._heading_off_since = None  # since when the wheel heading disagrees (rates accepted)
+        self._gyro_off_since = None     # since when the gyro is rejected
+        self._gyro_nis_avg = 1.0        # the gyro's NIS averaged over walk_adaptation_window (expectation 1)
+        self._gyro_t = None             # time of the last gyro update
+        self.walk_scale = 1.0           # factor on the variance of d's walk (adaptation, >= 1)
         self._t_prev = float(t)
         self.innovations = []
         if imu_accel is not None or imu_gyro is not None:
@@ -332,9 +345,11 @@ class PoseEKF:
                 P[NAX, NAX] = P[NAY, NAY] = self._var[0]
                 kf.x[NAX] = kf.x[NAY] = 0.0
             kernels.predict_imu(kf.x, kf.P, fx, fy, add, dt, self._var_alpha_dd, self._var[2], self._var[3],
-                                self._var_da, kf.F, kf.Q)
+                                self._var_da * self.walk_scale, kf.F, kf.Q)
         else:
             self._predict_model(dt)
+        if self.walk_scale > 1.0:  # the adapted walk relaxes back to the configured one
+            self.walk_scale = 1.0 + (self.walk_scale - 1.0) * math.exp(-dt / self.config.walk_adaptation_decay)
         jump = self._pivot_motion(float(phi[2]), dt)
         self._t_prev, self._t = self._t, float(t)
         self._phi_p = float(phi[2])
@@ -343,8 +358,7 @@ class PoseEKF:
         if self._standstill:
             self._update("zupt", t, -self.kf.x[3:6], self._H_zupt, self._R_zupt)
         if new_gyro:
-            x = self.kf.x
-            self._update("gyro", t, np.array([self._gyro[2] - x[VA] - x[BG]]), self._H_gyro, self._R_gyro)
+            self._update_gyro(t)
         self._pivot_count(jump)
         self._check_health(t)
         self._estimate = self._make_estimate()
@@ -412,9 +426,60 @@ class PoseEKF:
         if self._heading_off_since is None:
             self._heading_off_since = self._t_prev
         if t - self._heading_off_since >= REANCHOR_AFTER - 1e-9:
-            self.kf.P[KAPPA, KAPPA] += nu[0] * nu[0]
+            # slip moved kappa -- unless the gyro says the yaw prediction is wrong (the walk adapted): then alpha
+            i = A if self.walk_scale > YAW_SUSPECT_SCALE else KAPPA
+            self.kf.P[i, i] += nu[0] * nu[0]
             self._heading_off_since = None
             self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
+
+    def _update_gyro(self, t: float) -> None:
+        """The gyro: alpha_dot + b_g. Its NIS drives the adaptation of d's walk (``_adapt_walk``). The gyro
+        does not slip: rejected for ``REANCHOR_AFTER``, it is the yaw prediction that is lost (a model that
+        is wrong), so alpha_dot's variance grows by the innovation squared and alpha_dot re-anchors on the
+        gyro -- the gate cannot starve the filter of its yaw rate. A single outlier is still rejected."""
+        x = self.kf.x
+        nu = np.array([self._gyro[2] - x[VA] - x[BG]])
+        ok = self._update("gyro", t, nu, self._H_gyro, self._R_gyro)
+        self._adapt_walk(t, self._nis["gyro"])
+        if ok:
+            self._gyro_off_since = None
+            return
+        if self._gyro_off_since is None:
+            self._gyro_off_since = self._t_prev
+        if t - self._gyro_off_since >= REANCHOR_AFTER - 1e-9:
+            self.kf.P[VA, VA] += nu[0] * nu[0]
+            self._gyro_off_since = None
+            self._update("gyro", t, nu, self._H_gyro, self._R_gyro, force=True)
+
+    def _adapt_walk(self, t: float, nis: float) -> None:
+        """Covariance matching on the gyro (Mehra 1972; Mohamed & Schwarz 1999): the gyro's NIS averaged
+        exponentially over ``walk_adaptation_window`` has expectation 1 for a consistent filter; above its
+        chi-square bound at ``gate_probability`` (the average of n_eff = (2 - w) / w readings, w the
+        averaging weight) the alpha_dot prediction is worse than the filter believes -- the model's alpha
+        row is wrong -- and the variance of d's walk is multiplied by that average, at every reading,
+        until the innovations fit (at most ``WALK_SCALE_MAX``). The step relaxes it back."""
+        cfg = self.config
+        if cfg.walk_adaptation_window <= 0:
+            return
+        dt = t - self._gyro_t if self._gyro_t is not None else self.period
+        self._gyro_t = t
+        w = round(1.0 - math.exp(-dt / cfg.walk_adaptation_window), 6)
+        if not w > 0:
+            return
+        bound = self._nis_bounds.get(w)
+        if bound is None:
+            n_eff = (2.0 - w) / w
+            bound = self._nis_bounds[w] = float(chi2.ppf(cfg.gate_probability, n_eff) / n_eff)
+        self._gyro_nis_avg += w * (nis - self._gyro_nis_avg)
+        avg = self._gyro_nis_avg
+        if avg > bound:
+            self.walk_scale = min(self.walk_scale * avg, WALK_SCALE_MAX)
+            # fading memory on the yaw states: the error the wrong model already put into alpha, alpha_dot
+            # and d is as much larger than their covariance says (P -> T P T, T = sqrt(avg) on their rows)
+            g = math.sqrt(avg)
+            P = self.kf.P
+            P[_YAW, :] *= g
+            P[:, _YAW] *= g
 
     def _pivot_motion(self, phi_p: float, dt: float) -> float:
         """e_p = reading - true pivot angle moves by minus the pivot's motion (the second half of the
@@ -533,7 +598,7 @@ class PoseEKF:
         x[A] += h2 * x[DA]
         x[VA] += dt * x[DA]
         Q = np.zeros((N_STATE, N_STATE))
-        Q[DA, DA] = self._var_da * dt
+        Q[DA, DA] = self._var_da * self.walk_scale * dt
         for (p, v), q in (((X, VX), cfg.model_accel_density), ((Y, VY), cfg.model_accel_density),
                           ((A, VA), cfg.model_angular_density)):
             q2 = q * q

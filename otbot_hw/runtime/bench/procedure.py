@@ -59,13 +59,6 @@ REST_TIME = 0.5       # s of the zero-torque run (and of the end of the settling
 BRAKE_TIME = 1.5      # s of braking after an excitation
 PROBE_PAUSE = 0.1     # s of zero torque after the probe doublet
 SETTLE_TIME = 2.5     # s of braking after the probe
-#: The EKF of the floor runs takes its yaw rate from the model's alpha row, and that row is what the
-#: procedure identifies: with an unknown load its alpha_dd is off by rad/s^2 (an unknown 40 kg load at
-#: 0.18 m: about 3 rad/s^2 under the paper's pivot torques), far beyond the identified robot's
-#: unmodelled-alpha_dd walk, and the filter then rejects its gyro and wheels and diverges. White
-#: alpha_dd error of this density (rad/s^2/sqrt(Hz); 0.03 rad/s over a 10 ms step) lets alpha_dot
-#: follow the gyro while the model is unknown.
-BENCH_MODEL_ANGULAR_DENSITY = 0.3
 #: EMCY codes of the drives' communication watchdogs (CiA 301): SYNC timeout, life guard / heartbeat
 WATCHDOG_CODES = (0x8100, 0x8130)
 
@@ -317,11 +310,10 @@ class BenchProcedure:
         best = self.best_params()
         feedback = None
         if bs.fixture == "floor":
-            from otbot_hw.estimation.config import EstimatorConfig
             from otbot_hw.runtime.feedback import EkfFeedback
 
-            feedback = EkfFeedback(best, self.period, np.zeros(3),
-                                   config=EstimatorConfig(model_angular_density=BENCH_MODEL_ANGULAR_DENSITY))
+            # the model is what this procedure identifies: the EKF's yaw adapts to its error (docs/estimation.md)
+            feedback = EkfFeedback(best, self.period, np.zeros(3))
         nb = int(round(BRAKE_TIME / self.period))
         ctrl = ExcitationController(U, self.period, brake_gains(best, bs.fixture, self.period), self.s.limits.torque, nb)
         meta = self._meta(step, "excitation", n, bs.fixture,
