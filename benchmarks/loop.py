@@ -28,7 +28,6 @@ from otbot_hw.control.limiter import TorqueLimiter  # noqa: E402
 from otbot_hw.control.scenarios import corridor_spec  # noqa: E402
 from otbot_hw.params import nominal  # noqa: E402
 from otbot_hw.runtime.backends import BusSimBackend, DirectBackend  # noqa: E402
-from otbot_hw.runtime.feedback import FeedbackUnavailable, load_ekf  # noqa: E402
 from otbot_hw.runtime.tracking import track_reference  # noqa: E402
 from otbot_hw.sensors import NoiseModel  # noqa: E402
 from otbot_hw.simulation.simulator import Stepper, rest_state  # noqa: E402
@@ -81,12 +80,7 @@ def main() -> None:
     params, cfg = nominal(), load_robot_config()
     limits = cfg.limits
     ref = corridor_spec().reference
-    try:
-        load_ekf()
-        feedbacks = ["truth", "ekf"]
-    except FeedbackUnavailable as exc:
-        print(f"[loop] EKF rows skipped: {exc}", file=sys.stderr)
-        feedbacks = ["truth"]
+    feedbacks = ["truth", "ekf"]
     runner(ref, params, limits, DirectBackend(), "truth", duration=0.2)  # compile / warm up
     old_closed_loop(ref, params, limits)
     rows = [{"setup": "retired closed loop (docs/performance.md)", "rate": 1000.0, "feedback": "truth",

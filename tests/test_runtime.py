@@ -397,9 +397,20 @@ def _fake_estimation(calls, fail_at=None):
     return mod
 
 
+def _use_estimation(monkeypatch, mod):
+    """Make the loop's feedback and tracking use the estimator module ``mod`` (a fake honouring the
+    estimator contract)."""
+    import otbot_hw.runtime.feedback as feedback
+    import otbot_hw.runtime.tracking as tracking
+
+    monkeypatch.setattr(feedback, "PoseEKF", mod.PoseEKF)
+    monkeypatch.setattr(feedback, "EstimatorFault", mod.EstimatorFault)
+    monkeypatch.setattr(tracking, "EstimatorConfig", mod.EstimatorConfig)
+
+
 def test_ekf_feedback_follows_the_estimator_contract(monkeypatch, tmp_path, capsys):
     calls = []
-    monkeypatch.setitem(sys.modules, "otbot_hw.estimation", _fake_estimation(calls))
+    _use_estimation(monkeypatch, _fake_estimation(calls))
     ref = corridor_spec(smooth=True).reference
     backend = DirectBackend(rate=200.0, imu_rate=50.0)
     run = track_reference(ref, corridor_law(), P, LIMITS, backend, feedback="ekf", duration=4.0)
@@ -414,7 +425,7 @@ def test_ekf_feedback_follows_the_estimator_contract(monkeypatch, tmp_path, caps
     assert np.abs(run.e_p[:, :2]).max() < 2e-3 and run.estimation_error()["max"]["x"] < 2e-3
     # a fault of the estimator stops the loop: quick stop, exit 1, recording up to it
     calls.clear()
-    monkeypatch.setitem(sys.modules, "otbot_hw.estimation", _fake_estimation(calls, fail_at=0.5))
+    _use_estimation(monkeypatch, _fake_estimation(calls, fail_at=0.5))
     out = tmp_path / "ekf.mcap"
     with pytest.raises(SystemExit) as exc:
         main(["track", "corridor-smooth", "--sim", "--rate", "200", "--no-robustness", "--out", str(out), "--json"])
@@ -497,7 +508,7 @@ def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(mo
                 np.testing.assert_allclose(res["phi"][:2], expect, atol=2 * np.pi / 40960 + 1e-9)
             else:
                 calls = []
-                monkeypatch.setitem(sys.modules, "otbot_hw.estimation", _fake_estimation(calls))
+                _use_estimation(monkeypatch, _fake_estimation(calls))
                 assert main(["track", str(traj), *bus, "--params", str(hfile)]) == 0
                 res = json.loads(capsys.readouterr().out)
                 assert res["bus"] == "config" and res["feedback"] == "ekf" and res["true_pose_known"] is False

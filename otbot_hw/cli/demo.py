@@ -151,24 +151,15 @@ def saturation_line(saturation: list[dict], events: list[dict], rate_hz: float) 
 def _corridor(out: Path, params, quiet: bool, seed: int = 0, plant=None) -> dict:
     """The paper's corridor tracked over the simulated CAN bus by the loop runner with the controller's
     model ``params`` on the robot ``plant`` (default ``params``), fed by the pose EKF on the encoders and
-    IMU (by the simulator's true state, with a printed note, where the EKF is not installed);
-    recording and plots in ``corridor/``."""
+    IMU; recording and plots in ``corridor/``."""
     from drivers.config import load_robot_config
     from otbot_hw.runtime.backends import BusSimBackend
-    from otbot_hw.runtime.feedback import FeedbackUnavailable, load_ekf
     from otbot_hw.runtime.supervisor import SafetyConfig
     from otbot_hw.runtime.tracking import run_scenario
     from otbot_hw.sensors import NoiseModel
 
     cfg = load_robot_config()
     feedback = "ekf"
-    note = None
-    try:
-        load_ekf()
-    except FeedbackUnavailable as exc:
-        feedback = "truth"
-        note = f"{exc}: the controller is fed the simulator's true state instead"
-        progress(f"[demo] note: {note}", True)
     progress(f"[demo] 5/5 corridor: the loaded robot tracked over the simulated CAN bus at {cfg.bus.control_rate:g} Hz "
              f"with the parameters the bench identified, feedback {feedback}, five 3 m segments at 0.6 m/s", not quiet)
 
@@ -188,8 +179,6 @@ def _corridor(out: Path, params, quiet: bool, seed: int = 0, plant=None) -> dict
             "min_wall_clearance_m", "plots", "wall_time_s", "feedback", "bus", "backend", "loop", "recording",
             "completed", "fault")
     res = {k: res[k] for k in keep if k in res}
-    if note:
-        res["note"] = note
     if not res["completed"]:
         raise RuntimeError(f"corridor stopped by fault: {res['fault']}")
     if not quiet:
@@ -199,9 +188,7 @@ def _corridor(out: Path, params, quiet: bool, seed: int = 0, plant=None) -> dict
               + (f"; footprint to the walls >= {res['min_wall_clearance_m'] * 1e3:.0f} mm"
                  if "min_wall_clearance_m" in res else ""))
         ee = res.get("estimation_error")
-        if feedback == "truth":
-            print("[demo] estimation error: none to report (the controller was fed the true state)")
-        elif ee is not None:
+        if ee is not None:
             m, r = ee["max"], ee["rms"]
             print(f"[demo] estimation error (estimate - truth): max |x| {m['x'] * 1e3:.2f} mm, max |y| "
                   f"{m['y'] * 1e3:.2f} mm, max |alpha| {m['alpha']:.1e} rad; rms x {r['x'] * 1e3:.2f} mm, "

@@ -91,17 +91,10 @@ def backend_name(args) -> str:
 
 
 def check_feedback(kind: str, feedback: str) -> None:
-    """--feedback truth needs a simulator; --feedback ekf needs otbot_hw.estimation. CliError otherwise."""
-    from otbot_hw.runtime.feedback import FeedbackUnavailable, load_ekf
-
+    """--feedback truth needs a simulator. CliError otherwise."""
     if feedback == "truth" and kind == "bus config":
         raise CliError("--feedback truth needs a back end that knows the true state (--sim or --bus sim); "
                        "the configured bus has none: use --feedback ekf")
-    if feedback == "ekf":
-        try:
-            load_ekf()
-        except FeedbackUnavailable as exc:
-            raise CliError(f"--feedback ekf: {exc}; use --feedback truth on a simulated back end") from None
 
 
 def parse_bursts(items) -> list[tuple[float, float, float]]:

@@ -19,13 +19,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from otbot_hw.estimation import EstimatorFault, PoseEKF
 from otbot_hw.robot import Robot, Snapshot
 
 FEEDBACKS = ("ekf", "truth")
 
 
 class FeedbackUnavailable(RuntimeError):
-    """The requested feedback cannot run here (no ground truth on this back end, EKF not installed)."""
+    """The requested feedback cannot run here (no ground truth on this back end)."""
 
 
 @dataclass(slots=True)
@@ -64,16 +65,6 @@ class TruthFeedback:
 _ZERO6 = np.zeros(6)
 
 
-def load_ekf():
-    """(PoseEKF, EstimatorConfig, EstimatorFault) from ``otbot_hw.estimation``, or ``FeedbackUnavailable``."""
-    try:
-        from otbot_hw.estimation import EstimatorConfig, EstimatorFault, PoseEKF
-    except ImportError as exc:
-        raise FeedbackUnavailable(f"EKF feedback needs otbot_hw.estimation, which cannot be imported here ({exc})") \
-            from None
-    return PoseEKF, EstimatorConfig, EstimatorFault
-
-
 class EkfFeedback:
     """The pose EKF on the snapshot's sensors. ``params``: the controller's ``OtbotParams``;
     ``period`` s; ``initial_pose`` (3,) the known start pose (m, m, rad); ``config``: an
@@ -83,7 +74,6 @@ class EkfFeedback:
     name = "ekf"
 
     def __init__(self, params, period: float, initial_pose, config=None, initial_std=None, fixes=None):
-        PoseEKF, _, EstimatorFault = load_ekf()
         self.faults = (EstimatorFault,)
         self.ekf = PoseEKF(getattr(params, "params", params), period, config)
         self.initial_pose = np.asarray(initial_pose, dtype=float).reshape(3)

@@ -28,7 +28,8 @@ from otbot_hw.motors import MotorLimits
 from otbot_hw.params import OtbotParams
 from otbot_hw.runtime.backends import DirectBackend
 from otbot_hw.runtime.controllers import OpenLoopTorques, TrackingController
-from otbot_hw.runtime.feedback import EkfFeedback, TruthFeedback, load_ekf
+from otbot_hw.estimation import EstimatorConfig
+from otbot_hw.runtime.feedback import EkfFeedback, TruthFeedback
 from otbot_hw.runtime.loop import LoopResult, LoopRunner
 from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor
 from otbot_hw.sensors import NoiseModel
@@ -125,7 +126,6 @@ def make_feedback(kind: str | None, params, period: float, start_pose, config_pa
     if kind == "truth":
         return TruthFeedback()
     if kind == "ekf":
-        _, EstimatorConfig, _ = load_ekf()
         return EkfFeedback(params, period, start_pose, EstimatorConfig.load(config_path), fixes=fixes)
     raise ValueError(f"unknown feedback {kind!r} (ekf, truth)")
 
