@@ -236,24 +236,38 @@ def imu_residual(data: DiagnosisData, model: ExtendedModel, motion: Motion | Non
 
 
 _X0_CACHE: dict = {}
+_HEAD_CACHE: dict = {}
+
+
+def _recording_key(data: DiagnosisData) -> tuple:
+    """Identity of a recording for the caches: the object, its length and its first samples."""
+    return (id(data), len(data), data.enc_pos[:8].tobytes(), None if data.enc_vel is None else data.enc_vel[:8].tobytes(),
+            data.u[:8].tobytes(), data.dt)
 
 
 def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     """x0 (12,) in rolling-angle coordinates from the first encoder samples (alpha(0) = 0).
 
-    Cached per recording and the model entries it depends on (geometry, encoder scale,
-    radius asymmetry, slip, actuator gains/saturation/lag through the slip correction).
+    Computed on the recording's first ``2 window`` samples (``DiagnosisData.head``: the edge
+    filters see only the first window, so x0 is the same as from the whole record) and cached
+    per recording and the model entries x0 depends on: geometry, encoder scale and radius
+    asymmetry; with wheel slip on the floor also the slip law and what sets the slipping torque
+    (viscous friction and its asymmetry, actuator gains, saturation, lag).
     """
     p, eff = model.params, model.eff
-    head = (data.enc_pos[:8].tobytes(), None if data.enc_vel is None else data.enc_vel[:8].tobytes(),
-            data.u[:8].tobytes(), data.dt)
-    key = (id(data), len(data), head, p.l1, p.l2, p.r, p.b_w,
-           tuple(eff[[fx.E_R, fx.E_L, fx.DR_R, fx.DR_L, fx.K_SLIP, fx.T_TRAC, fx.DB_W, fx.K_R, fx.K_L, fx.K_P,
-                      fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]]))
+    rec = _recording_key(data)
+    deps = [fx.E_R, fx.E_L, fx.DR_R, fx.DR_L, fx.K_SLIP, fx.T_TRAC]
+    slip = (eff[fx.K_SLIP] != 0.0 or eff[fx.T_TRAC] != 0.0) and data.fixture == "floor"
+    if slip:  # estimate_motion's slip correction: the delivered torque through the slip law
+        deps += [fx.DB_W, fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]
+    key = (rec, p.l1, p.l2, p.r, p.b_w if slip else None, tuple(eff[deps]))
     if key not in _X0_CACHE:
         if len(_X0_CACHE) > 4096:
             _X0_CACHE.clear()
-        m = estimate_motion(data, model, smooth_rates=False)
+            _HEAD_CACHE.clear()
+        if rec not in _HEAD_CACHE:
+            _HEAD_CACHE[rec] = data.head(2 * data.window)
+        m = estimate_motion(_HEAD_CACHE[rec], model, smooth_rates=False)
         _X0_CACHE[key] = np.concatenate([m.q[0], m.qd[0]])
     return _X0_CACHE[key].copy()
 

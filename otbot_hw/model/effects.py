@@ -204,6 +204,15 @@ def actuated_torque(u, eff):
     return out
 
 
+@njit(cache=True, nogil=True)
+def actuated_torques(U, eff):
+    """``actuated_torque`` of each command row of U (N, 3)."""
+    out = np.empty((U.shape[0], 3))
+    for k in range(U.shape[0]):
+        out[k] = actuated_torque(U[k], eff)
+    return out
+
+
 @njit(cache=True)
 def _motor_friction(w, i, eff, prm):
     """Non-viscous friction torque (N m) at motor i (0 r, 1 l, 2 p) turning at w rad/s (opposes w)."""
@@ -407,6 +416,15 @@ def slip_rates(x, tau, eff, prm, fixture):
     return out
 
 
+@njit(cache=True, nogil=True)
+def slip_rate_samples(X, TAU, eff, prm, fixture):
+    """Slip rates (N, 2) rad/s at each sample from states X (N, 12) and delivered torques TAU (N, 3)."""
+    out = np.empty((X.shape[0], 2))
+    for k in range(X.shape[0]):
+        out[k] = slip_rates(X[k], TAU[k], eff, prm, fixture)
+    return out
+
+
 @njit(cache=True)
 def _lagged(tc, t0, s, T):
     out = np.empty(3)
@@ -497,7 +515,7 @@ def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.n
         from otbot_hw.model.fixtures import fixture_code
         code = fixture_code(traj.fixture)
         prm = params.as_array()
-        slip_d = np.array([slip_rates(x[k], traj.tau[k], eff, prm, code) for k in range(len(x))])
+        slip_d = slip_rate_samples(np.ascontiguousarray(x), np.ascontiguousarray(traj.tau), eff, prm, code)
     for i in range(2):
         scale = 1.0 + eff[E_R + i]
         pos[:, i] = scale * (rho[i] * x[:, 3 + i] + traj.slip[:, i])
@@ -524,7 +542,7 @@ def left_accelerations(traj, params: OtbotParams, eff: np.ndarray) -> np.ndarray
     if eff[T_I] > 0.0 or len(traj.x) < 2:
         return traj.qdd.copy()
     tau_l = traj.tau.copy()
-    tau_l[1:] = np.array([actuated_torque(u, eff) for u in traj.u[:-1]])
+    tau_l[1:] = actuated_torques(np.ascontiguousarray(traj.u[:-1]), eff)
     tau_l[0] = traj.tau[0]
     code = fixture_code(traj.fixture)
     prm = params.as_array()
