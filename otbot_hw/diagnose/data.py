@@ -46,6 +46,18 @@ class DiagnosisData:
     notes: list[str] = field(default_factory=list)
     truncated: bool = False  # the file was cut short; these are its complete samples
     noise_levels: dict[str, float] | None = None  # channel -> white-noise level given, not measured (``head``)
+    _memo: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def memo(self, key, compute):
+        """``compute()`` once per key for this recording (filtered signals that depend on the data
+        alone, or on a few model entries named in the key). The recording's arrays are not changed
+        in place anywhere (``segment``, ``dataclasses.replace`` give new objects with an empty memo);
+        callers that modify a result modify a copy."""
+        if key not in self._memo:
+            if len(self._memo) > 256:
+                self._memo.clear()
+            self._memo[key] = compute()
+        return self._memo[key]
 
     def __len__(self) -> int:
         return len(self.t)

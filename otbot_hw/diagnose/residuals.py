@@ -78,7 +78,13 @@ def integral_rate(data: DiagnosisData, y: np.ndarray) -> np.ndarray:
 
 
 def joint_rates(data: DiagnosisData) -> tuple[np.ndarray, np.ndarray]:
-    """Smoothed joint rates and accelerations (N, 3) from the encoder readings (raw units)."""
+    """Smoothed joint rates and accelerations (N, 3) from the encoder readings (raw units; copies of
+    the recording's memo)."""
+    vel, acc = data.memo("joint_rates", lambda: _joint_rates(data))
+    return vel.copy(), acc.copy()
+
+
+def _joint_rates(data: DiagnosisData) -> tuple[np.ndarray, np.ndarray]:
     vel = data.enc_vel.copy() if data.enc_vel is not None else np.full_like(data.enc_pos, np.nan)
     dpos = data.smooth(data.enc_pos, deriv=1)
     for j in range(3):
@@ -115,9 +121,11 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
     pos = data.enc_pos.astype(float).copy()
     vel, acc = joint_rates(data)
     if not smooth_rates:
-        vel = start_rates(data, vel)
-    tau_i = delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data))
-    tau = integral_rate(data, tau_i)
+        vel = data.memo("start_rates", lambda: start_rates(data, joint_rates(data)[0])).copy()
+    actuator = tuple(eff[[fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]])
+    tau_i = data.memo(("delivered_torque", actuator),
+                      lambda: delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data)))
+    tau = data.memo(("filtered_torque", actuator), lambda: integral_rate(data, tau_i))
     rho = (1.0 / (1.0 + eff[fx.DR_R]), 1.0 / (1.0 + eff[fx.DR_L]))
     for i in range(2):
         s = 1.0 + eff[fx.E_R + i]
@@ -225,14 +233,18 @@ def imu_residual(data: DiagnosisData, model: ExtendedModel, motion: Motion | Non
                                    floor=data.fixture == "floor")
     pred = np.column_stack([acc[:, 0], acc[:, 1], gyro[:, 2]])
     pred = fx.delay(data.t, pred, eff[fx.D_IMU])
-    meas = np.column_stack([data.imu_acc[:, 0], data.imu_acc[:, 1], data.imu_gyro[:, 2]])
-    meas = np.where(np.isfinite(meas), meas, 0.0)  # unusable columns are blanked below
-    meas_f = np.column_stack([integral_rate(data, meas[:, :2]), data.smooth(meas[:, 2:])])
-    out = meas_f - pred
+    out = data.memo("filtered_imu", lambda: _filtered_imu(data)) - pred
     for j, ch in enumerate(("a_x", "a_y", "g_z")):
         if ch in data.unusable:
             out[:, j] = np.nan
     return out
+
+
+def _filtered_imu(data: DiagnosisData) -> np.ndarray:
+    """Measured (a_x, a_y, g_z) (N, 3) through the filters the IMU residual compares them after."""
+    meas = np.column_stack([data.imu_acc[:, 0], data.imu_acc[:, 1], data.imu_gyro[:, 2]])
+    meas = np.where(np.isfinite(meas), meas, 0.0)  # unusable columns are blanked by imu_residual
+    return np.column_stack([integral_rate(data, meas[:, :2]), data.smooth(meas[:, 2:])])
 
 
 _X0_CACHE: dict = {}
