@@ -29,7 +29,7 @@ from otbot_hw.model import compiled
 from otbot_hw.model import effects as fx
 from otbot_hw.model.effects import ExtendedModel
 from otbot_hw.model.fixtures import fixture_code
-from otbot_hw.simulation.simulator import default_substeps, simulate_extended
+from otbot_hw.simulation.simulator import ExtendedTrajectory, check_inputs, default_substeps
 
 
 @dataclass
@@ -306,14 +306,25 @@ def diagnosis_substeps(dt: float, fixture: str, eff: np.ndarray) -> int:
 def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray | None = None,
                      substeps: int | None = None) -> dict[str, np.ndarray]:
     """Simulated CHANNELS (each (N,)) for the recording's commands, from the encoder-estimated x0
-    (``substeps`` RK4 steps per sample, default ``diagnosis_substeps``)."""
+    (``substeps`` RK4 steps per sample, default ``diagnosis_substeps``).
+
+    ``simulate_extended`` then ``effects.sensor_outputs``, with the accelerations and slip rates at
+    the samples taken from the integrator's first stage (``effects.ext_rk4_zoh_samples``: the same
+    numbers, one model evaluation per sample fewer)."""
     x0 = initial_state(data, model) if x0 is None else x0
     sub = substeps or diagnosis_substeps(data.dt, data.fixture, model.eff)
-    traj = simulate_extended(model.params, model.eff, data.u[:-1], data.dt, x0=x0, fixture=data.fixture,
-                                substeps=sub,
-                                tau0=fx.actuated_torque(initial_tau(data), model.eff) if np.any(initial_tau(data))
-                                else np.zeros(3))
-    s = fx.sensor_outputs(traj, model.params, model.eff)
+    U, F, x0 = check_inputs(data.u[:-1], data.dt, None, x0)
+    eff = np.asarray(model.eff, dtype=float)
+    if eff.shape != (fx.N_EFFECT,) or not np.all(np.isfinite(eff)):
+        raise ValueError(f"effect vector must be {fx.N_EFFECT} finite numbers")
+    tau_start = initial_tau(data)
+    tau0 = fx.actuated_torque(tau_start, eff) if np.any(tau_start) else np.zeros(3)
+    X, TAU, S, QDD, SD = fx.ext_rk4_zoh_samples(x0, tau0, U, F, data.dt, sub, model.params.as_array(), eff,
+                                                fixture_code(data.fixture))
+    Uf = np.vstack([U, U[-1:]]) if len(U) else np.zeros((1, 3))
+    traj = ExtendedTrajectory(t=np.arange(len(X)) * data.dt, x=X, tau=TAU, slip=S, qdd=QDD, u=Uf, dt=data.dt,
+                              fixture=data.fixture)
+    s = fx.sensor_outputs(traj, model.params, eff, slip_rate=SD)
     return {"w_r": s["joint_vel"][:, 0], "w_l": s["joint_vel"][:, 1], "w_p": s["joint_vel"][:, 2],
             "a_x": s["imu_accel"][:, 0], "a_y": s["imu_accel"][:, 1], "g_z": s["imu_gyro"][:, 2]}
 

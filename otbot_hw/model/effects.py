@@ -487,9 +487,29 @@ def ext_rk4_zoh(x0, tau0, U, F, dt, substeps, prm, eff, fixture):
     Work arrays are allocated once (classical RK4 on z = (x, slip angles)).
     """
     n = U.shape[0]
-    X = np.empty((n + 1, 12))
-    TAU = np.empty((n + 1, 3))
-    S = np.zeros((n + 1, 2))
+    X, TAU, S = np.empty((n + 1, 12)), np.empty((n + 1, 3)), np.zeros((n + 1, 2))
+    _ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, np.empty((0, 6)), np.empty((0, 2)))
+    return X, TAU, S
+
+
+@njit(cache=True, nogil=True)
+def ext_rk4_zoh_samples(x0, tau0, U, F, dt, substeps, prm, eff, fixture):
+    """``ext_rk4_zoh`` that also returns QDD (N+1, 6), the accelerations at the samples (under TAU[k]
+    and F[k], the last sample under F[N-1]), and SD (N+1, 2), the slip rates there: what
+    ``ext_sample_accelerations`` and ``slip_rate_samples`` give, taken from the first RK4 stage of
+    each interval (the same evaluation), so they cost one evaluation for the last sample only."""
+    n = U.shape[0]
+    X, TAU, S = np.empty((n + 1, 12)), np.empty((n + 1, 3)), np.zeros((n + 1, 2))
+    QDD, SD = np.empty((n + 1, 6)), np.empty((n + 1, 2))
+    _ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, QDD, SD)
+    return X, TAU, S, QDD, SD
+
+
+@njit(cache=True, nogil=True)
+def _ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, QDD, SD):
+    """The RK4 of ``ext_rk4_zoh`` writing into X, TAU, S; and into QDD, SD when they have N+1 rows."""
+    n = U.shape[0]
+    samples = QDD.shape[0] == n + 1
     z = np.zeros(14)
     z[:12] = x0
     X[0] = x0
@@ -509,6 +529,11 @@ def ext_rk4_zoh(x0, tau0, U, F, dt, substeps, prm, eff, fixture):
             _lagged_into(tc, ta, s0 + 0.5 * h, T, t2)
             _lagged_into(tc, ta, s0 + h, T, t3)
             _zderiv_into(z, t1, f, eff, prm, fixture, k1, gen, acc, g2, slip)
+            if samples and j == 0:  # the state X[k] under TAU[k] (t1 at s0 = 0)
+                for i in range(6):
+                    QDD[k, i] = k1[6 + i]
+                SD[k, 0] = k1[12]
+                SD[k, 1] = k1[13]
             for i in range(14):
                 zs[i] = z[i] + 0.5 * h * k1[i]
             _zderiv_into(zs, t2, f, eff, prm, fixture, k2, gen, acc, g2, slip)
@@ -529,7 +554,13 @@ def ext_rk4_zoh(x0, tau0, U, F, dt, substeps, prm, eff, fixture):
         _lagged_into(actuated_torque(U[n - 1], eff), ta, 0.0, T, TAU[n])
     else:
         TAU[0] = tau0
-    return X, TAU, S
+    if samples:
+        f = F[n - 1] if n > 0 else np.zeros(2)
+        _zderiv_into(z, TAU[n], f, eff, prm, fixture, k1, gen, acc, g2, slip)
+        for i in range(6):
+            QDD[n, i] = k1[6 + i]
+        SD[n, 0] = k1[12]
+        SD[n, 1] = k1[13]
 
 
 @njit(cache=True, nogil=True)
@@ -545,8 +576,10 @@ def ext_sample_accelerations(X, TAU, F, eff, prm, fixture):
     return out
 
 
-def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.ndarray]:
+def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray,
+                   slip_rate: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Noise-free sensor readings of an extended run (``ExtendedTrajectory``; the sensor effects applied).
+    ``slip_rate`` (N, 2): the slip rates at the samples when known (``ext_rk4_zoh_samples``).
 
     Returns ``joint_pos``, ``joint_vel`` (N, 3) rad, rad/s and ``imu_accel``, ``imu_gyro``
     (N, 3) m/s^2, rad/s in the IMU frame (= B'' rotated by psi), as the recording stores them.
@@ -556,7 +589,9 @@ def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.n
     pos = x[:, 3:6].copy()
     vel = x[:, 9:12].copy()
     slip_d = np.zeros((len(x), 2))
-    if eff[K_SLIP] != 0.0 or eff[T_TRAC] != 0.0:
+    if slip_rate is not None:
+        slip_d = slip_rate
+    elif eff[K_SLIP] != 0.0 or eff[T_TRAC] != 0.0:
         from otbot_hw.model.fixtures import fixture_code
         code = fixture_code(traj.fixture)
         prm = params.as_array()
