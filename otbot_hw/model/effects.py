@@ -216,6 +216,8 @@ def actuated_torques(U, eff):
 @njit(cache=True)
 def _motor_friction(w, i, eff, prm):
     """Non-viscous friction torque (N m) at motor i (0 r, 1 l, 2 p) turning at w rad/s (opposes w)."""
+    if eff[C_R + i] == 0.0 and (i == 2 or eff[S_W] == 0.0):
+        return 0.0
     sg = _sgn(w, sign_width(i, eff, prm))
     t = eff[C_R + i] * sg
     if i < 2 and eff[S_W] != 0.0:
@@ -312,19 +314,28 @@ def _effect_force_into(x, tau, eff, prm, fixture, gen, slip):
             motor = rho[i] * t_tr
         gen[3 + i] = motor - (tau[i] - bw * psid)
     gen[5] = -_motor_friction(x[11], 2, eff, prm)
-    a = x[2]
-    th = x[2] - x[5]
-    ca, sa, ct, st = np.cos(a), np.sin(a), np.cos(th), np.sin(th)
     mc, mp = prm[_MC], prm[_MP]
-    # platform centre of mass relative to P, ground frame
-    fx = ca * prm[_XF] - sa * prm[_YF]
-    fy = sa * prm[_XF] + ca * prm[_YF]
-    if fixture != compiled.FLOOR:
-        gen[5] += mp * (-fy * eff[G_X] + fx * eff[G_Y])
-        return
-    # floor slope: gravity on both centres of mass
     gx, gy = eff[G_X], eff[G_Y]
-    if gx != 0.0 or gy != 0.0:
+    slope = gx != 0.0 or gy != 0.0
+    if slope:
+        # platform centre of mass relative to P, ground frame
+        a = x[2]
+        ca, sa = np.cos(a), np.sin(a)
+        fx = ca * prm[_XF] - sa * prm[_YF]
+        fy = sa * prm[_XF] + ca * prm[_YF]
+    else:
+        fx = fy = 0.0
+    if fixture != compiled.FLOOR:
+        if slope:
+            gen[5] += mp * (-fy * gx + fx * gy)
+        return
+    if slope or eff[F_CST] != 0.0:
+        th = x[2] - x[5]
+        ct, st = np.cos(th), np.sin(th)
+    else:
+        ct, st = 1.0, 0.0
+    # floor slope: gravity on both centres of mass
+    if slope:
         bx = ct * prm[_XB] - st * prm[_YB]
         by = st * prm[_XB] + ct * prm[_YB]
         gen[0] += (mc + mp) * gx
