@@ -49,14 +49,17 @@ class DiagnosisData:
     _memo: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def memo(self, key, compute):
-        """``compute()`` once per key for this recording (filtered signals that depend on the data
-        alone, or on a few model entries named in the key). The recording's arrays are not changed
-        in place anywhere (``segment``, ``dataclasses.replace`` give new objects with an empty memo);
-        callers that modify a result modify a copy."""
+        """``compute()`` once per key (a fixed name) for this recording: filtered signals that depend on
+        the data alone, or a dict the caller bounds itself. Kept with the object, so a cache entry never
+        outlives or mixes up its recording; the recording's arrays are not changed in place anywhere
+        (``segment``, ``dataclasses.replace`` give new objects with an empty memo). Arrays are stored
+        read-only."""
         if key not in self._memo:
-            if len(self._memo) > 256:
-                self._memo.clear()
-            self._memo[key] = compute()
+            value = compute()
+            for a in (value if isinstance(value, tuple) else (value,)):
+                if isinstance(a, np.ndarray):
+                    a.flags.writeable = False  # shared: a caller that changes it works on a copy
+            self._memo[key] = value
         return self._memo[key]
 
     def __len__(self) -> int:

@@ -18,6 +18,9 @@ Two families:
 """
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,6 +65,24 @@ def delivered_torque_intervals(u: np.ndarray, dt: float, eff: np.ndarray, tau0: 
         out[k] = tc[k] + (ta - tc[k]) * frac
         ta = tc[k] + (ta - tc[k]) * e
     return out
+
+
+TORQUE_CACHE_SIZE = 64  # delivered-torque series kept per recording (one per actuator-effect combination)
+
+
+def _delivered_torque(data: DiagnosisData, eff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Delivered torque over each interval (``delivered_torque_intervals``) and its filtered rate
+    (``integral_rate``), kept in the recording's memo per actuator-effect values (read only)."""
+    key = tuple(eff[[fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]])
+    cache = data.memo("delivered_torque", dict)
+    if key not in cache:
+        if len(cache) > TORQUE_CACHE_SIZE:
+            cache.clear()
+        tau_i = delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data))
+        tau = integral_rate(data, tau_i)
+        tau_i.flags.writeable = tau.flags.writeable = False
+        cache[key] = (tau_i, tau)
+    return cache[key]
 
 
 def initial_tau(data: DiagnosisData) -> np.ndarray:
@@ -122,10 +143,7 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
     vel, acc = joint_rates(data)
     if not smooth_rates:
         vel = data.memo("start_rates", lambda: start_rates(data, joint_rates(data)[0])).copy()
-    actuator = tuple(eff[[fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]])
-    tau_i = data.memo(("delivered_torque", actuator),
-                      lambda: delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data)))
-    tau = data.memo(("filtered_torque", actuator), lambda: integral_rate(data, tau_i))
+    tau_i, tau = _delivered_torque(data, eff)
     rho = (1.0 / (1.0 + eff[fx.DR_R]), 1.0 / (1.0 + eff[fx.DR_L]))
     for i in range(2):
         s = 1.0 + eff[fx.E_R + i]
@@ -247,41 +265,32 @@ def _filtered_imu(data: DiagnosisData) -> np.ndarray:
     return np.column_stack([integral_rate(data, meas[:, :2]), data.smooth(meas[:, 2:])])
 
 
-_X0_CACHE: dict = {}
-_HEAD_CACHE: dict = {}
-
-
-def _recording_key(data: DiagnosisData) -> tuple:
-    """Identity of a recording for the caches: the object, its length and its first samples."""
-    return (id(data), len(data), data.enc_pos[:8].tobytes(), None if data.enc_vel is None else data.enc_vel[:8].tobytes(),
-            data.u[:8].tobytes(), data.dt)
+X0_CACHE_SIZE = 4096  # initial states kept per recording (one per combination of the entries x0 depends on)
 
 
 def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     """x0 (12,) in rolling-angle coordinates from the first encoder samples (alpha(0) = 0).
 
     Computed on the recording's first ``2 window`` samples (``DiagnosisData.head``: the edge
-    filters see only the first window, so x0 is the same as from the whole record) and cached
-    per recording and the model entries x0 depends on: geometry, encoder scale and radius
+    filters see only the first window, so x0 is the same as from the whole record) and kept in
+    the recording's memo per model entries x0 depends on: geometry, encoder scale and radius
     asymmetry; with wheel slip on the floor also the slip law and what sets the slipping torque
     (viscous friction and its asymmetry, actuator gains, saturation, lag).
     """
     p, eff = model.params, model.eff
-    rec = _recording_key(data)
     deps = [fx.E_R, fx.E_L, fx.DR_R, fx.DR_L, fx.K_SLIP, fx.T_TRAC]
     slip = (eff[fx.K_SLIP] != 0.0 or eff[fx.T_TRAC] != 0.0) and data.fixture == "floor"
     if slip:  # estimate_motion's slip correction: the delivered torque through the slip law
         deps += [fx.DB_W, fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]
-    key = (rec, p.l1, p.l2, p.r, p.b_w if slip else None, tuple(eff[deps]))
-    if key not in _X0_CACHE:
-        if len(_X0_CACHE) > 4096:
-            _X0_CACHE.clear()
-            _HEAD_CACHE.clear()
-        if rec not in _HEAD_CACHE:
-            _HEAD_CACHE[rec] = data.head(2 * data.window)
-        m = estimate_motion(_HEAD_CACHE[rec], model, smooth_rates=False)
-        _X0_CACHE[key] = np.concatenate([m.q[0], m.qd[0]])
-    return _X0_CACHE[key].copy()
+    key = (p.l1, p.l2, p.r, p.b_w if slip else None, tuple(eff[deps]))
+    cache = data.memo("initial_states", dict)
+    if key not in cache:
+        if len(cache) > X0_CACHE_SIZE:
+            cache.clear()
+        head = data.memo("head", lambda: data.head(2 * data.window))
+        m = estimate_motion(head, model, smooth_rates=False)
+        cache[key] = np.concatenate([m.q[0], m.qd[0]])
+    return cache[key].copy()
 
 
 CASTER_STEP = 5e-3  # s: RK4 step on the floor with caster drag (its smoothed direction) but no friction sign
@@ -313,6 +322,34 @@ def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray |
     numbers, one model evaluation per sample fewer)."""
     x0 = initial_state(data, model) if x0 is None else x0
     sub = substeps or diagnosis_substeps(data.dt, data.fixture, model.eff)
+    key = (data.memo("command_digest", lambda: _digest(data)), model.params.as_array().tobytes(), np.asarray(model.eff, dtype=float).tobytes(),
+           np.asarray(x0, dtype=float).tobytes(), sub)
+    with _SIM_LOCK:
+        if key in _SIM_CACHE:
+            _SIM_CACHE.move_to_end(key)
+            return dict(_SIM_CACHE[key])
+    out = _simulate_outputs(data, model, x0, sub)
+    for v in out.values():
+        v.flags.writeable = False  # shared by the cache
+    with _SIM_LOCK:
+        _SIM_CACHE[key] = out
+        while len(_SIM_CACHE) > SIM_CACHE_SIZE:
+            _SIM_CACHE.popitem(last=False)
+    return dict(out)
+
+
+def _digest(data: DiagnosisData) -> tuple:
+    """What a simulation takes from a recording besides x0: its commands, sample period and fixture."""
+    return hashlib.blake2b(np.ascontiguousarray(data.u).tobytes(), digest_size=16).digest(), len(data), data.dt, \
+        data.fixture
+
+
+SIM_CACHE_SIZE = 32  # recent simulations kept: a fitted model is simulated again by the evidence and adequacy steps
+_SIM_CACHE: OrderedDict = OrderedDict()
+_SIM_LOCK = threading.Lock()
+
+
+def _simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray, sub: int) -> dict[str, np.ndarray]:
     U, F, x0 = check_inputs(data.u[:-1], data.dt, None, x0)
     eff = np.asarray(model.eff, dtype=float)
     if eff.shape != (fx.N_EFFECT,) or not np.all(np.isfinite(eff)):
