@@ -109,7 +109,6 @@ class DiagnosisData:
                              self.enc_pos[sl].copy(), pick(self.enc_vel), pick(self.imu_acc), pick(self.imu_gyro),
                              self.fixture, dict(self.unusable), list(self.notes), self.truncated)
 
-
     def head(self, n: int) -> "DiagnosisData":
         """The first n samples (all when shorter) carrying the whole recording's noise levels: what a
         quantity at the start of the record needs (the Savitzky-Golay filters fit their first samples
