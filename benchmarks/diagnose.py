@@ -29,14 +29,16 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 TARGET_S = 10.0
 HISTORY = (
     "Before the speed-ups (commit 57436df, same recordings, load 2.4-6.6): worst 29.6 s (traction_limit), median "
-    "5.1 s, 23 of 117 over 10 s. What changed (every number of the diagnosis unchanged, "
-    "`tests/test_diagnose.py::test_fast_paths_give_the_plain_numbers`): one BLAS thread during a diagnosis "
+    "5.1 s, 23 of 117 over 10 s; the same-day comparison is in the next section. What changed -- no number of the "
+    "diagnosis (`tests/test_diagnose.py::test_fast_paths_give_the_plain_numbers`; the independent check gives the "
+    "same outcome and all 190 estimates to the last digit, `docs/diagnose.md`): one BLAS thread during a diagnosis "
     "(the least-squares SVD of a 6000 x 10 Jacobian took 10-45 ms with a multi-threaded OpenBLAS on the loaded "
-    "machine, 1 ms with one); an allocation-free extended RK4 (one slip-law solve per evaluation, no friction "
-    "sign or trigonometry for absent effects) with the sample accelerations and slip rates taken from the "
-    "integrator's first stage (one model evaluation per sample fewer): 1.5-2.1x per simulation; the initial state from the "
-    "first two filter windows and cached per the model entries it depends on; filtered measured signals kept per "
-    "recording; recent simulations cached (a fitted model is simulated again for its evidence and adequacy).")
+    "machine, 1 ms with one; the spinning BLAS threads also took CPU from the simulation threads); an "
+    "allocation-free extended RK4 (one slip-law solve per evaluation, no friction sign or trigonometry for absent "
+    "effects) with the sample accelerations and slip rates taken from the integrator's first stage (one model "
+    "evaluation per sample fewer): 1.5-2.1x per simulation; the initial state from the first two filter windows, "
+    "cached per the model entries it depends on; filtered measured signals kept per recording; recent simulations "
+    "cached (a fitted model is simulated again for its evidence and adequacy).")
 
 
 def main() -> int:
