@@ -54,13 +54,14 @@ class DiagnosisData:
         outlives or mixes up its recording; the recording's arrays are not changed in place anywhere
         (``segment``, ``dataclasses.replace`` give new objects with an empty memo). Arrays are stored
         read-only."""
-        if key not in self._memo:
+        value = self._memo.get(key)
+        if value is None:
             value = compute()
             for a in (value if isinstance(value, tuple) else (value,)):
                 if isinstance(a, np.ndarray):
                     a.flags.writeable = False  # shared: a caller that changes it works on a copy
-            self._memo[key] = value
-        return self._memo[key]
+            value = self._memo.setdefault(key, value)  # two threads computing it at once keep one
+        return value
 
     def __len__(self) -> int:
         return len(self.t)

@@ -75,14 +75,15 @@ def _delivered_torque(data: DiagnosisData, eff: np.ndarray) -> tuple[np.ndarray,
     (``integral_rate``), kept in the recording's memo per actuator-effect values (read only)."""
     key = tuple(eff[[fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]])
     cache = data.memo("delivered_torque", dict)
-    if key not in cache:
+    value = cache.get(key)  # one lookup: another prediction thread may clear the cache meanwhile
+    if value is None:
         if len(cache) > TORQUE_CACHE_SIZE:
             cache.clear()
         tau_i = delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data))
         tau = integral_rate(data, tau_i)
         tau_i.flags.writeable = tau.flags.writeable = False
-        cache[key] = (tau_i, tau)
-    return cache[key]
+        value = cache[key] = (tau_i, tau)
+    return value
 
 
 def initial_tau(data: DiagnosisData) -> np.ndarray:
@@ -284,13 +285,14 @@ def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
         deps += [fx.DB_W, fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]
     key = (p.l1, p.l2, p.r, p.b_w if slip else None, tuple(eff[deps]))
     cache = data.memo("initial_states", dict)
-    if key not in cache:
+    x0 = cache.get(key)  # one lookup: another prediction thread may clear the cache meanwhile
+    if x0 is None:
         if len(cache) > X0_CACHE_SIZE:
             cache.clear()
         head = data.memo("head", lambda: data.head(2 * data.window))
         m = estimate_motion(head, model, smooth_rates=False)
-        cache[key] = np.concatenate([m.q[0], m.qd[0]])
-    return cache[key].copy()
+        x0 = cache[key] = np.concatenate([m.q[0], m.qd[0]])
+    return x0.copy()
 
 
 CASTER_STEP = 5e-3  # s: RK4 step on the floor with caster drag (its smoothed direction) but no friction sign
