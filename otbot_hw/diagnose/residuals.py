@@ -70,20 +70,34 @@ def delivered_torque_intervals(u: np.ndarray, dt: float, eff: np.ndarray, tau0: 
 TORQUE_CACHE_SIZE = 64  # delivered-torque series kept per recording (one per actuator-effect combination)
 
 
-def _delivered_torque(data: DiagnosisData, eff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Delivered torque over each interval (``delivered_torque_intervals``) and its filtered rate
-    (``integral_rate``), kept in the recording's memo per actuator-effect values (read only)."""
-    key = tuple(eff[[fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]])
-    cache = data.memo("delivered_torque", dict)
+def _actuator_key(eff: np.ndarray) -> tuple:
+    return tuple(eff[[fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]])
+
+
+def _bounded(data: DiagnosisData, name: str, key, compute):
+    """``compute()`` kept in the recording's memo dict ``name`` under ``key`` (at most ``TORQUE_CACHE_SIZE``
+    entries; read-only arrays)."""
+    cache = data.memo(name, dict)
     value = cache.get(key)  # one lookup: another prediction thread may clear the cache meanwhile
     if value is None:
         if len(cache) > TORQUE_CACHE_SIZE:
             cache.clear()
-        tau_i = delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data))
-        tau = integral_rate(data, tau_i)
-        tau_i.flags.writeable = tau.flags.writeable = False
-        value = cache[key] = (tau_i, tau)
+        value = compute()
+        value.flags.writeable = False
+        cache[key] = value
     return value
+
+
+def _delivered_torque(data: DiagnosisData, eff: np.ndarray) -> np.ndarray:
+    """Delivered torque over each interval (``delivered_torque_intervals``), kept per actuator-effect values."""
+    return _bounded(data, "delivered_torque", _actuator_key(eff),
+                    lambda: delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data)))
+
+
+def _filtered_torque(data: DiagnosisData, eff: np.ndarray) -> np.ndarray:
+    """``integral_rate`` of the delivered torque (what the torque residual compares), kept likewise."""
+    return _bounded(data, "filtered_torque", _actuator_key(eff),
+                    lambda: integral_rate(data, _delivered_torque(data, eff)))
 
 
 def initial_tau(data: DiagnosisData) -> np.ndarray:
@@ -133,18 +147,25 @@ def start_rates(data: DiagnosisData, smoothed: np.ndarray) -> np.ndarray:
     return out
 
 
-def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: bool = True) -> Motion:
+def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: bool = True,
+                   accelerations: bool = True) -> Motion:
     """Undo the model's encoder effects and build q, qd, qdd (rolling angles) from the encoders.
 
     ``smooth_rates=False`` keeps the raw encoder rates (unbiased at the ends of the record,
     used for the initial state); accelerations are always the SG derivative.
+    ``accelerations=False``: positions and rates only (qdd and a_meas zero, tau None), what the
+    initial state needs.
     """
     p, eff = model.params, model.eff
     pos = data.enc_pos.astype(float).copy()
     vel, acc = joint_rates(data)
     if not smooth_rates:
         vel = data.memo("start_rates", lambda: start_rates(data, joint_rates(data)[0])).copy()
-    tau_i, tau = _delivered_torque(data, eff)
+    tau_i = _delivered_torque(data, eff)
+    if accelerations:
+        tau = _filtered_torque(data, eff)
+    else:
+        tau, acc = None, np.zeros_like(acc)
     rho = (1.0 / (1.0 + eff[fx.DR_R]), 1.0 / (1.0 + eff[fx.DR_L]))
     for i in range(2):
         s = 1.0 + eff[fx.E_R + i]
@@ -157,7 +178,7 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
         rate_i = np.column_stack([fx.slip_rate_series(np.ascontiguousarray(tau_i[:, i]), b[i], eff) for i in range(2)])
         slip_ang = np.vstack([np.zeros((1, 2)), np.cumsum(rate_i[:-1] * data.dt, axis=0)])
         rate = integral_rate(data, rate_i)
-        rate_d = data.smooth(rate, deriv=1)
+        rate_d = data.smooth(rate, deriv=1) if accelerations else np.zeros_like(rate)
         for i in range(2):
             pos[:, i] -= slip_ang[:, i]
             vel[:, i] -= rate[:, i]
@@ -290,7 +311,7 @@ def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
         if len(cache) > X0_CACHE_SIZE:
             cache.clear()
         head = data.memo("head", lambda: data.head(2 * data.window))
-        m = estimate_motion(head, model, smooth_rates=False)
+        m = estimate_motion(head, model, smooth_rates=False, accelerations=False)
         x0 = cache[key] = np.concatenate([m.q[0], m.qd[0]])
     return x0.copy()
 
@@ -324,7 +345,8 @@ def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray |
     numbers, one model evaluation per sample fewer)."""
     x0 = initial_state(data, model) if x0 is None else x0
     sub = substeps or diagnosis_substeps(data.dt, data.fixture, model.eff)
-    key = (data.memo("command_digest", lambda: _digest(data)), model.params.as_array().tobytes(), np.asarray(model.eff, dtype=float).tobytes(),
+    key = (data.memo("command_digest", lambda: _digest(data)), model.params.as_array().tobytes(),
+           np.asarray(model.eff, dtype=float).tobytes(),
            np.asarray(x0, dtype=float).tobytes(), sub)
     with _SIM_LOCK:
         if key in _SIM_CACHE:
