@@ -336,3 +336,49 @@ def test_robot_configuration_gives_caster_and_imu_geometry(tmp_path, capsys):
     fit = _write(tmp_path, "fit.mcap", {}, "multisine", 1.0, 34)
     assert main(["diagnose", str(fit), "--robot", str(tmp_path / "bad.yaml")]) == 2
     assert "imu.mounting.position" in capsys.readouterr().err
+
+
+# --- the diagnosis's fast paths compute the same numbers as the plain ones ------------------------------------------
+
+def test_fast_paths_give_the_plain_numbers():
+    """The speed-ups change no number: (1) the integrator's sample accelerations and slip rates (its first RK4
+    stage) equal a re-evaluation of the model at the samples, on every fixture, with slip, traction limit, lag,
+    friction, caster drag and unequal radii; (2) x0 from the first two filter windows equals x0 from the whole
+    record; (3) a cached simulation equals a fresh one, is read-only and is not served for other commands."""
+    import dataclasses
+
+    from otbot_hw.diagnose import residuals as R
+    from otbot_hw.model import effects as fx
+    from otbot_hw.model.effects import ExtendedModel
+    from otbot_hw.model.fixtures import fixture_code
+
+    rng = np.random.default_rng(3)
+    U, F = rng.normal(0, 1.5, (200, 3)), rng.normal(0, 2, (200, 2))
+    Ff = np.vstack([F, F[-1:]])
+    for vals in ({"k_slip": 0.02, "t_trac": 1.0, "dr_r": 0.02, "T_i": 0.01},
+                 {"c_w": 0.3, "c_p": 0.2, "s_w": 0.2, "v_s": 0.4, "f_cst": 4.0, "g_x": 0.1, "u_max_l": 1.0}):
+        m = ExtendedModel.paper(P).with_values(vals)
+        prm = m.params.as_array()
+        for fixture in ("floor", "stand", "locked"):
+            c = fixture_code(fixture)
+            X, TAU, S, QDD, SD = fx.ext_rk4_zoh_samples(np.zeros(12), np.full(3, 0.1), U, F, 0.01, 3, prm, m.eff, c)
+            for a, b in zip((X, TAU, S), fx.ext_rk4_zoh(np.zeros(12), np.full(3, 0.1), U, F, 0.01, 3, prm, m.eff, c)):
+                assert np.array_equal(a, b)
+            assert np.array_equal(QDD, fx.ext_sample_accelerations(X, TAU, Ff, m.eff, prm, c))
+            assert np.array_equal(SD, fx.slip_rate_samples(X, TAU, m.eff, prm, c))
+            assert np.any(SD != 0) == ("k_slip" in vals and fixture == "floor")
+    d = from_recording(concealed_recording(P, {"k_slip": 0.02}, "multisine", 2.0, seed=4), "slip")
+    for vals in ({}, {"k_slip": 0.02, "t_trac": 3.0, "k_l": 0.1, "T_i": 0.01}, {"e_r": 0.05, "dr_l": -0.03}):
+        m = ExtendedModel.paper(P).with_values(vals)
+        whole = R.estimate_motion(d, m, smooth_rates=False)
+        assert np.array_equal(R.initial_state(d, m), np.concatenate([whole.q[0], whole.qd[0]]))
+    m = ExtendedModel.paper(P).with_values({"c_w": 0.2})
+    first = R.simulate_outputs(d, m)
+    again = R.simulate_outputs(d, m)
+    R._SIM_CACHE.clear()
+    fresh = R.simulate_outputs(d, m)
+    assert all(np.array_equal(first[k], fresh[k]) and np.array_equal(again[k], fresh[k]) for k in fresh)
+    with pytest.raises(ValueError):
+        again["w_r"][0] = 0.0
+    other = dataclasses.replace(d, u=d.u * 1.5)
+    assert not np.array_equal(R.simulate_outputs(other, m)["w_r"], fresh["w_r"])

@@ -45,6 +45,23 @@ class DiagnosisData:
     unusable: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     truncated: bool = False  # the file was cut short; these are its complete samples
+    noise_levels: dict[str, float] | None = None  # channel -> white-noise level given, not measured (``head``)
+    _memo: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def memo(self, key, compute):
+        """``compute()`` once per key (a fixed name) for this recording: filtered signals that depend on
+        the data alone, or a dict the caller bounds itself. Kept with the object, so a cache entry never
+        outlives or mixes up its recording; the recording's arrays are not changed in place anywhere
+        (``segment``, ``dataclasses.replace`` give new objects with an empty memo). Arrays are stored
+        read-only."""
+        value = self._memo.get(key)
+        if value is None:
+            value = compute()
+            for a in (value if isinstance(value, tuple) else (value,)):
+                if isinstance(a, np.ndarray):
+                    a.flags.writeable = False  # shared: a caller that changes it works on a copy
+            value = self._memo.setdefault(key, value)  # two threads computing it at once keep one
+        return value
 
     def __len__(self) -> int:
         return len(self.t)
@@ -76,8 +93,10 @@ class DiagnosisData:
         """White-noise level of a measured channel from its second differences (robust, MAD).
 
         sigma = 1.4826 * MAD(y_k+1 - 2 y_k + y_k-1) / sqrt(6); floored at 1e-6 (units of ``ch``)
-        so noiseless simulations stay finite.
+        so noiseless simulations stay finite. A level in ``noise_levels`` is returned as given.
         """
+        if self.noise_levels is not None and ch in self.noise_levels:
+            return self.noise_levels[ch]
         y = self.measured(ch)
         d2 = np.diff(y, 2)
         s = 1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)
@@ -90,6 +109,15 @@ class DiagnosisData:
         return DiagnosisData(f"{self.name}[{k0}:{k1}]", self.t[sl] - self.t[k0], self.dt, self.u[sl].copy(),
                              self.enc_pos[sl].copy(), pick(self.enc_vel), pick(self.imu_acc), pick(self.imu_gyro),
                              self.fixture, dict(self.unusable), list(self.notes), self.truncated)
+
+    def head(self, n: int) -> "DiagnosisData":
+        """The first n samples (all when shorter) carrying the whole recording's noise levels: what a
+        quantity at the start of the record needs (the Savitzky-Golay filters fit their first samples
+        from the first ``window`` samples alone, so n >= ``window`` gives the same values there)."""
+        h = self.segment(0, min(n, len(self)))
+        h.name = self.name
+        h.noise_levels = {ch: self.noise_sigma(ch) for ch in CHANNELS if self.measured(ch) is not None}
+        return h
 
 
 def from_recording(rec: Recording, name: str = "recording") -> DiagnosisData:

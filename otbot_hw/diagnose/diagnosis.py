@@ -26,7 +26,7 @@ from otbot_hw.diagnose.adequacy import assess
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.diagnose.geometry import EffectGeometry
 from otbot_hw.diagnose.locate import locate, summarize
-from otbot_hw.diagnose.refit import refit, robust_std
+from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
 from otbot_hw.diagnose.select import AMBIGUOUS_DBIC, choose, free_nominal
 from otbot_hw.model.effects import ExtendedModel, parameter_unit
@@ -120,7 +120,15 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
              geometry: EffectGeometry | None = None) -> dict:
     """Diagnose ``recordings`` against ``params``; ``holdout`` recordings judge prediction only.
     ``geometry``: caster and IMU positions from the robot configuration (default: none known).
-    ``model_out``: also write the diagnosed model there (``save_model``; not when the model is inadequate)."""
+    ``model_out``: also write the diagnosed model there (``save_model``; not when the model is inadequate).
+
+    Runs with one BLAS thread (``single_blas_thread``): the parallel work is the simulations on
+    the prediction threads; the fitter's linear algebra is on tall, thin matrices."""
+    with single_blas_thread():
+        return _diagnose(recordings, params, holdout, report_dir, progress, model_out, geometry)
+
+
+def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geometry) -> dict:
     t_start = time.perf_counter()
     holdout = holdout or []
     geometry = geometry or EffectGeometry()

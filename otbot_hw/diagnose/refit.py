@@ -17,9 +17,11 @@ from its residuals.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.diagnose.prediction import FITTER_CHANNEL, ExtendedPredictionModel, diagnosis_experiments
@@ -48,6 +50,18 @@ class FitResult:
     @property
     def n_params(self) -> int:
         return len(self.names)
+
+
+@contextmanager
+def single_blas_thread():
+    """Limit BLAS/LAPACK (OpenBLAS, MKL) to one thread inside the block.
+
+    The fits' linear algebra is on tall, thin matrices (the least-squares SVD of a 6000 x 10
+    Jacobian per iteration): a multi-threaded BLAS splits them into pieces too small to pay
+    for the synchronisation, and on a loaded 2-core machine (the simulation threads, other
+    jobs) each piece waits for a core -- measured 10-45 ms per SVD instead of 1 ms."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
 
 
 def channel_sigmas(recordings: list[DiagnosisData]) -> dict[tuple[str, str], float]:

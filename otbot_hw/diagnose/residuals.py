@@ -18,6 +18,9 @@ Two families:
 """
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +32,7 @@ from otbot_hw.model import compiled
 from otbot_hw.model import effects as fx
 from otbot_hw.model.effects import ExtendedModel
 from otbot_hw.model.fixtures import fixture_code
-from otbot_hw.simulation.simulator import default_substeps, simulate_extended
+from otbot_hw.simulation.simulator import ExtendedTrajectory, check_inputs, default_substeps
 
 
 @dataclass
@@ -64,6 +67,39 @@ def delivered_torque_intervals(u: np.ndarray, dt: float, eff: np.ndarray, tau0: 
     return out
 
 
+TORQUE_CACHE_SIZE = 64  # delivered-torque series kept per recording (one per actuator-effect combination)
+
+
+def _actuator_key(eff: np.ndarray) -> tuple:
+    return tuple(eff[[fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]])
+
+
+def _bounded(data: DiagnosisData, name: str, key, compute):
+    """``compute()`` kept in the recording's memo dict ``name`` under ``key`` (at most ``TORQUE_CACHE_SIZE``
+    entries; read-only arrays)."""
+    cache = data.memo(name, dict)
+    value = cache.get(key)  # one lookup: another prediction thread may clear the cache meanwhile
+    if value is None:
+        if len(cache) > TORQUE_CACHE_SIZE:
+            cache.clear()
+        value = compute()
+        value.flags.writeable = False
+        cache[key] = value
+    return value
+
+
+def _delivered_torque(data: DiagnosisData, eff: np.ndarray) -> np.ndarray:
+    """Delivered torque over each interval (``delivered_torque_intervals``), kept per actuator-effect values."""
+    return _bounded(data, "delivered_torque", _actuator_key(eff),
+                    lambda: delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data)))
+
+
+def _filtered_torque(data: DiagnosisData, eff: np.ndarray) -> np.ndarray:
+    """``integral_rate`` of the delivered torque (what the torque residual compares), kept likewise."""
+    return _bounded(data, "filtered_torque", _actuator_key(eff),
+                    lambda: integral_rate(data, _delivered_torque(data, eff)))
+
+
 def initial_tau(data: DiagnosisData) -> np.ndarray:
     """Delivered torque before t_0: zero when the robot starts at rest, else the first command."""
     v0 = data.enc_vel[0] if data.enc_vel is not None and np.all(np.isfinite(data.enc_vel[0])) else np.zeros(3)
@@ -78,7 +114,13 @@ def integral_rate(data: DiagnosisData, y: np.ndarray) -> np.ndarray:
 
 
 def joint_rates(data: DiagnosisData) -> tuple[np.ndarray, np.ndarray]:
-    """Smoothed joint rates and accelerations (N, 3) from the encoder readings (raw units)."""
+    """Smoothed joint rates and accelerations (N, 3) from the encoder readings (raw units; copies of
+    the recording's memo)."""
+    vel, acc = data.memo("joint_rates", lambda: _joint_rates(data))
+    return vel.copy(), acc.copy()
+
+
+def _joint_rates(data: DiagnosisData) -> tuple[np.ndarray, np.ndarray]:
     vel = data.enc_vel.copy() if data.enc_vel is not None else np.full_like(data.enc_pos, np.nan)
     dpos = data.smooth(data.enc_pos, deriv=1)
     for j in range(3):
@@ -105,19 +147,25 @@ def start_rates(data: DiagnosisData, smoothed: np.ndarray) -> np.ndarray:
     return out
 
 
-def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: bool = True) -> Motion:
+def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: bool = True,
+                   accelerations: bool = True) -> Motion:
     """Undo the model's encoder effects and build q, qd, qdd (rolling angles) from the encoders.
 
     ``smooth_rates=False`` keeps the raw encoder rates (unbiased at the ends of the record,
     used for the initial state); accelerations are always the SG derivative.
+    ``accelerations=False``: positions and rates only (qdd and a_meas zero, tau None), what the
+    initial state needs.
     """
     p, eff = model.params, model.eff
     pos = data.enc_pos.astype(float).copy()
     vel, acc = joint_rates(data)
     if not smooth_rates:
-        vel = start_rates(data, vel)
-    tau_i = delivered_torque_intervals(data.u, data.dt, eff, initial_tau(data))
-    tau = integral_rate(data, tau_i)
+        vel = data.memo("start_rates", lambda: start_rates(data, joint_rates(data)[0])).copy()
+    tau_i = _delivered_torque(data, eff)
+    if accelerations:
+        tau = _filtered_torque(data, eff)
+    else:
+        tau, acc = None, np.zeros_like(acc)
     rho = (1.0 / (1.0 + eff[fx.DR_R]), 1.0 / (1.0 + eff[fx.DR_L]))
     for i in range(2):
         s = 1.0 + eff[fx.E_R + i]
@@ -130,7 +178,7 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
         rate_i = np.column_stack([fx.slip_rate_series(np.ascontiguousarray(tau_i[:, i]), b[i], eff) for i in range(2)])
         slip_ang = np.vstack([np.zeros((1, 2)), np.cumsum(rate_i[:-1] * data.dt, axis=0)])
         rate = integral_rate(data, rate_i)
-        rate_d = data.smooth(rate, deriv=1)
+        rate_d = data.smooth(rate, deriv=1) if accelerations else np.zeros_like(rate)
         for i in range(2):
             pos[:, i] -= slip_ang[:, i]
             vel[:, i] -= rate[:, i]
@@ -225,37 +273,47 @@ def imu_residual(data: DiagnosisData, model: ExtendedModel, motion: Motion | Non
                                    floor=data.fixture == "floor")
     pred = np.column_stack([acc[:, 0], acc[:, 1], gyro[:, 2]])
     pred = fx.delay(data.t, pred, eff[fx.D_IMU])
-    meas = np.column_stack([data.imu_acc[:, 0], data.imu_acc[:, 1], data.imu_gyro[:, 2]])
-    meas = np.where(np.isfinite(meas), meas, 0.0)  # unusable columns are blanked below
-    meas_f = np.column_stack([integral_rate(data, meas[:, :2]), data.smooth(meas[:, 2:])])
-    out = meas_f - pred
+    out = data.memo("filtered_imu", lambda: _filtered_imu(data)) - pred
     for j, ch in enumerate(("a_x", "a_y", "g_z")):
         if ch in data.unusable:
             out[:, j] = np.nan
     return out
 
 
-_X0_CACHE: dict = {}
+def _filtered_imu(data: DiagnosisData) -> np.ndarray:
+    """Measured (a_x, a_y, g_z) (N, 3) through the filters the IMU residual compares them after."""
+    meas = np.column_stack([data.imu_acc[:, 0], data.imu_acc[:, 1], data.imu_gyro[:, 2]])
+    meas = np.where(np.isfinite(meas), meas, 0.0)  # unusable columns are blanked by imu_residual
+    return np.column_stack([integral_rate(data, meas[:, :2]), data.smooth(meas[:, 2:])])
+
+
+X0_CACHE_SIZE = 4096  # initial states kept per recording (one per combination of the entries x0 depends on)
 
 
 def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     """x0 (12,) in rolling-angle coordinates from the first encoder samples (alpha(0) = 0).
 
-    Cached per recording and the model entries it depends on (geometry, encoder scale,
-    radius asymmetry, slip, actuator gains/saturation/lag through the slip correction).
+    Computed on the recording's first ``2 window`` samples (``DiagnosisData.head``: the edge
+    filters see only the first window, so x0 is the same as from the whole record) and kept in
+    the recording's memo per model entries x0 depends on: geometry, encoder scale and radius
+    asymmetry; with wheel slip on the floor also the slip law and what sets the slipping torque
+    (viscous friction and its asymmetry, actuator gains, saturation, lag).
     """
     p, eff = model.params, model.eff
-    head = (data.enc_pos[:8].tobytes(), None if data.enc_vel is None else data.enc_vel[:8].tobytes(),
-            data.u[:8].tobytes(), data.dt)
-    key = (id(data), len(data), head, p.l1, p.l2, p.r, p.b_w,
-           tuple(eff[[fx.E_R, fx.E_L, fx.DR_R, fx.DR_L, fx.K_SLIP, fx.T_TRAC, fx.DB_W, fx.K_R, fx.K_L, fx.K_P,
-                      fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]]))
-    if key not in _X0_CACHE:
-        if len(_X0_CACHE) > 4096:
-            _X0_CACHE.clear()
-        m = estimate_motion(data, model, smooth_rates=False)
-        _X0_CACHE[key] = np.concatenate([m.q[0], m.qd[0]])
-    return _X0_CACHE[key].copy()
+    deps = [fx.E_R, fx.E_L, fx.DR_R, fx.DR_L, fx.K_SLIP, fx.T_TRAC]
+    slip = (eff[fx.K_SLIP] != 0.0 or eff[fx.T_TRAC] != 0.0) and data.fixture == "floor"
+    if slip:  # estimate_motion's slip correction: the delivered torque through the slip law
+        deps += [fx.DB_W, fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]
+    key = (p.l1, p.l2, p.r, p.b_w if slip else None, tuple(eff[deps]))
+    cache = data.memo("initial_states", dict)
+    x0 = cache.get(key)  # one lookup: another prediction thread may clear the cache meanwhile
+    if x0 is None:
+        if len(cache) > X0_CACHE_SIZE:
+            cache.clear()
+        head = data.memo("head", lambda: data.head(2 * data.window))
+        m = estimate_motion(head, model, smooth_rates=False, accelerations=False)
+        x0 = cache[key] = np.concatenate([m.q[0], m.qd[0]])
+    return x0.copy()
 
 
 CASTER_STEP = 5e-3  # s: RK4 step on the floor with caster drag (its smoothed direction) but no friction sign
@@ -280,14 +338,54 @@ def diagnosis_substeps(dt: float, fixture: str, eff: np.ndarray) -> int:
 def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray | None = None,
                      substeps: int | None = None) -> dict[str, np.ndarray]:
     """Simulated CHANNELS (each (N,)) for the recording's commands, from the encoder-estimated x0
-    (``substeps`` RK4 steps per sample, default ``diagnosis_substeps``)."""
+    (``substeps`` RK4 steps per sample, default ``diagnosis_substeps``).
+
+    ``simulate_extended`` then ``effects.sensor_outputs``, with the accelerations and slip rates at
+    the samples taken from the integrator's first stage (``effects.ext_rk4_zoh_samples``: the same
+    numbers, one model evaluation per sample fewer)."""
     x0 = initial_state(data, model) if x0 is None else x0
     sub = substeps or diagnosis_substeps(data.dt, data.fixture, model.eff)
-    traj = simulate_extended(model.params, model.eff, data.u[:-1], data.dt, x0=x0, fixture=data.fixture,
-                                substeps=sub,
-                                tau0=fx.actuated_torque(initial_tau(data), model.eff) if np.any(initial_tau(data))
-                                else np.zeros(3))
-    s = fx.sensor_outputs(traj, model.params, model.eff)
+    key = (data.memo("command_digest", lambda: _digest(data)), model.params.as_array().tobytes(),
+           np.asarray(model.eff, dtype=float).tobytes(),
+           np.asarray(x0, dtype=float).tobytes(), sub)
+    with _SIM_LOCK:
+        if key in _SIM_CACHE:
+            _SIM_CACHE.move_to_end(key)
+            return dict(_SIM_CACHE[key])
+    out = _simulate_outputs(data, model, x0, sub)
+    for v in out.values():
+        v.flags.writeable = False  # shared by the cache
+    with _SIM_LOCK:
+        _SIM_CACHE[key] = out
+        while len(_SIM_CACHE) > SIM_CACHE_SIZE:
+            _SIM_CACHE.popitem(last=False)
+    return dict(out)
+
+
+def _digest(data: DiagnosisData) -> tuple:
+    """What a simulation takes from a recording besides x0: its commands, sample period and fixture."""
+    return hashlib.blake2b(np.ascontiguousarray(data.u).tobytes(), digest_size=16).digest(), len(data), data.dt, \
+        data.fixture
+
+
+SIM_CACHE_SIZE = 32  # recent simulations kept: a fitted model is simulated again by the evidence and adequacy steps
+_SIM_CACHE: OrderedDict = OrderedDict()
+_SIM_LOCK = threading.Lock()
+
+
+def _simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray, sub: int) -> dict[str, np.ndarray]:
+    U, F, x0 = check_inputs(data.u[:-1], data.dt, None, x0)
+    eff = np.asarray(model.eff, dtype=float)
+    if eff.shape != (fx.N_EFFECT,) or not np.all(np.isfinite(eff)):
+        raise ValueError(f"effect vector must be {fx.N_EFFECT} finite numbers")
+    tau_start = initial_tau(data)
+    tau0 = fx.actuated_torque(tau_start, eff) if np.any(tau_start) else np.zeros(3)
+    X, TAU, S, QDD, SD = fx.ext_rk4_zoh_samples(x0, tau0, U, F, data.dt, sub, model.params.as_array(), eff,
+                                                fixture_code(data.fixture))
+    Uf = np.vstack([U, U[-1:]]) if len(U) else np.zeros((1, 3))
+    traj = ExtendedTrajectory(t=np.arange(len(X)) * data.dt, x=X, tau=TAU, slip=S, qdd=QDD, u=Uf, dt=data.dt,
+                              fixture=data.fixture)
+    s = fx.sensor_outputs(traj, model.params, eff, slip_rate=SD)
     return {"w_r": s["joint_vel"][:, 0], "w_l": s["joint_vel"][:, 1], "w_p": s["joint_vel"][:, 2],
             "a_x": s["imu_accel"][:, 0], "a_y": s["imu_accel"][:, 1], "g_z": s["imu_gyro"][:, 2]}
 

@@ -204,9 +204,20 @@ def actuated_torque(u, eff):
     return out
 
 
+@njit(cache=True, nogil=True)
+def actuated_torques(U, eff):
+    """``actuated_torque`` of each command row of U (N, 3)."""
+    out = np.empty((U.shape[0], 3))
+    for k in range(U.shape[0]):
+        out[k] = actuated_torque(U[k], eff)
+    return out
+
+
 @njit(cache=True)
 def _motor_friction(w, i, eff, prm):
     """Non-viscous friction torque (N m) at motor i (0 r, 1 l, 2 p) turning at w rad/s (opposes w)."""
+    if eff[C_R + i] == 0.0 and (i == 2 or eff[S_W] == 0.0):
+        return 0.0
     sg = _sgn(w, sign_width(i, eff, prm))
     t = eff[C_R + i] * sg
     if i < 2 and eff[S_W] != 0.0:
@@ -272,32 +283,59 @@ def effect_force(x, tau, eff, prm, fixture):
     Excludes the inertia correction of unequal wheel radii (see ``ext_accelerations``).
     The compiled model itself adds tau and the paper's viscous friction b_w psi_dot.
     """
-    gen = np.zeros(6)
+    gen = np.empty(6)
+    _effect_force_into(x, tau, eff, prm, fixture, gen, np.empty(2))
+    return gen
+
+
+@njit(cache=True)
+def _effect_force_into(x, tau, eff, prm, fixture, gen, slip):
+    """Write ``effect_force`` into gen (6,) and ``slip_rates`` into slip (2,) (one slip law solve
+    serves both)."""
+    for i in range(6):
+        gen[i] = 0.0
+    slip[0] = 0.0
+    slip[1] = 0.0
     bw = prm[_BW]
     rho = radius_ratios(eff)
     # wheel motors, expressed on the rolling angles psi
     traction = eff[T_TRAC] > 0.0 and fixture == compiled.FLOOR
+    slipping = (eff[K_SLIP] != 0.0 or eff[T_TRAC] != 0.0) and fixture == compiled.FLOOR
     for i in range(2):
         psid = x[9 + i]
         w = rho[i] * psid
         b_i = bw + eff[DB_W] * (1.0 if i == 0 else -1.0)
         t_tr = tau[i] - b_i * w - _motor_friction(w, i, eff, prm)
-        motor = rho[i] * (slip_state(t_tr, b_i, eff)[1] if traction else t_tr)
+        if slipping:
+            sigma, t_g = slip_state(t_tr, b_i, eff)
+            slip[i] = sigma
+            motor = rho[i] * (t_g if traction else t_tr)
+        else:
+            motor = rho[i] * t_tr
         gen[3 + i] = motor - (tau[i] - bw * psid)
     gen[5] = -_motor_friction(x[11], 2, eff, prm)
-    a = x[2]
-    th = x[2] - x[5]
-    ca, sa, ct, st = np.cos(a), np.sin(a), np.cos(th), np.sin(th)
     mc, mp = prm[_MC], prm[_MP]
-    # platform centre of mass relative to P, ground frame
-    fx = ca * prm[_XF] - sa * prm[_YF]
-    fy = sa * prm[_XF] + ca * prm[_YF]
-    if fixture != compiled.FLOOR:
-        gen[5] += mp * (-fy * eff[G_X] + fx * eff[G_Y])
-        return gen
-    # floor slope: gravity on both centres of mass
     gx, gy = eff[G_X], eff[G_Y]
-    if gx != 0.0 or gy != 0.0:
+    slope = gx != 0.0 or gy != 0.0
+    if slope:
+        # platform centre of mass relative to P, ground frame
+        a = x[2]
+        ca, sa = np.cos(a), np.sin(a)
+        fx = ca * prm[_XF] - sa * prm[_YF]
+        fy = sa * prm[_XF] + ca * prm[_YF]
+    else:
+        fx = fy = 0.0
+    if fixture != compiled.FLOOR:
+        if slope:
+            gen[5] += mp * (-fy * gx + fx * gy)
+        return
+    if slope or eff[F_CST] != 0.0:
+        th = x[2] - x[5]
+        ct, st = np.cos(th), np.sin(th)
+    else:
+        ct, st = 1.0, 0.0
+    # floor slope: gravity on both centres of mass
+    if slope:
         bx = ct * prm[_XB] - st * prm[_YB]
         by = st * prm[_XB] + ct * prm[_YB]
         gen[0] += (mc + mp) * gx
@@ -335,7 +373,6 @@ def effect_force(x, tau, eff, prm, fixture):
         sp = np.sqrt(x[6] * x[6] + x[7] * x[7])
         gen[0] -= eff[C_AIR] * sp * x[6]
         gen[1] -= eff[C_AIR] * sp * x[7]
-    return gen
 
 
 @njit(cache=True)
@@ -375,22 +412,31 @@ def compensated_command(x, u_task, eff, prm, fixture):
 @njit(cache=True)
 def ext_accelerations(x, tau, f, eff, prm, fixture):
     """q_ddot (6,) of the extended model (rolling-angle coordinates) under delivered torque tau."""
-    gen = effect_force(x, tau, eff, prm, fixture)
+    gen = np.empty(6)
+    _effect_force_into(x, tau, eff, prm, fixture, gen, np.empty(2))
+    acc = np.empty(6)
+    _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, np.empty(6))
+    return acc
+
+
+@njit(cache=True)
+def _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, g2):
+    """Write q_ddot (6,) into acc given the effect force gen (``_effect_force_into``); g2 (6,) scratch."""
     if fixture == compiled.FLOOR:
-        acc = compiled.accelerations(x, tau, f, gen, prm)
+        compiled._accel_into(x, tau, f, gen, prm, acc)
     else:
-        acc = compiled.fixture_accelerations(x, tau, gen, prm, fixture)
+        compiled._fixture_accel_into(x, tau, gen, prm, fixture, acc)
     if eff[DR_R] != 0.0 or eff[DR_L] != 0.0:
         rho = radius_ratios(eff)
-        g2 = gen.copy()
+        for i in range(6):
+            g2[i] = gen[i]
         for _ in range(2):  # fixed point for the wheel inertias rho^2 I_a
             for i in range(2):
                 g2[3 + i] = gen[3 + i] - prm[_IA] * (rho[i] * rho[i] - 1.0) * acc[3 + i]
             if fixture == compiled.FLOOR:
-                acc = compiled.accelerations(x, tau, f, g2, prm)
+                compiled._accel_into(x, tau, f, g2, prm, acc)
             else:
-                acc = compiled.fixture_accelerations(x, tau, g2, prm, fixture)
-    return acc
+                compiled._fixture_accel_into(x, tau, g2, prm, fixture, acc)
 
 
 @njit(cache=True)
@@ -407,9 +453,18 @@ def slip_rates(x, tau, eff, prm, fixture):
     return out
 
 
+@njit(cache=True, nogil=True)
+def slip_rate_samples(X, TAU, eff, prm, fixture):
+    """Slip rates (N, 2) rad/s at each sample from states X (N, 12) and delivered torques TAU (N, 3)."""
+    out = np.empty((X.shape[0], 2))
+    for k in range(X.shape[0]):
+        out[k] = slip_rates(X[k], TAU[k], eff, prm, fixture)
+    return out
+
+
 @njit(cache=True)
-def _lagged(tc, t0, s, T):
-    out = np.empty(3)
+def _lagged_into(tc, t0, s, T, out):
+    """Delivered torque s seconds into an interval commanded tc, from t0 (current-loop lag T)."""
     if T > 0.0:
         e = np.exp(-s / T)
         for i in range(3):
@@ -417,17 +472,20 @@ def _lagged(tc, t0, s, T):
     else:
         for i in range(3):
             out[i] = tc[i]
-    return out
 
 
 @njit(cache=True)
-def _zderiv(z, tau, f, eff, prm, fixture):
-    dz = np.zeros(14)
+def _zderiv_into(z, tau, f, eff, prm, fixture, dz, gen, acc, g2, slip):
+    """Write d/dt of z = (x (12,), slip angles (2,)) into dz (14,); gen, acc, g2 (6,), slip (2,) scratch."""
     x = z[:12]
-    dz[:6] = x[6:]
-    dz[6:12] = ext_accelerations(x, tau, f, eff, prm, fixture)
-    dz[12:14] = slip_rates(x, tau, eff, prm, fixture)
-    return dz
+    for i in range(6):
+        dz[i] = x[6 + i]
+    _effect_force_into(x, tau, eff, prm, fixture, gen, slip)
+    _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, g2)
+    for i in range(6):
+        dz[6 + i] = acc[i]
+    dz[12] = slip[0]
+    dz[13] = slip[1]
 
 
 @njit(cache=True, nogil=True)
@@ -437,39 +495,83 @@ def ext_rk4_zoh(x0, tau0, U, F, dt, substeps, prm, eff, fixture):
     Returns X (N+1, 12) states (rolling-angle coordinates), TAU (N+1, 3) delivered torque
     at the samples (TAU[k] = delivered torque at t_k, with the command u_k applied) and
     S (N+1, 2) wheel slip angles (rad). tau0 (3,) is the delivered torque just before t_0.
+    Work arrays are allocated once (classical RK4 on z = (x, slip angles)).
     """
     n = U.shape[0]
-    X = np.empty((n + 1, 12))
-    TAU = np.empty((n + 1, 3))
-    S = np.zeros((n + 1, 2))
+    X, TAU, S = np.empty((n + 1, 12)), np.empty((n + 1, 3)), np.zeros((n + 1, 2))
+    _ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, np.empty((0, 6)), np.empty((0, 2)))
+    return X, TAU, S
+
+
+@njit(cache=True, nogil=True)
+def ext_rk4_zoh_samples(x0, tau0, U, F, dt, substeps, prm, eff, fixture):
+    """``ext_rk4_zoh`` that also returns QDD (N+1, 6), the accelerations at the samples (under TAU[k]
+    and F[k], the last sample under F[N-1]), and SD (N+1, 2), the slip rates there: what
+    ``ext_sample_accelerations`` and ``slip_rate_samples`` give, taken from the first RK4 stage of
+    each interval (the same evaluation), so they cost one evaluation for the last sample only."""
+    n = U.shape[0]
+    X, TAU, S = np.empty((n + 1, 12)), np.empty((n + 1, 3)), np.zeros((n + 1, 2))
+    QDD, SD = np.empty((n + 1, 6)), np.empty((n + 1, 2))
+    _ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, QDD, SD)
+    return X, TAU, S, QDD, SD
+
+
+@njit(cache=True, nogil=True)
+def _ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, QDD, SD):
+    """The RK4 of ``ext_rk4_zoh`` writing into X, TAU, S; and into QDD, SD when they have N+1 rows."""
+    n = U.shape[0]
+    samples = QDD.shape[0] == n + 1
     z = np.zeros(14)
     z[:12] = x0
     X[0] = x0
     h = dt / substeps
     T = eff[T_I]
     ta = tau0.copy()
+    k1, k2, k3, k4, zs = np.empty(14), np.empty(14), np.empty(14), np.empty(14), np.empty(14)
+    gen, acc, g2, slip = np.empty(6), np.empty(6), np.empty(6), np.empty(2)
+    t1, t2, t3 = np.empty(3), np.empty(3), np.empty(3)
     for k in range(n):
         tc = actuated_torque(U[k], eff)
         f = F[k]
-        TAU[k] = _lagged(tc, ta, 0.0, T)
+        _lagged_into(tc, ta, 0.0, T, TAU[k])
         for j in range(substeps):
             s0 = j * h
-            t1 = _lagged(tc, ta, s0, T)
-            t2 = _lagged(tc, ta, s0 + 0.5 * h, T)
-            t3 = _lagged(tc, ta, s0 + h, T)
-            k1 = _zderiv(z, t1, f, eff, prm, fixture)
-            k2 = _zderiv(z + 0.5 * h * k1, t2, f, eff, prm, fixture)
-            k3 = _zderiv(z + 0.5 * h * k2, t2, f, eff, prm, fixture)
-            k4 = _zderiv(z + h * k3, t3, f, eff, prm, fixture)
-            z = z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        ta = _lagged(tc, ta, dt, T)
+            _lagged_into(tc, ta, s0, T, t1)
+            _lagged_into(tc, ta, s0 + 0.5 * h, T, t2)
+            _lagged_into(tc, ta, s0 + h, T, t3)
+            _zderiv_into(z, t1, f, eff, prm, fixture, k1, gen, acc, g2, slip)
+            if samples and j == 0:  # the state X[k] under TAU[k] (t1 at s0 = 0)
+                for i in range(6):
+                    QDD[k, i] = k1[6 + i]
+                SD[k, 0] = k1[12]
+                SD[k, 1] = k1[13]
+            for i in range(14):
+                zs[i] = z[i] + 0.5 * h * k1[i]
+            _zderiv_into(zs, t2, f, eff, prm, fixture, k2, gen, acc, g2, slip)
+            for i in range(14):
+                zs[i] = z[i] + 0.5 * h * k2[i]
+            _zderiv_into(zs, t2, f, eff, prm, fixture, k3, gen, acc, g2, slip)
+            for i in range(14):
+                zs[i] = z[i] + h * k3[i]
+            _zderiv_into(zs, t3, f, eff, prm, fixture, k4, gen, acc, g2, slip)
+            for i in range(14):
+                z[i] = z[i] + (h / 6.0) * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+        _lagged_into(tc, ta, dt, T, t1)
+        for i in range(3):
+            ta[i] = t1[i]
         X[k + 1] = z[:12]
         S[k + 1] = z[12:14]
     if n > 0:
-        TAU[n] = _lagged(actuated_torque(U[n - 1], eff), ta, 0.0, T)
+        _lagged_into(actuated_torque(U[n - 1], eff), ta, 0.0, T, TAU[n])
     else:
         TAU[0] = tau0
-    return X, TAU, S
+    if samples:
+        f = F[n - 1] if n > 0 else np.zeros(2)
+        _zderiv_into(z, TAU[n], f, eff, prm, fixture, k1, gen, acc, g2, slip)
+        for i in range(6):
+            QDD[n, i] = k1[6 + i]
+        SD[n, 0] = k1[12]
+        SD[n, 1] = k1[13]
 
 
 @njit(cache=True, nogil=True)
@@ -477,13 +579,18 @@ def ext_sample_accelerations(X, TAU, F, eff, prm, fixture):
     """q_ddot (N, 6) at each sample from states X, delivered torques TAU and forces F."""
     n = X.shape[0]
     out = np.empty((n, 6))
+    gen, acc, g2, slip = np.empty(6), np.empty(6), np.empty(6), np.empty(2)
     for k in range(n):
-        out[k] = ext_accelerations(X[k], TAU[k], F[k], eff, prm, fixture)
+        _effect_force_into(X[k], TAU[k], eff, prm, fixture, gen, slip)
+        _accelerations_into(X[k], TAU[k], F[k], gen, eff, prm, fixture, acc, g2)
+        out[k] = acc
     return out
 
 
-def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.ndarray]:
+def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray,
+                   slip_rate: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Noise-free sensor readings of an extended run (``ExtendedTrajectory``; the sensor effects applied).
+    ``slip_rate`` (N, 2): the slip rates at the samples when known (``ext_rk4_zoh_samples``).
 
     Returns ``joint_pos``, ``joint_vel`` (N, 3) rad, rad/s and ``imu_accel``, ``imu_gyro``
     (N, 3) m/s^2, rad/s in the IMU frame (= B'' rotated by psi), as the recording stores them.
@@ -493,11 +600,13 @@ def sensor_outputs(traj, params: OtbotParams, eff: np.ndarray) -> dict[str, np.n
     pos = x[:, 3:6].copy()
     vel = x[:, 9:12].copy()
     slip_d = np.zeros((len(x), 2))
-    if eff[K_SLIP] != 0.0 or eff[T_TRAC] != 0.0:
+    if slip_rate is not None:
+        slip_d = slip_rate
+    elif eff[K_SLIP] != 0.0 or eff[T_TRAC] != 0.0:
         from otbot_hw.model.fixtures import fixture_code
         code = fixture_code(traj.fixture)
         prm = params.as_array()
-        slip_d = np.array([slip_rates(x[k], traj.tau[k], eff, prm, code) for k in range(len(x))])
+        slip_d = slip_rate_samples(np.ascontiguousarray(x), np.ascontiguousarray(traj.tau), eff, prm, code)
     for i in range(2):
         scale = 1.0 + eff[E_R + i]
         pos[:, i] = scale * (rho[i] * x[:, 3 + i] + traj.slip[:, i])
@@ -524,7 +633,7 @@ def left_accelerations(traj, params: OtbotParams, eff: np.ndarray) -> np.ndarray
     if eff[T_I] > 0.0 or len(traj.x) < 2:
         return traj.qdd.copy()
     tau_l = traj.tau.copy()
-    tau_l[1:] = np.array([actuated_torque(u, eff) for u in traj.u[:-1]])
+    tau_l[1:] = actuated_torques(np.ascontiguousarray(traj.u[:-1]), eff)
     tau_l[0] = traj.tau[0]
     code = fixture_code(traj.fixture)
     prm = params.as_array()
