@@ -4,6 +4,7 @@ end and against the old zero-delay closed loop, --plant-params, the EKF path, ba
 from __future__ import annotations
 
 import json
+import sys
 import time
 import types
 from dataclasses import dataclass, field
