@@ -116,37 +116,60 @@ def test_drives_stop_when_the_masters_heartbeat_stops():
         assert {f.code for f in robot.faults if f.kind == "emcy"} == {0x8130}
 
 
+def _undisturbed(robot, plant) -> bool:
+    """The run so far was clean: the master latched no fault and no drive aborted. A machine that
+    stalls the process longer than a watchdog before the stall under test (the shared 2-core machine
+    does, now and then) makes the run no measurement of that watchdog, not a failure of it."""
+    return not robot.faults and not any(d.aborts for d in plant.drives)
+
+
+def _attempts(n: int = 3):
+    """Up to ``n`` runs of a real-time scenario whose set-up a machine stall can spoil."""
+    for k in range(n):
+        yield k == n - 1
+
+
 def test_drives_stop_on_sync_loss_and_on_an_rpdo_deadline_miss():
     rate = 50.0
-    cfg = CFG.replace_bus(control_rate=rate)
+    cfg = CFG.replace_bus(control_rate=rate).relaxed(1.0)  # heartbeats are not under test here
     period = 1 / rate
-    with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
-        assert all(d.node.sdo[0x1006].raw == int(period * 1e6) for d in robot.drives)
-        assert all(d.node.sdo[0x1400][5].raw == round(cfg.drives[0].rpdo_timeout * period * 1000)
-                   for d in robot.drives)
-        robot.enable()
-        for _ in range(3):
+    for last in _attempts():
+        with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
+            assert all(d.node.sdo[0x1006].raw == int(period * 1e6) for d in robot.drives)
+            assert all(d.node.sdo[0x1400][5].raw == round(cfg.drives[0].rpdo_timeout * period * 1000)
+                       for d in robot.drives)
+            robot.enable()
+            for _ in range(3):
+                robot.write([2.0, 2.0, 2.0])
+                robot.read()
+            last_sync = {d.name: d._last_sync for d in plant.drives}
+            if not _undisturbed(robot, plant):
+                assert not last, f"every attempt disturbed before the stall: {robot.faults}"
+                continue
+            # the loop stalls: no more SYNC (and no RPDO)
+            assert plant.wait_all_stopped(0.5)
+            for d in plant.drives:
+                code, why, _ = d.aborts[0]
+                assert code == 0x8100 and "SYNC lost" in why
+                lost = d.stopped_since[1] - last_sync[d.name]
+                assert SYNC_LOSS_CYCLES * period <= lost <= SYNC_LOSS_CYCLES * period + SLACK, lost
+        break
+    for last in _attempts():
+        with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
+            robot.enable()
             robot.write([2.0, 2.0, 2.0])
             robot.read()
-        last_sync = {d.name: d._last_sync for d in plant.drives}
-        # the loop stalls: no more SYNC (and no RPDO)
-        assert plant.wait_all_stopped(0.5)
-        for d in plant.drives:
-            code, why, _ = d.aborts[0]
-            assert code == 0x8100 and "SYNC lost" in why
-            lost = d.stopped_since[1] - last_sync[d.name]
-            assert SYNC_LOSS_CYCLES * period <= lost <= SYNC_LOSS_CYCLES * period + SLACK, lost
-    with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
-        robot.enable()
-        robot.write([2.0, 2.0, 2.0])
-        robot.read()
-        last_rpdo = {d.name: d._last_rpdo for d in plant.drives}
-        deadline = cfg.drives[0].rpdo_timeout * period
-        for _ in range(cfg.drives[0].rpdo_timeout + 3):  # SYNC goes on, the setpoints stop
-            robot.read()
-        assert plant.wait_all_stopped(0.3)
-        for d in plant.drives:
-            code, why, _ = d.aborts[0]
-            assert code == 0x8250 and "no RPDO" in why
-            assert deadline <= d.stopped_since[1] - last_rpdo[d.name] <= deadline + SLACK
-        assert {f.code for f in robot.faults if f.kind == "emcy"} >= {0x8250}
+            if not _undisturbed(robot, plant):
+                assert not last, f"every attempt disturbed before the deadline miss: {robot.faults}"
+                continue
+            last_rpdo = {d.name: d._last_rpdo for d in plant.drives}
+            deadline = cfg.drives[0].rpdo_timeout * period
+            for _ in range(cfg.drives[0].rpdo_timeout + 3):  # SYNC goes on, the setpoints stop
+                robot.read()
+            assert plant.wait_all_stopped(0.3)
+            for d in plant.drives:
+                code, why, _ = d.aborts[0]
+                assert code == 0x8250 and "no RPDO" in why
+                assert deadline <= d.stopped_since[1] - last_rpdo[d.name] <= deadline + SLACK
+            assert {f.code for f in robot.faults if f.kind == "emcy"} >= {0x8250}
+        break
