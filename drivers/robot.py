@@ -109,7 +109,8 @@ class ReceiveErrors(can.Listener):
 class CanopenRobot(Robot):
     """The robot over CANopen: three ``CiA402Drive`` s, the ``CiA406Encoder`` (unless phi_p comes
     from the pivot drive), heartbeat consumer and producer, and an optional IMU object
-    (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``).
+    (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``; in lockstep
+    also ``timeout`` and ``restart_watchdog(t)``).
 
     ``bus``: a python-can bus to use instead of opening ``config.bus``; ``imu_lockstep``: wait,
     after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC; its

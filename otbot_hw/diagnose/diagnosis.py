@@ -29,6 +29,7 @@ from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
 from otbot_hw.diagnose.select import AMBIGUOUS_DBIC, choose, free_nominal
+from otbot_hw.json_output import json_safe
 from otbot_hw.model.effects import ExtendedModel, parameter_unit
 from otbot_hw.params import OtbotParams
 
@@ -37,20 +38,6 @@ FINAL_NFEV = 20  # iterations of the final fit, started from the last nested fit
 CORRELATION_NOTE = 0.98  # |correlation| of an effect and a nominal parameter worth reporting
 STD_INFLATION_WARN = 2.0  # HAC / white-noise std above this: warn about model-form error
 
-
-def _json_safe(obj):
-    """Non-finite floats -> None, numpy scalars -> Python numbers (the JSON is strict: allow_nan=False)."""
-    if isinstance(obj, dict):
-        return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        return float(obj) if np.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
 
 
 def _finite(v):
@@ -252,4 +239,4 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         save_model(Path(model_out), dataclasses.replace(final, std=std), effects, ambiguous, result["recordings"])
         result["model_file"] = str(model_out)
     result["elapsed_s"] = time.perf_counter() - t_start
-    return _json_safe(result)
+    return json_safe(result)

@@ -190,9 +190,3 @@ class BusConfigBackend(_ConfiguredRate):
         b = self.config.bus
         return {"mode": self.name, "interface": b.interface, "channel": b.channel, "rate": b.control_rate,
                 "bitrate": b.bitrate, "lockstep": self.lockstep, "paced": self.paced}
-
-
-def with_bus_overrides(config, interface: str | None = None, channel: str | None = None):
-    """``config`` with the bus interface/channel replaced where given."""
-    kw = {k: v for k, v in (("interface", interface), ("channel", channel)) if v is not None}
-    return config.replace_bus(**kw) if kw else config

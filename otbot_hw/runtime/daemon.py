@@ -46,6 +46,7 @@ import numpy as np
 from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.gains import gains_from_tstab
 from otbot_hw.control.trajectories import PlacedTrajectory, StopTrajectory, TrajectoryError
+from otbot_hw.json_output import json_safe
 from otbot_hw.motors import MOTORS
 from otbot_hw.robot import Robot, RobotError
 from otbot_hw.runtime.control_protocol import ArgumentLimits, CommandRefused, ProtocolError
@@ -511,7 +512,7 @@ class Daemon:
 
                 out["tracking_error"] = {"x": float(ref.p[0] - est.pose[0]), "y": float(ref.p[1] - est.pose[1]),
                                          "alpha": wrap_angle(float(ref.p[2] - est.pose[2]))}
-        return _finite(out)
+        return json_safe(out)
 
     def enable(self, *, peer: Peer) -> dict:
         return self._loop_call(lambda: self._do_enable(peer))
@@ -582,7 +583,7 @@ class Daemon:
         if self._t_start is not None:
             wall = time.monotonic() - self._t_start[0]
             cpu = time.process_time() - self._t_start[1]
-        return _finite({"stopped": self.stop_reason, "mode": self.mode, "loop": r.timing() if r is not None else None,
+        return json_safe({"stopped": self.stop_reason, "mode": self.mode, "loop": r.timing() if r is not None else None,
                         "fault": r.fault.to_dict() if r is not None and r.fault is not None else None,
                         "faults_seen": self.faults_seen, "sessions": self.sessions,
                         "recording_dir": str(self.settings.record_dir) if self.settings.record_dir else None,
@@ -595,14 +596,3 @@ def _probe_feedback(period: float):
 
     z = np.zeros(3)
     return Feedback(0.0, TaskState(z, z, 0.0), z, period)
-
-
-def _finite(obj):
-    """JSON-safe: non-finite floats become None."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    return obj

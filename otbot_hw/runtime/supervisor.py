@@ -192,7 +192,6 @@ class Supervisor:
         self.realtime = realtime
         self.limiter = TorqueLimiter(limits, on_saturation=on_saturation)
         self.fault: Violation | None = None
-        self.overruns = 0
         self._consecutive = 0
         self._innovations: deque = deque()
         self._start: tuple[float, float] | None = None  # first estimated pivot position (travel check)
@@ -234,7 +233,6 @@ class Supervisor:
         # plain floats: this runs every cycle, and numpy on 3-vectors costs more than the checks
         c = self.config
         if wall_period is not None and wall_period > c.overrun_factor * self.period:
-            self.overruns += 1
             self._consecutive += 1
             if self.realtime and self._consecutive > c.max_consecutive_overruns:
                 return Violation("overrun", t, f"{self._consecutive} cycles in a row longer than "

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +41,7 @@ from otbot_hw.experiment_limits import ExperimentLimits
 from otbot_hw.identification.errors import IdentificationError
 from otbot_hw.identification.experiments import ExperimentSpec
 from otbot_hw.identification.uncertainty import SESSION_PARAMS, robot_params, session_vector
+from otbot_hw.json_output import json_safe
 from otbot_hw.motors import MotorLimits
 from otbot_hw.params import OtbotParams
 from otbot_hw.recording import read_recording
@@ -488,7 +488,7 @@ class BenchProcedure:
                                       if params[n]["std"] > 0 else None) for n in SESSION_PARAMS
                                   if n in final.estimated}
             out["load"] = dict(zip(("mass", "x", "y", "inertia"), self.sim.load)) if self.sim.load else None
-        return _finite(out)
+        return json_safe(out)
 
 
 def _communication(f) -> bool:
@@ -499,17 +499,6 @@ def _communication(f) -> bool:
         return "no valid IMU sentence" in f.meaning or "no IMU sample within" in f.meaning
     return f.kind in ("heartbeat", "stale")
 
-
-def _finite(o):
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite(v) for v in o]
-    if isinstance(o, (float, np.floating)):
-        return float(o) if math.isfinite(o) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    return o
 
 
 def identity(robot, bus: str, sim: SimulatedRobot | None = None, sim_label: str | None = None) -> dict:

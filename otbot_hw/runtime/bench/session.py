@@ -116,9 +116,6 @@ class SessionFolder:
     def status(self, name: str) -> str:
         return self.step(name)["status"]
 
-    def first_open_step(self) -> str | None:
-        return next((s for s in self.settings["steps"] if self.status(s) != "passed"), None)
-
     def begin_invocation(self, note: dict) -> int:
         inv = self.data["invocations"]
         inv.append({"started": _now(), **note})
