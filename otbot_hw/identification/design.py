@@ -188,7 +188,7 @@ class DesignedExcitation:
 
 
 class _Problem:
-    """Objective and constraints of one design, cached per knot vector."""
+    """Objective and constraints of one design (a function of the knot vector)."""
 
     def __init__(self, spec: ExperimentSpec, params: OtbotParams, limits: ExperimentLimits, spacing: float,
                  ref: dict[str, float], noise: NoiseModel, margin: float, scenarios: list[OtbotParams]):
@@ -196,8 +196,6 @@ class _Problem:
         self.margin, self.scenarios = margin, scenarios
         self.ref, self.noise = ref, noise
         self.n_knots = int(round(spec.duration / spacing)) + 1
-        self._key: bytes | None = None
-        self._val: tuple[float, np.ndarray] | None = None
 
     def torques(self, x: np.ndarray) -> np.ndarray:
         knots = x.reshape(self.n_knots, 3) * self.limits.torque
