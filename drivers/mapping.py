@@ -56,7 +56,7 @@ class Need:
 @dataclass
 class PdoPlan:
     """Which objects (index, subindex, bits) each PDO of one direction carries; ``fixed``: the
-    numbers whose mapping the device fixes; ``comm_fixed``: whose COB-ID cannot be written."""
+    numbers whose mapping the device fixes; ``cob_ids``: each planned PDO's COB-ID as the device has it."""
 
     direction: str
     pdos: dict[int, list[tuple[int, int, int]]] = field(default_factory=dict)
