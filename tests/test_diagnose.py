@@ -371,7 +371,7 @@ def test_fast_paths_give_the_plain_numbers():
     for vals in ({}, {"k_slip": 0.02, "t_trac": 3.0, "k_l": 0.1, "T_i": 0.01}, {"e_r": 0.05, "dr_l": -0.03}):
         m = ExtendedModel.paper(P).with_values(vals)
         whole = R.estimate_motion(d, m, smooth_rates=False)
-        assert np.array_equal(R.initial_state(d, m), np.concatenate([whole.q[0], whole.qd[0]]))
+        assert np.array_equal(R.encoder_state(d, m), np.concatenate([whole.q[0], whole.qd[0]]))
     m = ExtendedModel.paper(P).with_values({"c_w": 0.2})
     first = R.simulate_outputs(d, m)
     again = R.simulate_outputs(d, m)
