@@ -116,12 +116,55 @@ def test_an_effect_within_its_own_uncertainty_does_not_matter():
     assert _sig("coulomb_pivot", {"c_p": big}, {"c_p": big / 2.1})["matters"] is True
 
 
-def test_adequacy_noise_bounds_and_plausible_refits():
-    # residual RMS up to 1.5 x noise on the fitting recordings, 2 x on the held-out ones
-    ratios = {("r", "w_r"): 1.47, ("r", "a_x"): 1.53}
-    assert [c["channel"] for c in adequacy.above_noise(ratios, adequacy.NOISE_RATIO_FITTING, "fitting")] == ["a_x"]
-    held = {("h", "w_r"): 1.96, ("h", "a_x"): 2.04}
-    assert [c["channel"] for c in adequacy.above_noise(held, adequacy.NOISE_RATIO_HELDOUT, "heldout")] == ["a_x"]
+def _clean_residuals(rng, n, channels=6, scale=1.0):
+    """Residuals of a right model: white noise (times ``scale``) over the noise level the diagnosis measures
+    from the same series (MAD of second differences)."""
+    from otbot_hw.diagnose.data import mad_sigma
+
+    out = {}
+    for j in range(channels):
+        y = scale * rng.standard_normal(n)
+        out[("r", f"c{j}")] = y / mad_sigma(y / scale)
+    return out
+
+
+def test_adequacy_test_keeps_its_size_on_white_noise_at_every_length():
+    """The size is what the test says: over 300 clean diagnoses of 6 channels each (1 s at 100 Hz to 60 s
+    at 100 Hz), at most 2 % are judged inadequate at ALPHA = 1 % (binomial: 3 expected at most)."""
+    rng = np.random.default_rng(7)
+    for n in (100, 1000, 6000):
+        bad = sum(bool(adequacy.failed(adequacy.residual_tests(_clean_residuals(rng, n), adequacy.EXCESS_FITTING,
+                                                               "fitting"))) for _ in range(100))
+        assert bad <= 2, (n, bad)
+    # at the tolerated excess itself the size still holds (the hypothesis is "excess <= EXCESS")
+    edge = [_clean_residuals(rng, 3000, scale=np.sqrt(1 + adequacy.EXCESS_FITTING)) for _ in range(100)]
+    assert sum(bool(adequacy.failed(adequacy.residual_tests(r, adequacy.EXCESS_FITTING, "fitting"))) for r in edge) <= 2
+    # ... and with no excess tolerated the same residuals are rejected
+    assert all(adequacy.failed(adequacy.residual_tests(r, 0.0, "fitting")) for r in edge[:5])
+
+
+def test_adequacy_test_finds_a_misfit_and_where_it_sits():
+    rng = np.random.default_rng(8)
+    res = _clean_residuals(rng, 4000)
+    res[("r", "c2")] = res[("r", "c2")] * np.sqrt(1.6)  # 60 % unexplained variance on one channel
+    bad = adequacy.failed(adequacy.residual_tests(res, adequacy.EXCESS_FITTING, "fitting"))
+    assert {b["channel"] for b in bad} == {"c2"}
+    res = _clean_residuals(rng, 4000)
+    res[("r", "c4")][:1000] += 1.5  # a misfit in the first quarter only (a wrong initial state)
+    bad = adequacy.failed(adequacy.residual_tests(res, adequacy.EXCESS_FITTING, "fitting"))
+    assert {b["channel"] for b in bad} == {"c4"} and [0, 1000] in [b["samples"] for b in bad]
+    assert all(b["noise_ratio"] > b["limit"] for b in bad)
+
+
+def test_noise_level_of_a_quantized_reading_is_its_step():
+    from otbot_hw.diagnose.data import resolution
+
+    y = np.round(np.linspace(0, 0.05, 500) / 1e-3) * 1e-3  # a slow reading in 1e-3 steps, no noise above a step
+    assert resolution(y) == pytest.approx(1e-3)
+    assert resolution(np.random.default_rng(0).standard_normal(500)) == 0.0
+
+
+def test_adequacy_bounds_and_plausible_refits():
     # on a bound: within 1e-3 of the range (gains: -0.5 .. 0.5)
     assert [b["parameter"] for b in adequacy.on_bound({"k_r": -0.4995, "k_l": -0.498})] == ["k_r"]
     assert adequacy.on_bound({"c_p": 0.0}) == []  # zero friction: absent, not clipped

@@ -6,11 +6,21 @@ fit reaches for whatever catalog effect bends it closest -- a floor slope of 0.8
 chassis mass of 1.6e5 kg, a gain on its bound -- and still does not reach the data. So the
 final model is judged three ways before any effect is named:
 
-1. **noise level**: per (recording, channel), the RMS of the simulation residual against the
-   channel's white-noise level measured from the data (``DiagnosisData.noise_sigma``); a
-   model that explains the data leaves noise, so the ratio must stay below
-   ``NOISE_RATIO_FITTING`` on the fitting and ``NOISE_RATIO_HELDOUT`` on the held-out
-   recordings (prediction with estimated parameters and a new initial state);
+1. **noise level**, a test with a known size (``residual_tests``): per (recording, channel) and
+   per segment of it, T = mean(e^2) / sigma^2 with e the simulation residual and sigma the
+   channel's white-noise level measured from the same data (``DiagnosisData.noise_sigma``, MAD of
+   second differences, floored at the reading's quantization). Under "the model explains the
+   data" e is that white noise and log T is about normal with sd ``NULL_SD`` / sqrt(n - 10)
+   (Monte Carlo of the statistic itself -- the MAD estimate's own scatter included, which at
+   n = 1000 is larger than the chi-square's -- conservative from 50 to 60000 samples). The
+   hypothesis tested is that the unexplained variance is at most ``EXCESS_FITTING`` (fitting) or
+   ``EXCESS_HELDOUT`` (held-out: prediction with estimated parameters on a new excitation) of the
+   noise variance: one-sided z-test on log T against log(1 + excess), Bonferroni over every
+   (recording, channel, segment) test so that the whole diagnosis is wrong on a clean record with
+   probability <= ``ALPHA``. Segments (the whole record and up to ``SEGMENTS`` equal parts of
+   >= ``MIN_SEGMENT`` samples) catch a misfit that sits in one part of the record. The fitted
+   parameters and initial rates absorb some noise (E[T] = 1 - p/n): ignored, which only makes
+   the test more conservative;
 2. **bounds**: no free parameter (nominal or effect) may sit on a bound of its physical range;
 3. **plausibility**: the refit nominal parameters stay near the file's values -- relative
    change below ``RELATIVE_SHIFT`` (masses, inertias, frictions), centre-of-mass offsets within
@@ -25,14 +35,20 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from scipy.stats import norm
 
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.diagnose.refit import FitResult, channel_sigmas, weighted_residuals
 from otbot_hw.model.effects import parameter_bounds
 from otbot_hw.params import OtbotParams
 
-NOISE_RATIO_FITTING = 1.5
-NOISE_RATIO_HELDOUT = 2.0
+ALPHA = 0.01  # size of the adequacy test of one diagnosis (all its channel/segment tests together)
+NULL_SD = 2.6  # sd of log T x sqrt(n - 10) under the null (white Gaussian noise; Monte Carlo gives 2.45 x sqrt(n))
+EXCESS_FITTING = 0.25  # unexplained variance / noise variance tolerated on the fitting recordings (RMS 1.12 x noise)
+EXCESS_HELDOUT = 0.5  # ... on the held-out recordings (RMS 1.22 x noise)
+SEGMENTS = 4  # equal parts of a record tested on their own besides the whole
+MIN_SEGMENT = 100  # samples: shortest part tested on its own
+MIN_TEST = 20  # samples: shortest record tested at all
 BOUND_FRACTION = 1e-3  # of the bounded range: closer than this to a bound = on it
 RELATIVE_SHIFT = {"m_c": 0.3, "I_c": 0.6, "I_p": 0.6, "I_a": 0.6, "b_w": 1.0, "b_p": 1.0}
 OFFSET_SHIFT = {"x_B": 0.1, "y_B": 0.1}  # m
@@ -63,6 +79,8 @@ class Adequacy:
     moved: list[dict] = field(default_factory=list)
     suspect_parameters: list[str] = field(default_factory=list)
     advice: str = ""
+    tests: int = 0  # residual tests made (recording x channel x segment); each at ALPHA / tests
+    alpha: float = ALPHA
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -70,12 +88,65 @@ class Adequacy:
 
 def noise_ratios(recordings: list[DiagnosisData], fit_model) -> dict[tuple[str, str], float]:
     """RMS of the simulation residual / the channel's white-noise level, per (recording, channel)."""
-    res = weighted_residuals(recordings, fit_model, channel_sigmas(recordings))
-    return {k: float(np.sqrt(np.mean(r ** 2))) for k, r in res.items()}
+    return {k: float(np.sqrt(np.mean(r ** 2))) for k, r in _residuals(recordings, fit_model).items()}
+
+
+def _residuals(recordings, fit_model) -> dict[tuple[str, str], np.ndarray]:
+    return weighted_residuals(recordings, fit_model, channel_sigmas(recordings))
+
+
+def segments(n: int) -> list[tuple[int, int]]:
+    """Sample ranges tested: the whole record, then up to ``SEGMENTS`` equal parts of >= ``MIN_SEGMENT``."""
+    out = [(0, n)]
+    k = min(SEGMENTS, n // MIN_SEGMENT)
+    if k >= 2:
+        edges = np.linspace(0, n, k + 1).astype(int)
+        out += [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+    return out
+
+
+def log_t_sd(n: int) -> float:
+    """Standard deviation of log(mean(e^2) / sigma_hat^2) for n samples of white noise."""
+    return NULL_SD / np.sqrt(max(n - 10, 1))
+
+
+def residual_tests(residuals: dict[tuple[str, str], np.ndarray], excess: float, label: str) -> list[dict]:
+    """One test per (recording, channel, segment) of noise-weighted residuals r = e / sigma_hat:
+    {set, recording, channel, t_start_sample, t_end_sample, samples, noise_ratio (RMS of r), excess
+    (tolerated), z, p_value (one-sided, at the tolerated excess)}."""
+    out = []
+    for (name, ch), r in residuals.items():
+        r = np.asarray(r, dtype=float)
+        if len(r) < MIN_TEST:
+            continue
+        for a, b in segments(len(r)):
+            ms = float(np.mean(r[a:b] ** 2))
+            z = (np.log(max(ms, 1e-300)) - np.log1p(excess)) / log_t_sd(b - a)
+            out.append({"set": label, "recording": name, "channel": ch, "samples": [a, b],
+                        "noise_ratio": float(np.sqrt(ms)), "excess": excess, "z": float(z),
+                        "p_value": float(norm.sf(z))})
+    return out
+
+
+def failed(tests: list[dict], alpha: float = ALPHA) -> list[dict]:
+    """Tests rejected at the Bonferroni level alpha / (number of tests); each gets its ``limit``: the RMS
+    ratio at which it would have been rejected."""
+    if not tests:
+        return []
+    level = alpha / len(tests)
+    zc = float(norm.isf(level))
+    out = []
+    for t in tests:
+        a, b = t["samples"]
+        limit = float(np.sqrt(np.exp(np.log1p(t["excess"]) + zc * log_t_sd(b - a))))
+        if not t["p_value"] >= level:
+            out.append({**t, "limit": limit, "level": level})
+    return out
 
 
 def above_noise(ratios: dict[tuple[str, str], float], limit: float, label: str) -> list[dict]:
-    """(recording, channel) entries whose residual RMS / noise ratio exceeds ``limit``."""
+    """(recording, channel) entries whose residual RMS / noise ratio exceeds ``limit`` (a plain check, used
+    for reports; the verdict is ``residual_tests``)."""
     return [{"set": label, "recording": name, "channel": ch, "noise_ratio": r, "limit": limit}
             for (name, ch), r in ratios.items() if not r <= limit]
 
@@ -115,10 +186,11 @@ def implausible_shifts(values: dict[str, float], given: OtbotParams) -> list[dic
 def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final: FitResult,
            given: OtbotParams) -> Adequacy:
     """Judge the final model (see module doc)."""
-    channels = []
-    for label, recs, limit in (("fitting", recordings, NOISE_RATIO_FITTING), ("heldout", holdout, NOISE_RATIO_HELDOUT)):
+    tests = []
+    for label, recs, excess in (("fitting", recordings, EXCESS_FITTING), ("heldout", holdout, EXCESS_HELDOUT)):
         if recs:
-            channels += above_noise(noise_ratios(recs, final.model), limit, label)
+            tests += residual_tests(_residuals(recs, final.model), excess, label)
+    channels = failed(tests)
     bound = on_bound(final.values)
     moved = implausible_shifts({n: v for n, v in final.values.items() if hasattr(given, n)}, given)
     adequate = not (channels or bound or moved)
@@ -135,4 +207,4 @@ def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final:
                   f"{', '.join(n for n in final.names if hasattr(given, n)) or 'no nominal parameter'} and takes "
                   "the others as known), redo identification " + "; or ".join(steps[:3]) +
                   ", then diagnose again; if the parameters are right, the missing physics is outside the catalog")
-    return Adequacy(adequate, channels, bound, moved, suspects, advice)
+    return Adequacy(adequate, channels, bound, moved, suspects, advice, len(tests))

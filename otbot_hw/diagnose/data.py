@@ -92,15 +92,15 @@ class DiagnosisData:
     def noise_sigma(self, ch: str) -> float:
         """White-noise level of a measured channel from its second differences (robust, MAD).
 
-        sigma = 1.4826 * MAD(y_k+1 - 2 y_k + y_k-1) / sqrt(6); floored at 1e-6 (units of ``ch``)
-        so noiseless simulations stay finite. A level in ``noise_levels`` is returned as given.
+        sigma = 1.4826 * MAD(y_k+1 - 2 y_k + y_k-1) / sqrt(6); floored at the reading's quantization
+        q / sqrt(12) when the channel is quantized (``resolution``: a reading in steps of q whose noise
+        is below a step has second differences that are mostly 0) and at 1e-6 (units of ``ch``) so
+        noiseless simulations stay finite. A level in ``noise_levels`` is returned as given.
         """
         if self.noise_levels is not None and ch in self.noise_levels:
             return self.noise_levels[ch]
         y = self.measured(ch)
-        d2 = np.diff(y, 2)
-        s = 1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)
-        return float(max(s, 1e-6))
+        return float(max(mad_sigma(y), resolution(y) / np.sqrt(12.0), 1e-6))
 
     def segment(self, k0: int, k1: int) -> "DiagnosisData":
         """Samples k0..k1-1 as a recording of its own (time restarts at 0)."""
@@ -118,6 +118,27 @@ class DiagnosisData:
         h.name = self.name
         h.noise_levels = {ch: self.noise_sigma(ch) for ch in CHANNELS if self.measured(ch) is not None}
         return h
+
+
+def mad_sigma(y: np.ndarray) -> float:
+    """White-noise level of a series from its second differences: 1.4826 MAD(d2) / sqrt(6)."""
+    d2 = np.diff(np.asarray(y, dtype=float), 2)
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+def resolution(y: np.ndarray) -> float:
+    """Quantization step of a reading (its units), 0 when it is not quantized: the smallest gap between
+    its distinct values when fewer than half the samples are distinct and every gap is a whole number of
+    that step (to 1 %)."""
+    y = np.asarray(y, dtype=float)
+    u = np.unique(y[np.isfinite(y)])
+    if len(u) < 3 or len(u) > len(y) // 2:
+        return 0.0
+    gaps = np.diff(u)
+    q = float(np.min(gaps))
+    if q <= 0 or not np.all(np.abs(gaps / q - np.round(gaps / q)) < 0.01):
+        return 0.0
+    return q
 
 
 def from_recording(rec: Recording, name: str = "recording") -> DiagnosisData:

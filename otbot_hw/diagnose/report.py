@@ -93,10 +93,12 @@ def verdict(result: dict) -> str:
         ad = result["adequacy"]
         why = []
         if ad["channels"]:
-            worst = max(ad["channels"], key=lambda c: c["noise_ratio"])
+            worst = max(ad["channels"], key=lambda c: c.get("z", c["noise_ratio"]))
             chans = sorted({c["channel"] for c in ad["channels"]})
+            where = f" over samples {worst['samples'][0]}-{worst['samples'][1]}" if "samples" in worst else ""
             why.append(f"channels {', '.join(chans)} stay above the noise level (worst: {worst['channel']} of "
-                       f"{worst['recording']} ({worst['set']}), residual RMS {worst['noise_ratio']:.1f} x noise)")
+                       f"{worst['recording']} ({worst['set']}), residual RMS {worst['noise_ratio']:.2f} x noise{where}, "
+                       f"limit {worst['limit']:.2f} at a test size of {100 * ad.get('alpha', 0.01):g} % per diagnosis)")
         if ad["on_bound"]:
             why.append("estimates on a bound: " + ", ".join(f"{b['parameter']} = {b['value']:.4g}"
                                                            for b in ad["on_bound"]))
