@@ -206,12 +206,50 @@ def from_recording(rec: Recording, name: str = "recording") -> DiagnosisData:
             nbad = int(np.sum(~np.isfinite(arr[:, j])))
             if nbad:
                 unusable[ch] = f"/otbot/imu has {nbad} NaN/inf samples in {ch}"
+    imu_rate = meta.get("imu_rate")
+    if acc is not None and isinstance(imu_rate, (int, float)) and 0 < imu_rate < 0.99 / dt:
+        for ch in ("a_x", "a_y", "g_z"):  # a held reading is late by up to one IMU period and not white
+            unusable.setdefault(ch, f"the IMU runs at {imu_rate:g} Hz, below the {1 / dt:g} Hz sample rate: "
+                                    "/otbot/imu repeats its readings (record at the IMU rate to use it)")
     if fixture == "locked":
         for ch in ("w_r", "w_l"):
             unusable.setdefault(ch, "wheels are locked on this fixture")
     if rec.truncated:
         notes.append(f"the file was cut short: diagnosed on its {n} complete samples ({t[-1] - t[0]:.3g} s)")
     return DiagnosisData(name, t - t[0], dt, u, pos, vel, acc, gyro, fixture, unusable, notes, bool(rec.truncated))
+
+
+MIN_DURATION = 0.25  # s: shorter records test nothing (the initial rates alone take the first 0.25 s)
+QUIET_SIGMAS = 5.0  # a joint whose encoder rate never leaves this many noise levels of zero did not move
+
+
+def check_testable(recordings: list[DiagnosisData]) -> None:
+    """Raise DiagnosisInputError when the fitting recordings cannot test anything: every one shorter than
+    ``MIN_DURATION`` or with no joint moving (every usable encoder rate within ``QUIET_SIGMAS`` noise levels
+    of zero, and no IMU channel beyond that of its mean); the message says what to record instead."""
+    what = ("record at least 1 s (better 10 s) with torques that move the wheels and the pivot, e.g. "
+            "random piecewise-constant torques of a few N m per motor (otbot bench --steps chassis, or "
+            "otbot simulate --torques 6,-10,6 --duration 10 on the simulated robot)")
+    if all(float(d.t[-1]) < MIN_DURATION for d in recordings):
+        longest = max(float(d.t[-1]) for d in recordings)
+        raise DiagnosisInputError(f"{recordings[0].name}: too short to test anything ({longest:.3g} s < "
+                                  f"{MIN_DURATION} s): {what}")
+
+    def moves(d: DiagnosisData) -> bool:
+        for ch in ("w_r", "w_l", "w_p"):
+            y = d.measured(ch)
+            if y is not None and np.max(np.abs(y)) > QUIET_SIGMAS * d.noise_sigma(ch):
+                return True
+        for ch in ("a_x", "a_y", "g_z"):
+            y = d.measured(ch)
+            if y is not None and np.max(np.abs(y - np.mean(y))) > 2 * QUIET_SIGMAS * d.noise_sigma(ch):
+                return True
+        return False
+
+    if not any(moves(d) for d in recordings):
+        raise DiagnosisInputError(f"{', '.join(d.name for d in recordings)}: too quiet to test anything (no "
+                                  f"encoder rate leaves {QUIET_SIGMAS:g} noise levels of zero: the robot did not "
+                                  f"move): {what}")
 
 
 def load(paths: list[str | Path]) -> list[DiagnosisData]:

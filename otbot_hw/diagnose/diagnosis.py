@@ -23,7 +23,7 @@ import numpy as np
 
 from otbot_hw.diagnose import catalog as cat
 from otbot_hw.diagnose.adequacy import assess
-from otbot_hw.diagnose.data import DiagnosisData
+from otbot_hw.diagnose.data import DiagnosisData, check_testable
 from otbot_hw.diagnose.geometry import EffectGeometry
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
@@ -121,6 +121,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     geometry = geometry or EffectGeometry()
     if not recordings:
         raise ValueError("diagnose needs at least one fitting recording")
+    check_testable(recordings)
     unusable = {d.name: dict(d.unusable) for d in recordings + holdout if d.unusable}
     notes = {d.name: list(d.notes) for d in recordings + holdout if d.notes}
     truncated = [{"recording": d.name, "complete_samples": len(d), "duration_s": float(d.t[-1])}
