@@ -165,19 +165,31 @@ def on_bound(values: dict[str, float]) -> list[dict]:
     return out
 
 
-def implausible_shifts(values: dict[str, float], given: OtbotParams) -> list[dict]:
-    """Nominal parameters the refit moved further from the parameter file than is physically plausible."""
+SHIFT_SIGMAS = 3.0  # a move counts as implausible only when it exceeds the limit by this many of its std
+
+
+def implausible_shifts(values: dict[str, float], given: OtbotParams, std: dict[str, float] | None = None) -> list[dict]:
+    """Nominal parameters the refit moved further from the parameter file than is physically plausible --
+    by more than the limit plus ``SHIFT_SIGMAS`` of the estimate's std (``std``; a parameter the record
+    does not determine, std NaN, is not evidence of a wrong file: a 1 s run under one constant torque
+    leaves x_B free to wander)."""
     out = []
+    std = std or {}
     for n, v in values.items():
+        s = std.get(n, 0.0)
+        if s is None or not np.isfinite(s):
+            if n in std:
+                continue
+            s = 0.0
         if n in RELATIVE_SHIFT:
             ref = getattr(given, n)
             rel = abs(v - ref) / abs(ref) if ref != 0 else float("inf")
-            if rel > RELATIVE_SHIFT[n]:
+            if rel > RELATIVE_SHIFT[n] + SHIFT_SIGMAS * s / max(abs(ref), 1e-12):
                 out.append({"parameter": n, "file": float(ref), "refit": float(v), "change": f"{100 * rel:.0f} %",
                             "limit": f"{100 * RELATIVE_SHIFT[n]:.0f} %"})
         elif n in OFFSET_SHIFT:
             ref = getattr(given, n)
-            if abs(v - ref) > OFFSET_SHIFT[n]:
+            if abs(v - ref) > OFFSET_SHIFT[n] + SHIFT_SIGMAS * s:
                 out.append({"parameter": n, "file": float(ref), "refit": float(v),
                             "change": f"{abs(v - ref):.3f} m", "limit": f"{OFFSET_SHIFT[n]} m"})
     return out
@@ -192,7 +204,7 @@ def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final:
             tests += residual_tests(_residuals(recs, final.model), excess, label)
     channels = failed(tests)
     bound = on_bound(final.values)
-    moved = implausible_shifts({n: v for n, v in final.values.items() if hasattr(given, n)}, given)
+    moved = implausible_shifts({n: v for n, v in final.values.items() if hasattr(given, n)}, given, final.std)
     adequate = not (channels or bound or moved)
     suspects: list[str] = []
     if not adequate:
