@@ -29,6 +29,7 @@ from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
 from otbot_hw.diagnose.select import AMBIGUOUS_DBIC, choose, free_nominal
+from otbot_hw.diagnose.significance import significance
 from otbot_hw.json_output import json_safe
 from otbot_hw.model.effects import ExtendedModel, parameter_unit
 from otbot_hw.params import OtbotParams
@@ -102,6 +103,39 @@ def _candidate_json(c, effects: dict, std: dict | None = None, fit=None) -> dict
     return out
 
 
+PAIR_SPREAD = 0.15  # m: the pair's start, (x, +-PAIR_SPREAD) about the single caster's fitted x
+PAIR_EVIDENCE = 10.0  # BIC gain the pair needs over the single caster
+
+
+def _caster_pair(recordings, sel, final, progress):
+    """Casters not configured and caster drag found: one fitted caster is the catalog's model, but a robot
+    with two casters (say at (0.15, +-0.2) m) drags differently when it turns -- the single caster at
+    their midpoint leaves a misfit above the noise. Refit with two casters, started at (x, +-PAIR_SPREAD)
+    about the single caster's x (two casters at one point are one caster, so the pair nests it), and keep
+    the pair when it gains ``PAIR_EVIDENCE`` of BIC (2 more parameters). The caster entry then reports
+    f_cst (the summed drag) and both positions."""
+    names = [c.effect for c in sel.accepted] + [g[0].effect for g in sel.ambiguous]
+    if "caster_drag" not in names or "x_c1" not in final.names:
+        return final
+    x = final.values["x_c1"]
+    start = final.model.with_values({"n_cst": 2.0, "x_c1": x, "y_c1": PAIR_SPREAD, "x_c2": x, "y_c2": -PAIR_SPREAD})
+    free = list(final.names) + ["x_c2", "y_c2"]
+    pair = refit(recordings, start, free, max_nfev=FINAL_NFEV)
+    n = sum(pair.n_samples.values())
+    gain = (sum(pair.rss.values()) - sum(final.rss.values())) + 2 * np.log(max(n, 2))
+    progress(f"[diagnose] two casters instead of one: dBIC {gain:.1f}")
+    if gain < -PAIR_EVIDENCE:
+        e = sel.effects["caster_drag"]
+        sel.effects["caster_drag"] = dataclasses.replace(e, parameters=tuple(e.parameters) + ("x_c2", "y_c2"))
+        for c in list(sel.accepted) + [g[0] for g in sel.ambiguous]:
+            if c.effect == "caster_drag":
+                pars = sel.effects["caster_drag"].parameters
+                c.significance = significance("caster_drag", {k: pair.values[k] for k in pars},
+                                              {k: pair.std.get(k, float("nan")) for k in pars}, pair.model, recordings)
+        return pair
+    return final
+
+
 def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list[DiagnosisData] | None = None,
              report_dir: Path | None = None, progress=lambda msg: None, model_out: Path | None = None,
              geometry: EffectGeometry | None = None) -> dict:
@@ -135,6 +169,8 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     progress(f"[diagnose] located {len(windows)} flagged window(s)")
     sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured)
     final = sel.final_fit
+    if not geometry.casters_configured:
+        final = _caster_pair(recordings, sel, final, progress)
     if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
         final = refit(recordings, final.model, final.names, max_nfev=FINAL_NFEV)
         progress(f"[diagnose] final fit: {final.message} ({final.nfev} evaluations)")

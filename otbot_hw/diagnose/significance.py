@@ -111,6 +111,10 @@ def significance(name: str, values: dict[str, float], std: dict[str, float], mod
             known = all(np.isfinite(std.get(k, np.nan)) and std[k] < 0.1 for k in ("x_c1", "y_c1"))
             where = (f"caster at ({f['x_c1']}, {f['y_c1']}) m in B'; " if known
                      else "caster position not determined by the data; ")
+            if "x_c2" in v:
+                known = known and all(np.isfinite(std.get(k, np.nan)) and std[k] < 0.1 for k in ("x_c2", "y_c2"))
+                where = (f"two casters at ({f['x_c1']}, {f['y_c1']}) and ({f['x_c2']}, {f['y_c2']}) m in B', "
+                         "drag shared equally; " if known else "caster positions not determined by the data; ")
         out = torque(v["f_cst"] * p.r / 2, WHEELS, f"{where}takes ", ("f_cst",))
     elif name == "floor_slope":
         g = float(np.hypot(v["g_x"], v["g_y"]))
