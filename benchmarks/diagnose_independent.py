@@ -75,6 +75,8 @@ CASES = [
          {"caster_drag": 6.0, "casters": TWO_CASTERS}, {"caster_drag": {"f_cst": 6.0}}, casters=TWO_CASTERS),
     Case("caster_unknown", "effect", "6 N drag at one caster (-0.45, 0) m, not configured",
          {"caster_drag": 6.0, "casters": ((-0.45, 0.0),)}, {"caster_drag": {"f_cst": 6.0}}),
+    Case("caster_front_pair", "effect", "6 N dry drag shared by two front casters (0.15, ±0.2) m, not configured",
+         {"caster_drag": 6.0, "casters": ((0.15, 0.2), (0.15, -0.2))}, {"caster_drag": {"f_cst": 6.0}}),
     Case("wheel_slip", "effect", "creep 0.03 rad/(s N m), no traction limit", {"slip_k": 0.03},
          {"wheel_slip": {"k_slip": 0.03}}),
     Case("traction_limit", "effect", "creep 0.02 rad/(s N m), traction saturating at 3 N m per wheel",
@@ -178,13 +180,22 @@ def seeds(rep: int) -> tuple[int, int]:
     return 31 + 2 * rep, 32 + 2 * rep
 
 
-def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATION) -> list[Path]:
-    """Fitting (piecewise-constant torques) and held-out (smooth torques) recordings of one case."""
+def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATION,
+                    family: str = "piecewise") -> list[Path]:
+    """Fitting (piecewise-constant torques, or an excitation ``family`` of benchmarks/diagnose_calibration.py)
+    and held-out (smooth torques) recordings of one case."""
     world, p = world_of(case, ir.load_params())
     paths = []
     for kind, seed in zip(("piecewise", "smooth"), seeds(rep)):
         path = folder / f"{case.label}_{rep}_{'fit' if kind == 'piecewise' else 'heldout'}.mcap"
-        ir.record(path, world, kind, seed, duration, DT, params=p)
+        if kind == "piecewise" and family != "piecewise":
+            import diagnose_calibration as dc
+
+            U = dc.excitation(family, duration, DT, seed)
+            robot = ir.Otbot(p, world)
+            ir.write_mcap(path, DT, U, robot.sensors(robot.run(U, DT), np.random.default_rng(seed + 1000)))
+        else:
+            ir.record(path, world, kind, seed, duration, DT, params=p)
         paths.append(path)
     return paths
 
@@ -242,8 +253,10 @@ def score(case: Case, r: dict) -> dict:
     return {"right": right, "found": found, "errors": errors, "extra": extra, "estimate": est}
 
 
-def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration: float = DURATION) -> dict:
-    """Simulate, write, load and diagnose one case on seed pair ``rep`` (recordings of ``duration`` s)."""
+def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration: float = DURATION,
+             family: str = "piecewise") -> dict:
+    """Simulate, write, load and diagnose one case on seed pair ``rep`` (recordings of ``duration`` s; the
+    fitting run under the excitation ``family``)."""
     from otbot_hw.diagnose.data import load
     from otbot_hw.diagnose.diagnosis import diagnose
     from otbot_hw.recording import read_recording
@@ -254,8 +267,8 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
         folder = Path(keep) if keep else Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
         paths = [folder / f"{case.label}_{rep}_{k}.mcap" for k in ("fit", "heldout")]
-        if not (keep and duration == DURATION and all(p.exists() for p in paths)):  # kept recordings are reused
-            paths = make_recordings(case, rep, folder, duration)
+        if not (keep and duration == DURATION and family == "piecewise" and all(p.exists() for p in paths)):
+            paths = make_recordings(case, rep, folder, duration, family)  # kept recordings are reused
         assert read_recording(paths[0]).truth_q is None
         t_sim = time.perf_counter() - t0
         P, geometry = tool_inputs(case)
@@ -263,7 +276,7 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
     s = score(case, r)
     hb, ha = r["fit_before"]["heldout"], r["fit_after"]["heldout"]
     worst = min(hb, key=lambda ch: hb[ch]["fit_percent"]) if hb else None
-    return {"case": case.label, "kind": case.kind, "rep": rep, "seeds": list(seeds(rep)),
+    return {"case": case.label, "kind": case.kind, "rep": rep, "seeds": list(seeds(rep)), "family": family,
             "description": case.description, "truth": case.truth,
             "named": [e["name"] for e in r["effects"]],
             "ambiguous": [[c["name"] for c in g["candidates"]] for g in r["ambiguous"]],
@@ -334,7 +347,11 @@ def main() -> int:
     ap.add_argument("--recordings", type=Path, default=None, help="keep the recordings in this folder")
     ap.add_argument("--out", default=str(ROOT / "docs" / "diagnose_independent.json"), help="JSON results file")
     ap.add_argument("--no-doc", action="store_true", help="do not rewrite docs/diagnose.md")
+    ap.add_argument("--families", default="", help="comma-separated excitation families of the fitting run "
+                    "(benchmarks/diagnose_calibration.py FAMILIES but closed_loop): a family x case table instead")
     args = ap.parse_args()
+    if args.families:
+        return families_main(args)
     chosen = [c for c in CASES if not args.cases or c.label in args.cases.split(",")]
     t0 = time.perf_counter()
     rows = []
@@ -383,6 +400,36 @@ def main() -> int:
         b = text.index("<!-- INDEPENDENT:END -->") + len("<!-- INDEPENDENT:END -->")
         doc.write_text(text[:a] + "\n".join(lines) + text[b:])
     print(json.dumps(sm))
+    return 0
+
+
+def families_main(args) -> int:
+    """Every chosen case x excitation family x seed pair: the family x case table of right answers
+    (written to ``--out`` and printed; docs/diagnose.md is not rewritten)."""
+    fams = args.families.split(",")
+    chosen = [c for c in CASES if not args.cases or c.label in args.cases.split(",")]
+    rows = []
+    with ProcessPoolExecutor(max_workers=args.workers) as ex:
+        futs = {ex.submit(run_case, c.label, rep, None, DURATION, f): (c.label, rep, f)
+                for f in fams for rep in range(args.seeds) for c in chosen}
+        for fut in as_completed(futs):
+            lab, rep, fam = futs[fut]
+            try:
+                r = fut.result()
+            except Exception as exc:  # noqa: BLE001 - reported, the others go on
+                r = {"case": lab, "rep": rep, "family": fam, "error": repr(exc), "kind": BY_LABEL[lab].kind}
+            rows.append(r)
+            print(f"[families] {fam} {lab} #{rep}: " + ("ERROR " + r["error"] if "error" in r else
+                  f"{'RIGHT' if r['right'] else 'wrong'}  {_reported(r)}  {_errors(r)}"), file=sys.stderr, flush=True)
+    Path(args.out).write_text(json.dumps({"runs": rows}, indent=1, default=float) + "\n")
+    lines = ["| case | " + " | ".join(fams) + " |", "|---|" + "---|" * len(fams)]
+    for c in chosen:
+        cells = []
+        for f in fams:
+            rs = [r for r in rows if r["case"] == c.label and r["family"] == f and "error" not in r]
+            cells.append(f"{sum(r['right'] for r in rs)}/{len(rs)}")
+        lines.append(f"| {c.label} | " + " | ".join(cells) + " |")
+    print("\n".join(lines))
     return 0
 
 
