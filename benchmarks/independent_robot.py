@@ -91,6 +91,10 @@ class World:
     imu_latency: float = 0.0  # s
     encoder_scale: tuple[float, float] = (0.0, 0.0)
     params: dict = field(default_factory=dict)  # overrides of the nominal parameters (the true robot)
+    # laws outside the diagnosis's catalog (issue 20 item 4)
+    lin_drag: float = 0.0  # N s/m: linear drag force -c v at the pivot
+    cogging: tuple[float, int] = (0.0, 1)  # (amplitude N m, cycles per turn): -A sin(n phi_r) on the right wheel
+    pivot_deadzone: float = 0.0  # N m: the pivot drive delivers nothing below it, u - d sgn(u) above
 
 
 def _rot(a: float) -> np.ndarray:
@@ -144,6 +148,8 @@ class Otbot:
     def delivered(self, u):
         """Torque the drives settle to for command u (gain, then each motor's saturation)."""
         d = np.asarray(u, float) * (1.0 + np.asarray(self.w.gain))
+        if self.w.pivot_deadzone:
+            d[2] = np.sign(d[2]) * max(abs(d[2]) - self.w.pivot_deadzone, 0.0)
         return np.clip(d, -np.asarray(self.w.u_max), np.asarray(self.w.u_max))
 
     def spin_over_rolling(self, i, rolling_rate, tau, inertial):
@@ -210,6 +216,10 @@ class Otbot:
         if e.c_air:
             v = qd[:2]
             Q[:2] -= e.c_air * np.linalg.norm(v) * v
+        if e.lin_drag:
+            Q[:2] -= e.lin_drag * qd[:2]
+        if e.cogging[0]:
+            Q[3] -= e.cogging[0] * np.sin(e.cogging[1] * q[3])
         K = np.zeros((9, 9))
         K[:6, :6], K[:6, 6:], K[6:, :6] = M, -A.T, A
         psidd = np.zeros(2)
