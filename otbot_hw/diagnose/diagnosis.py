@@ -213,6 +213,15 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
                    [{"name": g["candidates"][0]["name"], "parameters": g["candidates"][0]["parameters"],
                      "ambiguous_with": [c["name"] for c in g["candidates"][1:]]} for g in ambiguous]
         effects, ambiguous = [], []
+    discovered = None
+    if not adequacy.adequate:  # beyond the catalog: what the nominal model misses, by sparse regression
+        from otbot_hw.diagnose.discover import discover
+
+        try:
+            discovered = discover(recordings, holdout, base.model)
+            progress(f"[diagnose] discovered terms: {', '.join(t['term'] for t in discovered['terms']) or 'none'}")
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            discovered = {"error": f"{type(exc).__name__}: {exc}"}
     k_before, k_after = base.n_params, final.n_params
     fit_before = {"fitting": channel_stats(recordings, base.model, k_before),
                   "heldout": channel_stats(holdout, base.model, k_before)}
@@ -238,6 +247,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         "ambiguous": ambiguous,
         "detected_small": small,
         "withheld": withheld,
+        "discovered": discovered,
         "adequacy": adequacy.to_dict(),
         "suspect_parameters": adequacy.suspect_parameters,
         "geometry": geometry.to_dict(),

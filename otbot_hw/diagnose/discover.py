@@ -54,9 +54,12 @@ class Term:
     meaning: str
 
 
-def _library(d: DiagnosisData, model: ExtendedModel) -> tuple[np.ndarray, list[Term], np.ndarray, np.ndarray]:
+def _library(d: DiagnosisData, model: ExtendedModel, nominal: list[str]) -> tuple[np.ndarray, list[Term], np.ndarray,
+                                                                                  np.ndarray]:
     """(columns (N, 3, K): term k's generalized force on each joint, terms, residual (N, 3) N m, the
-    commands u (N, 3) of the kept samples) -- the grid terms are added by ``_grid_columns``."""
+    commands u (N, 3) of the kept samples) -- the grid terms are added by ``_grid_columns``. The first
+    columns are the free nominal parameters' (the change of the residual per unit change, by finite
+    differences): kept in every fit, so that a discovered term is not what a refit of them would absorb."""
     m = estimate_motion(d, model)
     res = torque_residual(d, model, m)
     n = len(d)
@@ -69,6 +72,11 @@ def _library(d: DiagnosisData, model: ExtendedModel) -> tuple[np.ndarray, list[T
         cols.append(col3)
         terms.append(Term(name, joint, unit, meaning))
 
+    for name in nominal:
+        v = model.get(name)
+        h = 1e-3 * max(abs(v), 1e-2)
+        add((res - torque_residual(d, model.with_values({name: v + h}), m)) / h, name, "nominal", "", "nominal")
+
     for j, jn in enumerate(JOINTS):
         if d.fixture == "locked" and jn != "p":
             continue
@@ -78,7 +86,8 @@ def _library(d: DiagnosisData, model: ExtendedModel) -> tuple[np.ndarray, list[T
             c[:, j] = x
             return c
 
-        add(on(w[:, j]), f"w_{jn}", jn, "N m s/rad", "viscous friction (torque per rate)")
+        if ("b_p" if jn == "p" else "b_w") not in nominal:  # else the refit viscous friction is that column
+            add(on(w[:, j]), f"w_{jn}", jn, "N m s/rad", "viscous friction (torque per rate)")
         add(on(np.tanh(w[:, j] / SIGN_WIDTH)), f"sgn(w_{jn})", jn, "N m", "Coulomb-like friction")
         add(on(w[:, j] * np.abs(w[:, j])), f"w_{jn}|w_{jn}|", jn, "N m s^2/rad^2", "quadratic drag")
         for k in HARMONICS:
@@ -118,8 +127,10 @@ def _grid_columns(u: np.ndarray, fixture: str, dz: float, sat: float) -> tuple[n
     return np.stack(cols, axis=2), terms
 
 
-def _stlsq(A: np.ndarray, y: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sequentially thresholded least squares on t-statistics: (coef, std, active mask)."""
+def _stlsq(A: np.ndarray, y: np.ndarray, threshold: float, protected: int = 0) -> tuple[np.ndarray, np.ndarray,
+                                                                                       np.ndarray]:
+    """Sequentially thresholded least squares on t-statistics: (coef, std, active mask); the first
+    ``protected`` columns are never dropped."""
     k = A.shape[1]
     active = np.ones(k, bool)
     coef = np.zeros(k)
@@ -138,6 +149,7 @@ def _stlsq(A: np.ndarray, y: np.ndarray, threshold: float) -> tuple[np.ndarray, 
         std[:] = np.nan
         coef[active], std[active] = c, s
         drop = t < threshold
+        drop[: int(np.sum(active[:protected]))] = False
         if not drop.any():
             break
         idx = np.nonzero(active)[0]
@@ -145,12 +157,17 @@ def _stlsq(A: np.ndarray, y: np.ndarray, threshold: float) -> tuple[np.ndarray, 
     return coef, std, active
 
 
-def discover(recordings: list[DiagnosisData], holdout: list[DiagnosisData], model: ExtendedModel) -> dict:
-    """Discovered terms {name, joint, value, std, unit, meaning}, the held-out RMS per joint before/after,
+def discover(recordings: list[DiagnosisData], holdout: list[DiagnosisData], model: ExtendedModel,
+             nominal: list[str] | None = None) -> dict:
+    """``nominal``: the free nominal parameters (default ``select.free_nominal``), refitted beside the terms.
+    Discovered terms {name, joint, value, std, unit, meaning}, the held-out RMS per joint before/after,
     the chosen threshold and grid parameters, and what was held out."""
+    from otbot_hw.diagnose.select import free_nominal
+
+    nominal = list(free_nominal(recordings) if nominal is None else nominal)
     best = None
-    base_fit = [_library(d, model) for d in recordings]
-    base_hold = [_library(d, model) for d in holdout]
+    base_fit = [_library(d, model, nominal) for d in recordings]
+    base_hold = [_library(d, model, nominal) for d in holdout]
     for dz in DEADZONE_GRID:
         for sat in SATURATION_GRID:
             def grid(L, d):
@@ -175,7 +192,7 @@ def discover(recordings: list[DiagnosisData], holdout: list[DiagnosisData], mode
             yt = np.concatenate([R.reshape(-1) for _, R in test])
             scale = np.maximum(np.sqrt(np.mean(A ** 2, axis=0)), 1e-12)
             for th in THRESHOLDS:
-                c, s, act = _stlsq(A / scale, y, th)
+                c, s, act = _stlsq(A / scale, y, th, protected=len(nominal))
                 err = float(np.sqrt(np.mean((yt - (At / scale) @ c) ** 2)))
                 key = (round(err, 6), int(act.sum()))
                 if best is None or key < best[0]:
@@ -192,9 +209,10 @@ def discover(recordings: list[DiagnosisData], holdout: list[DiagnosisData], mode
         per_joint[jn] = {"before_rms": float(np.sqrt(np.mean(yt[sel] ** 2))),
                          "after_rms": float(np.sqrt(np.mean((yt[sel] - pred[sel]) ** 2))), "unit": "N m"}
     found = [{"term": terms[k].name, "joint": terms[k].joint, "value": float(c[k]), "std": float(s[k]),
-              "unit": terms[k].unit, "meaning": terms[k].meaning} for k in np.nonzero(act)[0]]
+              "unit": terms[k].unit, "meaning": terms[k].meaning} for k in np.nonzero(act)[0] if k >= len(nominal)]
+    shift = {terms[k].name: float(c[k]) for k in range(len(nominal))}
     found.sort(key=lambda f: -abs(f["value"] / f["std"]) if f["std"] > 0 else 0.0)
-    return {"terms": found, "heldout": per_joint, "threshold_t": th, "deadzone_grid_nm": dz,
+    return {"terms": found, "nominal_shift": shift, "heldout": per_joint, "threshold_t": th, "deadzone_grid_nm": dz,
             "saturation_grid_nm": sat, "heldout_source": "held-out recordings" if holdout else
             f"last {100 * HOLDOUT_FRACTION:.0f} % of each fitting recording",
             "method": "STLSQ on t-statistics (numpy), threshold and grid by held-out RMS of the torque residual"}

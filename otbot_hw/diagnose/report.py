@@ -84,6 +84,17 @@ def channel_stats(recordings: list[DiagnosisData], model: ExtendedModel, k: int)
     return out
 
 
+def _discovered_text(disc: dict | None) -> str:
+    """One sentence on the law found beyond the catalog (``discover``), empty without one."""
+    if not disc or not disc.get("terms"):
+        return ""
+    terms = ", ".join(f"{t['term']} ({t['joint']}) {t['value']:.3g} ± {t['std']:.2g} {t['unit']}: {t['meaning']}"
+                      for t in disc["terms"][:4])
+    held = "; ".join(f"{j} {v['before_rms']:.3g} -> {v['after_rms']:.3g} N m" for j, v in disc["heldout"].items())
+    return (f" Beyond the catalog, the residual torques fit best with {terms} (held-out torque residual RMS, "
+            f"{disc['heldout_source']}: {held}).")
+
+
 def verdict(result: dict) -> str:
     """One plain-language paragraph from the diagnosis JSON."""
     parts = []
@@ -108,7 +119,8 @@ def verdict(result: dict) -> str:
         withheld = ", ".join(w["name"] for w in result.get("withheld", []))
         parts.append("Model inadequate: no catalog effect brings the model to the data -- " + "; ".join(why) + "."
                      + (f" Not named ({withheld} would be fitted, but on a wrong model)." if withheld else "")
-                     + f" Suspect parameters: {', '.join(result['suspect_parameters'])}. To do: {ad['advice']}.")
+                     + f" Suspect parameters: {', '.join(result['suspect_parameters'])}. To do: {ad['advice']}."
+                     + _discovered_text(result.get("discovered")))
         return " ".join(parts)
     for e in result["effects"]:
         ps = ", ".join(f"{n} = {_fmt(v['value'], v['std'])} {v['unit']}" for n, v in e["parameters"].items())
