@@ -51,15 +51,20 @@ def socket_candidates(environ: dict | None = None) -> list[Path]:
 class ControlSocketConfig:
     """path (None: ``default_socket_path()``); allowed_users / allowed_groups: names or numeric ids
     that may send every command (``status`` is open to anyone who can reach the socket);
-    max_request (bytes per request line); max_clients (connections at once); request_timeout (s a
-    started request line may take to arrive)."""
+    max_request (bytes per request line); max_clients (connections at once); reserved_clients (of
+    those, slots only allowed peers may take: a status-only peer gets at most max_clients -
+    reserved_clients, and an allowed peer that finds every slot taken evicts the oldest status-only
+    connection); request_timeout (s a started request line may take to arrive); idle_timeout (s a
+    connection may stay without sending a byte or awaiting a reply before it is closed)."""
 
     path: Path | None = None
     allowed_users: tuple[str | int, ...] = ()
     allowed_groups: tuple[str | int, ...] = ("otbot-operators",)
     max_request: int = 65536
     max_clients: int = 32
+    reserved_clients: int = 4
     request_timeout: float = 5.0
+    idle_timeout: float = 60.0
 
     def socket_path(self) -> Path:
         return self.path if self.path is not None else default_socket_path()
@@ -185,7 +190,8 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
     """Validate a ``daemon`` mapping (None: all defaults); relative paths are relative to the cwd."""
     top = _Section(source, "daemon", data, ("socket", "velocity", "recording", "telemetry"))
     s = _Section(source, "daemon.socket", top.data.get("socket"),
-                 ("path", "allowed_users", "allowed_groups", "max_request", "max_clients", "request_timeout"))
+                 ("path", "allowed_users", "allowed_groups", "max_request", "max_clients", "reserved_clients",
+                  "request_timeout", "idle_timeout"))
     d = ControlSocketConfig()
     path = s.text("path", None)
     sock = ControlSocketConfig(
@@ -194,7 +200,11 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
         allowed_groups=s.ids("allowed_groups", d.allowed_groups),
         max_request=s.size("max_request", d.max_request),
         max_clients=s.integer("max_clients", d.max_clients, 1, 1024),
-        request_timeout=s.quantity("request_timeout", "s", d.request_timeout))
+        reserved_clients=s.integer("reserved_clients", d.reserved_clients, 1, 1024),
+        request_timeout=s.quantity("request_timeout", "s", d.request_timeout),
+        idle_timeout=s.quantity("idle_timeout", "s", d.idle_timeout))
+    if sock.reserved_clients >= sock.max_clients:
+        raise s.err("reserved_clients", f"must be below max_clients ({sock.max_clients}), got {sock.reserved_clients}")
     if sock.max_request < 256:
         raise s.err("max_request", f"must be at least 256 bytes, got {sock.max_request}")
     v = _Section(source, "daemon.velocity", top.data.get("velocity"),

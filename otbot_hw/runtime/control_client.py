@@ -1,0 +1,123 @@
+"""The client side of the daemon's control socket (``otbot ctl``): stdlib and ``control_protocol``
+only, so that a command-line call starts in a few tens of milliseconds (the velocity deadman is
+0.5 s). The server is ``control_socket``.
+"""
+from __future__ import annotations
+
+import errno
+import itertools
+import json
+import os
+import socket
+import stat
+from pathlib import Path
+from typing import Any
+
+from otbot_hw.runtime.control_protocol import encode_request
+
+
+class DaemonUnreachable(ConnectionError):
+    """No daemon answers at the socket path (client side)."""
+
+
+class ControlError(RuntimeError):
+    """The daemon answered with an error reply: ``code`` (``ERROR_CODES``) and message."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+def describe_non_socket(path: Path) -> str | None:
+    """What ``path`` is when it exists and is not a socket ("a regular file", "a folder", ...), else None."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISSOCK(mode):
+        return None
+    for test, what in ((stat.S_ISDIR, "a folder"), (stat.S_ISREG, "a regular file"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return what
+    return "not a socket"
+
+
+class ControlClient:
+    """A connection to the daemon (``otbot ctl``); ``request`` sends one command and returns its
+    result, raising ``ControlError`` for an error reply and ``DaemonUnreachable`` when no daemon
+    answers (within ``timeout`` s)."""
+
+    def __init__(self, path: Path, timeout: float = 5.0):
+        self.path = Path(path)
+        self.timeout = timeout
+        self._ids = itertools.count(1)
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._sock.settimeout(timeout)
+        try:
+            self._sock.connect(str(self.path))
+        except FileNotFoundError:
+            self._sock.close()
+            raise DaemonUnreachable(f"no daemon at {self.path} (no such socket)") from None
+        except ConnectionRefusedError:
+            self._sock.close()
+            what = describe_non_socket(self.path)
+            if what is not None:
+                raise DaemonUnreachable(f"{self.path} is {what}, not a daemon's control socket") from None
+            raise DaemonUnreachable(f"no daemon at {self.path} (connection refused: stale socket)") from None
+        except PermissionError:
+            self._sock.close()
+            raise DaemonUnreachable(f"no permission to connect to {self.path} (join the daemon's group)") from None
+        except OSError as exc:
+            self._sock.close()
+            what = describe_non_socket(self.path)
+            if what is not None:
+                raise DaemonUnreachable(f"{self.path} is {what}, not a daemon's control socket") from None
+            if exc.errno == errno.EAGAIN:
+                raise DaemonUnreachable(f"the daemon at {self.path} is not accepting connections (backlog full)") from None
+            raise DaemonUnreachable(f"cannot connect to {self.path}: {exc.strerror or exc}") from None
+        self._file = self._sock.makefile("rb")
+
+    def request(self, cmd: str, args: dict | None = None) -> Any:
+        rid = next(self._ids)
+        lost: OSError | None = None
+        try:
+            self._sock.sendall(encode_request(rid, cmd, args))
+        except socket.timeout:
+            raise DaemonUnreachable(f"the daemon at {self.path} did not answer within {self.timeout:g} s") from None
+        except OSError as exc:  # closed by the daemon: it may have said why before closing
+            lost = exc
+        try:
+            line = self._file.readline()
+        except socket.timeout:
+            raise DaemonUnreachable(f"the daemon at {self.path} did not answer within {self.timeout:g} s") from None
+        except OSError as exc:
+            line, lost = b"", lost or exc
+        if not line:
+            why = f": {lost.strerror or lost}" if lost else ""
+            raise DaemonUnreachable(f"the daemon at {self.path} closed the connection{why}")
+        try:
+            reply = json.loads(line)
+        except json.JSONDecodeError:
+            raise ControlError("internal", f"the daemon's reply is not JSON: {line[:80]!r}") from None
+        if isinstance(reply, dict) and reply.get("id") is None and not reply.get("ok", True):
+            pass  # an error about the connection itself (busy, too large): reported below
+        elif not isinstance(reply, dict) or reply.get("id") != rid:
+            raise ControlError("internal", f"unexpected reply {line[:80]!r} to request {rid}")
+        if not reply.get("ok"):
+            err = reply.get("error") or {}
+            raise ControlError(str(err.get("code", "internal")), str(err.get("message", "error")))
+        return reply.get("result")
+
+    def close(self) -> None:
+        self._file.close()
+        self._sock.close()
+
+    def __enter__(self) -> "ControlClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+__all__ = ["ControlClient", "ControlError", "DaemonUnreachable", "describe_non_socket"]
