@@ -16,35 +16,8 @@ from typing import Any
 from otbot_hw.motors import DEFAULT_ROBOT_FILE
 from otbot_hw.params import ParameterError, read_entry, read_yaml
 
-SOCKET_NAME = "control.sock"
-
-
-def default_runtime_dir(environ: dict | None = None) -> Path:
-    """The daemon's runtime directory: ``$RUNTIME_DIRECTORY`` (systemd's ``RuntimeDirectory=``; the
-    first of a colon-separated list), else ``$XDG_RUNTIME_DIR/otbot``, else ``/run/otbot``."""
-    env = os.environ if environ is None else environ
-    if env.get("RUNTIME_DIRECTORY"):
-        return Path(env["RUNTIME_DIRECTORY"].split(":")[0])
-    if env.get("XDG_RUNTIME_DIR"):
-        return Path(env["XDG_RUNTIME_DIR"]) / "otbot"
-    return Path("/run/otbot")
-
-
-def default_socket_path(environ: dict | None = None) -> Path:
-    """Where the daemon creates its control socket when the configuration names none."""
-    return default_runtime_dir(environ) / SOCKET_NAME
-
-
-def socket_candidates(environ: dict | None = None) -> list[Path]:
-    """Where a client looks for the daemon's socket when told nowhere: the service's runtime
-    directory when the client runs inside it, the system daemon's ``/run/otbot``, then a user's
-    daemon under ``$XDG_RUNTIME_DIR`` (a client's environment is not the daemon's)."""
-    env = os.environ if environ is None else environ
-    out = [default_runtime_dir({"RUNTIME_DIRECTORY": env["RUNTIME_DIRECTORY"]})] if env.get("RUNTIME_DIRECTORY") else []
-    out.append(default_runtime_dir({}))
-    if env.get("XDG_RUNTIME_DIR"):
-        out.append(default_runtime_dir({"XDG_RUNTIME_DIR": env["XDG_RUNTIME_DIR"]}))
-    return [d / SOCKET_NAME for d in out]
+from otbot_hw.runtime.control_client import (  # noqa: F401 - re-exported
+    SOCKET_NAME, default_runtime_dir, default_socket_path, socket_candidates)
 
 
 @dataclass(frozen=True)
