@@ -168,7 +168,8 @@ def ctl(args: argparse.Namespace) -> dict:
     except ControlError as exc:
         if exc.code in BAD_INPUT_CODES:
             raise CliError(_prefixed(cmd, str(exc))) from None
-        _fail(f"{cmd}: {exc.code}: {exc}".replace(f"{cmd}: {exc.code}: {cmd}: ", f"{cmd}: {exc.code}: "))
+        message = str(exc)
+        _fail(f"{cmd} {exc.code}: {message[len(cmd) + 2:] if message.startswith(f'{cmd}: ') else message}")
     result = result if result is not None else {}
     if not args.json:
         print(format_status(result) if cmd == "status" else format_reply(cmd, result))
