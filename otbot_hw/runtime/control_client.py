@@ -10,6 +10,7 @@ import json
 import os
 import socket
 import stat
+import time
 from pathlib import Path
 from typing import Any
 
@@ -86,7 +87,7 @@ class ControlClient:
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self._sock.settimeout(timeout)
         try:
-            self._sock.connect(str(self.path))
+            self._connect(time.monotonic() + timeout)
         except FileNotFoundError:
             self._sock.close()
             raise DaemonUnreachable(f"no daemon at {self.path} (no such socket)") from None
@@ -108,6 +109,18 @@ class ControlClient:
                 raise DaemonUnreachable(f"the daemon at {self.path} is not accepting connections (backlog full)") from None
             raise DaemonUnreachable(f"cannot connect to {self.path}: {exc.strerror or exc}") from None
         self._file = self._sock.makefile("rb")
+
+    def _connect(self, deadline: float) -> None:
+        """Connect; a full listen backlog (EAGAIN: someone floods the daemon with connections, which
+        it accepts as fast as it can) is retried until ``deadline`` rather than given up at once."""
+        while True:
+            try:
+                self._sock.connect(str(self.path))
+                return
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(0.002)
 
     def request(self, cmd: str, args: dict | None = None) -> Any:
         rid = next(self._ids)

@@ -79,10 +79,10 @@ class Peer:
 
 def peer_credentials(conn: socket.socket) -> Peer:
     pid, uid, gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))
-    try:
-        raw = conn.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, 4 * 1024)
+    try:  # Python caps getsockopt's buffer at 1024 bytes (a larger one raises OSError at once)
+        raw = conn.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, 1024)
         groups = struct.unpack(f"{len(raw) // 4}I", raw)
-    except OSError:  # older kernel or more than 1024 groups: the user database's list
+    except OSError:  # older kernel or more than 256 groups: the user database's list
         try:
             groups = tuple(os.getgrouplist(pwd.getpwuid(uid).pw_name, gid))
         except KeyError:
@@ -490,6 +490,9 @@ class ControlServer:
         ``status_only_limit`` connections in all; an allowed peer that finds every slot taken evicts
         the oldest status-only connection, so an emergency stop always finds a way in."""
         live = [c for c in self._conns.values() if not c.closing]
+        if len(live) > self.config.max_clients or (not conn.allowed and len(live) > self.status_only_limit):
+            self._reap(cid)  # clients that have gone already (a burst accepted at once) hold no slot
+            live = [c for c in self._conns.values() if not c.closing]
         busy = None
         if len(live) > self.config.max_clients:
             victims = sorted(((c.opened, k) for k, c in self._conns.items()
@@ -509,6 +512,13 @@ class ControlServer:
         if busy is not None:
             self.counters["refused_clients"] += 1
             self._send(cid, conn, encode_reply(None, error=("busy", busy)), close=True)
+
+    def _reap(self, keep: int) -> None:
+        """Read every other connection once now (not waiting for its turn in the selector), so those
+        whose peer has already closed are dropped before a newcomer is refused for want of room."""
+        for k, c in list(self._conns.items()):
+            if k != keep and k in self._conns and not (c.closing or c.eof):
+                self._serve(k, selectors.EVENT_READ)
 
     def _read(self, cid: int, conn: _Connection) -> None:
         if conn.closing or conn.eof:
