@@ -24,6 +24,7 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -323,3 +324,238 @@ def test_a_status_only_peer_holding_every_slot_cannot_block_an_allowed_estop(soc
             s.close()
     finally:
         server.close()
+
+
+# -- the daemon on the simulated robot: judged from the simulated drives' own state -------------------
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    from test_daemon import SimDaemon
+
+    d = SimDaemon(tmp_path_factory.mktemp("fz"))
+    os.chmod(d.folder, 0o755)
+    os.chmod(d.sock, 0o666)  # the status-only peer (uid nobody) may connect; it is in no allowed group
+    yield d
+    if d.thread.is_alive():
+        d.daemon.request_stop("end of tests")
+        d.thread.join(30)
+
+
+def _enabled_and_held(sim) -> None:
+    sim.to_hold_at_rest()
+    assert _wait(lambda: sim.drive_states() == [ENABLED] * 3, 2)
+
+
+#: what a status-only peer may do on one connection
+_ACTION = st.one_of(
+    st.tuples(st.just("line"), st.sampled_from(PAYLOADS)),
+    st.tuples(st.just("line"), st.binary(max_size=300)),
+    st.tuples(st.just("line"), st.sampled_from([b'{"id": 1, "cmd": "estop"}', b'{"id": 1, "cmd": "shutdown"}',
+                                                b'{"id": 1, "cmd": "status"}', b'{"id": 1, "cmd": "enable"}'])),
+    st.tuples(st.just("partial"), st.binary(min_size=1, max_size=100)),   # a line never finished, kept open
+    st.tuples(st.just("silent"), st.integers(1, 40)),                    # connections that send nothing, kept
+    st.tuples(st.just("half_close"), st.sampled_from(PAYLOADS[:6] + [b'{"id": 2, "cmd": "status"}'])),
+    st.tuples(st.just("big"), st.just(65537)),                           # 64 KiB + 1 without a newline
+    st.tuples(st.just("burst"), st.integers(1, 300)),                    # connect and close in a loop
+    st.tuples(st.just("flood"), st.integers(1, 40)),                     # status requests never read
+)
+
+
+def _hostile(actions):
+    def script(path):
+        keep, seen = [], []
+
+        def conn():
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.settimeout(2)
+            s.connect(str(path))
+            return s
+        for kind, arg in actions:
+            try:
+                if kind == "line":
+                    s = conn()
+                    s.sendall(arg.replace(b"\n", b" ") + b"\n")
+                    keep.append(s)
+                elif kind == "partial":
+                    s = conn()
+                    s.sendall(arg.replace(b"\n", b" "))
+                    keep.append(s)
+                elif kind == "silent":
+                    keep += [conn() for _ in range(arg)]
+                elif kind == "half_close":
+                    s = conn()
+                    s.sendall(arg + b"\n")
+                    s.shutdown(socket.SHUT_WR)
+                    seen.append(len(s.recv(65536)) > 0)
+                    s.close()
+                elif kind == "big":
+                    s = conn()
+                    with contextlib.suppress(OSError):
+                        s.sendall(b"x" * arg)
+                    keep.append(s)
+                elif kind == "burst":
+                    for _ in range(arg):
+                        conn().close()
+                elif kind == "flood":
+                    s = conn()
+                    with contextlib.suppress(OSError):
+                        s.sendall(b'{"id": 1, "cmd": "status"}\n' * arg)
+                    keep.append(s)
+            except OSError as exc:  # refused (busy) or closed by the server: that is its right
+                seen.append(type(exc).__name__)
+        return seen, keep
+    return script
+
+
+@pytest.mark.skipif(not ROOT, reason="needs root to run the status-only peer as another user")
+@settings(max_examples=8, deadline=None, suppress_health_check=list(HealthCheck))
+@given(actions=st.lists(_ACTION, min_size=1, max_size=6))
+def test_fuzzed_status_only_peer_then_an_allowed_estop_stops_the_drives_within_100_ms(sim, actions):
+    _enabled_and_held(sim)
+    d = sim.daemon
+    cycles0 = d.runner.cycles
+    _, (dt, reply) = as_peer(sim.sock, NOBODY, NOGROUP, [], _hostile(actions), hold=lambda: estop_time(sim.sock))
+    assert reply["latched"] is True
+    assert dt <= 0.1, f"estop answered after {dt * 1e3:.1f} ms"
+    assert _wait(lambda: ENABLED not in sim.drive_states(), 1), sim.drive_states()
+    assert d.server.alive and d.server.counters["internal_errors"] == 0
+    assert d.runner.fault is not None and d.runner.fault.kind == "estop"
+    assert _wait(lambda: d.runner.cycles > cycles0 + 5, 2)                 # the loop runs on
+    assert sim.ctl("reset")["mode"] == "idle"
+
+
+def _fill(folder: Path) -> Path:
+    """Fill the file system of ``folder`` to the last byte."""
+    filler = folder / "filler"
+    with open(filler, "wb", buffering=0) as f:
+        with contextlib.suppress(OSError):
+            while True:
+                f.write(b"\0" * 65536)
+        with contextlib.suppress(OSError):
+            while True:
+                f.write(b"\0" * 512)
+    return filler
+
+
+@contextlib.contextmanager
+def _full_disk_or_enospc(sim, monkeypatch):
+    """A tmpfs of 4 MiB as the daemon's recording folder, filled (root); where none can be mounted,
+    the session's writer raises ENOSPC. Yields a function that frees the space."""
+    from otbot_hw.recording import RecordingWriter
+
+    rec = sim.daemon.settings.record_dir
+    mnt = rec.parent / "full"
+    mnt.mkdir()
+    mounted = ROOT and subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(mnt)],
+                                      capture_output=True).returncode == 0
+    try:
+        if mounted:
+            sim.ctl("record", action="stop")
+            monkeypatch.setattr(sim.daemon.settings, "record_dir", mnt)
+            sim.ctl("record", action="start")
+            filler = _fill(mnt)
+            yield lambda: filler.unlink()
+        else:
+            full = {"on": True}
+            real = RecordingWriter.flush
+
+            def flush(self):
+                if full["on"]:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                real(self)
+            monkeypatch.setattr(RecordingWriter, "flush", flush)
+            yield lambda: full.update(on=False)
+    finally:
+        if mounted:
+            with contextlib.suppress(ControlError):
+                sim.ctl("record", action="stop")
+            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_a_full_recording_disk_is_a_latched_fault_the_loop_and_socket_stay_up(sim, monkeypatch):
+    _enabled_and_held(sim)
+    d = sim.daemon
+    with _full_disk_or_enospc(sim, monkeypatch) as free:
+        path = d.runner.recording.path
+        assert _wait(lambda: d.runner.fault is not None, 5), "no fault after the disk filled"
+        f = d.runner.fault
+        assert f.kind == "recording" and str(path) in f.text and "No space left on device" in f.text, f
+        assert _wait(lambda: ENABLED not in sim.drive_states(), 1)            # quick-stopped
+        st1 = sim.ctl("status")
+        assert st1["faults"][0]["kind"] == "recording" and st1["recording"]["error"]
+        assert _wait(lambda: sim.ctl("status")["loop"]["cycles"] > st1["loop"]["cycles"] + 20, 3)  # loop runs
+        with pytest.raises(ControlError, match="No space left"):
+            sim.ctl("record", action="start")                                 # still full: refused, said why
+        free()
+        assert sim.ctl("reset")["mode"] == "idle"
+        rec = sim.ctl("record", action="start")["recording"]
+        assert rec["error"] is None and rec["path"] != str(path)
+        assert _wait(lambda: sim.ctl("status")["recording"]["samples"] > 10, 3)
+    assert d.server.alive and sim.thread.is_alive()
+
+
+def test_a_dead_socket_server_quick_stops_latches_and_stops_the_watchdog_ping(sim, monkeypatch):
+    """Last in this module: it kills the shared daemon's socket server."""
+    _enabled_and_held(sim)
+    d = sim.daemon
+    pings = []
+    d.watchdog.interval = 0.05
+    monkeypatch.setattr(d.watchdog.notifier, "watchdog", lambda: pings.append(time.monotonic()) or True)
+    monkeypatch.setattr(type(d.watchdog), "enabled", property(lambda self: True))
+    assert _wait(lambda: len(pings) >= 2, 2)
+    monkeypatch.setattr(d.server, "_expire", lambda now: 1 / 0)             # a bug in the I/O thread
+    assert _wait(lambda: d.runner.fault is not None, 3)
+    assert d.runner.fault.kind == "control_socket"
+    assert _wait(lambda: ENABLED not in sim.drive_states(), 1)
+    assert d.watchdog.stopped is not None
+    n = len(pings)
+    time.sleep(0.3)
+    assert len(pings) == n and d.thread.is_alive()                          # no ping, the loop runs on
+    d.request_stop("end of test")
+    d.thread.join(30)
+    assert not d.thread.is_alive() and sim.summary["stopped"] == "end of test"
+
+
+SESSION_UNTIL_FULL = """
+import errno, json, resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)        # `ulimit -f`: EFBIG instead of the signal
+if sys.argv[2] != "-":
+    resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[2]), int(sys.argv[2])))
+from otbot_hw.recording import TOPIC_COMMAND, TOPIC_JOINTS
+from otbot_hw.runtime.session_recording import SessionRecording
+errors = []
+rec = SessionRecording(sys.argv[1], {}, [TOPIC_JOINTS], rate=100.0, session_id="full", on_error=errors.append)
+for k in range(200_000):
+    t = k * 0.01
+    rec.write_sample({TOPIC_COMMAND: {"t": t, "torque": [0.0] * 3},
+                      TOPIC_JOINTS: {"t": t, "position": [0.0] * 3, "velocity": [0.0] * 3}})
+    rec.write_event(t, "mode", "hold") if k % 100 == 0 else None
+    if errors:
+        break
+rec.flush(); rec.close(); rec.close()                 # after the failure: no exception, nothing written
+print(json.dumps({"errors": errors, "status": rec.status()}))
+"""
+
+
+@pytest.mark.parametrize("limit", ["tmpfs", "ulimit"])
+def test_a_session_that_hits_a_full_disk_or_the_file_size_limit_fails_once_and_never_raises(tmp_path, limit):
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    mounted = False
+    if limit == "tmpfs":
+        if not ROOT or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(folder)],
+                                      capture_output=True).returncode != 0:
+            pytest.skip("cannot mount a tmpfs here")
+        mounted = True
+    try:
+        out = subprocess.run([sys.executable, "-c", SESSION_UNTIL_FULL, str(folder),
+                              "65536" if limit == "ulimit" else "-"],
+                             capture_output=True, text=True, timeout=120, cwd=Path(__file__).parents[1])
+    finally:
+        if mounted:
+            subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    res = json.loads(out.stdout.splitlines()[-1])
+    (err,) = res["errors"]                                                     # said once
+    name = "ENOSPC" if limit == "tmpfs" else "EFBIG"
+    assert f"{folder}/full-000.mcap" in err and name in err, err
+    assert res["status"]["error"] == err and res["status"]["closed"]

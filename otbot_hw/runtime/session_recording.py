@@ -77,7 +77,13 @@ class SessionRecording:
         self.rotate_time = float(rotate_time)
         self.flush_interval = float(flush_interval)
         self.flush_every = max(1, int(self.rate * self.flush_interval))
-        self.session_id = session_id or new_session_id()
+        if session_id is None:  # a session started within the same second as another one: .2, .3, ...
+            base = session_id = new_session_id()
+            n = 1
+            while (self.directory / f"{session_id}-000.mcap").exists():
+                n += 1
+                session_id = f"{base}.{n}"
+        self.session_id = session_id
         self.carry_kinds = tuple(carry_kinds)
         self.files: list[Path] = []
         self.samples = 0
