@@ -329,9 +329,12 @@ def test_a_status_only_peer_holding_every_slot_cannot_block_an_allowed_estop(soc
 # -- the daemon on the simulated robot: judged from the simulated drives' own state -------------------
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    from test_daemon import SimDaemon
+    from test_daemon import RELAXED, SimDaemon
 
-    d = SimDaemon(tmp_path_factory.mktemp("fz"))
+    # many estops in a row on a shared machine: 20 periods for the drives to confirm a quick stop
+    # before the master escalates to NMT STOP (the escalation is not under test here)
+    d = SimDaemon(tmp_path_factory.mktemp("fz"), replace={
+        **RELAXED, "reaction_timeout: {value: 2, unit: periods}": "reaction_timeout: {value: 20, unit: periods}"})
     os.chmod(d.folder, 0o755)
     os.chmod(d.sock, 0o666)  # the status-only peer (uid nobody) may connect; it is in no allowed group
     yield d
@@ -509,10 +512,10 @@ def test_a_dead_socket_server_quick_stops_latches_and_stops_the_watchdog_ping(si
     assert d.watchdog.stopped is not None
     n = len(pings)
     time.sleep(0.3)
-    assert len(pings) == n and d.thread.is_alive()                          # no ping, the loop runs on
+    assert len(pings) == n and sim.thread.is_alive()                        # no ping, the loop runs on
     d.request_stop("end of test")
-    d.thread.join(30)
-    assert not d.thread.is_alive() and sim.summary["stopped"] == "end of test"
+    sim.thread.join(30)
+    assert not sim.thread.is_alive() and sim.summary["stopped"] == "end of test"
 
 
 SESSION_UNTIL_FULL = """

@@ -72,13 +72,13 @@ def wait_for(predicate, timeout: float, step: float = 0.01):
 class SimDaemon:
     """The in-process daemon (``--bus sim``) and what the tests look at behind it."""
 
-    def __init__(self, folder: Path):
+    def __init__(self, folder: Path, replace: dict | None = None):
         from otbot_hw.cli import build_parser
         from otbot_hw.cli.daemon import prepare
 
         self.folder = folder
         self.sock = folder / "control.sock"
-        cfg = local_config(folder / "cfg", replace=RELAXED)
+        cfg = local_config(folder / "cfg", replace=RELAXED if replace is None else replace)
         (folder / "rec").mkdir()  # the daemon never creates it
         args = build_parser().parse_args(["daemon", "--bus", "sim", "--config", str(cfg), "--socket", str(self.sock),
                                           "--record-dir", str(folder / "rec"), "--telemetry", "127.0.0.1:0"])
