@@ -144,9 +144,10 @@ def _fail(message: str) -> None:
 
 
 
-def _prefixed(cmd: str, message: str) -> str:
-    """``cmd: message`` unless the daemon's message already starts with the command's name."""
-    return message if message.startswith(f"{cmd}:") or message.startswith(f"{cmd} ") else f"{cmd}: {message}"
+def _unprefixed(cmd: str, message: str) -> str:
+    """The daemon's message without its leading ``cmd:`` (the error line, ``otbot ctl CMD: error:``,
+    names the command already)."""
+    return message[len(cmd) + 1:].lstrip() if message.startswith(f"{cmd}:") else message
 
 
 def ctl(args: argparse.Namespace) -> dict:
@@ -167,9 +168,8 @@ def ctl(args: argparse.Namespace) -> dict:
         _fail(str(exc))
     except ControlError as exc:
         if exc.code in BAD_INPUT_CODES:
-            raise CliError(_prefixed(cmd, str(exc))) from None
-        message = str(exc)
-        _fail(f"{cmd} {exc.code}: {message[len(cmd) + 2:] if message.startswith(f'{cmd}: ') else message}")
+            raise CliError(_unprefixed(cmd, str(exc))) from None
+        _fail(f"{cmd} {exc.code}: {_unprefixed(cmd, str(exc))}")
     result = result if result is not None else {}
     if not args.json:
         print(format_status(result) if cmd == "status" else format_reply(cmd, result))
