@@ -426,6 +426,25 @@ def test_fuzzed_status_only_peer_then_an_allowed_estop_stops_the_drives_within_1
     assert sim.ctl("reset")["mode"] == "idle"
 
 
+def test_ten_thousand_connections_leave_the_daemons_loop_and_estop_unaffected(sim):
+    _enabled_and_held(sim)
+    d = sim.daemon
+    cycles0 = d.runner.cycles
+    for i in range(10_000):
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.connect(str(sim.sock))
+        if i % 2:
+            with contextlib.suppress(OSError):  # refused as busy: the server's right
+                s.sendall(b'{"id": 1, "cmd": "status"}\n')
+        s.close()
+    assert d.runner.fault is None and sim.drive_states() == [ENABLED] * 3 and d.runner.cycles > cycles0
+    dt, reply = estop_time(sim.sock)
+    assert reply["latched"] is True and dt <= 0.1, dt
+    assert _wait(lambda: ENABLED not in sim.drive_states(), 1)
+    assert d.server.alive and d.server.counters["internal_errors"] == 0
+    assert sim.ctl("reset")["mode"] == "idle"
+
+
 def _fill(folder: Path) -> Path:
     """Fill the file system of ``folder`` to the last byte."""
     filler = folder / "filler"

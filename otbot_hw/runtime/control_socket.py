@@ -30,6 +30,7 @@ import math
 import os
 import pwd
 import queue
+import select
 import selectors
 import socket
 import stat
@@ -519,6 +520,13 @@ class ControlServer:
         for k, c in list(self._conns.items()):
             if k != keep and k in self._conns and not (c.closing or c.eof):
                 self._serve(k, selectors.EVENT_READ)
+        poll = select.poll()
+        gone = {c.sock.fileno(): k for k, c in self._conns.items() if k != keep and c.eof}
+        for fd in gone:
+            poll.register(fd, select.POLLHUP)
+        for fd, ev in poll.poll(0):  # POLLHUP: closed for good, not just half-closed (SHUT_WR)
+            if ev & (select.POLLHUP | select.POLLERR):
+                self._drop(gone[fd])  # its pending replies would go nowhere
 
     def _read(self, cid: int, conn: _Connection) -> None:
         if conn.closing or conn.eof:
@@ -713,6 +721,8 @@ class ControlServer:
                     self._wake()
                     return
                 cid, req, peer = item
+                if cid not in self._conns and req.cmd == "status":
+                    continue  # its client has left: a flood of abandoned requests costs nothing
                 self._replies.put((cid, self._call(req, peer)))
                 self._wake()
         except BaseException:
