@@ -90,12 +90,45 @@ def register(subparsers) -> None:
     p.set_defaults(func=ctl)
 
 
+def _null_socket_path(text: str) -> bool:
+    """Whether the YAML ``text`` plainly says ``daemon: socket: path: null`` (or leaves it out) in
+    the block style config/robot.yaml uses — decided without a YAML parser (importing one costs
+    more than the rest of ``otbot ctl``). False means "not sure": the caller parses the file."""
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    tops = [i for i, ln in enumerate(lines) if ln.split("#")[0].rstrip() == "daemon:"]
+    if len(tops) != 1:
+        return "\ndaemon" not in "\n" + text  # no daemon section at all: the default
+    block = []
+    for ln in lines[tops[0] + 1:]:
+        if not ln.startswith((" ", "\t")):
+            break
+        block.append(ln)
+    sockets = [i for i, ln in enumerate(block) if ln.split("#")[0].strip() == "socket:"]
+    if len(sockets) != 1:
+        return not any("socket" in ln for ln in block)
+    indent = len(block[sockets[0]]) - len(block[sockets[0]].lstrip())
+    paths = []
+    for ln in block[sockets[0] + 1:]:
+        if len(ln) - len(ln.lstrip()) <= indent:
+            break
+        key, _, value = ln.split("#")[0].strip().partition(":")
+        if key == "path":
+            paths.append(value.strip())
+    return paths in ([], ["null"], ["~"], [""])
+
+
 def _configured_socket(config: Path | None) -> Path | None:
-    """daemon.socket.path of ``config`` (default config/robot.yaml), relative to its folder; read
-    with PyYAML alone (fast). Anything unusual goes to the full loader, whose errors name the key."""
+    """daemon.socket.path of ``config`` (default config/robot.yaml), relative to its folder; the
+    usual null is seen without a YAML parser, a set path read with PyYAML alone. Anything unusual
+    goes to the full loader, whose errors name the key."""
+    path = Path(config) if config is not None else Path(__file__).resolve().parents[2] / "config" / "robot.yaml"
+    try:
+        if _null_socket_path(path.read_text(encoding="utf-8")):
+            return None
+    except (OSError, UnicodeError):
+        pass
     import yaml
 
-    path = Path(config) if config is not None else Path(__file__).resolve().parents[2] / "config" / "robot.yaml"
     try:
         with open(path, "rb") as f:
             data = yaml.load(f, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
