@@ -75,6 +75,16 @@ def describe_non_socket(path: Path) -> str | None:
     return "not a socket"
 
 
+def _stale(line: bytes, rid: int) -> bool:
+    """Whether ``line`` is a reply to an earlier request of this connection (an int id below ``rid``)."""
+    try:
+        rep = json.loads(line)
+    except ValueError:
+        return False
+    old = rep.get("id") if isinstance(rep, dict) else None
+    return isinstance(old, int) and not isinstance(old, bool) and old < rid
+
+
 class ControlClient:
     """A connection to the daemon (``otbot ctl``); ``request`` sends one command and returns its
     result, raising ``ControlError`` for an error reply and ``DaemonUnreachable`` when no daemon
@@ -131,12 +141,15 @@ class ControlClient:
             raise DaemonUnreachable(f"the daemon at {self.path} did not answer within {self.timeout:g} s") from None
         except OSError as exc:  # closed by the daemon: it may have said why before closing
             lost = exc
-        try:
-            line = self._file.readline()
-        except socket.timeout:
-            raise DaemonUnreachable(f"the daemon at {self.path} did not answer within {self.timeout:g} s") from None
-        except OSError as exc:
-            line, lost = b"", lost or exc
+        while True:
+            try:
+                line = self._file.readline()
+            except socket.timeout:
+                raise DaemonUnreachable(f"the daemon at {self.path} did not answer within {self.timeout:g} s") from None
+            except OSError as exc:
+                line, lost = b"", lost or exc
+            if not _stale(line, rid):  # the reply to an earlier request cut short (Ctrl-C): skipped
+                break
         if not line:
             why = f": {lost.strerror or lost}" if lost else ""
             raise DaemonUnreachable(f"the daemon at {self.path} closed the connection{why}")
