@@ -43,7 +43,7 @@ from otbot_hw.recording import FORMAT_NAME, MCAP_MAGIC, Recording
 from otbot_hw.ros2 import BagError
 from otbot_hw.ros2 import messages as M
 from otbot_hw.ros2.mapping import BagMap
-from otbot_hw.ros2.writer import CUSTOM_KEY
+from otbot_hw.ros2.writer import CUSTOM_KEY, TURNS_KEY
 
 G = 9.80665  # m/s^2, the project's gravity (docs/recording-format.md §4)
 
@@ -70,11 +70,12 @@ class OpenBag:
     connections: dict[str, Connection]
     custom: dict[str, Any]
     truncated: bool
+    turns: dict[str, Any]
     messages: Any  # callable(topics) -> iterator of (topic, log_ns, raw bytes)
 
 
-def _custom(meta: dict | None) -> dict[str, Any]:
-    data = (meta or {}).get(CUSTOM_KEY)
+def _custom(meta: dict | None, key: str = CUSTOM_KEY) -> dict[str, Any]:
+    data = (meta or {}).get(key)
     if isinstance(data, str):
         try:
             v = json.loads(data)
@@ -157,8 +158,9 @@ def open_bag(path: str | Path, allow_truncated: bool = False) -> OpenBag:
         storage = str(meta_yaml.get("storage_identifier", ""))
         mcap_files = [path / p for p in meta_yaml.get("relative_file_paths") or [] if str(p).endswith(".mcap")]
         custom = _custom(meta_yaml.get("custom_data"))
+        turns = _custom(meta_yaml.get("custom_data"), TURNS_KEY)
     elif path.suffix.lower() == ".mcap":
-        storage, custom = "mcap", {}
+        storage, custom, turns = "mcap", {}, {}
         mcap_files = [path]
         with open(path, "rb") as f:
             head = f.read(64)
@@ -200,7 +202,7 @@ def open_bag(path: str | Path, allow_truncated: bool = False) -> OpenBag:
             def stream(topics, _msgs=msgs):
                 return ((tp, ns, raw) for tp, ns, raw in _msgs if tp in topics)
 
-            return OpenBag(path, storage or "mcap", conns, custom, True, stream)
+            return OpenBag(path, storage or "mcap", conns, custom, True, turns, stream)
         if "Profile is not ros2" in text:
             raise BagError(f"{path}: MCAP profile is not ros2: not a ROS 2 bag") from None
         raise BagError(f"{path}: cannot read the bag: {text}") from None
@@ -219,7 +221,7 @@ def open_bag(path: str | Path, allow_truncated: bool = False) -> OpenBag:
         conns[c.topic] = Connection(c.topic, c.msgtype, fmt, c.msgcount, c.msgdef.data,
                                     "ros2idl" if c.msgdef.format.name == "IDL" else "ros2msg")
     if not custom and path.suffix.lower() == ".mcap":
-        custom = _mcap_custom(path)
+        custom, turns = _mcap_custom(path, CUSTOM_KEY), _mcap_custom(path, TURNS_KEY)
     by_topic = {}
     for c in reader.connections:
         by_topic.setdefault(c.topic, []).append(c)
@@ -232,18 +234,19 @@ def open_bag(path: str | Path, allow_truncated: bool = False) -> OpenBag:
         except ReaderError as exc:
             raise BagError(f"{path}: cannot read the messages: {exc}") from None
 
-    return OpenBag(path, storage or ("mcap" if path.suffix == ".mcap" else "sqlite3"), conns, custom, False, messages)
+    return OpenBag(path, storage or ("mcap" if path.suffix == ".mcap" else "sqlite3"), conns, custom, False, turns,
+                   messages)
 
 
-def _mcap_custom(path: Path) -> dict[str, Any]:
-    """The project metadata record of a complete MCAP file (read through its summary)."""
+def _mcap_custom(path: Path, key: str) -> dict[str, Any]:
+    """A project metadata record (``key``) of a complete MCAP file (read through its summary)."""
     try:
         from mcap.reader import make_reader
 
         with open(path, "rb") as f:
             for m in make_reader(f).iter_metadata():
-                if m.name == CUSTOM_KEY:
-                    return _custom(m.metadata)
+                if m.name == key:
+                    return _custom(m.metadata, key)
     except Exception:  # noqa: BLE001 - a bag without our record has none
         return {}
     return {}
@@ -487,7 +490,8 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
         if key != "events":
             vals = np.array(rows, dtype=float)
             if key in ("odom", "reference"):
-                vals[:, 2] = _unwrap_angles(vals[:, 2])
+                n_turns = bag.turns.get(c.topic, 0) if isinstance(bag.turns.get(c.topic, 0), int) else 0
+                vals[:, 2] = _unwrap_angles(vals[:, 2]) + 2 * math.pi * n_turns
             opt[key] = Series(c.topic, np.array(s_ns, dtype=np.int64), np.array(s_log, dtype=np.int64),
                               {"v": vals})
     for sub, name in extra_topics.items():

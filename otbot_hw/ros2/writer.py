@@ -52,12 +52,22 @@ from otbot_hw.ros2 import messages as M
 
 #: metadata.yaml / MCAP metadata key holding the project metadata (JSON text)
 CUSTOM_KEY = "otbot"
+#: ... and the whole turns of the first yaw on /odom and /reference (JSON {topic: n}), written on
+#: close: a quaternion keeps alpha modulo 2 pi, the project's alpha is continuous
+TURNS_KEY = "otbot_yaw_turns"
 ROS_DISTRO = "jazzy"
 #: QoS written for every topic: what ``ros2 bag record`` offers for a reliable, volatile publisher
 QOS = ("- history: keep_last\n  depth: 10\n  reliability: reliable\n  durability: volatile\n"
        "  deadline: {sec: 9223372036, nsec: 854775807}\n  lifespan: {sec: 9223372036, nsec: 854775807}\n"
        "  liveliness: automatic\n  liveliness_lease_duration: {sec: 9223372036, nsec: 854775807}\n"
        "  avoid_ros_namespace_conventions: false")
+
+
+def whole_turns(alpha: float) -> int:
+    """n with alpha = yaw + 2 pi n, yaw in (-pi, pi] (what a quaternion keeps of alpha)."""
+    if not math.isfinite(alpha):
+        return 0
+    return int(round((alpha - math.atan2(math.sin(alpha), math.cos(alpha))) / (2 * math.pi)))
 
 
 def noise_variances(metadata: dict[str, Any]) -> tuple[float, float, str]:
@@ -164,6 +174,7 @@ class BagWriter:
                 topic=tp, message_encoding="cdr", schema_id=schema_ids[ty],
                 metadata={"offered_qos_profiles": QOS})
         self.counts = {tp: 0 for tp in self.types}
+        self.turns: dict[str, int] = {}
         self._count = 0
         self._start_ns: int | None = None
         self._end_ns = 0
@@ -210,6 +221,7 @@ class BagWriter:
         if "/odom" in self.types:
             m = messages[TOPIC_ESTIMATE]
             self._put("/odom", ns, M.odometry(ns, m["pose"], m["twist"], m["std"]))
+            self.turns.setdefault("/odom", whole_turns(m["pose"][2]))
             if "/odom/gyro_bias" in self.types:
                 self._put("/odom/gyro_bias", ns, M.vector(ns, M.PLATFORM_FRAME, [0.0, 0.0, m.get("gyro_bias", math.nan)]))
             pose = m["pose"]
@@ -223,6 +235,7 @@ class BagWriter:
         if "/reference" in self.types:
             m = messages[TOPIC_REFERENCE]
             self._put("/reference", ns, M.reference(ns, m["p"], m["pd"], m.get("pdd")))
+            self.turns.setdefault("/reference", whole_turns(m["p"][2]))
         if "/tf" in self.types and pose is not None:
             self._put("/tf", ns, M.transforms(ns, pose, j["position"][2] if j else None))
         self._count += 1
@@ -248,6 +261,9 @@ class BagWriter:
         """Write the MCAP summary and footer, then ``metadata.yaml`` with the message counts."""
         if not self._closed:
             self._closed = True
+            if self.turns:
+                self.custom[TURNS_KEY] = json.dumps(self.turns)
+                self._writer.add_metadata(TURNS_KEY, {TURNS_KEY: self.custom[TURNS_KEY]})
             self._writer.finish()
             self._file.close()
             write_metadata_yaml(self.folder, self.path.name, self.types, self.counts, self._start_ns or 0,
