@@ -117,3 +117,167 @@ def test_export_replaces_an_earlier_bag_only_when_the_new_one_is_complete(tmp_pa
     assert "holds files but no metadata.yaml" in capsys.readouterr().err
     assert (tmp_path / "notabag" / "keep.txt").read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "notabag", "run.mcap"]  # no temporary left
+
+
+# --- a bag as a ROS 2 robot records it ------------------------------------------------------------
+
+EPOCH_NS = 1_763_000_000 * 10 ** 9  # header stamps in ROS time (s since 1970)
+ROBOT_JOINTS = ["pivot", "caster_front", "left_wheel", "right_wheel"]  # any order, extra joints
+
+
+def fine_run(values: dict, duration: float, seed: int, dt: float = 0.005, sub: int = 10) -> Recording:
+    """A concealed-effect run simulated at dt/sub (2 kHz) with the torque held for dt (200 Hz)."""
+    from otbot_hw.model import effects as fx
+    from otbot_hw.params import nominal
+    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.simulation.concealed import excitation
+    from otbot_hw.simulation.runs import extended_recording
+
+    U, fixture = excitation("multisine", duration, dt, seed)
+    model = fx.ExtendedModel(nominal(), fx.effect_vector()).with_values(values)
+    return extended_recording(model, np.repeat(U, sub, axis=0), dt / sub, NoiseModel.paper(), seed=100 + seed,
+                              fixture=fixture)
+
+
+def native(fine: Recording, sub: int = 10) -> Recording:
+    """What the project's own 200 Hz recorder writes of the run (every sub-th sample)."""
+    i = np.arange(0, len(fine), sub)
+    return Recording(t=fine.t[i], torque=fine.torque[i], joint_pos=fine.joint_pos[i], joint_vel=fine.joint_vel[i],
+                     imu_accel=fine.imu_accel[i], imu_gyro=fine.imu_gyro[i],
+                     metadata={"sample_period": float(fine.t[sub] - fine.t[0]), "fixture": "floor"})
+
+
+def robot_bag(path, fine: Recording, *, names=ROBOT_JOINTS, effort=True, imu=True, imu_jitter=True, cut=None,
+              gap=None, clock_jump=None, wrap_pivot=False, storage="mcap", seed=0):
+    """Write ``fine`` with rosbags' own writer as a ROS 2 robot would: /joint_states at 200 Hz (sub-sampled
+    1:10), /imu at 400 Hz with +-0.5 ms jitter (true sample times), stamps in ROS time, receive (log) times
+    0.2-1 ms later. ``gap`` (t0, t1) s: no messages in it; ``clock_jump`` (t, s): header stamps jump;
+    ``wrap_pivot``: pivot angle shifted to straddle pi and reported in (-pi, pi]."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    rng = np.random.default_rng(seed)
+    ts = M.typestore()
+    n = len(fine)
+    js_i = np.arange(0, n, 10)
+    imu_i = np.arange(0, n, 5)
+    if imu_jitter:
+        imu_i = np.clip(imu_i + rng.integers(-1, 2, len(imu_i)), 0, n - 1)
+        imu_i = np.unique(imu_i)
+    out = []
+
+    def keep(i):
+        return gap is None or not gap[0] <= fine.t[i] < gap[1]
+
+    def hdr_ns(i):
+        ns = EPOCH_NS + int(round(fine.t[i] * 1e9))
+        if clock_jump is not None and fine.t[i] >= clock_jump[0]:
+            ns += int(clock_jump[1] * 1e9)
+        return ns
+
+    def log_ns(i):
+        return EPOCH_NS + int(round(fine.t[i] * 1e9)) + int(rng.uniform(2e5, 1e6))
+
+    pivot = fine.joint_pos[js_i, 2]
+    shift = math.pi - (pivot.max() + pivot.min()) / 2
+    for i in js_i:
+        if not keep(i):
+            continue
+        full = {"right_wheel": 0, "left_wheel": 1, "pivot": 2}
+        p = fine.joint_pos[i].copy()
+        if wrap_pivot:
+            p[2] = math.atan2(math.sin(p[2] + shift), math.cos(p[2] + shift))
+        val = lambda arr: np.array([arr[full[x]] if x in full else 0.0 for x in names])  # noqa: E731
+        h = ts.types["std_msgs/msg/Header"](stamp=M.stamp(hdr_ns(i)), frame_id="")
+        msg = ts.types[M.JOINT_STATE](header=h, name=list(names), position=val(p), velocity=val(fine.joint_vel[i]),
+                                      effort=val(fine.torque[i]) if effort else np.array([], dtype=float))
+        out.append((log_ns(i), "/joint_states", msg))
+    if imu:
+        for i in imu_i:
+            if keep(i):
+                out.append((log_ns(i), "/imu", M.imu(hdr_ns(i), fine.imu_accel[i], fine.imu_gyro[i], 1.9e-4, 1.9e-4)))
+    out.sort(key=lambda e: e[0])
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(path, version=9, storage_plugin=plugin) as w:
+        conns = {"/joint_states": w.add_connection("/joint_states", M.JOINT_STATE, typestore=ts)}
+        if imu:
+            conns["/imu"] = w.add_connection("/imu", M.IMU, typestore=ts)
+        for ns, tp, msg in out:
+            w.write(conns[tp], ns, ts.serialize_cdr(msg, msg.__msgtype__))
+    return path
+
+
+def test_a_robots_bag_imports_and_diagnoses_like_the_native_recording(tmp_path, capsys):
+    from otbot_hw.diagnose.data import from_recording
+    from otbot_hw.diagnose.diagnosis import diagnose
+    from otbot_hw.params import nominal
+
+    truth = {"b_ax": 0.06, "b_ay": 0.04, "b_gz": -0.01}
+    fine = fine_run(truth, 2.0, seed=11)
+    bag = robot_bag(tmp_path / "robot_bag", fine)
+    assert main(["import", str(bag), "--out", str(tmp_path / "imp.mcap"), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["rate_hz"] == 200.0 and rep["resampling"]["method"].startswith("linear interpolation")
+    assert rep["topics"]["/imu"]["rate_hz"] == pytest.approx(400, rel=0.01) and rep["topics"]["/imu"]["jitter_s"] > 1e-4
+    err = rep["resampling"]["error"]
+    assert set(err) == {"joint position", "joint velocity", "IMU accel", "IMU gyro"}
+    assert err["IMU accel"]["rms"] < 0.1  # m/s^2: noise (13.7e-3) plus 2.5 ms of interpolation
+    imp = read_recording(tmp_path / "imp.mcap")
+    nat = native(fine)
+    # the grid is the joint states' own: joints and torque are the native samples, the IMU interpolated
+    assert len(imp) == len(nat) and np.allclose(imp.t, nat.t - nat.t[0], atol=1e-9)
+    assert np.array_equal(imp.torque, nat.torque) and np.array_equal(imp.joint_pos, nat.joint_pos)
+    assert np.sqrt(np.mean((imp.imu_accel - nat.imu_accel) ** 2)) < 0.05
+    assert imp.metadata["import"]["start_time_ns"] == EPOCH_NS
+    found = {}
+    for name, rec in (("native", nat), ("imported", imp)):
+        r = diagnose([from_recording(rec, name)], nominal())
+        assert r["model_adequate"], (name, r["verdict"])
+        found[name] = {e["name"]: {k: v["value"] for k, v in e["parameters"].items()} for e in r["effects"]}
+    assert list(found["imported"]) == list(found["native"]) == ["imu_bias"], found
+    for k, v in truth.items():
+        assert found["imported"]["imu_bias"][k] == pytest.approx(v, rel=0.15)
+        assert found["imported"]["imu_bias"][k] == pytest.approx(found["native"]["imu_bias"][k], rel=0.1)
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    return fine_run({}, 0.6, seed=2)
+
+
+def _import(tmp_path, bag, *extra):
+    out = tmp_path / "out.mcap"
+    rc = main(["import", str(bag), "--out", str(out), *extra])
+    return rc, out
+
+
+@pytest.mark.parametrize("case, kwargs, expected", [
+    ("another robot", {"names": ["front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"]},
+     "/joint_states: joints ['front_left_wheel', 'front_right_wheel', 'rear_left_wheel', 'rear_right_wheel'] are "
+     "not this robot's: no 'right_wheel', 'left_wheel', 'pivot'"),
+    ("no effort", {"effort": False}, "/joint_states: field effort (the torque command, N m) is empty in every message"),
+    ("gap", {"gap": (0.2, 0.3)}, "/joint_states: gap of 0.1"),
+    ("clock jump", {"clock_jump": (0.3, -2.0)}, "/joint_states: clock jump at message"),
+    ("clock jump forward", {"clock_jump": (0.3, 30.0)}, "receive time moves"),
+])
+def test_import_refuses_what_would_be_wrong(tmp_path, capsys, short_run, case, kwargs, expected):
+    bag = robot_bag(tmp_path / "bag", short_run, **kwargs)
+    rc, out = _import(tmp_path, bag)
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert expected in err, err
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["bag"]  # nothing half-written
+
+
+def test_import_notices_what_is_merely_less(tmp_path, capsys, short_run):
+    bag = robot_bag(tmp_path / "bag", short_run, imu=False, wrap_pivot=True, storage="sqlite3")
+    nat = native(short_run)
+    assert np.ptp(nat.joint_pos[:, 2]) > 0.05
+    rc, out = _import(tmp_path, bag, "--json")
+    rep = json.loads(capsys.readouterr().out)
+    assert rc == 0
+    assert any(n.startswith("no IMU: the bag has no /imu") for n in rep["notices"])
+    rec = read_recording(out)
+    assert rec.imu_accel is None and rec.metadata["import"]["storage"] == "sqlite3"
+    assert any("pivot (pivot) position wraps at +-pi" in n for n in rep["notices"]), rep["notices"]
+    np.testing.assert_allclose(rec.joint_pos[:, 2] - rec.joint_pos[0, 2], nat.joint_pos[:, 2] - nat.joint_pos[0, 2],
+                               atol=1e-12)

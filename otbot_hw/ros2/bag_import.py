@@ -533,14 +533,18 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
     else:
         rate_hz = float(rate) if rate is not None else _nominal_rate(js_step)
         period_ns = 1e9 / rate_hz
-        g0 = max(int(s.stamps[0]) for s in required)
-        g1 = min(int(s.stamps[-1]) for s in required)
+        half = period_ns / 2
+        first = max(int(s.stamps[0]) for s in required) - half  # a topic's edge value serves half a period
+        g1 = int(min(int(s.stamps[-1]) for s in required) + half)
+        cand = joints.stamps[(joints.stamps >= max(first, lo))]  # the grid keeps the joint states' phase
+        if not len(cand):
+            raise BagError(f"{path}: no joint state after every required topic has begun")
+        g0 = int(cand[0])
         trimmed = []
-        if g0 > lo + period_ns and start is None:
+        if g0 > t_first + period_ns and start is None:
             trimmed.append(f"start by {(g0 - t_first) * 1e-9:.3f} s (until every required topic has begun)")
         if g1 < int(joints.stamps[-1]) - period_ns and end is None:
             trimmed.append(f"end by {(int(joints.stamps[-1]) - g1) * 1e-9:.3f} s (where a required topic ends)")
-        g0 = max(g0, lo)
         if hi is not None:
             g1 = min(g1, hi)
         n = int(math.floor((g1 - g0) / period_ns + 1e-9)) + 1
@@ -595,7 +599,8 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
             return v[np.searchsorted(s.stamps, grid)]
         x = (s.stamps - grid[0]).astype(float)
         xg = (grid - grid[0]).astype(float)
-        out = np.column_stack([np.interp(xg, x, v[:, c], left=np.nan, right=np.nan) for c in range(v.shape[1])])
+        out = np.column_stack([np.interp(xg, x, v[:, c]) for c in range(v.shape[1])])
+        out[(xg < x[0] - period_ns / 2) | (xg > x[-1] + period_ns / 2)] = np.nan  # beyond the held edge
         if err_name is not None and len(x) > 2:
             e = _loo_error(x, v)
             method["error"][err_name] = {"rms": e[0], "max": e[1], "unit": unit}
