@@ -147,12 +147,13 @@ def native(fine: Recording, sub: int = 10) -> Recording:
                      metadata={"sample_period": float(fine.t[sub] - fine.t[0]), "fixture": "floor"})
 
 
-def robot_bag(path, fine: Recording, *, names=ROBOT_JOINTS, effort=True, imu=True, imu_jitter=True, cut=None,
-              gap=None, clock_jump=None, wrap_pivot=False, storage="mcap", seed=0):
+def robot_bag(path, fine: Recording, *, names=ROBOT_JOINTS, effort=True, imu=True, imu_jitter=True, gap=None,
+              clock_jump=None, wrap_pivot=False, storage="mcap", seed=0, robot_names=None):
     """Write ``fine`` with rosbags' own writer as a ROS 2 robot would: /joint_states at 200 Hz (sub-sampled
     1:10), /imu at 400 Hz with +-0.5 ms jitter (true sample times), stamps in ROS time, receive (log) times
     0.2-1 ms later. ``gap`` (t0, t1) s: no messages in it; ``clock_jump`` (t, s): header stamps jump;
-    ``wrap_pivot``: pivot angle shifted to straddle pi and reported in (-pi, pi]."""
+    ``wrap_pivot``: pivot angle shifted to straddle pi and reported in (-pi, pi]; ``robot_names``: the
+    message's name of each of right_wheel, left_wheel, pivot."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     rng = np.random.default_rng(seed)
@@ -182,7 +183,7 @@ def robot_bag(path, fine: Recording, *, names=ROBOT_JOINTS, effort=True, imu=Tru
     for i in js_i:
         if not keep(i):
             continue
-        full = {"right_wheel": 0, "left_wheel": 1, "pivot": 2}
+        full = {(robot_names or {}).get(x, x): j for j, x in enumerate(("right_wheel", "left_wheel", "pivot"))}
         p = fine.joint_pos[i].copy()
         if wrap_pivot:
             p[2] = math.atan2(math.sin(p[2] + shift), math.cos(p[2] + shift))
@@ -281,3 +282,80 @@ def test_import_notices_what_is_merely_less(tmp_path, capsys, short_run):
     assert any("pivot (pivot) position wraps at +-pi" in n for n in rep["notices"]), rep["notices"]
     np.testing.assert_allclose(rec.joint_pos[:, 2] - rec.joint_pos[0, 2], nat.joint_pos[:, 2] - nat.joint_pos[0, 2],
                                atol=1e-12)
+
+
+# --- bad input: one line naming the topic/field, exit 2, nothing written ------------------------------
+
+def _bad(tmp_path, capsys, argv, expected):
+    out = tmp_path / "out.mcap"
+    before = sorted(p.name for p in tmp_path.iterdir())
+    rc = main(["import", *argv, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert expected in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing half-written
+
+
+def test_bad_bags_and_maps_are_refused_naming_the_topic_or_field(tmp_path, capsys, short_run):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    bag = robot_bag(tmp_path / "bag", short_run)
+    # a mapping naming a missing topic, a missing field, an unknown key
+    (tmp_path / "m1.yaml").write_text("imu: {topic: /imu/data_raw}\n")
+    _bad(tmp_path, capsys, [str(bag), "--map", str(tmp_path / "m1.yaml")], "no topic /imu/data_raw (IMU); the bag has: "
+         "/imu, /joint_states")
+    (tmp_path / "m2.yaml").write_text("joints: {position: positions}\n")
+    _bad(tmp_path, capsys, [str(bag), "--map", str(tmp_path / "m2.yaml")],
+         "joints.position: sensor_msgs/msg/JointState on /joint_states has no field 'positions' (fields: header, name, "
+         "position, velocity, effort)")
+    (tmp_path / "m3.yaml").write_text("torque: {topic: /joint_states, feild: effort}\n")
+    _bad(tmp_path, capsys, [str(bag), "--map", str(tmp_path / "m3.yaml")], "'torque' has unknown key(s) ['feild']")
+    (tmp_path / "m4.yaml").write_text("joints: {sign: [1, -1, 2]}\n")
+    _bad(tmp_path, capsys, [str(bag), "--map", str(tmp_path / "m4.yaml")], "'joints.sign' entries must be 1 or -1")
+    # a topic with no messages; a non-CDR topic
+    with Writer(tmp_path / "empty_imu", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/joint_states", M.JOINT_STATE, typestore=M.typestore())
+        w.add_connection("/imu", M.IMU, typestore=M.typestore())
+        w.write(c, EPOCH_NS, M.serialize(M.joint_state(EPOCH_NS, [0, 0, 0], [0, 0, 0], [0, 0, 0])))
+    _bad(tmp_path, capsys, [str(tmp_path / "empty_imu")], "topic /imu (IMU) has no messages")
+    with Writer(tmp_path / "json_bag", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        w.add_connection("/joint_states", M.JOINT_STATE, typestore=M.typestore())
+        w.add_connection("/imu", M.IMU, typestore=M.typestore(), serialization_format="json")
+    _bad(tmp_path, capsys, [str(tmp_path / "json_bag")], "topic /imu is serialized as 'json', not CDR")
+    # a folder without metadata.yaml; a project recording given as a bag; a MCAP cut short
+    (tmp_path / "nometa").mkdir()
+    (tmp_path / "nometa" / "nometa.mcap").write_bytes((bag / "bag.mcap").read_bytes())
+    _bad(tmp_path, capsys, [str(tmp_path / "nometa")], "folder without metadata.yaml: not a rosbag2 bag")
+    write_recording(tmp_path / "ours.mcap", native(short_run))
+    _bad(tmp_path, capsys, [str(tmp_path / "ours.mcap")], "is a project recording (JSON messages), not a ROS 2 bag")
+    data = (bag / "bag.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[:len(data) * 2 // 3])
+    _bad(tmp_path, capsys, [str(tmp_path / "cut.mcap")], "cut.mcap: MCAP file is truncated (no footer")
+    _bad(tmp_path, capsys, [str(tmp_path / "cut.mcap"), "--allow-truncated"], "MCAP file cut short before its first "
+         "channel")  # rosbags' writer keeps its channels in the chunk that was cut
+    _bad(tmp_path, capsys, [str(tmp_path / "m1.yaml")], "not a ROS 2 bag (expected a rosbag2 folder")
+
+
+def test_a_map_puts_another_layout_right(tmp_path, capsys, short_run):
+    """Joint names and signs, IMU mounted upside down (rpy pi, 0, 0) with gravity removed: the map undoes both."""
+    names = ["wheel_r_joint", "wheel_l_joint", "turret_joint"]
+    flipped = Recording(t=short_run.t, torque=short_run.torque * [1, -1, 1],
+                        joint_pos=short_run.joint_pos * [1, -1, 1], joint_vel=short_run.joint_vel * [1, -1, 1],
+                        imu_accel=(short_run.imu_accel - [0, 0, 9.80665]) * [1, -1, -1],
+                        imu_gyro=short_run.imu_gyro * [1, -1, -1])
+    mapped = {"right_wheel": "wheel_r_joint", "left_wheel": "wheel_l_joint", "pivot": "turret_joint"}
+    bag = robot_bag(tmp_path / "bag", flipped, names=[mapped[n] for n in ("pivot", "left_wheel", "right_wheel")],
+                    imu_jitter=False, robot_names=mapped)
+    (tmp_path / "map.yaml").write_text(
+        "joints: {names: [wheel_r_joint, wheel_l_joint, turret_joint], sign: [1, -1, 1]}\n"
+        "imu: {rpy: [3.141592653589793, 0, 0], gravity: removed}\n")
+    assert main(["import", str(bag), "--map", str(tmp_path / "map.yaml"), "--out", str(tmp_path / "o.mcap"),
+                 "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert "rotated into B'' by rpy" in rep["conversion"] and "+g added on z" in rep["conversion"]
+    rec = read_recording(tmp_path / "o.mcap")
+    nat = native(short_run)
+    np.testing.assert_allclose(rec.joint_pos, nat.joint_pos, atol=1e-12)
+    np.testing.assert_allclose(rec.torque, nat.torque, atol=1e-12)
+    assert np.sqrt(np.mean((rec.imu_accel - nat.imu_accel) ** 2)) < 0.05
+    assert np.mean(rec.imu_accel[:, 2]) == pytest.approx(9.80665, abs=0.05)
