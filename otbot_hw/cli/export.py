@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 
 from otbot_hw.cli import add_json_flag
-from otbot_hw.cli.checks import writing
+from otbot_hw.cli.checks import CliError, writing
 
 
 def register(sub) -> None:
@@ -31,6 +31,9 @@ def run(args: argparse.Namespace) -> dict:
 
     check_output(args.ros2)
     rec = read_recording(args.recording)
+    if len(rec) == 0:
+        raise CliError(f"{args.recording}: no complete sample" + (" (the file was cut short: truncated)"
+                                                                 if rec.truncated else "") + "; nothing to export")
     with writing("--ros2"):
         res = export_recording(rec, args.ros2)
     res = {"recording": str(args.recording), "truncated": bool(rec.truncated), **res}
