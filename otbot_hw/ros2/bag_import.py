@@ -522,11 +522,13 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
     js_step = float(np.median(np.diff(joints.stamps))) if len(joints.stamps) > 1 else math.nan
     if not len(joints.stamps) > 1:
         raise BagError(f"{joints.topic}: {len(joints.stamps)} message(s); at least 2 are needed")
+    every = required + list(opt.values())
+    common = min(len(s.stamps) for s in every)  # a bag cut mid-sample ends one topic early
     shared = (rate is None or abs(rate * js_step * 1e-9 - 1) < 1e-9) and _uniform(joints.stamps) and all(
-        len(s.stamps) == len(joints.stamps) and np.array_equal(s.stamps, joints.stamps)
-        for s in required + list(opt.values()))
+        np.array_equal(s.stamps[:common], joints.stamps[:common]) and len(s.stamps) - common <= 1 for s in every)
     if shared:
-        grid = joints.stamps[(joints.stamps >= lo) & ((joints.stamps <= hi) if hi is not None else True)]
+        grid = joints.stamps[:common]
+        grid = grid[(grid >= lo) & ((grid <= hi) if hi is not None else True)]
         period_ns = float(np.median(np.diff(joints.stamps)))
         method = {"method": "none: every topic shares the joint-state stamps on a uniform grid; values as recorded"}
         rate_hz = 1e9 / period_ns

@@ -46,7 +46,7 @@ from typing import Any, Iterable
 
 import yaml
 
-from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS,
+from otbot_hw.recording import (FORMAT_NAME, FORMAT_VERSION, TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS,
                                 TOPIC_REFERENCE, TOPIC_TRUTH, TOPICS)
 from otbot_hw.ros2 import messages as M
 
@@ -153,7 +153,8 @@ class BagWriter:
                 raise ValueError(f"unknown topic '{tp}' (known: {', '.join(TOPICS)})")
         self.folder = Path(folder)
         self.project_topics = {TOPIC_COMMAND, *topics}
-        self.metadata = dict(metadata)
+        # marks the bag as written from a project run: its stamps are the run's t (import keeps them)
+        self.metadata = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, **metadata}
         self.accel_var, self.gyro_var, self.noise_source = noise_variances(self.metadata)
         self.types = ros_topics(self.project_topics, has_force and TOPIC_TRUTH in self.project_topics,
                                 has_gyro_bias and TOPIC_ESTIMATE in self.project_topics)

@@ -186,7 +186,7 @@ class Daemon:
         def recorder(meta: dict, topics: list):
             sess = SessionRecording(s.record_dir, meta, topics, rate=1.0 / period,
                                     rotate_size=rec_cfg.rotate_size, rotate_time=rec_cfg.rotate_time,
-                                    flush_interval=rec_cfg.flush_interval)
+                                    flush_interval=rec_cfg.flush_interval, format=rec_cfg.format)
             self.sessions.append(sess.session_id)
             return sess
 
