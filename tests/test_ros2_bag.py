@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -359,3 +360,12 @@ def test_a_map_puts_another_layout_right(tmp_path, capsys, short_run):
     np.testing.assert_allclose(rec.torque, nat.torque, atol=1e-12)
     assert np.sqrt(np.mean((rec.imu_accel - nat.imu_accel) ** 2)) < 0.05
     assert np.mean(rec.imu_accel[:, 2]) == pytest.approx(9.80665, abs=0.05)
+
+
+def test_the_example_map_is_the_default():
+    from otbot_hw.ros2.mapping import BagMap, load_map
+
+    ex = load_map(Path(__file__).resolve().parents[1] / "config" / "ros2_map.yaml")
+    d = BagMap()
+    assert {k: v for k, v in ex.to_dict().items() if k != "source"} == {k: v for k, v in d.to_dict().items()
+                                                                        if k != "source"}

@@ -25,7 +25,9 @@ default without ``--map``)::
     reference: /reference       #   events; null: ignore
     events: /events
 
-Every key is optional (absent: the value above). A key the reader does not know is an error.
+Every key is optional (absent: the value above). A key the reader does not know is an error. A
+topic the map names other than these defaults must be in the bag; the default IMU and optional
+topics are read when present (no IMU: a notice).
 """
 from __future__ import annotations
 
@@ -45,8 +47,8 @@ FIXTURES = ("floor", "stand", "locked")
 
 @dataclass(frozen=True)
 class BagMap:
-    """The mapping (see the module doc). ``explicit``: the topics a map file named (a missing one
-    is an error; the defaults' optional topics are only read when present)."""
+    """The mapping (see the module doc). ``explicit``: the IMU and optional topics a map file named
+    other than the defaults (a missing one is an error; the defaults are only read when present)."""
 
     time: str = "header"
     fixture: str = "floor"
@@ -163,7 +165,7 @@ def map_from_dict(data: Any, source: str = "<dict>") -> BagMap:
         raise BagError(f"{source}: 'torque.scale' must be a finite non-zero number (N m per unit), got {scale!r}")
     i = _section(source, "imu", top.get("imu"), ("topic", "rpy", "gravity"))
     imu_topic = _topic(source, "imu.topic", i.get("topic", d.imu_topic), True)
-    if "imu" in top and "topic" in i and imu_topic:
+    if imu_topic and imu_topic != d.imu_topic:
         explicit.add(imu_topic)
     gravity = i.get("gravity", d.imu_gravity)
     if gravity not in ("included", "removed"):
@@ -171,7 +173,7 @@ def map_from_dict(data: Any, source: str = "<dict>") -> BagMap:
     opt = {}
     for key in ("odom", "truth", "reference", "events"):
         opt[key] = _topic(source, key, top.get(key, getattr(d, f"{key}_topic")), True)
-        if key in top and opt[key]:
+        if opt[key] and opt[key] != getattr(d, f"{key}_topic"):
             explicit.add(opt[key])
     return BagMap(time=time, fixture=fixture, joints_topic=joints_topic, joint_names=tuple(names),
                   joint_sign=sign, position_field=_name(source, "joints.position", j.get("position", d.position_field)),
