@@ -369,3 +369,23 @@ def test_the_example_map_is_the_default():
     d = BagMap()
     assert {k: v for k, v in ex.to_dict().items() if k != "source"} == {k: v for k, v in d.to_dict().items()
                                                                         if k != "source"}
+
+
+def test_without_the_ros2_extra_import_and_export_say_what_to_install(monkeypatch, tmp_path, capsys):
+    import sys
+
+    from otbot_hw.ros2.messages import typestore
+
+    write_recording(tmp_path / "run.mcap", full_recording(n=10))
+    typestore.cache_clear()
+    for mod in ("rosbags", "rosbags.typesys", "rosbags.rosbag2"):
+        monkeypatch.setitem(sys.modules, mod, None)
+    try:
+        for argv in (["export", str(tmp_path / "run.mcap"), "--ros2", str(tmp_path / "bag")],
+                     ["import", str(tmp_path), "--out", str(tmp_path / "o.mcap")]):
+            assert main(argv) == 2
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and "pip install 'otbot-hw[ros2]'" in err, err
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
+    finally:
+        typestore.cache_clear()

@@ -40,7 +40,7 @@ import numpy as np
 import yaml
 
 from otbot_hw.recording import FORMAT_NAME, MCAP_MAGIC, Recording
-from otbot_hw.ros2 import BagError
+from otbot_hw.ros2 import BagError, rosbags
 from otbot_hw.ros2 import messages as M
 from otbot_hw.ros2.mapping import BagMap
 from otbot_hw.ros2.writer import CUSTOM_KEY, TURNS_KEY
@@ -86,9 +86,7 @@ def _custom(meta: dict | None, key: str = CUSTOM_KEY) -> dict[str, Any]:
 
 
 def _rosbags_open(path: Path):
-    from rosbags.rosbag2 import Reader
-
-    return Reader(path)
+    return rosbags("rosbags.rosbag2").Reader(path)
 
 
 def _stream_mcap(path: Path) -> tuple[dict[str, Connection], dict[str, Any], list]:
@@ -129,7 +127,7 @@ def _stream_mcap(path: Path) -> tuple[dict[str, Connection], dict[str, Any], lis
 def open_bag(path: str | Path, allow_truncated: bool = False) -> OpenBag:
     """Open a rosbag2 folder or a single ``.mcap`` file (see the module doc); BagError when it is
     none, cut short (unless ``allow_truncated``), or not CDR."""
-    from rosbags.rosbag2 import ReaderError
+    ReaderError = rosbags("rosbags.rosbag2").ReaderError
 
     path = Path(path)
     if not path.exists():
@@ -256,9 +254,9 @@ class _Types:
     """Deserialization with the standard store; types the store lacks come from the bag's definitions."""
 
     def __init__(self, conns: dict[str, Connection]):
-        from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
-
-        self.store = get_typestore(Stores.ROS2_JAZZY)
+        typesys = rosbags("rosbags.typesys")
+        get_types_from_idl, get_types_from_msg = typesys.get_types_from_idl, typesys.get_types_from_msg
+        self.store = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
         add: dict = {}
         for c in conns.values():
             if c.msgtype and c.msgtype not in self.store.types and c.msgdef:

@@ -40,9 +40,10 @@ EVENT_LEVELS = {"fault": 2, "estop": 2, "saturation": 1, "limit": 1, "warning": 
 @lru_cache(maxsize=1)
 def typestore():
     """The rosbags type store with the standard ROS 2 (Jazzy) message definitions."""
-    from rosbags.typesys import Stores, get_typestore
+    from otbot_hw.ros2 import rosbags
 
-    return get_typestore(Stores.ROS2_JAZZY)
+    typesys = rosbags("rosbags.typesys")
+    return typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
 
 
 def msgdef(msgtype: str) -> tuple[str, str]:

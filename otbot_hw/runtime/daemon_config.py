@@ -218,6 +218,13 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
                           format=r.text("format", dr.format))
     if rec.format not in ("otbot", "ros2"):
         raise r.err("format", f"must be otbot or ros2, got {rec.format!r}")
+    if rec.format == "ros2":
+        from otbot_hw.extras import MissingExtraError, require
+
+        try:
+            require("rosbags")
+        except MissingExtraError as exc:
+            raise r.err("format", f"ros2: {exc}") from None
     if rec.flush_interval > 1.0:
         raise r.err("flush_interval", f"must be <= 1 s (a crash may lose at most one second), "
                                       f"got {rec.flush_interval}")
