@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import subprocess
+import time
 import sys
 from pathlib import Path
 
@@ -101,3 +102,35 @@ def test_a_killed_ros2_session_leaves_bags_that_load_up_to_the_crash(tmp_path, c
     assert loaded[-1].metadata["session"] == {"id": "killed", "index": len(bags) - 1, "rate": 500.0,
                                               "previous": bags[-2].name}
     assert loaded[-1].estimate_pose is not None and loaded[-1].imu_gyro is not None
+
+
+def test_the_daemon_records_its_session_as_a_ros2_bag(tmp_path, capsys):
+    """``otbot daemon`` with ``daemon.recording.format: ros2``: SIGTERM closes a complete bag that rosbags
+    reads and that imports with the loop's estimate, reference and mode events."""
+    from rosbags.rosbag2 import Reader
+
+    from otbot_hw.runtime.daemon_process import DaemonProcess, local_config
+
+    cfg = local_config(tmp_path / "cfg", replace={
+        "max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {value: 50",
+        "    format: otbot ": "    format: ros2  "})
+    d = DaemonProcess(["--bus", "sim", "--config", str(cfg), "--record-dir", str(tmp_path / "rec"), "--no-telemetry"],
+                      tmp_path / "control.sock", tmp_path / "daemon.log")
+    try:
+        d.request("enable")
+        time.sleep(0.6)
+        code, summary = d.terminate()
+    finally:
+        d.kill()
+    assert code == 0, d.log()[-2000:]
+    (bag,) = [p for p in (tmp_path / "rec").iterdir()]
+    assert bag.is_dir() and (bag / "metadata.yaml").is_file()
+    with Reader(bag) as r:
+        topics = {c.topic: c.msgcount for c in r.connections}
+    assert {"/joint_states", "/imu", "/odom", "/reference", "/events", "/tf"} <= set(topics)
+    assert main(["import", str(bag), "--out", str(tmp_path / "session.mcap"), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    rec = read_recording(tmp_path / "session.mcap")
+    assert len(rec) == topics["/joint_states"] > 20 and rep["resampling"]["method"].startswith("none")
+    assert rec.estimate_pose is not None and rec.reference_p is not None
+    assert rec.events[-1]["text"] == "idle: stopped (SIGTERM)" and rec.metadata["source"] == "otbot daemon"
