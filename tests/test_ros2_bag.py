@@ -389,3 +389,17 @@ def test_without_the_ros2_extra_import_and_export_say_what_to_install(monkeypatc
         assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
     finally:
         typestore.cache_clear()
+
+
+def test_a_grid_slower_than_the_commands_is_said(tmp_path, capsys, short_run):
+    bag = robot_bag(tmp_path / "bag", short_run)
+    rc, out = _import(tmp_path, bag, "--rate", "100", "--json")
+    rep = json.loads(capsys.readouterr().out)
+    assert rc == 0 and rep["rate_hz"] == 100.0
+    assert any("the torque commands come at 200 Hz and change faster than the 100 Hz grid" in n
+               for n in rep["notices"]), rep["notices"]
+    rec = read_recording(out)
+    nat = native(short_run)
+    assert np.array_equal(rec.torque, nat.torque[::2])  # held: the command in force at each grid time
+    rc, out = _import(tmp_path, bag, "--json")
+    assert not any("torque commands" in n for n in json.loads(capsys.readouterr().out)["notices"])

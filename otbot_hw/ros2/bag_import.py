@@ -554,6 +554,14 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
         grid = g0 + np.round(np.arange(n) * period_ns).astype(np.int64)
         if trimmed:
             notices.append("trimmed the " + " and the ".join(trimmed))
+        if len(torque.stamps) > 1:
+            cmd_period = float(np.median(np.diff(torque.stamps)))
+            changes = np.any(np.diff(torque.values["torque"], axis=0) != 0, axis=1)
+            if cmd_period < 0.9 * period_ns and changes.mean() > 0.5 * cmd_period / period_ns:
+                notices.append(f"the torque commands come at {1e9 / cmd_period:.4g} Hz and change faster than the "
+                               f"{rate_hz:.4g} Hz grid: held at the grid, the commands between its samples are "
+                               "dropped and the recording's torque is not all that drove the robot (import at the "
+                               "command rate for identification and diagnosis)")
         for s in required:
             _check_gaps(s, grid, period_ns, notices)
         method = {"method": "linear interpolation in time onto one grid (joints, IMU, optional channels); torque "
