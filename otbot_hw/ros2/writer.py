@@ -32,9 +32,8 @@ Durability: the MCAP file is unchunked and uncompressed (rosbags' own writer kee
 and the schemas in memory until it closes, so a killed process would leave nothing readable) and
 is flushed every ``flush_every`` samples and at every event; ``metadata.yaml`` is written when
 the bag opens (message counts 0) and rewritten on close. A process killed mid-run leaves a bag
-whose MCAP lacks its summary and footer: ``otbot import --allow-truncated`` (or any streaming MCAP
-reader: Foxglove, ``mcap``) reads every complete message up to the cut; ``ros2 bag reindex`` can
-rebuild the index for ROS tools.
+whose MCAP lacks its summary and footer: ``otbot import --allow-truncated`` (any streaming MCAP
+reader) reads every complete message up to the cut; rosbags' reader needs the footer.
 """
 from __future__ import annotations
 
