@@ -80,9 +80,14 @@ def test_rosbags_reads_every_exported_bag_with_the_standard_definitions(tmp_path
     for variant, r in (("full", rec), ("command only", Recording(t=rec.t, torque=rec.torque))):
         out = tmp_path / variant.replace(" ", "_")
         from otbot_hw.ros2.bag_export import export_recording
+        from otbot_hw.ros2.bag_import import import_bag
 
         export_recording(r, out)
         assert sorted(p.name for p in out.iterdir()) == sorted(["metadata.yaml", f"{out.name}.mcap"])
+        if variant == "command only":  # and back: the torque, a notice that there are no joints
+            res = import_bag(out)
+            assert np.array_equal(res.recording.torque, r.torque) and res.recording.joint_pos is None
+            assert any("the recording has no /otbot/joints" in n for n in res.report["notices"])
         with Reader(out) as bag:
             assert bag.message_count > 0
             for c in bag.connections:

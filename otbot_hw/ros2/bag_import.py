@@ -394,7 +394,12 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
                 eff.append(e[idx] if len(e) == len(key) else np.full(3, np.nan))
     joints = Series(jc.topic, np.array(js_ns, dtype=np.int64), np.array(js_log, dtype=np.int64))
     pos, vel = np.array(pos) * sign, np.array(vel) * sign
-    if np.all(np.isnan(pos)):
+    no_joints = bool(np.all(np.isnan(pos)) and np.all(np.isnan(vel)))
+    if no_joints:  # effort only (a command-only recording exported): less, not wrong
+        notices.append(f"{jc.topic} carries no {bm.position_field} and no {bm.velocity_field}: the recording has no "
+                       "/otbot/joints (diagnose, estimate and identify need the encoders)")
+        pos = vel = np.zeros((len(pos), 3))
+    elif np.all(np.isnan(pos)):
         raise BagError(f"{jc.topic}: field {bm.position_field} is empty in every message: no joint angles")
     if np.any(np.isnan(pos)):
         raise BagError(f"{jc.topic}: field {bm.position_field} is empty or short in "
@@ -623,9 +628,10 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
 
     origin = 0 if origin_custom else int(grid[0])
     t = (grid - origin) * 1e-9
-    rec = Recording(t=t, torque=hold(torque, "torque"),
-                    joint_pos=on_grid(joints, "position", "joint position", "rad"),
-                    joint_vel=on_grid(joints, "velocity", "joint velocity", "rad/s"))
+    rec = Recording(t=t, torque=hold(torque, "torque"))
+    if not no_joints:
+        rec.joint_pos = on_grid(joints, "position", "joint position", "rad")
+        rec.joint_vel = on_grid(joints, "velocity", "joint velocity", "rad/s")
     if imu is not None:
         rec.imu_accel = on_grid(imu, "accel", "IMU accel", "m/s^2")
         rec.imu_gyro = on_grid(imu, "gyro", "IMU gyro", "rad/s")
@@ -698,8 +704,10 @@ def _check_clock(s: Series, use_header: bool) -> None:
     back = np.nonzero(d <= 0)[0]
     if len(back):
         k = int(back[0]) + 1
-        raise BagError(f"{s.topic}: clock jump at message {k}: the stamp goes {'back' if d[k - 1] < 0 else 'nowhere'} "
-                       f"by {-d[k - 1] * 1e-9:.6f} s ({len(back)} such step(s)); stamps must increase")
+        what = (f"the stamp goes back by {-d[k - 1] * 1e-9:.6f} s" if d[k - 1] < 0
+                else "the stamp repeats the one before")
+        raise BagError(f"{s.topic}: clock jump at message {k}: {what} ({len(back)} such step(s)); stamps must "
+                       "increase")
     if use_header and len(d):
         dl = np.diff(s.log)
         med = float(np.median(d))
