@@ -17,7 +17,6 @@ import pytest
 from otbot_hw.cli import main
 from otbot_hw.recording import TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_IMU, TOPIC_JOINTS, read_recording
 from otbot_hw.runtime.daemon_config import daemon_config_from_dict
-from otbot_hw.runtime.session_recording import SessionRecording
 
 ROOT = Path(__file__).resolve().parents[1]
 TOPICS = (TOPIC_JOINTS, TOPIC_IMU, TOPIC_ESTIMATE)
@@ -44,7 +43,6 @@ WRITER = """
 import sys, time
 sys.path.insert(0, sys.argv[2])
 from tests.test_ros2_session import TOPICS, messages
-from otbot_hw.runtime.session_recording import SessionRecording
 rate = 500.0
 rec = SessionRecording(sys.argv[1], {"source": "test"}, TOPICS, rate=rate, rotate_time=2.0, session_id="killed",
                        format="ros2")

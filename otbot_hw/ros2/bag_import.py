@@ -376,7 +376,8 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
         if key not in index_cache:
             missing = [n for n in names if n not in key]
             if missing:
-                raise BagError(f"{jc.topic}: joints {list(key)} are not this robot's: no {', '.join(map(repr, missing))} "
+                raise BagError(f"{jc.topic}: joints {list(key)} are not this robot's: no "
+                               f"{', '.join(map(repr, missing))} "
                                f"(the map's joints.names {list(names)} name the right wheel, left wheel and pivot)")
             index_cache[key] = [key.index(n) for n in names]
         idx = index_cache[key]
@@ -670,7 +671,8 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
                   f"{bm.torque_scale} = torque command; IMU: "
                   + ("identity (REP-103 body axes x forward, y left, z up = B'' axes 1'', 2'', 3'')"
                      if bm.imu_rotation() is None else f"rotated into B'' by rpy {list(bm.imu_rpy)} rad")
-                  + ("; linear acceleration with gravity (+g up at rest) = specific force" if bm.imu_gravity == "included"
+                  + ("; linear acceleration with gravity (+g up at rest) = specific force"
+                     if bm.imu_gravity == "included"
                      else "; +g added on z (gravity removed by the source, flat ground assumed)"))
     resampling = {"rate_hz": rate_hz, "period_s": period_ns * 1e-9, **method}
     meta = {k: v for k, v in bag.custom.items() if k not in ("format", "format_version")}
@@ -714,7 +716,8 @@ def _check_clock(s: Series, use_header: bool) -> None:
         jump = np.nonzero(np.abs(d - dl) > max(1e9, 10 * med))[0]
         if len(jump):
             k = int(jump[0]) + 1
-            raise BagError(f"{s.topic}: clock jump at message {k}: the header stamp moves {d[k - 1] * 1e-9:.3f} s while "
+            raise BagError(f"{s.topic}: clock jump at message {k}: the header stamp moves {d[k - 1] * 1e-9:.3f} s "
+                           "while "
                            f"the bag's receive time moves {dl[k - 1] * 1e-9:.3f} s (the sensor clock was reset or "
                            "synchronized mid-run); import the part before or after it (--start/--end)")
 

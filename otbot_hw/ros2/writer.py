@@ -45,8 +45,8 @@ from typing import Any, Iterable
 
 import yaml
 
-from otbot_hw.recording import (FORMAT_NAME, FORMAT_VERSION, TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS,
-                                TOPIC_REFERENCE, TOPIC_TRUTH, TOPICS)
+from otbot_hw.recording import (FORMAT_NAME, FORMAT_VERSION, TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS,
+                                TOPIC_IMU, TOPIC_JOINTS, TOPIC_REFERENCE, TOPIC_TRUTH, TOPICS)
 from otbot_hw.ros2 import messages as M
 
 #: metadata.yaml / MCAP metadata key holding the project metadata (JSON text)
@@ -223,7 +223,8 @@ class BagWriter:
             self._put("/odom", ns, M.odometry(ns, m["pose"], m["twist"], m["std"]))
             self.turns.setdefault("/odom", whole_turns(m["pose"][2]))
             if "/odom/gyro_bias" in self.types:
-                self._put("/odom/gyro_bias", ns, M.vector(ns, M.PLATFORM_FRAME, [0.0, 0.0, m.get("gyro_bias", math.nan)]))
+                bias = [0.0, 0.0, m.get("gyro_bias", math.nan)]
+                self._put("/odom/gyro_bias", ns, M.vector(ns, M.PLATFORM_FRAME, bias))
             pose = m["pose"]
         if "/truth" in self.types:
             m = messages[TOPIC_TRUTH]
