@@ -43,6 +43,7 @@ WRITER = """
 import sys, time
 sys.path.insert(0, sys.argv[2])
 from tests.test_ros2_session import TOPICS, messages
+from otbot_hw.runtime.session_recording import SessionRecording
 rate = 500.0
 rec = SessionRecording(sys.argv[1], {"source": "test"}, TOPICS, rate=rate, rotate_time=2.0, session_id="killed",
                        format="ros2")
