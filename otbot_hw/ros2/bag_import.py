@@ -615,8 +615,9 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
         xg = (grid - grid[0]).astype(float)
         out = np.column_stack([np.interp(xg, x, v[:, c]) for c in range(v.shape[1])])
         out[(xg < x[0] - period_ns / 2) | (xg > x[-1] + period_ns / 2)] = np.nan  # beyond the held edge
-        if err_name is not None and len(x) > 2:
-            e = _loo_error(x, v)
+        inside = (x >= -period_ns) & (x <= xg[-1] + period_ns)  # the source samples of the imported part
+        if err_name is not None and inside.sum() > 2:
+            e = _loo_error(x[inside], v[inside])
             method["error"][err_name] = {"rms": e[0], "max": e[1], "unit": unit}
         return out
 
