@@ -408,3 +408,31 @@ def test_a_grid_slower_than_the_commands_is_said(tmp_path, capsys, short_run):
     assert np.array_equal(rec.torque, nat.torque[::2])  # held: the command in force at each grid time
     rc, out = _import(tmp_path, bag, "--json")
     assert not any("torque commands" in n for n in json.loads(capsys.readouterr().out)["notices"])
+
+
+#: the fields of the standard ROS 2 message files (common_interfaces), as the bag's schemas must carry them
+STANDARD_FIELDS = {
+    M.JOINT_STATE: "std_msgs/Header header\nstring[] name\nfloat64[] position\nfloat64[] velocity\nfloat64[] effort\n",
+    M.IMU: "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n"
+           "geometry_msgs/Vector3 angular_velocity\nfloat64[9] angular_velocity_covariance\n"
+           "geometry_msgs/Vector3 linear_acceleration\nfloat64[9] linear_acceleration_covariance\n",
+    M.ODOMETRY: "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\n"
+                "geometry_msgs/TwistWithCovariance twist\n",
+    M.DIAGNOSTIC_ARRAY: "std_msgs/Header header\ndiagnostic_msgs/DiagnosticStatus[] status\n",
+    M.TF: "geometry_msgs/TransformStamped[] transforms\n",
+}
+
+
+def test_exported_schemas_are_the_standard_message_files(tmp_path):
+    from mcap.reader import make_reader
+
+    from otbot_hw.ros2.bag_export import export_recording
+
+    export_recording(full_recording(n=10), tmp_path / "bag")
+    with open(tmp_path / "bag" / "bag.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    schemas = {s.name: s for s in summary.schemas.values()}
+    for name, fields in STANDARD_FIELDS.items():
+        assert schemas[name].encoding == "ros2msg"
+        assert schemas[name].data.decode().split("=" * 80)[0] == fields, name
+    assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
