@@ -60,6 +60,9 @@ def export_recording(rec: Recording, out: str | Path) -> dict:
         os.replace(tmp, out)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+    except ValueError as exc:  # the recording cannot be a bag (e.g. negative sample times)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise BagError(f"--ros2 {out}: {exc}") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -162,7 +162,7 @@ class BagWriter:
         self._file = open(self.path, "xb")
         self._writer = Writer(self._file, compression=CompressionType.NONE, use_chunking=False)
         self._writer.start(profile="ros2", library="otbot-hw ros2 bag writer (rosbags CDR)")
-        self.custom = {CUSTOM_KEY: json.dumps(self.metadata, allow_nan=False)}
+        self.custom = {CUSTOM_KEY: json.dumps(self.metadata)}
         self._writer.add_metadata(CUSTOM_KEY, self.custom)
         schema_ids: dict[str, int] = {}
         self._channels: dict[str, int] = {}
