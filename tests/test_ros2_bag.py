@@ -436,3 +436,23 @@ def test_exported_schemas_are_the_standard_message_files(tmp_path):
         assert schemas[name].encoding == "ros2msg"
         assert schemas[name].data.decode().split("=" * 80)[0] == fields, name
     assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+
+
+def test_a_robots_own_base_link_odometry_is_not_taken_for_the_estimate(tmp_path, capsys):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = M.typestore()
+    with Writer(tmp_path / "bag", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        js = w.add_connection("/joint_states", M.JOINT_STATE, typestore=ts)
+        od = w.add_connection("/odom", M.ODOMETRY, typestore=ts)
+        for k in range(20):
+            ns = EPOCH_NS + k * 10_000_000
+            w.write(js, ns, M.serialize(M.joint_state(ns, [0.01 * k] * 3, [1.0] * 3, [0.5, -0.5, 0.1])))
+            m = M.odometry(ns, [0.001 * k, 0, 0], [0.1, 0, 0], [0.01] * 6)
+            m.child_frame_id = "base_link"
+            w.write(od, ns, M.serialize(m))
+    rc, out = _import(tmp_path, tmp_path / "bag", "--json")
+    rep = json.loads(capsys.readouterr().out)
+    assert rc == 0 and "/otbot/estimate" not in rep["channels"]
+    assert any("/odom is the pose of frame 'base_link', not of the platform" in n for n in rep["notices"])
+    assert read_recording(out).estimate_pose is None

@@ -473,6 +473,10 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
                 events_raw.append((ns, m))
                 continue
             if key == "odom":
+                if m.child_frame_id != M.PLATFORM_FRAME:  # e.g. a robot's own base_link odometry
+                    notices.append(f"{c.topic} is the pose of frame '{m.child_frame_id}', not of the platform "
+                                   f"('{M.PLATFORM_FRAME}'): not imported as the estimate")
+                    break
                 p, tw, sd = M.odometry_values(m)
                 rows.append(p + tw + sd)
             elif key == "truth":
@@ -491,7 +495,7 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
                             + ([acc_.linear.x, acc_.linear.y, acc_.angular.z] if acc_ else [np.nan] * 3))
             s_ns.append(ns)
             s_log.append(lns)
-        if key != "events":
+        if key != "events" and rows:
             vals = np.array(rows, dtype=float)
             if key in ("odom", "reference"):
                 n_turns = bag.turns.get(c.topic, 0) if isinstance(bag.turns.get(c.topic, 0), int) else 0
