@@ -375,6 +375,10 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
         key = tuple(m.name)
         if key not in index_cache:
             missing = [n for n in names if n not in key]
+            if missing and len(missing) < len(names):
+                raise BagError(f"{jc.topic}: message {k} carries joints {list(key)}, without "
+                               f"{', '.join(map(repr, missing))}: the three joints must come in one message "
+                               "(messages of split publishers are not merged)")
             if missing:
                 raise BagError(f"{jc.topic}: joints {list(key)} are not this robot's: no "
                                f"{', '.join(map(repr, missing))} "
