@@ -91,6 +91,9 @@ def run(args: argparse.Namespace) -> dict:
             inject = Injection.parse(args.inject)
         except ValueError as exc:
             raise CliError(str(exc)) from None
+        if inject.at >= n * cfg.bus.period:
+            raise CliError(f"--inject {args.inject}: {inject.at:g} s is outside the run ({n * cfg.bus.period:g} s "
+                           "of plant time from the enable): nothing would be injected; give a time within --duration")
         if inject.kind.startswith("imu") and (cfg.imu is None or args.no_imu):
             raise CliError(f"--inject {inject.kind}: the run has no IMU")
         if inject.kind == "plant-kill" and args.plant_params is not None:
