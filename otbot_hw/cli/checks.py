@@ -178,6 +178,13 @@ def output_folder(path: Path | str | None, option: str) -> Path | None:
     return path
 
 
+def write_failure(exc: OSError, target) -> CliError:
+    """The one-line error for an ``OSError`` while writing ``target`` (the file the error names, if any):
+    e.g. "cannot write est.mcap: No space left on device"."""
+    name = exc.filename if exc.filename is not None else target
+    return CliError(f"cannot write {name}: {exc.strerror or exc}")
+
+
 @contextlib.contextmanager
 def writing(what: str) -> Iterator[None]:
     """Turn an ``OSError`` while writing outputs into ``CliError`` naming ``what`` and the file."""

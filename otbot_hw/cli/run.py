@@ -16,7 +16,7 @@ import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import duration, output_file, output_folder, sample_count
+from otbot_hw.cli.checks import duration, output_file, output_folder, sample_count, write_failure
 
 
 def register(sub) -> None:
@@ -143,7 +143,7 @@ def run(args: argparse.Namespace) -> dict:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
     except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+        raise write_failure(exc, args.out or "output") from None
     except Exception as exc:
         if type(exc).__name__ == "ImuFault":
             _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, checks, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import output_file, output_folder
+from otbot_hw.cli.checks import output_file, output_folder, write_failure
 
 _TIMES = "Settle times: seconds until the position and velocity errors stay below 2 % of the event's peak"
 
@@ -234,7 +234,7 @@ def run(args: argparse.Namespace) -> dict:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
     except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+        raise write_failure(exc, args.out or args.plot or args.animate or "output") from None
     if not result["completed"]:
         where = f"; recording up to the fault: {args.out}" if args.out else ""
         if not args.json and "max_abs_error" in result:
