@@ -188,8 +188,9 @@ def run(args: argparse.Namespace) -> dict:
     say = (lambda m: progress(f"[track] {m}", not args.json))
     try:
         spec = build_spec(args.scenario, params, limits, say)
-        backend = make_backend(kind, args, args.json)
-        check_sizes(spec.name, spec.reference.duration, backend.rate)
+        # the in-process robot's rate is known without its configuration; a bus's comes with its configuration
+        backend = None if kind == "sim" else make_backend(kind, args, args.json)
+        check_sizes(spec.name, spec.reference.duration, args.rate or 1000.0 if backend is None else backend.rate)
         if args.strict:
             rep = check_feasibility(spec.reference, params, gains_from_tstab(tstab), limits, eb)
             if not rep.feasible:
@@ -198,6 +199,7 @@ def run(args: argparse.Namespace) -> dict:
                                f"the {v['limit_Nm']:g} N m limit from t = {v['t_start']:.2f} s to {v['t_end']:.2f} s "
                                f"({len(rep.violations)} violation(s))")
         safety = SafetyConfig.load(args.config)
+        backend = backend or make_backend(kind, args, args.json)
         fixes = None
         if args.fixes is not None:
             from sim.mocap import MotionCapture
