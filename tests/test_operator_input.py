@@ -84,7 +84,7 @@ def test_an_oversized_yaml_is_refused_before_it_is_read(tmp_path):
 
 # -- CSV: a byte-order mark (what spreadsheets save) -------------------------------------------------
 def test_a_trajectory_csv_with_a_byte_order_mark_loads(tmp_path):
-    from otbot_hw.control.trajectories import load_csv
+    from otbot_hw.control.trajectories import csv_table, load_csv
 
     body = "# obstacle: 1, 0.5, 0.2\nt,x,y,alpha\n0,0,0,0\n2,1,0,0.5\n"
     plain, bom = tmp_path / "plain.csv", tmp_path / "bom.csv"
@@ -95,6 +95,9 @@ def test_a_trajectory_csv_with_a_byte_order_mark_loads(tmp_path):
     assert b.obstacles == [(1.0, 0.5, 0.2)]
     bom.write_bytes(b"\xef\xbb\xbft,x,y,alpha\n0,0,0,0\n2,1,0,0.5\n")
     np.testing.assert_array_equal(load_csv(bom).P_samples, a.P_samples)
+    # every CSV reader's table (the open-loop torque files too)
+    header, rows = csv_table(bom, "\ufefft,tau_r,tau_l,tau_p\n0,1,2,3\n", ["t", "tau_r"])
+    assert header == ["t", "tau_r", "tau_l", "tau_p"] and rows == [["0", "1", "2", "3"]]
 
 
 # -- track: sizes checked before work, long phases say where they are -------------------------------
