@@ -62,7 +62,10 @@ class CliParser(argparse.ArgumentParser):
         return ns, extras
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``otbot`` parser; ``only``: register that subcommand alone (``main`` does so when the
+    command line names one, so a call imports only its own command's module: ``otbot ctl`` starts
+    fast)."""
     parser = CliParser(
         prog="otbot",
         description="Otbot control stack: model, simulation, identification, control and drivers. "
@@ -71,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in SUBCOMMANDS:
-        importlib.import_module(f"otbot_hw.cli.{name}").register(sub)
+        if only is None or name == only:
+            importlib.import_module(f"otbot_hw.cli.{name}").register(sub)
     return parser
 
 
@@ -94,19 +98,21 @@ def one_line(text: str) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``otbot argv``; returns the exit code (commands may also raise ``SystemExit(1)``)."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(argv[0] if argv and argv[0] in SUBCOMMANDS else None)
     try:
         args = parser.parse_args(argv)
     except UsageError as exc:
         print(one_line(exc.line()), file=sys.stderr)
         return 2
     prog = getattr(args, "_prog", f"otbot {args.command}")
-    errors = input_errors()
     try:
         result = args.func(args)
         if getattr(args, "json", False) and result is not None:
             print(json.dumps(result, allow_nan=False))
-    except errors as exc:
+    except Exception as exc:  # the input errors, imported only when something failed
+        if not isinstance(exc, CliError) and not isinstance(exc, input_errors()):
+            raise
         print(f"{prog}: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
