@@ -1,7 +1,7 @@
 """The ``otbot`` command line: one entry point, one module per subcommand.
 
-Each module in ``SUBCOMMANDS`` defines ``register(subparsers)``, which adds its
-parser and sets ``func(args) -> dict``. The returned dict is printed as one JSON
+Each module in ``SUBCOMMANDS`` (named as the command, or as ``MODULES`` says) defines
+``register(subparsers)``, which adds its parser and sets ``func(args) -> dict``. The returned dict is printed as one JSON
 object with ``--json``; otherwise the command prints its own human summary.
 Exit codes: 0 success, 2 bad input (arguments, config, recordings), 1 failure,
 130 interrupted.
@@ -24,7 +24,9 @@ from otbot_hw.cli.checks import CliError, parse_vector, positive_float  # noqa: 
 
 #: Subcommand modules under otbot_hw.cli, in --help order.
 SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "estimate", "imu", "track", "plan", "run", "plant",
-               "bench", "daemon", "ctl")
+               "bench", "daemon", "ctl", "import", "export")
+#: Subcommands whose module has another name (``import`` is a Python keyword).
+MODULES = {"import": "import_bag"}
 
 
 class UsageError(CliError):
@@ -75,7 +77,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     sub.required = True
     for name in SUBCOMMANDS:
         if only is None or name == only:
-            importlib.import_module(f"otbot_hw.cli.{name}").register(sub)
+            importlib.import_module(f"otbot_hw.cli.{MODULES.get(name, name)}").register(sub)
     return parser
 
 

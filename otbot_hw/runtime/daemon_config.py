@@ -62,12 +62,14 @@ class VelocityConfig:
 @dataclass(frozen=True)
 class RecordingConfig:
     """dir (session files), rotate_size (bytes), rotate_time (s of loop time per file),
-    flush_interval (s: at most this much is lost when the process dies)."""
+    flush_interval (s: at most this much is lost when the process dies), format (``otbot``: the
+    project's MCAP recordings; ``ros2``: ROS 2 bag folders, ``otbot_hw.ros2.writer``)."""
 
     dir: Path = Path("/var/lib/otbot/recordings")
     rotate_size: int = 512 * 2 ** 20
     rotate_time: float = 3600.0
     flush_interval: float = 1.0
+    format: str = "otbot"
 
 
 @dataclass(frozen=True)
@@ -190,12 +192,22 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
                          max_angular_acceleration=v.quantity("max_angular_acceleration", "rad/s^2",
                                                              dv.max_angular_acceleration))
     r = _Section(source, "daemon.recording", top.data.get("recording"),
-                 ("dir", "rotate_size", "rotate_time", "flush_interval"))
+                 ("dir", "rotate_size", "rotate_time", "flush_interval", "format"))
     dr = RecordingConfig()
     rec = RecordingConfig(dir=Path(r.text("dir", str(dr.dir))),
                           rotate_size=r.size("rotate_size", dr.rotate_size),
                           rotate_time=r.quantity("rotate_time", "s", dr.rotate_time),
-                          flush_interval=r.quantity("flush_interval", "s", dr.flush_interval))
+                          flush_interval=r.quantity("flush_interval", "s", dr.flush_interval),
+                          format=r.text("format", dr.format))
+    if rec.format not in ("otbot", "ros2"):
+        raise r.err("format", f"must be otbot or ros2, got {rec.format!r}")
+    if rec.format == "ros2":
+        from otbot_hw.extras import MissingExtraError, require
+
+        try:
+            require("rosbags")
+        except MissingExtraError as exc:
+            raise r.err("format", f"ros2: {exc}") from None
     if rec.flush_interval > 1.0:
         raise r.err("flush_interval", f"must be <= 1 s (a crash may lose at most one second), "
                                       f"got {rec.flush_interval}")

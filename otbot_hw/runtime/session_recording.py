@@ -19,6 +19,10 @@ EFBIG file too large / ``ulimit -f``, EIO) never raises into the loop. The sessi
 (``error`` says which file and what failed, e.g. "recording /var/lib/otbot/recordings/x-000.mcap:
 write failed: [Errno 28] No space left on device"), closes what it can, and calls ``on_error(text)``
 once: the daemon latches that as a fault and quick-stops. Later calls do nothing.
+
+``format="ros2"`` writes each file as a ROS 2 bag folder ``<dir>/<session>-<index>/`` instead
+(``otbot_hw.ros2.writer.BagWriter``: the same flushing; a cut bag imports up to the crash with
+``otbot import --allow-truncated``).
 """
 from __future__ import annotations
 
@@ -57,11 +61,15 @@ class SessionRecording:
     def __init__(self, directory: str | Path, metadata: dict[str, Any], topics: Iterable[str] = (), *,
                  rate: float, rotate_size: int = 512 * 2 ** 20, rotate_time: float = 3600.0,
                  flush_interval: float = 1.0, session_id: str | None = None,
-                 carry_kinds: tuple[str, ...] = ("mode",), on_error: Callable[[str], None] | None = None):
+                 carry_kinds: tuple[str, ...] = ("mode",), on_error: Callable[[str], None] | None = None,
+                 format: str = "otbot"):
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f"rate must be a number of Hz > 0, got {rate}")
         if not 0 < flush_interval <= 1.0:
             raise ValueError(f"flush_interval must be in (0, 1] s, got {flush_interval}")
+        if format not in ("otbot", "ros2"):
+            raise ValueError(f"format must be otbot or ros2, got {format!r}")
+        self.format = format
         if not (rotate_size > 0 and rotate_time > 0):
             raise ValueError(f"rotate_size and rotate_time must be > 0, got {rotate_size}, {rotate_time}")
         self.directory = Path(directory)
@@ -80,7 +88,7 @@ class SessionRecording:
         if session_id is None:  # a session started within the same second as another one: .2, .3, ...
             base = session_id = new_session_id()
             n = 1
-            while (self.directory / f"{session_id}-000.mcap").exists():
+            while any((self.directory / f"{session_id}-000{ext}").exists() for ext in (".mcap", "")):
                 n += 1
                 session_id = f"{base}.{n}"
         self.session_id = session_id
@@ -104,13 +112,18 @@ class SessionRecording:
 
     def _open_next(self) -> None:
         index = len(self.files)
-        path = self.directory / f"{self.session_id}-{index:03d}.mcap"
+        path = self.directory / (f"{self.session_id}-{index:03d}" + (".mcap" if self.format == "otbot" else ""))
         if path.exists():
             raise RecordingError(f"{path}: already exists; a session never overwrites a recording")
         meta = {**self.metadata, "session": {"id": self.session_id, "index": index, "rate": self.rate,
                                              "previous": self.files[-1].name if self.files else None}}
         try:
-            self._writer = RecordingWriter(path, meta, self.topics, flush_every=self.flush_every)
+            if self.format == "ros2":
+                from otbot_hw.ros2.writer import BagWriter
+
+                self._writer = BagWriter(path, meta, self.topics, flush_every=self.flush_every, has_force=False)
+            else:
+                self._writer = RecordingWriter(path, meta, self.topics, flush_every=self.flush_every)
         except OSError as exc:
             raise RecordingError(f"recording {path}: cannot write: {os_error_text(exc)}") from None
         self.files.append(path)
@@ -184,11 +197,11 @@ class SessionRecording:
             self._carry(t)
         if w.samples % self.flush_every == 0:  # RecordingWriter has just flushed
             self._flushed_t = t
-            self._size = self.path.stat().st_size
+            self._size = self._writer.path.stat().st_size
         elif t - self._flushed_t >= self.flush_interval:
             w.flush()
             self._flushed_t = t
-            self._size = self.path.stat().st_size
+            self._size = self._writer.path.stat().st_size
 
     def write_event(self, t: float, kind: str, text: str, **extra: Any) -> None:
         """A sparse event (``RecordingWriter.write_event``; flushed at once)."""
@@ -222,9 +235,10 @@ class SessionRecording:
                     self._failed("close", exc)
 
     def status(self) -> dict:
-        """For the daemon's ``status``: session id, current file, its index and size (bytes), total samples."""
+        """For the daemon's ``status``: session id, current file (a bag folder with ``ros2``), its index and
+        size (bytes), total samples."""
         try:
-            size = self.path.stat().st_size
+            size = self._writer.path.stat().st_size
         except OSError:
             size = None
         return {"session": self.session_id, "path": str(self.path), "index": len(self.files) - 1,
