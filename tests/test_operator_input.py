@@ -71,6 +71,16 @@ def test_every_configuration_reader_uses_the_same_rules(tmp_path):
             load(cfg)
 
 
+def test_a_ros2_map_is_read_with_the_same_rules(tmp_path):
+    from otbot_hw.ros2 import BagError
+    from otbot_hw.ros2.mapping import load_map
+
+    m = tmp_path / "map.yaml"
+    m.write_text("torque:\n  scale: 1e0\n  scale: 2.0\n")
+    with pytest.raises(BagError, match=rf"--map {m}: map file: key 'scale' is written twice \(line 2 and line 3\)"):
+        load_map(m)
+
+
 def test_an_oversized_yaml_is_refused_before_it_is_read(tmp_path):
     p = tmp_path / "huge.yaml"
     with open(p, "wb") as f:  # sparse: 300 MB long, nothing on disk
