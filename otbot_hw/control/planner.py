@@ -20,7 +20,10 @@ loop does not. The initial guess is a collision-free weave around the obstacles,
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +31,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from otbot_hw.extras import require
 from otbot_hw.motors import MotorLimits
 from otbot_hw.params import OtbotParams
 
@@ -125,7 +129,7 @@ class PlanResult:
 
 def _symbolic_model(params: OtbotParams):
     """CasADi function f(z, u) -> z_dot for the reduced state, from the model's pure functions."""
-    import casadi as ca
+    ca = require("casadi")
 
     try:  # numpy ufuncs on CasADi symbols (np.sin in the model): keep the legacy, type-following result
         ca.GlobalOptions.setNumpyMode(-1)
@@ -218,10 +222,31 @@ def _first_contact(P: np.ndarray, prob: PlanningProblem) -> str:
     return min(hits)[1] if hits else "collides"
 
 
+@contextlib.contextmanager
+def _interrupt_flag():
+    """A list that gets an entry when SIGINT arrives inside the block (Python's handler still raises
+    KeyboardInterrupt, which CasADi catches and reports as a failed solve)."""
+    flag: list[int] = []
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield flag
+        return
+
+    def handler(signum, frame):
+        flag.append(signum)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,
          max_iter: int = 500) -> PlanResult:
     """Solve the collocation problem with IPOPT; raises PlannerError when it does not converge."""
-    import casadi as ca
+    ca = require("casadi")
 
     for name, pt in (("start", prob.start), ("goal", prob.goal)):
         for j, ((cx, cy, _), k) in enumerate(zip(prob.obstacles, prob.keep_out())):
@@ -270,8 +295,11 @@ def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,
         progress(f"IPOPT: {N} intervals, {7 * (N + 1) + 3 * (N + 1) + (prob.duration is None)} variables")
     start = time.perf_counter()
     try:
-        sol = opti.solve()
+        with _interrupt_flag() as interrupted:
+            sol = opti.solve()
     except RuntimeError as exc:
+        if interrupted:  # CasADi turns Ctrl-C inside IPOPT into a solver failure: it is an interrupt
+            raise KeyboardInterrupt from None
         stats = opti.stats()
         raise PlannerError(f"IPOPT did not converge ({stats.get('return_status', exc)}) after "
                            f"{stats.get('iter_count', '?')} iterations") from None
