@@ -74,6 +74,15 @@ class HeartbeatConsumer:
                 if w.last is None:
                     w.last = now  # the timeout counts from the start of monitoring
 
+    def expect_node(self, node_id: int, state: str) -> None:
+        """Node ``node_id`` must report NMT ``state`` from now on (e.g. 'STOPPED' after the master's own
+        NMT STOP: expected, not a fault)."""
+        code = {v: k for k, v in NMT_STATES.items()}[state]
+        with self._lock:
+            w = self._watch[node_id]
+            w.expected = code
+            w.rebooted = False
+
     def check(self, now: float | None = None) -> list[Fault]:
         """Faults that appeared since the last check (each node is reported once until it recovers)."""
         now = time.monotonic() if now is None else now
@@ -131,17 +140,22 @@ class HeartbeatConsumer:
 
 class HeartbeatProducer:
     """The master's own heartbeat (CiA 301 §7.2.8.3.2.1): NMT state OPERATIONAL (0x05) on COB-ID
-    0x700 + ``node_id`` every ``period`` s, from a thread of its own (so it keeps going while the
-    control loop is busy, and stops when the process dies). The drives consume it through 0x1016
-    and apply their abort connection option when it stops. A frame the bus cannot carry is
-    counted (``failures``, last error in ``error``) and the next one tried a period later."""
+    0x700 + ``node_id`` every ``period`` s, from a thread of its own. The drives consume it through
+    0x1016 and apply their abort connection option when it stops. ``alive()`` (optional) is asked
+    before every frame: while it says False (the control loop stalled) no heartbeat goes out
+    (``withheld`` counts them), so the master's liveness is the loop's, not this thread's. A frame
+    the bus cannot carry is counted (``failures``, last error in ``error``) and the next one tried a
+    period later."""
 
     OPERATIONAL = 0x05
 
-    def __init__(self, network, node_id: int, period: float):
+    def __init__(self, network, node_id: int, period: float, alive=None):
         self.network = network
         self.node_id = node_id
         self.period = period
+        self.alive = alive
+        self.withheld = 0  # times the heartbeat was withheld (loop stalls)
+        self.withholding = False
         self.sent = 0
         self.failures = 0
         self.error: str | None = None
@@ -162,6 +176,13 @@ class HeartbeatProducer:
     def _run(self) -> None:
         due = time.monotonic()
         while not self._stop.is_set():
+            if self.alive is not None and not self.alive():
+                if not self.withholding:
+                    self.withholding = True
+                    self.withheld += 1
+                self._stop.wait(self.period / 4)  # sends at once when the loop runs again
+                continue
+            self.withholding = False
             try:
                 self.network.send_message(0x700 + self.node_id, bytes([self.OPERATIONAL]))
                 self.sent += 1
