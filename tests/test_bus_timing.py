@@ -140,6 +140,7 @@ def test_drives_stop_on_sync_loss_and_on_an_rpdo_deadline_miss():
                        for d in robot.drives)
             robot.enable()
             for _ in range(3):
+                time.sleep(period)
                 robot.write([2.0, 2.0, 2.0])
                 robot.read()
             last_sync = {d.name: d._last_sync for d in plant.drives}
@@ -165,6 +166,7 @@ def test_drives_stop_on_sync_loss_and_on_an_rpdo_deadline_miss():
             last_rpdo = {d.name: d._last_rpdo for d in plant.drives}
             deadline = cfg.drives[0].rpdo_timeout * period
             for _ in range(cfg.drives[0].rpdo_timeout + 3):  # SYNC goes on, the setpoints stop
+                time.sleep(period)  # the test is the loop's clock (the driver never paces)
                 robot.read()
             assert plant.wait_all_stopped(0.3)
             for d in plant.drives:
