@@ -27,6 +27,7 @@ class _Watch:
     last: float | None = None
     state: int | None = None
     expected: int | None = None  # NMT state the node must report (None: any)
+    previous: int | None = None  # also accepted until the node first reports ``expected``
     faulted: bool = False
     rebooted: bool = False  # a boot-up message arrived while monitoring
     malformed: int = 0
@@ -59,6 +60,8 @@ class HeartbeatConsumer:
         with self._lock:
             w.last = time.monotonic()
             w.state = state & 0x7F
+            if w.state == w.expected:
+                w.previous = None
             if w.state == 0 and w.expected is not None:
                 w.rebooted = True
 
@@ -69,6 +72,7 @@ class HeartbeatConsumer:
             now = time.monotonic()
             for w in self._watch.values():
                 w.expected = code
+                w.previous = None
                 w.faulted = False
                 w.rebooted = False
                 if w.last is None:
@@ -80,6 +84,7 @@ class HeartbeatConsumer:
         code = {v: k for k, v in NMT_STATES.items()}[state]
         with self._lock:
             w = self._watch[node_id]
+            w.previous = w.expected if w.state != code else None  # heartbeats sent before the command
             w.expected = code
             w.rebooted = False
 
@@ -95,7 +100,8 @@ class HeartbeatConsumer:
                     w.faulted = True
                     out.append(Fault(w.device, w.node, "heartbeat", f"no heartbeat for {now - w.last:.3f} s "
                                      f"(consumer time {w.timeout:.3f} s)", code=0x8130))
-                elif w.rebooted or (w.expected is not None and w.state is not None and w.state != w.expected):
+                elif w.rebooted or (w.expected is not None and w.state is not None
+                                    and w.state not in (w.expected, w.previous)):
                     w.faulted = True
                     if w.rebooted:
                         meaning = "boot-up message: the node rebooted (power loss or reset) and lost its setup"
