@@ -92,21 +92,27 @@ def test_boot_mapping_enable_and_torque():
 @pytest.mark.parametrize("realtime", [False, True])
 def test_an_emcy_stops_every_drive_and_only_the_faulty_one_is_reported(realtime):
     rate = 50.0
-    with independent(realtime=realtime, control_rate=rate) as (robot, drives):
-        robot.enable()
-        for _ in range(3):
-            cycle(robot, (1.0, 1.0, 1.0), 1 / rate if realtime else None)
-        s0 = drives[0].syncs
-        drives[0].inject_fault(0x2310)
-        for _ in range(6):
-            cycle(robot, (1.0, 1.0, 1.0), 1 / rate if realtime else None)
-        for d in drives:
-            left = [sy for _, sy, old, _, _ in d.transitions if old == ENABLED and sy >= s0]
-            assert left and left[0] - s0 <= CFG.bus.reaction_timeout, (d.node_id, d.transitions)
-            assert d.state != ENABLED
-        # the drives the master quick-stopped are expected out of OPERATION ENABLED: no second fault
-        assert {f.device for f in robot.faults} == {"right_wheel"}, robot.faults
-        assert robot.reactions[0]["escalated"] == [] and len(robot.reactions) == 1
+    pace = 1 / rate if realtime else None
+    for attempt in range(3):  # paced: a machine stall before the fault spoils the set-up, not the test
+        with independent(realtime=realtime, control_rate=rate) as (robot, drives):
+            robot.enable()
+            for _ in range(3):
+                cycle(robot, (1.0, 1.0, 1.0), pace)
+            if robot.faults:
+                assert realtime and attempt < 2, robot.faults
+                continue
+            s0 = drives[0].syncs
+            drives[0].inject_fault(0x2310)
+            for _ in range(6):
+                cycle(robot, (1.0, 1.0, 1.0), pace)
+            for d in drives:
+                left = [sy for _, sy, old, _, _ in d.transitions if old == ENABLED and sy >= s0]
+                assert left and left[0] - s0 <= CFG.bus.reaction_timeout, (d.node_id, d.transitions)
+                assert d.state != ENABLED
+            # the drives the master quick-stopped are expected out of OPERATION ENABLED: no second fault
+            assert {f.device for f in robot.faults} == {"right_wheel"}, robot.faults
+            assert robot.reactions[0]["escalated"] == [] and len(robot.reactions) == 1
+        break
 
 
 def test_an_ignored_quick_stop_is_escalated_once_and_close_brings_the_node_back():
