@@ -110,6 +110,7 @@ class IndependentDrive:
         self.emcy_sent: list[tuple[float, int]] = []
         self.master_heartbeats: list[float] = []
         self.sync_times: list[float] = []
+        self.late_checks: list[tuple[float, float]] = []  # (wall time, gap s) of watchdog checks > 10 ms apart
         self.silent = False
         self.ignore_quick_stop = False
         self.quick_stop_delay = 0  # SYNCs a quick stop word is ignored before it acts
@@ -453,9 +454,12 @@ class IndependentDrive:
 
     # -- drive-side watchdogs and heartbeat producer ------------------------------------------------------
     def _timers(self) -> None:
-        self._hb_due = time.monotonic()
+        self._hb_due = prev = time.monotonic()
         while not self._stop.wait(0.002):
             now = time.monotonic()
+            if now - prev > 0.01:  # this thread was held up (a loaded machine): its watchdogs were late
+                self.late_checks.append((now, now - prev))
+            prev = now
             with self.lock:
                 hb = self.get(0x1017) / 1000.0
                 if hb and now >= self._hb_due and self.nmt != BOOT:
