@@ -9,8 +9,14 @@ so the torque written before a ``read()`` is held from that SYNC to the next one
 snapshot returned by that ``read()`` holds the joints at the same SYNC (the convention of
 ``otbot_hw.robot``).
 
-With ``realtime=True`` each ``read()`` waits for the next period boundary (real robot); without,
-cycles run back to back (lockstep with a simulated plant, faster than real time).
+``read()`` never waits for a period boundary: the loop that calls it owns the clock. With
+``realtime=True`` (a paced bus: the real robot) the drives' SYNC and RPDO watchdogs are armed, each
+SYNC's TPDOs are awaited within the period, and the driver's own multi-SYNC sequences (enable, fault
+reaction, fault reset) keep one SYNC per period; without, against a simulated plant, cycles run
+back to back (lockstep). Each cycle's controlword comes from what the master commands and what the
+drive reports (``drivers.cia402.cyclic_controlword``): a drive found stopped is never re-enabled.
+While the drives are enabled the master's heartbeat is withheld once the loop has run no cycle for
+``bus.loop_liveness`` periods.
 
 Fault reaction (here, so it holds under any loop): a fault stages a quick stop with zero torque
 for every drive and sends it at once; the SYNC cycle is then kept alive, for at most
@@ -115,9 +121,10 @@ class CanopenRobot(Robot):
     ``bus``: a python-can bus to use instead of opening ``config.bus``; ``imu_lockstep``: wait,
     after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC; its
     stream watchdog then counts from the SYNC and lasts at least ``LOCKSTEP_IMU_TIMEOUT``);
-    ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control
-    period (else lockstep: back to back, each SYNC's TPDOs awaited up to ``lockstep_timeout`` s,
-    and the drives get no period-based watchdogs since no period is kept); ``sdo_timeout``: s an
+    ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: a bus paced by its loop at
+    the control period (drives' SYNC/RPDO watchdogs armed, TPDOs awaited within the period; else
+    lockstep: each SYNC's TPDOs awaited up to ``lockstep_timeout`` s, and the drives get no
+    period-based watchdogs since no period is kept); ``sdo_timeout``: s an
     SDO answer is awaited (canopen's 0.3 s by default).
 
     The constructor reads the object dictionaries and refuses (``DeviceConfigError``) what cannot
