@@ -417,3 +417,21 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
     finally:
         drv.close()
         pub.close()
+
+
+def test_controlword_values_live_in_the_cia402_module_only():
+    """Issue 19: CiA 402 words only in the profile module — no controlword literal or assignment in
+    the rest of the master's code."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    pattern = re.compile(r"0x000[0-9A-Fa-f]\b.*(controlword|cw)|controlword\s*=|\.controlword\s*=|0x000F", re.I)
+    offenders = []
+    for path in [*(root / "drivers").glob("*.py"), *(root / "otbot_hw").rglob("*.py")]:
+        if path.name == "cia402.py":
+            continue
+        for no, line in enumerate(path.read_text().splitlines(), start=1):
+            if pattern.search(line):
+                offenders.append(f"{path.relative_to(root)}:{no}: {line.strip()}")
+    assert not offenders, offenders
