@@ -157,15 +157,18 @@ class RobotConfig:
 
     def relaxed(self, seconds: float) -> "RobotConfig":
         """A copy whose heartbeat consumer times (the master's of each node, each drive's of the
-        master) are at least ``seconds``: for lockstep runs against a simulated plant, where no
-        real-time deadline is at stake and a loaded machine must not trip them."""
+        master) and the loop's liveness (``bus.loop_liveness``) are at least ``seconds``: for lockstep
+        runs against a simulated plant, where no real-time deadline is at stake and a loaded machine
+        must not trip them."""
         from dataclasses import replace
 
         drives = tuple(replace(d, heartbeat_consumer=max(seconds, d.heartbeat_consumer),
                                master_heartbeat_consumer=max(seconds, d.master_heartbeat_consumer))
                        for d in self.drives)
         enc = replace(self.pivot_encoder, heartbeat_consumer=max(seconds, self.pivot_encoder.heartbeat_consumer))
-        return replace(self, drives=drives, pivot_encoder=enc)
+        # and the loop's liveness: a lockstep cycle held up that long by a loaded machine is no stall
+        liveness = max(self.bus.loop_liveness, int(np.ceil(seconds / self.bus.period - 1e-9)))
+        return replace(self, drives=drives, pivot_encoder=enc, bus=replace(self.bus, loop_liveness=liveness))
 
     def node_ids(self) -> list[int]:
         ids = [d.node_id for d in self.drives]
