@@ -454,3 +454,25 @@ def test_every_paced_run_arms_the_drives_sync_and_rpdo_watchdogs():
             with backend.open():
                 armed = [(d.od_value(0x1006), d.od_value(0x1400, 5)) for d in plant.drives]
         assert armed == ([(0, 0)] * 3 if lockstep else [(period_us, rpdo_ms)] * 3), (lockstep, armed)
+
+
+def test_enable_operation_only_to_keep_or_make_a_commanded_drive_enabled():
+    """CiA 402 words of ``drivers.cia402``: every (command, reported state) pair; "enable operation"
+    is sent only to keep a commanded drive in OPERATION ENABLED and, on the way there, from SWITCHED
+    ON; a drive found in QUICK STOP ACTIVE gets quick stop, any other unexpected state disable voltage."""
+    from drivers import cia402 as c
+
+    states = ("NOT READY TO SWITCH ON", "SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON",
+              "OPERATION ENABLED", "QUICK STOP ACTIVE", "FAULT REACTION ACTIVE", "FAULT")
+    for commanded in (c.DISABLED, c.ENABLING, c.ENABLED, c.QUICK_STOP):
+        for state in states:
+            cw = c.cyclic_controlword(commanded, state)
+            assert (cw == c.CW_ENABLE_OPERATION) == (commanded == c.ENABLED and state == "OPERATION ENABLED")
+            if state == "QUICK STOP ACTIVE" or commanded == c.QUICK_STOP:
+                assert cw == c.CW_QUICK_STOP
+            elif cw != c.CW_ENABLE_OPERATION:
+                assert cw == c.CW_DISABLE_VOLTAGE
+    assert {s for s, cw in c.ENABLE_PATH.items() if cw == c.CW_ENABLE_OPERATION} == {"SWITCHED ON",
+                                                                                     "OPERATION ENABLED"}
+    assert c.expected_states(c.ENABLED) == ("OPERATION ENABLED",)
+    assert set(c.expected_states(c.QUICK_STOP)) >= {"QUICK STOP ACTIVE", "SWITCH ON DISABLED", "OPERATION ENABLED"}
