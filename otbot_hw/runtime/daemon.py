@@ -200,20 +200,15 @@ class Daemon:
         rec_cfg = s.daemon.recording
 
         def recorder(meta: dict, topics: list):
-<<<<<<< HEAD
             try:
                 sess = SessionRecording(s.record_dir, meta, topics, rate=1.0 / period,
                                         rotate_size=rec_cfg.rotate_size, rotate_time=rec_cfg.rotate_time,
-                                        flush_interval=rec_cfg.flush_interval, on_error=self._recording_failed)
+                                        flush_interval=rec_cfg.flush_interval, format=rec_cfg.format,
+                                        on_error=self._recording_failed)
             except (RecordingError, OSError) as exc:  # the folder gone, the disk full at the first file
                 self._recording_failed(str(exc) if isinstance(exc, RecordingError)
                                        else f"recording in {s.record_dir}: cannot start: {os_error_text(exc)}")
                 return None
-=======
-            sess = SessionRecording(s.record_dir, meta, topics, rate=1.0 / period,
-                                    rotate_size=rec_cfg.rotate_size, rotate_time=rec_cfg.rotate_time,
-                                    flush_interval=rec_cfg.flush_interval, format=rec_cfg.format)
->>>>>>> h23ros
             self.sessions.append(sess.session_id)
             return sess
 

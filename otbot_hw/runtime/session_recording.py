@@ -238,7 +238,7 @@ class SessionRecording:
         """For the daemon's ``status``: session id, current file (a bag folder with ``ros2``), its index and
         size (bytes), total samples."""
         try:
-            size = self._writer.path.stat().st_size
+            size = (self._writer.path if self._writer is not None else self.path).stat().st_size
         except OSError:
             size = None
         return {"session": self.session_id, "path": str(self.path), "index": len(self.files) - 1,
