@@ -173,6 +173,7 @@ class CanopenRobot(Robot):
         self.master_heartbeat = HeartbeatProducer(self.network, config.bus.master_node_id, config.bus.master_heartbeat,
                                                   alive=self._loop_alive)
         self._loop_t: float | None = None  # wall time of the loop's last read() / write()
+        self._stalled = False  # the heartbeat is being withheld
         self._nmt_stopped: set[int] = set()  # nodes this master sent NMT STOP (a reaction's escalation)
         self.imu = imu
         self.close_imu = close_imu
@@ -299,8 +300,13 @@ class CanopenRobot(Robot):
         """False while the drives are enabled and the control loop has run no cycle (``read`` or
         ``write``) for ``bus.loop_liveness`` periods: the master's heartbeat is then withheld."""
         t = self._loop_t
-        return (not self.enabled or t is None
-                or time.monotonic() - t <= self.config.bus.loop_liveness * self.period)
+        n = self.config.bus.loop_liveness
+        alive = not self.enabled or t is None or time.monotonic() - t <= n * self.period
+        if not alive and not self._stalled:
+            self.problems.append(f"the control loop ran no cycle for {n} periods (bus.loop_liveness) while the drives "
+                                 "were enabled: master heartbeat withheld, the drives' watchdogs stop them")
+        self._stalled = not alive
+        return alive
 
     # -- faults ------------------------------------------------------------------------------------
     def _bus_time(self, wall: float | None = None) -> float:

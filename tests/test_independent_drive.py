@@ -228,6 +228,7 @@ def test_a_stalled_loop_withholds_the_heartbeat_whatever_thread_is_alive():
         t_stall = time.monotonic()
         time.sleep(consumer + 0.3)
         assert robot.master_heartbeat.running and robot.master_heartbeat.withheld >= 1
+        assert any("master heartbeat withheld" in p for p in robot.problems)  # close() reports it
         for d in drives:
             last_hb = max(t for t in d.master_heartbeats if t < t_stall + consumer)
             # the last heartbeat went out at most liveness periods (plus one heartbeat period) after the stall
