@@ -95,9 +95,12 @@ def test_an_emcy_stops_every_drive_and_only_the_faulty_one_is_reported(realtime)
     pace = 1 / rate if realtime else None
     for attempt in range(3):  # paced: a machine stall before the fault spoils the set-up, not the test
         with independent(realtime=realtime, control_rate=rate) as (robot, drives):
-            robot.enable()
-            for _ in range(3):
-                cycle(robot, (1.0, 1.0, 1.0), pace)
+            try:
+                robot.enable()
+                for _ in range(3):
+                    cycle(robot, (1.0, 1.0, 1.0), pace)
+            except RobotFault:
+                pass
             if robot.faults:
                 assert realtime and attempt < 2, robot.faults
                 continue
@@ -191,9 +194,12 @@ def test_a_stalled_master_stops_every_drive_within_three_periods():
     for attempt in range(3):
         with independent(realtime=True, control_rate=rate) as (robot, drives):
             assert all(d.get(0x1006) == int(period * 1e6) and d.get(0x1400, 5) == 60 for d in drives)
-            robot.enable()
-            for _ in range(10):
-                cycle(robot, (1.0, 1.0, 1.0), period)
+            try:
+                robot.enable()
+                for _ in range(10):
+                    cycle(robot, (1.0, 1.0, 1.0), period)
+            except RobotFault:
+                pass
             t_stall = time.monotonic()
             if robot.faults or any(d.state != ENABLED for d in drives):
                 assert attempt < 2, f"every attempt disturbed before the stall: {robot.faults}"
