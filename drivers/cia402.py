@@ -7,9 +7,9 @@ SYNC monitoring and the RPDO deadline 0x1400:05 on a paced bus); the configured 
 interpolation period (0x60C2) = control period; 0x6076 rated torque checked against the
 configuration (the configuration's value used where the drive has no 0x6076), 0x608F encoder
 resolution; mode of operation: cyclic synchronous torque (10) or, where the drive lacks it,
-profile torque (4); quick stop option 0x605A (written and read back); PDO mapping (``drivers.mapping``: planned from the dictionary, fixed
-mappings used as they are, written, read back and verified), all synchronous (type 1). The
-preferred layout:
+profile torque (4); quick stop option 0x605A (written and read back); PDO mapping
+(``drivers.mapping``: planned from the dictionary, fixed mappings used as they are, written, read
+back and verified), all synchronous (type 1). The preferred layout:
 
 * RPDO1: controlword 0x6040, target torque 0x6071 (per-mille of rated torque);
 * TPDO1: statusword 0x6041, position actual 0x6064 (counts), torque actual 0x6077 (per-mille);
