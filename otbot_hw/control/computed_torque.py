@@ -70,6 +70,22 @@ class ComputedTorqueController:
         self._kp = np.ascontiguousarray(self.gains.kp)
         self._kv = np.ascontiguousarray(self.gains.kv)
         self._out = np.empty((3, 3))
+        self.adapter = None  # an online payload adapter (otbot_hw.runtime.controllers.PayloadAdapter) or None
+
+    @property
+    def prm(self) -> np.ndarray:
+        """The parameter array the law evaluates (``OtbotParams.as_array()`` order); ``set_platform`` changes it
+        in place, so a predictor sharing it follows."""
+        return self._prm
+
+    def set_platform(self, m_p: float, I_p: float, x_F: float, y_F: float) -> None:
+        """Parameter-swap hook (online payload adaptation): the platform + load's mass (kg), inertia about its
+        centre (kg m^2) and centre (m, frame B'') the law uses from its next evaluation on."""
+        from otbot_hw.params import PARAM_INDEX
+
+        for name, v in (("m_p", m_p), ("I_p", I_p), ("x_F", x_F), ("y_F", y_F)):
+            self._prm[PARAM_INDEX[name]] = float(v)
+        self.params = self.params.replace(m_p=float(m_p), I_p=float(I_p), x_F=float(x_F), y_F=float(y_F))
 
     def update_fast(self, p: np.ndarray, p_dot: np.ndarray, phi_p: float,
                     p_d: np.ndarray, pd_d: np.ndarray, pdd_d: np.ndarray) -> np.ndarray:
