@@ -168,7 +168,10 @@ class AdaptationConfig:
     (kg m^2): the file values' prior; confident_mass_std (kg), confident_centre_std (m),
     confident_inertia_std (kg m^2): the estimate is used once its std is below these; ramp (s): time
     constant of the law's blend to a new estimate (bumpless); cusum_drift, cusum_threshold: change
-    detector (dimensionless, on z)."""
+    detector (dimensionless, on z); min_alpha_accel (rad/s^2): I_p counts as confident only after 0.5 s
+    (forgetting-weighted) of samples with |alpha_dd| (low-passed) above this: below it the platform's
+    angular acceleration is differencing noise, and noise in a regressor biases its coefficient towards
+    zero (errors in variables), which the covariance does not show."""
 
     enabled: bool = False
     max_mass: float = 300.0
@@ -185,11 +188,12 @@ class AdaptationConfig:
     ramp: float = 0.5
     cusum_drift: float = 4.0
     cusum_threshold: float = 60.0
+    min_alpha_accel: float = 0.5
 
     UNITS = {"max_mass": "kg", "window": "s", "cutoff": "Hz", "update_rate": "Hz", "torque_sigma": "N m",
              "prior_mass_std": "kg", "prior_moment_std": "kg m", "prior_inertia_std": "kg m^2",
              "confident_mass_std": "kg", "confident_centre_std": "m", "confident_inertia_std": "kg m^2",
-             "ramp": "s", "cusum_drift": "1", "cusum_threshold": "1"}
+             "ramp": "s", "cusum_drift": "1", "cusum_threshold": "1", "min_alpha_accel": "rad/s^2"}
 
     @classmethod
     def from_section(cls, data: Mapping | None, source: str = "config/robot.yaml") -> "AdaptationConfig":
@@ -284,6 +288,7 @@ class PayloadEstimator:
         self._k = 0
         self.updates = 0
         self.settled = 0  # updates since the last reset, for the CUSUM's warm-up
+        self.alpha_excitation = 0.0  # (forgetting) count of updates with |alpha_dd| >= min_alpha_accel
 
     def observe(self, t: float, alpha: float, phi_p: float, p_dot, u_prev) -> bool:
         """One sample at time t (s): platform angle alpha, pivot angle phi_p (rad), twist p_dot (m/s, rad/s),
@@ -334,16 +339,19 @@ class PayloadEstimator:
             self.theta = np.linalg.solve(self.L, self.eta)
             self.updates += 1
             self.settled += 1
+            # J_P is told only by samples whose alpha_dd is above the differencing noise
+            self.alpha_excitation = lam * self.alpha_excitation + float(abs(Y[2, 3]) >= c.min_alpha_accel)
         return False
 
     def estimate(self) -> PayloadEstimate:
         cov = np.linalg.inv(self.L)
         val, std = payload_from_theta(self.theta, cov)
         c = self.config
-        conf = {"m_p": std[0] <= c.confident_mass_std,
-                "x_F": std[2] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
-                "y_F": std[3] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
-                "I_p": std[1] <= c.confident_inertia_std}
+        warm = self.settled >= 2 * c.update_rate  # 2 s of informative updates: the residual scale is known
+        conf = {"m_p": warm and std[0] <= c.confident_mass_std,
+                "x_F": warm and std[2] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
+                "y_F": warm and std[3] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
+                "I_p": warm and std[1] <= c.confident_inertia_std and self.alpha_excitation >= 0.5 * c.update_rate}
         return PayloadEstimate(val, std, self.theta.copy(), cov, conf)
 
 

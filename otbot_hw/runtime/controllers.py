@@ -233,11 +233,13 @@ class PayloadAdapter:
 
     Fed by every ``TrackingController`` on the law (hold, velocity, track: ``observe(feedback)``), it runs
     a ``PayloadEstimator`` on the fed-back motion and the torques that caused it. The law keeps the
-    parameter file's platform values until m_p, x_F and y_F are all confident (std below
-    ``AdaptationConfig``'s thresholds; I_p only when it is too, else the file's or last confident I_p);
+    parameter file's platform values until an estimate is confident (std below ``AdaptationConfig``'s
+    thresholds; I_p needs the platform to turn, else the file's or last confident I_p stays);
     from then on the law's theta follows the estimate through a first-order blend of time constant
-    ``ramp`` s, so the torque changes continuously (no step at the switch). A detected load change resets
-    the estimator; the law keeps its last parameters until the new estimate is confident.
+    ``ramp`` s, so the torque changes continuously (no step at the switch). Each of m_p, x_F, y_F, I_p is taken
+    once its own std is below the threshold (the mass is known long before the centre when the robot
+    first drives straight). A detected load change resets the estimator; the law keeps its last
+    parameters until the new estimates are confident.
 
     An estimate that leaves the physical bounds by more than 3 std (mass in (0, ``max_mass``] kg, centre
     within the platform ``radius`` m, I_p > 0) restores the file's values in the law at once and latches:
@@ -270,7 +272,7 @@ class PayloadAdapter:
         self.theta_file = theta_from_payload(f.m_p, f.I_p, f.x_F, f.y_F)
         self.theta_law = self.theta_file.copy()
         self.target: np.ndarray | None = None
-        self.I_used = f.I_p
+        self.use = {"m_p": f.m_p, "I_p": f.I_p, "x_F": f.x_F, "y_F": f.y_F}  # what the law is blended towards
         self.active = False
         self.converged_s: float | None = None
         self.switched_s: float | None = None
@@ -290,7 +292,7 @@ class PayloadAdapter:
             return "fault"
         if not self.active:
             return "file"
-        return "reestimating" if self.target is None else "adapting"
+        return "reestimating" if self.changes and self.changes[-1]["reconverged_s"] is None else "adapting"
 
     def _say(self, t: float, kind: str, text: str) -> None:
         if self.on_event is not None:
@@ -307,7 +309,6 @@ class PayloadAdapter:
         s = feedback.state
         if self._u_last is not None:
             if self.estimator.observe(t, float(s.p[2]), float(s.phi_p), s.p_dot, self._u_last):
-                self.target = None
                 self.changes.append({"detected_s": t, "reconverged_s": None})
                 self._say(t, "adaptation", "payload change detected (residual CUSUM): re-estimating; the law keeps "
                                            "its last parameters until the new estimate is confident")
@@ -317,26 +318,29 @@ class PayloadAdapter:
             self._updates = self.estimator.updates
             self._est = est = self.estimator.estimate()
             c = est.confident
-            if c["m_p"] and c["x_F"] and c["y_F"]:
-                why = bounds_violation(est.value, est.std, self.config.max_mass, self.radius)
+            if c["m_p"] or c["x_F"] or c["y_F"]:
+                std = np.where([c[n] for n in ("m_p", "I_p", "x_F", "y_F")], est.std, np.inf)
+                why = bounds_violation(est.value, std, self.config.max_mass, self.radius)
                 if why is not None:
                     self._latch(t, why)
                     return
-                if c["I_p"]:
-                    self.I_used = float(est.value[1])
-                m, x, y = (float(v) for v in est.value[[0, 2, 3]])
-                new = theta_from_payload(m, self.I_used, x, y)
-                if self.target is None:
-                    if self.converged_s is None:
-                        self.converged_s = t
-                    elif self.changes and self.changes[-1]["reconverged_s"] is None:
-                        self.changes[-1]["reconverged_s"] = t
-                    self._say(t, "adaptation", "payload estimate confident: " + self.describe(est))
+                for i, n in enumerate(("m_p", "I_p", "x_F", "y_F")):  # each parameter once it is confident
+                    if c[n]:
+                        self.use[n] = float(est.value[i])
+                self.target = theta_from_payload(self.use["m_p"], self.use["I_p"], self.use["x_F"], self.use["y_F"])
                 if not self.active:
                     self.active = True
                     self.switched_s = t
-                    self._say(t, "adaptation", f"the law switches to the estimate (blend, {self.config.ramp:g} s)")
-                self.target = new
+                    self._say(t, "adaptation", "the law starts using the estimate (" + ", ".join(
+                        n for n in ("m_p", "x_F", "y_F", "I_p") if c[n]) + f"; blend {self.config.ramp:g} s): "
+                        + self.describe(est))
+                if c["m_p"] and c["x_F"] and c["y_F"]:
+                    if self.converged_s is None:
+                        self.converged_s = t
+                        self._say(t, "adaptation", "payload estimate converged: " + self.describe(est))
+                    elif self.changes and self.changes[-1]["reconverged_s"] is None:
+                        self.changes[-1]["reconverged_s"] = t
+                        self._say(t, "adaptation", "payload re-estimated: " + self.describe(est))
         if self.target is not None:
             d = self.target - self.theta_law
             if np.any(np.abs(d) > 1e-9 * (1.0 + np.abs(self.target))):
@@ -351,6 +355,7 @@ class PayloadAdapter:
         self.law.set_platform(f.m_p, f.I_p, f.x_F, f.y_F)
         self.theta_law = self.theta_file.copy()
         self.target = None
+        self.use = {"m_p": f.m_p, "I_p": f.I_p, "x_F": f.x_F, "y_F": f.y_F}
         self.fault = (f"payload estimate outside the physical bounds: {why} (daemon.adaptation in config/robot.yaml, "
                       f"platform radius in the parameter file); the file's platform parameters restored")
         self._say(t, "adaptation", self.fault)
@@ -372,8 +377,15 @@ class PayloadAdapter:
         return {n: float(v[i]) for i, n in enumerate(("m_p", "I_p", "x_F", "y_F"))}
 
     def payload_estimate(self) -> dict:
-        """{m_p, I_p, x_F, y_F: {value, std}} of platform + load (kg, kg m^2, m)."""
-        return self._est.to_dict()
+        """{m_p, I_p, x_F, y_F: {value, std, confident}} of platform + load (kg, kg m^2, m). An I_p the motion
+        could not tell (the platform did not turn enough) is the value the law uses with the prior's std."""
+        e = self._est
+        out = e.to_dict()
+        for n, d in out.items():
+            d["confident"] = bool(e.confident[n])
+        if not e.confident["I_p"]:
+            out["I_p"].update(value=float(self.use["I_p"]), std=float(self.config.prior_inertia_std))
+        return out
 
     def summary(self, origin: float = 0.0) -> dict:
         """The ``adaptation`` block: converged_s, switched_s (s after ``origin``, None if never), state, the
