@@ -183,7 +183,7 @@ class AdaptationConfig:
     prior_moment_std: float = 20.0
     prior_inertia_std: float = 20.0
     confident_mass_std: float = 3.0
-    confident_centre_std: float = 0.02
+    confident_centre_std: float = 0.05
     confident_inertia_std: float = 0.5
     ramp: float = 0.5
     cusum_drift: float = 4.0
@@ -347,7 +347,7 @@ class PayloadEstimator:
         cov = np.linalg.inv(self.L)
         val, std = payload_from_theta(self.theta, cov)
         c = self.config
-        warm = self.settled >= 2 * c.update_rate  # 2 s of informative updates: the residual scale is known
+        warm = self.settled >= c.update_rate  # 1 s of informative updates: the residual scale is known
         conf = {"m_p": warm and std[0] <= c.confident_mass_std,
                 "x_F": warm and std[2] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
                 "y_F": warm and std[3] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
