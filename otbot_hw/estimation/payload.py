@@ -347,7 +347,7 @@ class PayloadEstimator:
         cov = np.linalg.inv(self.L)
         val, std = payload_from_theta(self.theta, cov)
         c = self.config
-        warm = self.settled >= c.update_rate  # 1 s of informative updates: the residual scale is known
+        warm = self.settled >= 0.5 * c.update_rate  # 0.5 s of informative updates: the residual scale is known
         conf = {"m_p": warm and std[0] <= c.confident_mass_std,
                 "x_F": warm and std[2] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
                 "y_F": warm and std[3] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
