@@ -201,3 +201,16 @@ def test_the_law_swap_hook_changes_the_torque():
     u1 = law.update_fast(z, z, 0.0, z, z, np.array([0.5, 0.0, 0.0]))[0].copy()
     assert law.params.m_p == pytest.approx(nominal().m_p + 60)
     assert not np.allclose(u0, u1)
+
+
+def test_track_adapt_refuses_a_bad_adaptation_section(tmp_path, otbot_cli):
+    """A bad daemon.adaptation key: one line naming it, exit 2, before anything runs."""
+    from otbot_hw.runtime.daemon_process import local_config
+
+    cfg = local_config(tmp_path, replace={"max_mass: {value: 300.0, unit: kg}": "max_mass: {value: 300.0, unit: g}"})
+    rc, out, err = otbot_cli(["track", "corridor-smooth", "--sim", "--adapt", "payload", "--config", str(cfg),
+                              "--no-robustness", "--json"])
+    assert rc == 2 and "daemon.adaptation.max_mass" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+    rc, out, err = otbot_cli(["track", "corridor-smooth", "--sim", "--adapt", "inertia"])
+    assert rc == 2 and "--adapt" in err
