@@ -78,14 +78,15 @@ class ComputedTorqueController:
         in place, so a predictor sharing it follows."""
         return self._prm
 
-    def set_platform(self, m_p: float, I_p: float, x_F: float, y_F: float) -> None:
+    def set_platform(self, m_p: float, I_p: float, x_F: float, y_F: float, sync: bool = True) -> None:
         """Parameter-swap hook (online payload adaptation): the platform + load's mass (kg), inertia about its
-        centre (kg m^2) and centre (m, frame B'') the law uses from its next evaluation on."""
-        from otbot_hw.params import PARAM_INDEX
-
-        for name, v in (("m_p", m_p), ("I_p", I_p), ("x_F", x_F), ("y_F", y_F)):
-            self._prm[PARAM_INDEX[name]] = float(v)
-        self.params = self.params.replace(m_p=float(m_p), I_p=float(I_p), x_F=float(x_F), y_F=float(y_F))
+        centre (kg m^2) and centre (m, frame B'') the law uses from its next evaluation on. ``sync`` False
+        changes only the evaluated array (cheap, every cycle of a blend); ``params`` follows at the next
+        synced call."""
+        prm = self._prm
+        prm[7], prm[8], prm[9], prm[10] = float(m_p), float(I_p), float(x_F), float(y_F)  # PARAM_INDEX order
+        if sync:
+            self.params = self.params.replace(m_p=float(m_p), I_p=float(I_p), x_F=float(x_F), y_F=float(y_F))
 
     def update_fast(self, p: np.ndarray, p_dot: np.ndarray, phi_p: float,
                     p_d: np.ndarray, pd_d: np.ndarray, pdd_d: np.ndarray) -> np.ndarray:

@@ -300,7 +300,7 @@ class PayloadAdapter:
 
     def observe(self, feedback) -> None:
         """One cycle's feedback (``Feedback``: state at feedback.t, u_held acting from then on)."""
-        from otbot_hw.estimation.payload import bounds_violation, payload_from_theta, theta_from_payload
+        from otbot_hw.estimation.payload import bounds_violation, theta_from_payload
 
         if self.fault is not None:
             return
@@ -314,7 +314,9 @@ class PayloadAdapter:
                                            "its last parameters until the new estimate is confident")
         self._u_last = np.array(feedback.u_held, dtype=float)
         est = self._est
+        synced = False
         if self.estimator.updates != self._updates:
+            synced = True
             self._updates = self.estimator.updates
             self._est = est = self.estimator.estimate()
             c = est.confident
@@ -345,8 +347,10 @@ class PayloadAdapter:
             d = self.target - self.theta_law
             if np.any(np.abs(d) > 1e-9 * (1.0 + np.abs(self.target))):
                 self.theta_law = self.theta_law + d * min(1.0, self.period / self.config.ramp)
-                m, ip, x, y = payload_from_theta(self.theta_law)[0]
-                self.law.set_platform(m, ip, x, y)
+                m, mx, my, jp = (float(v) for v in self.theta_law)
+                x, y = mx / m, my / m
+                # law.params (a validated copy) is synced at each estimator update, the array every cycle
+                self.law.set_platform(m, jp - m * (x * x + y * y), x, y, sync=synced)
 
     def _latch(self, t: float, why: str) -> None:
         from otbot_hw.runtime.supervisor import Violation
