@@ -109,7 +109,13 @@ class DaemonConfig:
     velocity: VelocityConfig = field(default_factory=VelocityConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
-    adaptation: Any = None  # otbot_hw.estimation.payload.AdaptationConfig (None: its defaults, disabled)
+    adaptation: Any = field(default_factory=lambda: _adaptation_default())  # estimation.payload.AdaptationConfig
+
+
+def _adaptation_default():
+    from otbot_hw.estimation.payload import AdaptationConfig
+
+    return AdaptationConfig()
 
 
 _SIZE_UNITS = {"bytes": 1, "KiB": 2 ** 10, "MiB": 2 ** 20, "GiB": 2 ** 30}
