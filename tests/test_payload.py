@@ -214,3 +214,29 @@ def test_track_adapt_refuses_a_bad_adaptation_section(tmp_path, otbot_cli):
     assert len(err.strip().splitlines()) == 1
     rc, out, err = otbot_cli(["track", "corridor-smooth", "--sim", "--adapt", "inertia"])
     assert rc == 2 and "--adapt" in err
+
+
+def test_track_adapt_payload_json(tmp_path, otbot_cli):
+    """otbot track --adapt payload --json: payload_estimate {value, std} near the plant's platform + load and
+    adaptation {converged_s, switched_s}; the recording carries /otbot/payload."""
+    import json
+
+    from otbot_hw.params import write_yaml
+    from otbot_hw.recording import read_recording
+
+    plant = nominal().with_load(*LOAD)
+    write_yaml(tmp_path / "plant.yaml", plant.to_dict())
+    t = np.linspace(0.0, 6.0, 121)
+    s = lambda u: np.clip(u, 0, 1) ** 3 * (10 - 15 * np.clip(u, 0, 1) + 6 * np.clip(u, 0, 1) ** 2)  # noqa: E731
+    rows = "\n".join(f"{a:.3f},{s(a / 3):.6f},{s(a / 3 - 1):.6f},0" for a in t)
+    (tmp_path / "xy.csv").write_text("t,x,y,alpha\n" + rows + "\n")  # 1 m along x, then 1 m along y
+    rc, out, err = otbot_cli(["track", str(tmp_path / "xy.csv"), "--sim", "--rate", "100", "--feedback", "truth",
+                              "--plant-params", str(tmp_path / "plant.yaml"), "--adapt", "payload",
+                              "--no-robustness", "--out", str(tmp_path / "run.mcap"), "--json"])
+    assert rc == 0, err
+    r = json.loads(out)
+    pe, ad = r["payload_estimate"], r["adaptation"]
+    assert set(pe) == {"m_p", "I_p", "x_F", "y_F"} and all({"value", "std"} <= set(v) for v in pe.values())
+    assert abs(pe["m_p"]["value"] - plant.m_p) < max(3 * pe["m_p"]["std"], 0.5)
+    assert 0 < ad["switched_s"] <= ad["converged_s"] < 6 and ad["fault"] is None
+    assert read_recording(tmp_path / "run.mcap").payload_value is not None
