@@ -89,3 +89,16 @@ def test_the_daemon_adapts_to_an_unknown_load(tmp_path, max_mass):
         th.join(30)
     rec = read_recording(path)
     assert rec.payload_value is not None and abs(rec.payload_value[-1, 0] - m["value"]) < 3.0
+
+
+def test_ctl_status_prints_the_estimate_with_its_std():
+    from otbot_hw.cli.ctl import format_status
+
+    st = {"mode": "track", "faults": [], "drive_states": {}, "payload": {
+        "state": "adapting", "estimate": {"m_p": {"value": 81.9, "std": 0.4, "confident": True},
+                                          "I_p": {"value": 2.22, "std": 20.0, "confident": False},
+                                          "x_F": {"value": 0.11, "std": 0.002, "confident": True},
+                                          "y_F": {"value": -0.073, "std": 0.001, "confident": True}}}}
+    line = next(ln for ln in format_status(st).splitlines() if ln.startswith("payload"))
+    assert "m_p 81.9 ± 0.4 kg" in line and "I_p 2.22 ± 20 kg m^2 (file)" in line and line.endswith("adapting")
+    assert not [ln for ln in format_status({**st, "payload": None}).splitlines() if ln.startswith("payload")]
