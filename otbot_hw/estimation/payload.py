@@ -171,7 +171,8 @@ class AdaptationConfig:
     detector (dimensionless, on z); min_alpha_accel (rad/s^2): I_p counts as confident only after 0.5 s
     (forgetting-weighted) of samples with |alpha_dd| (low-passed) above this: below it the platform's
     angular acceleration is differencing noise, and noise in a regressor biases its coefficient towards
-    zero (errors in variables), which the covariance does not show."""
+    zero (errors in variables), which the covariance does not show; warm_up (s): informative updates
+    needed (after a start or a detected change) before any estimate counts as confident."""
 
     enabled: bool = False
     max_mass: float = 300.0
@@ -189,11 +190,13 @@ class AdaptationConfig:
     cusum_drift: float = 4.0
     cusum_threshold: float = 60.0
     min_alpha_accel: float = 0.5
+    warm_up: float = 0.5
 
     UNITS = {"max_mass": "kg", "window": "s", "cutoff": "Hz", "update_rate": "Hz", "torque_sigma": "N m",
              "prior_mass_std": "kg", "prior_moment_std": "kg m", "prior_inertia_std": "kg m^2",
              "confident_mass_std": "kg", "confident_centre_std": "m", "confident_inertia_std": "kg m^2",
-             "ramp": "s", "cusum_drift": "1", "cusum_threshold": "1", "min_alpha_accel": "rad/s^2"}
+             "ramp": "s", "cusum_drift": "1", "cusum_threshold": "1", "min_alpha_accel": "rad/s^2",
+             "warm_up": "s"}
 
     @classmethod
     def from_section(cls, data: Mapping | None, source: str = "config/robot.yaml") -> "AdaptationConfig":
@@ -347,7 +350,7 @@ class PayloadEstimator:
         cov = np.linalg.inv(self.L)
         val, std = payload_from_theta(self.theta, cov)
         c = self.config
-        warm = self.settled >= 0.5 * c.update_rate  # 0.5 s of informative updates: the residual scale is known
+        warm = self.settled >= c.warm_up * c.update_rate  # informative updates enough to know the residual scale
         conf = {"m_p": warm and std[0] <= c.confident_mass_std,
                 "x_F": warm and std[2] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
                 "y_F": warm and std[3] <= c.confident_centre_std and std[0] <= c.confident_mass_std,
