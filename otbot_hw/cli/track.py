@@ -276,7 +276,7 @@ def _print_human(r: dict) -> None:
         pe, ad = r["payload_estimate"], r["adaptation"]
         print("  payload estimate (platform + load): " + ", ".join(
             f"{k} {v['value']:.3g} ± {v['std']:.2g}" for k, v in pe.items())
-              + f" (kg, kg m^2, m); converged {ad['converged_s']} s, law switched {ad['switched_s']} s, {ad['state']}")
+              + f" (kg, kg m^2, m); converged {_s(ad['converged_s'])}, law switched {_s(ad['switched_s'])}, {ad['state']}")
     if "feasibility" in r:
         print(f"  feasibility: {'ok' if r['feasibility']['feasible'] else 'limits can be exceeded'}")
     if "open_loop" in r:
@@ -299,3 +299,7 @@ def _print_human(r: dict) -> None:
         print(f"  FAULT: {r['fault']['kind']} at t = {r['fault']['t']:.3f} s: {r['fault']['text']}")
     for p in r.get("plots", []):
         print(f"  plot: {p}")
+
+
+def _s(v) -> str:
+    return "never" if v is None else f"at {v:.2f} s"
