@@ -85,7 +85,8 @@ def payload_from_theta(theta, cov=None) -> tuple[np.ndarray, np.ndarray | None]:
 @njit(cache=True)
 def regressor_sample(alpha, phi_p, pd, pdd, u, prm, out):
     """Fill out (15,) with Y (3x4, row-major) and y = u - u_rest (3,) for one sample (see the module
-    docstring); prm: the parameter file's ``as_array()`` (its platform entries are ignored)."""
+    docstring; entries beyond 15 are left alone); prm: the parameter file's ``as_array()`` (its platform
+    entries are ignored)."""
     q = prm.copy()
     q[_MP] = 0.0
     q[_IP] = 0.0
@@ -172,7 +173,10 @@ class AdaptationConfig:
     (forgetting-weighted) of samples with |alpha_dd| (low-passed) above this: below it the platform's
     angular acceleration is differencing noise, and noise in a regressor biases its coefficient towards
     zero (errors in variables), which the covariance does not show; warm_up (s): informative updates
-    needed (after a start or a detected change) before any estimate counts as confident."""
+    needed (after a start or a detected change) before any estimate counts as confident; min_accel
+    (m/s^2): a sample informs only when its low-passed |(x_dd, y_dd)| or |alpha_dd| is above this or
+    min_alpha_accel (at rest or cruising the differenced twist is noise, which would pull the estimate
+    towards zero)."""
 
     enabled: bool = False
     max_mass: float = 300.0
@@ -191,12 +195,13 @@ class AdaptationConfig:
     cusum_threshold: float = 60.0
     min_alpha_accel: float = 0.5
     warm_up: float = 0.5
+    min_accel: float = 0.1
 
     UNITS = {"max_mass": "kg", "window": "s", "cutoff": "Hz", "update_rate": "Hz", "torque_sigma": "N m",
              "prior_mass_std": "kg", "prior_moment_std": "kg m", "prior_inertia_std": "kg m^2",
              "confident_mass_std": "kg", "confident_centre_std": "m", "confident_inertia_std": "kg m^2",
              "ramp": "s", "cusum_drift": "1", "cusum_threshold": "1", "min_alpha_accel": "rad/s^2",
-             "warm_up": "s"}
+             "warm_up": "s", "min_accel": "m/s^2"}
 
     @classmethod
     def from_section(cls, data: Mapping | None, source: str = "config/robot.yaml") -> "AdaptationConfig":
@@ -274,7 +279,7 @@ class PayloadEstimator:
         h = self.decimate * self.period
         self.lam = math.exp(-h / c.window)
         self.lam_noise = math.exp(-h / (0.5 * c.window))
-        self._buf = np.empty(15)
+        self._buf = np.empty(18)  # Y (12), y (3), p_dd (3): filtered together
         self.reset()
 
     def reset(self) -> None:
@@ -286,7 +291,7 @@ class PayloadEstimator:
         self._noise_acc = np.zeros(3)
         self._noise_w = 0.0
         self.cusum = 0.0
-        self.filter = LowPass(self.config.cutoff, 1.0 / self.period, 15)
+        self.filter = LowPass(self.config.cutoff, 1.0 / self.period, 18)
         self._prev = None
         self._k = 0
         self.updates = 0
@@ -304,17 +309,21 @@ class PayloadEstimator:
             return False
         h = t - prev[0]
         if not abs(h - self.period) < 0.25 * self.period:  # a gap (unpowered, a fault): start over
-            self.filter = LowPass(self.config.cutoff, 1.0 / self.period, 15)
+            self.filter = LowPass(self.config.cutoff, 1.0 / self.period, 18)
             return False
         pdd = (pd - prev[3]) / h
         pm = 0.5 * (pd + prev[3])
         regressor_sample(0.5 * (alpha + prev[1]), 0.5 * (phi_p + prev[2]), pm, pdd,
                          np.ascontiguousarray(u_prev, dtype=float), self.prm, self._buf)
+        self._buf[15:] = pdd
         f = self.filter.step(self._buf)
         self._k += 1
         if self._k % self.decimate:
             return False
-        return self.update(f[:12].reshape(3, 4), f[12:])
+        c = self.config
+        if math.hypot(f[15], f[16]) < c.min_accel and abs(f[17]) < c.min_alpha_accel:
+            return False  # no acceleration above the differencing noise: nothing to learn, nothing forgotten
+        return self.update(f[:12].reshape(3, 4), f[12:15])
 
     def update(self, Y: np.ndarray, y: np.ndarray) -> bool:
         """One least-squares update with regressor Y (3x4) and y = u - u_rest (3,) N m. Returns True on a
