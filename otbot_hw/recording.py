@@ -310,10 +310,18 @@ class RecordingWriter:
         self._writer.flush()
 
     def close(self) -> None:
-        """Write the MCAP summary and footer and close the file."""
+        """Write the MCAP summary and footer and close the file (closed also when writing them fails,
+        e.g. on a full disk: the error is raised, the file descriptor is not leaked)."""
         if not self._closed:
             self._closed = True
-            self._writer.finish()
+            try:
+                self._writer.finish()
+            except BaseException:
+                try:
+                    self._file.close()
+                except OSError:
+                    pass  # its buffer cannot be written either: the first error is the one raised
+                raise
             self._file.close()
 
     def __enter__(self) -> "RecordingWriter":

@@ -186,7 +186,19 @@ BAD_INPUT = [
     ("bench", "--config {binary_yaml}", "not a text file"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
-    (None, "", "the following arguments are required: COMMAND"),
+    (None, "", "the following arguments are required: COMMAND"),    # --- import (ROS 2 bag -> recording), export (recording -> ROS 2 bag)
+    ("import", "{missing}/bag --out {tmp}/imported.mcap", "bag: no such file or folder"),
+    ("import", "{folder} --out {tmp}/imported.mcap", "folder without metadata.yaml: not a rosbag2 bag"),
+    ("import", "{ok} --out {tmp}/imported.mcap", "is a project recording (JSON messages), not a ROS 2 bag"),
+    ("import", "{text} --out {tmp}/imported.mcap", "not an MCAP file"),
+    ("import", "{empty} --out {tmp}/imported.mcap", "not an MCAP file"),
+    ("import", "{ok} --out {missing}/imported.mcap", "does not exist (otbot creates no parent folders)"),
+    ("import", "{ok} --out {tmp}/imported.mcap --rate 0", "argument --rate: must be a finite number of Hz > 0"),
+    ("import", "{ok} --out {tmp}/imported.mcap --map {binary_yaml}", "not a text file"),
+    ("export", "{missing}/run.mcap --ros2 {tmp}/bag", "run.mcap: no such file"),
+    ("export", "{ok} --ros2 {ok}", "exists and is not a folder (a rosbag2 bag is a folder)"),
+    ("export", "{ok} --ros2 {missing}/bag", "does not exist (otbot creates no parent folders)"),
+    ("export", "{cut_before_samples} --ros2 {tmp}/bag", "truncated"),
 ]
 
 
@@ -257,7 +269,8 @@ def _leaf_parsers():
 def test_unknown_option_names_the_subcommand_usage(name, otbot_cli):
     needs = {"identify": ["chassis", "--sim"], "imu parse": ["capture.bin"], "plan": ["--out", "p.csv"],
              "track": ["corridor", "--sim"], "ctl track": ["corridor-smooth"], "ctl velocity": ["0", "0", "0"],
-             "ctl excite": ["/tmp/x.csv"], "ctl record": ["start"], "estimate": ["x.mcap"]}
+             "ctl excite": ["/tmp/x.csv"], "ctl record": ["start"], "estimate": ["x.mcap"],
+             "import": ["bag", "--out", "x.mcap"], "export": ["x.mcap", "--ros2", "bag"]}
     rc, out, err = otbot_cli([*name.split(), *needs.get(name, []), "--no-such-option"])
     assert_one_line_error(rc, out, err, "unrecognized arguments: --no-such-option")
     assert f"; usage: otbot {name} [-h]" in err and "usage: otbot [-h] COMMAND" not in err

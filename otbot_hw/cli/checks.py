@@ -22,7 +22,13 @@ import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
 
-from otbot_hw.params import finite_number
+
+
+def finite_number(*args, **kwargs):
+    """``otbot_hw.params.finite_number``, imported when first used (``otbot ctl`` starts without numpy)."""
+    from otbot_hw.params import finite_number as parse
+
+    return parse(*args, **kwargs)
 
 
 class CliError(Exception):
