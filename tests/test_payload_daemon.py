@@ -29,6 +29,7 @@ def start(folder, max_mass: float):
     write_yaml(plant, nominal().with_load(*LOAD).to_dict())
     cfg = local_config(folder / "cfg", replace={**RELAXED, "max_mass: {value: 300.0": f"max_mass: {{value: {max_mass}"})
     sock = folder / "control.sock"
+    (folder / "rec").mkdir()
     args = build_parser().parse_args(["daemon", "--bus", "sim", "--config", str(cfg), "--socket", str(sock),
                                       "--record-dir", str(folder / "rec"), "--no-telemetry",
                                       "--plant-params", str(plant)])
