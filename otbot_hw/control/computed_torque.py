@@ -70,6 +70,7 @@ class ComputedTorqueController:
         self._kp = np.ascontiguousarray(self.gains.kp)
         self._kv = np.ascontiguousarray(self.gains.kv)
         self._out = np.empty((3, 3))
+        self.compensation = np.zeros(3)  # N m: command - the paper model's torque, of the last evaluation
         self.adapter = None  # an online payload adapter (otbot_hw.runtime.controllers.PayloadAdapter) or None
 
     @property
@@ -98,7 +99,8 @@ class ComputedTorqueController:
         if self._eff is not None:
             cmd = compensated_command(reference_state(p_d, pd_d, phi_p, self._prm), self._out[0], self._eff,
                                       self._prm, FLOOR)
-            self._out[1] += cmd - self._out[0]
+            self.compensation = cmd - self._out[0]  # what the effects take (payload adaptation subtracts it)
+            self._out[1] += self.compensation
             self._out[0] = cmd
         return self._out
 

@@ -312,7 +312,9 @@ class PayloadAdapter:
                 self.changes.append({"detected_s": t, "reconverged_s": None})
                 self._say(t, "adaptation", "payload change detected (residual CUSUM): re-estimating; the law keeps "
                                            "its last parameters until the new estimate is confident")
-        self._u_last = np.array(feedback.u_held, dtype=float)
+        # the torque the paper's model sees: the command less what the law added for compensated effects
+        # (its last evaluation made the command now held)
+        self._u_last = np.array(feedback.u_held, dtype=float) - self.law.compensation
         est = self._est
         synced = False
         if self.estimator.updates != self._updates:
