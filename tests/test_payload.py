@@ -247,3 +247,25 @@ def test_track_adapt_payload_json(tmp_path, otbot_cli):
     assert abs(pe["m_p"]["value"] - plant.m_p) < max(3 * pe["m_p"]["std"], 0.5)
     assert 0 < ad["switched_s"] <= ad["converged_s"] < 6 and ad["fault"] is None
     assert read_recording(tmp_path / "run.mcap").payload_value is not None
+
+
+def test_a_diagnosed_model_s_compensation_is_not_taken_for_payload():
+    """Coulomb friction in plant and model, compensated by the law: the estimator subtracts the compensation
+    from the held command, so the mass is the load's (without it: 99 kg for 82)."""
+    from otbot_hw.control.gains import gains_from_tstab
+    from otbot_hw.control.scenarios import build_spec
+    from otbot_hw.model.effects import EFFECT_INDEX, ExtendedModel, effect_vector
+    from otbot_hw.motors import load_motor_limits
+    from otbot_hw.runtime.backends import DirectBackend
+    from otbot_hw.runtime.tracking import track_reference
+
+    eff = np.array(effect_vector(), dtype=float)
+    eff[[EFFECT_INDEX["c_r"], EFFECT_INDEX["c_l"], EFFECT_INDEX["c_p"]]] = 0.8, 0.8, 0.5
+    limits = load_motor_limits()
+    spec = build_spec("corridor-smooth", nominal(), limits)
+    law = ComputedTorqueController(ExtendedModel(nominal(), eff), gains_from_tstab(3.0))
+    plant = ExtendedModel(nominal().with_load(*LOAD), eff)
+    run = track_reference(spec.reference, law, plant, limits, DirectBackend(rate=1.0 / PERIOD, imu_rate=None),
+                          "truth", x0=spec.x0, duration=12.0, adapt=AdaptationConfig(enabled=True))
+    assert run.completed
+    assert abs(run.adapter.payload_estimate()["m_p"]["value"] - plant.params.m_p) < 2.5
