@@ -39,6 +39,9 @@ def window_errors(run, t_from: float) -> dict:
     and max / rms |e_xy| of what the controller is fed (estimate - reference: the control alone, without
     the EKF's drift)."""
     m = run.t >= t_from
+    if not m.any():  # the run stopped before (a fault: see "completed")
+        nan = float("nan")
+        return {"max_xy_mm": nan, "rms_xy_mm": nan, "max_alpha_mrad": nan, "fed_max_xy_mm": nan, "fed_rms_xy_mm": nan}
     exy = np.hypot(run.e_p[m, 0], run.e_p[m, 1]) * 1e3
     ea = np.abs(run.e_p[m, 2]) * 1e3
     out = {"max_xy_mm": float(exy.max()), "rms_xy_mm": float(np.sqrt(np.mean(exy ** 2))),
@@ -126,6 +129,9 @@ def main() -> None:
         cs = f"{ad['converged_s']:.2f} / {ad['switched_s']:.2f}" if ad and ad["converged_s"] is not None else (
             "not converged" if ad else "")
         fed = (f"{e['fed_max_xy_mm']:.3g} / {e['fed_rms_xy_mm']:.3g}" if r["feedback"] == "ekf" else "=")
+        if not r["completed"]:
+            print(f"| {r['scenario']} | {r['feedback']} | {r['seed']} | {r['variant']} | stopped by a fault |")
+            continue
         print(f"| {r['scenario']} | {r['feedback']} | {r['seed']} | {r['variant']} | {e['max_xy_mm']:.3g} / "
               f"{e['rms_xy_mm']:.3g} ({w['max_xy_mm']:.3g} / {w['rms_xy_mm']:.3g}) | {fed} | {r['after10']['max_xy_mm']:.3g} / "
               f"{r['after10']['rms_xy_mm']:.3g} | {e['max_alpha_mrad']:.3g} ({w['max_alpha_mrad']:.3g}) "
