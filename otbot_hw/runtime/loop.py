@@ -30,7 +30,9 @@ between cycles (only armed cycles write commands); ``continue_after_fault=True``
 estimating and recording after a fault (no commands) until ``reset()``; ``trip(violation)`` is a
 fault raised from another thread (an operator's estop), acted on at once — it also wakes the
 real-time wait; ``recorder(metadata, topics)`` makes the writer (a ``SessionRecording``) and
-``start_recording``/``stop_recording`` open and close it between cycles. A robot whose clock
+``start_recording``/``stop_recording`` open and close it between cycles; in a real-time loop its
+files are written by a thread of their own (``BackgroundWriter``: the loop only queues each sample,
+JSON and MCAP encoding and the file I/O leave the cycle; ``record_in_background``). A robot whose clock
 restarts (``CanopenRobot`` counts from ``enable()``) is continued: the loop's time never goes back.
 """
 from __future__ import annotations
@@ -153,6 +155,105 @@ class _Columns:
             setattr(self, n, [])
 
 
+class BackgroundWriter:
+    """A recording writer (``RecordingWriter``, ``SessionRecording``) fed from the loop thread and
+    written by a thread of its own: ``write_sample``/``write_event`` only queue (in order, O(1));
+    the JSON encoding, MCAP framing, file writes and flushes run in the ``recording-writer`` thread,
+    which drains the queue every ``interval`` s (and at once when ``flush()``/``close()`` ask).
+    ``flush()`` and ``close()`` return once everything queued before them is written (and flushed);
+    more than ``max_queue`` waiting samples (a stalled disk) make ``write_sample`` wait for the
+    writer, as writing in the loop did. An exception the writer raises is re-raised by the next call
+    from the loop. Other attributes (``path``, ``error``, ``status()``, ...) are the writer's."""
+
+    def __init__(self, writer, interval: float = 0.02, max_queue: int = 10000):
+        self.writer = writer
+        self.interval = float(interval)
+        self.max_queue = int(max_queue)
+        self._q: deque = deque()
+        self._cv = threading.Condition()
+        self._done = 0  # items written so far
+        self._queued = 0  # items queued so far
+        self._failure: BaseException | None = None
+        self._closing = False
+        self._thread = threading.Thread(target=self._run, name="recording-writer", daemon=True)
+        self._thread.start()
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["writer"], name)
+
+    def write_sample(self, messages: dict) -> None:
+        self._check()
+        self._q.append((0, messages))
+        self._queued += 1
+        if len(self._q) > self.max_queue:
+            self._wait(self._queued - self.max_queue // 2)
+
+    def write_event(self, t: float, kind: str, text: str, **extra) -> None:
+        self._check()
+        self._q.append((1, (t, kind, text, extra)))
+        self._queued += 1
+
+    def flush(self) -> None:
+        """Everything queued so far written and flushed to the file (waits for the writer)."""
+        self._check()
+        self._q.append((2, None))
+        self._queued += 1
+        self._wait(self._queued)
+        self._check()
+
+    def close(self) -> None:
+        """Write what is queued, close the writer and end the thread."""
+        self._q.append((3, None))
+        self._queued += 1
+        with self._cv:
+            self._closing = True
+            self._cv.notify()
+        self._thread.join()
+        self._check()
+
+    def _check(self) -> None:
+        if self._failure is not None:
+            exc, self._failure = self._failure, None
+            raise exc
+
+    def _wait(self, n: int) -> None:
+        with self._cv:
+            self._cv.notify()
+            while self._done < n and self._thread.is_alive():
+                self._cv.wait(0.1)
+
+    def _run(self) -> None:
+        w, q = self.writer, self._q
+        while True:
+            with self._cv:
+                if not q and not self._closing:
+                    self._cv.wait(self.interval)
+            while q:
+                what, item = q.popleft()
+                try:
+                    if what == 0:
+                        w.write_sample(item)
+                    elif what == 1:
+                        t, kind, text, extra = item
+                        w.write_event(t, kind, text, **extra)
+                    elif what == 2:
+                        w.flush()
+                    else:
+                        w.close()
+                except BaseException as exc:  # noqa: BLE001 - handed to the loop thread
+                    if self._failure is None:
+                        self._failure = exc
+                self._done += 1
+                if what >= 2:
+                    with self._cv:
+                        self._cv.notify_all()
+                    if what == 3:
+                        return
+            if self._done >= self._queued - self.max_queue // 2:
+                with self._cv:
+                    self._cv.notify_all()
+
+
 _NAN3 = np.full(3, np.nan)
 _ZERO3 = np.zeros(3)
 _ZERO2 = np.zeros(2)
@@ -178,7 +279,8 @@ class LoopRunner:
                  path: str | Path | None = None, metadata: dict | None = None, realtime: bool = False,
                  progress: Callable[[str], None] | None = None, progress_every: float = 1.0,
                  stop_at_end: bool = True, record_reference: bool | None = None, keep_samples: bool = True,
-                 continue_after_fault: bool = False, recorder: Callable[[dict, list], Any] | None = None):
+                 continue_after_fault: bool = False, recorder: Callable[[dict, list], Any] | None = None,
+                 record_in_background: bool | None = None):
         self.robot = robot
         self.controller = controller
         self.supervisor = supervisor
@@ -217,6 +319,9 @@ class LoopRunner:
         self.keep_samples = keep_samples
         self.continue_after_fault = continue_after_fault
         self.recorder = recorder
+        # the recorder's files written by a thread of their own (default: a real-time loop's)
+        self.record_in_background = (recorder is not None and realtime) if record_in_background is None \
+            else bool(record_in_background)
         self.armed = False  # the drives are powered and commands are written
         self.period_hist = TimingHistogram()
         self.jitter_hist = TimingHistogram()
@@ -559,10 +664,16 @@ class LoopRunner:
         if self.path is not None:
             self.writer = RecordingWriter(self.path, meta, topics=topics)
         elif self.recorder is not None:
-            self.writer = self.recorder(meta, topics)
+            self.writer = self._background(self.recorder(meta, topics))
         if self.writer is not None:
             for ev in self.events:
                 self.writer.write_event(ev["t"], ev["kind"], ev["text"])
+
+    def _background(self, writer):
+        """The recorder's writer, written from its own thread when ``record_in_background``."""
+        if writer is None or not self.record_in_background:
+            return writer
+        return BackgroundWriter(writer)
 
     @property
     def recording(self):
@@ -578,7 +689,7 @@ class LoopRunner:
             raise RuntimeError("already recording")
         if not self._topics:
             return None
-        self.writer = self.recorder(self.metadata, self._topic_list)
+        self.writer = self._background(self.recorder(self.metadata, self._topic_list))
         return self.writer
 
     def stop_recording(self):
