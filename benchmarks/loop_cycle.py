@@ -19,8 +19,9 @@ window: the master's CAN notifier (which decodes the TPDOs: the rest of the mast
 plant's (the simulated drives: not the master's), heartbeats, telemetry, ...; and the loop's own
 timing from ``status`` (period, overruns: wall time, distorted by the machine's load).
 
-``--profile FILE``: pyinstrument on the loop thread over the window instead (text, the slowest
-frames first); the timing is then not representative.
+``--profile FILE``: pyinstrument on the loop thread over the window (text: wall time, call tree);
+``--cprofile FILE``: cProfile on the loop thread (CPU time per function); either slows the cycle,
+so the timing of a profiled run is not representative.
 """
 from __future__ import annotations
 
@@ -64,6 +65,7 @@ class _Probe:
         self._read, self._write = robot.read, robot.write
         self.active = False
         self.loop_ident = None
+        self.sections: dict[str, list] = {}  # name -> [per-cycle CPU (s), this cycle's sum so far]
 
     def read(self):
         t0 = time.thread_time()
@@ -79,12 +81,30 @@ class _Probe:
         if self.active and self.k < self.n and self._t_read:
             self.read_cpu[self.k] = self._t_read - self._t_ask
             self.work_cpu[self.k] = t - self._t_ask
+            for acc in self.sections.values():
+                acc[0][self.k] = acc[1]
             self.k += 1
+        for acc in self.sections.values():
+            acc[1] = 0.0
         self._t_read = 0.0
         return c
 
     def install(self):
         self.robot.read, self.robot.write = self.read, self.write
+
+    def section(self, obj, attr: str, name: str) -> None:
+        """Also time ``obj.attr`` (an instance attribute replaces it): loop-thread CPU per cycle."""
+        fn = getattr(obj, attr)
+        acc = self.sections.setdefault(name, [np.full(self.n, np.nan), 0.0])
+
+        def timed(*a, **kw):
+            t0 = time.thread_time()
+            try:
+                return fn(*a, **kw)
+            finally:
+                acc[1] += time.thread_time() - t0
+
+        setattr(obj, attr, timed)
 
 
 def _thread_cpu() -> dict[str, float]:
@@ -101,7 +121,7 @@ def _thread_cpu() -> dict[str, float]:
     return out
 
 
-def run(rate: float, seconds: float, folder: Path, profile: Path | None = None) -> dict:
+def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, cprofile: Path | None = None) -> dict:
     from otbot_hw.cli import build_parser
     from otbot_hw.cli.daemon import prepare
     from otbot_hw.runtime.daemon_process import local_config
@@ -134,6 +154,13 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None) 
     n = int(seconds * rate * 1.5) + 100
     probe = _Probe(robot, n)
     probe.install()
+    runner = daemon.runner
+    for obj, attr, name in ((runner.feedback, "step", "estimator (EKF step)"),
+                            (runner.supervisor, "check", "supervisor check"),
+                            (runner, "_record", "recording (loop side)"),
+                            (runner.supervisor, "limit", "limiter"),
+                            (runner, "_timing", "loop timing")):
+        probe.section(obj, attr, name)
     _request(sock, "enable")
     time.sleep(1.0)  # the hold settles
     notifier_threads = set()
@@ -141,6 +168,11 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None) 
         notifier_threads = {t.name for t in robot.network.notifier._readers if isinstance(t, threading.Thread)}
     if profile is not None:  # start the profiler on the loop thread, between two cycles
         daemon._loop_call(lambda: prof_box["p"].start())
+    if cprofile is not None:  # cProfile, enabled on the loop thread: that thread only
+        import cProfile
+
+        prof_box["c"] = cProfile.Profile()
+        daemon._loop_call(prof_box["c"].enable)
     cpu0 = _thread_cpu()
     st0 = _request(sock, "status")
     probe.active = True
@@ -159,6 +191,18 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None) 
         p = prof_box["p"]
         daemon._loop_call(p.stop)
         profile.write_text(p.output_text(unicode=False, color=False, show_all=False))
+    if cprofile is not None:
+        import io
+        import pstats
+
+        daemon._loop_call(prof_box["c"].disable)
+        out = io.StringIO()
+        stats = pstats.Stats(prof_box["c"], stream=out)
+        out.write(f"cProfile of the loop thread, {rate:g} Hz, {wall:.0f} s (CPU time per function; profiling "
+                  f"itself slows each call)\n")
+        stats.sort_stats("tottime").print_stats(40)
+        stats.sort_stats("cumulative").print_stats(40)
+        cprofile.write_text(out.getvalue().replace(str(ROOT) + "/", ""))
     load = os.getloadavg()[0]
     _request(sock, "shutdown")
     th.join(30)
@@ -176,6 +220,7 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None) 
             "compute_write_p50_us": us(w - r, 50), "compute_write_p99_us": us(w - r, 99),
             "work_p50_us": us(w, 50), "work_p99_us": us(w, 99), "work_max_us": us(w, 100),
             "master_rx_us_per_cycle": master_rx * 1e6,
+            "sections_p50_p99_us": {name: (us(acc[0][:k], 50), us(acc[0][:k], 99)) for name, acc in probe.sections.items()},
             "threads_us_per_cycle": {k2: round(v * 1e6, 1) for k2, v in sorted(others.items(), key=lambda x: -x[1])
                                      if v > 0},
             "overruns": loop["overruns"] - loop0["overruns"],
@@ -188,13 +233,15 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=500.0, help="control rate (Hz)")
     ap.add_argument("--seconds", type=float, default=30.0, help="measured window (s)")
     ap.add_argument("--profile", type=Path, default=None, help="write a pyinstrument text profile of the loop thread")
+    ap.add_argument("--cprofile", type=Path, default=None,
+                    help="write a cProfile table (by own time, then cumulative) of the loop thread")
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {os.getloadavg()[0]:.1f}) ...",
           file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
-        row = run(a.rate, a.seconds, Path(tmp), a.profile)
+        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile)
     row["label"] = a.label
     row["load_before"] = os.getloadavg()[0]
     if a.json:
@@ -207,6 +254,8 @@ def main(argv=None) -> int:
           f"{row['work_max_us']:.0f} | {row['read_p50_us']:.0f} / {row['read_p99_us']:.0f} | "
           f"{row['compute_write_p50_us']:.0f} / {row['compute_write_p99_us']:.0f} | {row['master_rx_us_per_cycle']:.0f} | "
           f"{row['overruns']} | {row['load']:.1f} |")
+    print("\nloop-thread sections, CPU p50 / p99 (us): " + ", ".join(
+        f"{k}: {v[0]:.0f} / {v[1]:.0f}" for k, v in row["sections_p50_p99_us"].items()))
     print("\nother threads, CPU us per cycle: " + ", ".join(f"{k}: {v}" for k, v in row["threads_us_per_cycle"].items()))
     if row["fault"]:
         print(f"fault: {row['fault']}")
