@@ -14,7 +14,10 @@ waited; a loaded machine stretches it far less than wall time): ``read`` = ``rob
 out, then what the loop thread does with the frames once they are in), ``compute + write`` = from
 ``read()``'s return to ``write()``'s (EKF, supervisor, recording, law, limiter, RPDOs), ``work`` =
 their sum (the master's cycle work excluding the wait for frames). Cycles without a write (the
-first, unpowered ones) are left out. Besides, per thread of the process, CPU time per cycle over the
+first, unpowered ones) are left out. Sections of it, timed the same way: the EKF step, the
+supervisor's check, the recording's loop side, the limiter, the loop's timing bookkeeping and the
+CAN sends (SYNC and RPDOs: python-can's virtual bus copies each frame for its receivers, which a
+real bus's send does not). Besides, per thread of the process, CPU time per cycle over the
 window: the master's CAN notifier (which decodes the TPDOs: the rest of the master's work), the
 plant's (the simulated drives: not the master's), heartbeats, telemetry, ...; and the loop's own
 timing from ``status`` (period, overruns: wall time, distorted by the machine's load).
@@ -159,7 +162,8 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
                             (runner.supervisor, "check", "supervisor check"),
                             (runner, "_record", "recording (loop side)"),
                             (runner.supervisor, "limit", "limiter"),
-                            (runner, "_timing", "loop timing")):
+                            (runner, "_timing", "loop timing"),
+                            (robot.network.bus, "send", "CAN send (virtual bus)")):
         probe.section(obj, attr, name)
     _request(sock, "enable")
     time.sleep(1.0)  # the hold settles
