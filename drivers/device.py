@@ -248,11 +248,16 @@ class CanopenDevice:
                 if fast is None or fast.layout.keys != layout.keys or fast.cob_id != m.cob_id:
                     fast = self._fast[no] = pdo_codec.FastTpdo(
                         self.network, m, layout, cache, lambda vals, no=no, m=m: self._on_tpdo(no, m),
-                        lambda data: self._count_malformed())
+                        lambda data: self._count_malformed(), skip=self._replaced_callbacks())
                 fast.attach()
             elif no not in self._hooked:
                 m.add_callback(lambda pdo_map, no=no: self._on_tpdo(no, pdo_map))
                 self._hooked.add(no)
+
+    def _replaced_callbacks(self) -> tuple:
+        """``PdoMap`` callbacks a ``FastTpdo`` does the work of (BaseNode402's value cache)."""
+        cb = getattr(self.node, "on_TPDOs_update_callback", None)
+        return (cb,) if cb is not None else ()
 
     def tpdo_cache(self) -> dict | None:
         """Where fast-decoded TPDO values go, by object index: the node's ``tpdo_values`` (a

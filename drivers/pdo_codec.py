@@ -77,13 +77,16 @@ class FastTpdo:
     """Receives one TPDO on ``network`` in place of canopen's ``PdoMap.on_message``: each frame of the
     layout's length is unpacked once, its values stored in ``values`` (a dict by object index, e.g. a
     ``BaseNode402``'s ``tpdo_values``), the data kept in ``pdo_map.data`` (so canopen's view of the
-    map stays current), then ``on_frame(values_tuple)`` is called; a frame of another length goes to
-    ``on_bad(data)`` and changes nothing. Runs in the network's receive thread."""
+    map stays current), then ``on_frame(values_tuple)`` is called, then the callbacks others added
+    to the map (``pdo_map.add_callback``) except those in ``skip`` (decoders this one replaces); a
+    frame of another length goes to ``on_bad(data)`` and changes nothing. Runs in the network's
+    receive thread."""
 
-    __slots__ = ("network", "pdo_map", "layout", "values", "on_frame", "on_bad", "cob_id", "_unpack", "_indices")
+    __slots__ = ("network", "pdo_map", "layout", "values", "on_frame", "on_bad", "cob_id", "skip", "_unpack",
+                 "_indices")
 
     def __init__(self, network, pdo_map, layout: PdoLayout, values: dict, on_frame: Callable[[tuple], None],
-                 on_bad: Callable[[bytes], None]):
+                 on_bad: Callable[[bytes], None], skip: tuple = ()):
         self.network = network
         self.pdo_map = pdo_map
         self.layout = layout
@@ -91,6 +94,7 @@ class FastTpdo:
         self.on_frame = on_frame
         self.on_bad = on_bad
         self.cob_id = pdo_map.cob_id
+        self.skip = skip
         self._unpack = layout.struct.unpack
         self._indices = layout.indices
 
@@ -107,6 +111,9 @@ class FastTpdo:
         m.data = data
         m.timestamp = timestamp
         self.on_frame(vals)
+        for cb in m.callbacks:
+            if cb not in self.skip:
+                cb(m)
 
     def attach(self) -> None:
         """Take the COB-ID over from canopen's ``PdoMap.on_message`` (idempotent; call again after

@@ -175,3 +175,17 @@ def test_hooking_again_keeps_one_decoder():
         assert sum(isinstance(cb, pdo_codec.FastTpdo) for cb in subs) == 1
         assert m.on_message not in subs
     assert isinstance(d.network, canopen.Network)
+
+
+def test_callbacks_others_add_to_a_map_still_run():
+    """What a caller hooks on a TPDO map (``add_callback``) still sees each valid frame, not BaseNode402's
+    per-variable decoder the fast path replaces."""
+    d = _offline(_robot().drives[0], True)
+    no, m = _maps(d, "tx")[0]
+    seen = []
+    m.add_callback(lambda pdo_map: seen.append(bytes(pdo_map.data)))
+    f = _frame(m, {0x6041: 0x0027})
+    d.network.notify(m.cob_id, f, 0.0)
+    d.network.notify(m.cob_id, f[:-1], 0.0)  # short: not seen
+    assert seen == [bytes(f)]
+    assert d.node.on_TPDOs_update_callback in m.callbacks  # there, and skipped
