@@ -165,6 +165,8 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
                             (runner, "_timing", "loop timing"),
                             (robot.network.bus, "send", "CAN send (virtual bus)")):
         probe.section(obj, attr, name)
+    if daemon.telemetry is not None:  # after the cycle (the daemon's _after_cycle), not in read -> write
+        probe.section(daemon.telemetry, "publish", "telemetry publish (after the write)")
     _request(sock, "enable")
     time.sleep(1.0)  # the hold settles
     notifier_threads = set()
