@@ -159,24 +159,32 @@ class BackgroundWriter:
     """A recording writer (``RecordingWriter``, ``SessionRecording``) fed from the loop thread and
     written by a thread of its own: ``write_sample``/``write_event`` only queue (in order, O(1));
     the JSON encoding, MCAP framing, file writes and flushes run in the ``recording-writer`` thread,
-    which drains the queue every ``interval`` s (and at once when ``flush()``/``close()`` ask).
+    which drains the queue when ``wake()`` is called — the loop calls it once its cycle has written
+    its command, so the writer holds the interpreter while the loop waits for the next period, not
+    in the middle of its compute — at the latest every ``interval`` s, and at once when
+    ``flush()``/``close()`` ask.
     ``flush()`` and ``close()`` return once everything queued before them is written (and flushed);
     more than ``max_queue`` waiting samples (a stalled disk) make ``write_sample`` wait for the
     writer, as writing in the loop did. An exception the writer raises is re-raised by the next call
     from the loop. Other attributes (``path``, ``error``, ``status()``, ...) are the writer's."""
 
-    def __init__(self, writer, interval: float = 0.02, max_queue: int = 10000):
+    def __init__(self, writer, interval: float = 0.1, max_queue: int = 10000):
         self.writer = writer
         self.interval = float(interval)
         self.max_queue = int(max_queue)
         self._q: deque = deque()
         self._cv = threading.Condition()
+        self._go = threading.Event()
         self._done = 0  # items written so far
         self._queued = 0  # items queued so far
         self._failure: BaseException | None = None
         self._closing = False
         self._thread = threading.Thread(target=self._run, name="recording-writer", daemon=True)
         self._thread.start()
+
+    def wake(self) -> None:
+        """Let the writer write what is queued (the loop's cycle is done)."""
+        self._go.set()
 
     def __getattr__(self, name):
         return getattr(self.__dict__["writer"], name)
@@ -205,9 +213,8 @@ class BackgroundWriter:
         """Write what is queued, close the writer and end the thread."""
         self._q.append((3, None))
         self._queued += 1
-        with self._cv:
-            self._closing = True
-            self._cv.notify()
+        self._closing = True
+        self._go.set()
         self._thread.join()
         self._check()
 
@@ -217,17 +224,17 @@ class BackgroundWriter:
             raise exc
 
     def _wait(self, n: int) -> None:
+        self._go.set()
         with self._cv:
-            self._cv.notify()
             while self._done < n and self._thread.is_alive():
                 self._cv.wait(0.1)
 
     def _run(self) -> None:
         w, q = self.writer, self._q
         while True:
-            with self._cv:
-                if not q and not self._closing:
-                    self._cv.wait(self.interval)
+            if not self._closing:
+                self._go.wait(self.interval)
+                self._go.clear()
             while q:
                 what, item = q.popleft()
                 try:
@@ -503,6 +510,13 @@ class LoopRunner:
         """One cycle (see the module docstring); ``last``: record the sample but write no new command.
         Returns False once a fault has stopped the loop (with ``continue_after_fault`` the cycles go on
         reading and recording; commands wait for ``reset()`` and ``enable()``)."""
+        ok = self._cycle(last)
+        w = self.writer
+        if w is not None and w.__class__ is BackgroundWriter:  # the command is out: the writer's turn
+            w.wake()
+        return ok
+
+    def _cycle(self, last: bool) -> bool:
         if self.fault is not None and not self.continue_after_fault:
             return False
         self._take_trip()
