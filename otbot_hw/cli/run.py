@@ -246,7 +246,7 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     from otbot_hw.sensors import NoiseModel
 
     cfg = load_robot_config()
-    progress("[demo] 3/5 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
+    progress("[demo] 3/6 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
     path = out_dir / "chassis_bus.mcap"
     params = nominal()
     with BusSimBackend(cfg, NoiseModel.paper(), seed).open(params) as robot:
