@@ -162,6 +162,10 @@ class CanopenRobot(Robot):
         self.encoder = (CiA406Encoder(self.network, enc, self.tracker, self._add_fault)
                         if enc.source == "encoder" else None)
         self.devices = [*self.drives, *([self.encoder] if self.encoder else [])]
+        self._by_id = {d.node_id: d for d in self.devices}
+        #: N m: half a per-mille step of each drive (a commanded torque further from the clamped
+        #: request than this was cut by the drive's own limit)
+        self._half_quantum = np.array([0.5 * d.cfg.joint_torque_per_permille for d in self.drives]) + 1e-12
         if sdo_timeout is not None:
             for dev in self.devices:
                 dev.node.sdo.RESPONSE_TIMEOUT = sdo_timeout
@@ -416,7 +420,7 @@ class CanopenRobot(Robot):
             missing = self.tracker.wait(max(0.0, t_sync + self.TPDO_WINDOW * self.period - time.monotonic()))
         else:
             missing = self.tracker.wait(self.lockstep_timeout, settle=self.LOCKSTEP_SETTLE)
-        byid = {d.node_id: d for d in self.devices}
+        byid = self._by_id
         n_max = self.config.bus.tpdo_timeout
         for key in expected:
             if key in missing:
@@ -502,8 +506,7 @@ class CanopenRobot(Robot):
         if failed:
             self._add_fault(Fault("bus", None, "bus", "; ".join(failed)))
             raise RobotFault("cannot command the drives: " + "; ".join(failed), self.faults)
-        quantum = np.array([d.cfg.joint_torque_per_permille for d in self.drives])
-        sat = sat | (np.abs(commanded - clamped) > 0.5 * quantum + 1e-12)
+        sat = sat | (np.abs(commanded - clamped) > self._half_quantum)
         return Command(requested=u, commanded=commanded, saturated=sat)
 
     def enable(self) -> None:
