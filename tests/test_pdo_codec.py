@@ -189,3 +189,41 @@ def test_callbacks_others_add_to_a_map_still_run():
     d.network.notify(m.cob_id, f[:-1], 0.0)  # short: not seen
     assert seen == [bytes(f)]
     assert d.node.on_TPDOs_update_callback in m.callbacks  # there, and skipped
+
+
+class _Capture:
+    """A stand-in bus: keeps what is sent."""
+
+    def __init__(self):
+        self.sent = []
+
+    def send(self, msg, timeout=None):
+        self.sent.append((msg.arbitration_id, bytes(msg.data)))
+
+
+@settings(max_examples=15, deadline=None, phases=FAST)
+@given(st.lists(st.tuples(st.sampled_from([0x0000, 0x0002, 0x0006, 0x0007, 0x000F, 0x0080]),
+                          st.integers(-32768, 32767)), min_size=1, max_size=10))
+def test_rpdo_frames_identical_to_canopen(commands):
+    """The RPDOs ``transmit`` sends (controlword, target torque, the constant fill) are the bytes
+    canopen's variables give."""
+    fast, ref = _offline(_robot().drives[0], True), _offline(_robot().drives[0], False)
+    for d in (fast, ref):
+        d.network.bus = _Capture()
+        d._fill = {i: (10 if i == 0x6060 else 0) for no, objs in d.static_plan.rx.pdos.items()
+                   for i, _, _ in objs if i not in (0x6040, 0x6071)}
+        d._rpdo_frames = None
+    original = pdo_codec.compile_map
+    pdo_codec.compile_map = lambda m: None
+    try:
+        ref.transmit()  # compiles nothing: canopen's path from now on
+    finally:
+        pdo_codec.compile_map = original
+    fast.transmit()
+    assert fast._rpdo_frames and not ref._rpdo_frames
+    for cw, pm in commands:
+        for d in (fast, ref):
+            d.controlword, d.target_permille = cw, pm
+            d.transmit()
+    assert fast.network.bus.sent == ref.network.bus.sent
+    assert len(fast.network.bus.sent) == len(commands) + 1
