@@ -23,9 +23,10 @@ class _Writer:
         self.calls.append((threading.current_thread().name, *call))
 
     def write_sample(self, m):
-        if self.fail_at is not None and m["t"] == self.fail_at:
-            raise ValueError(f"sample at {m['t']} refused")
-        self._log("sample", m["t"])
+        t = m["t"] if "t" in m else m["/otbot/command"]["t"]
+        if self.fail_at is not None and t == self.fail_at:
+            raise ValueError(f"sample at {t} refused")
+        self._log("sample", t)
 
     def write_event(self, t, kind, text, **extra):
         self._log("event", t, kind)
@@ -92,3 +93,37 @@ def test_a_full_queue_waits_for_the_writer():
     assert not blocked.is_alive()
     bw.close()
     assert [c[2] for c in w.calls if c[1] == "sample"] == list(range(11))
+
+
+def test_a_realtime_loop_writes_each_sample_after_its_command_in_file_order():
+    """``record_after_write`` (a real-time loop's default): the sample of a cycle reaches the writer
+    after that cycle's ``robot.write`` — not between read and write — and before any event of the
+    cycle, so the file holds what inline writing gave; nothing is left pending at close."""
+    import numpy as np
+
+    from otbot_hw.motors import load_motor_limits
+    from otbot_hw.params import nominal
+    from otbot_hw.runtime import LoopRunner, OpenLoopTorques, SafetyConfig, Supervisor
+    from sim.direct import DirectSimRobot
+
+    log = []
+    limits = load_motor_limits()
+    robot = DirectSimRobot(nominal(), period=0.01, imu_rate=None, limits=limits)
+    real_write = robot.write
+    robot.write = lambda u: (log.append(("write",)), real_write(u))[1]
+    w = _Writer()
+    w._log = lambda *call: log.append(call)
+    u = np.array([[0.0, 0.0, 50.0]])  # beyond the pivot's limit: saturation events mid-cycle
+    sup = Supervisor(limits, SafetyConfig(), 0.01, realtime=False)
+    runner = LoopRunner(robot, OpenLoopTorques(u, 0.01), sup, realtime=False, keep_samples=False,
+                        recorder=lambda meta, topics: w, record_after_write=True)
+    runner.run(6)
+    kinds = [c[0] for c in log]
+    samples = [i for i, k in enumerate(kinds) if k == "sample"]
+    writes = [i for i, k in enumerate(kinds) if k == "write"]
+    assert len(samples) == 6 and kinds[-1] == "close"
+    for k, i in enumerate(samples[:-1]):  # cycle k's sample after cycle k's command (write k + 1)
+        assert writes[k] < writes[k + 1] < i
+    ts = [c[1] for c in log if c[0] in ("sample", "event")]
+    assert ts == sorted(ts)  # events after the sample of their time, as inline
+    assert "event" in kinds and runner._pending_sample is None

@@ -30,9 +30,12 @@ between cycles (only armed cycles write commands); ``continue_after_fault=True``
 estimating and recording after a fault (no commands) until ``reset()``; ``trip(violation)`` is a
 fault raised from another thread (an operator's estop), acted on at once — it also wakes the
 real-time wait; ``recorder(metadata, topics)`` makes the writer (a ``SessionRecording``) and
-``start_recording``/``stop_recording`` open and close it between cycles; in a real-time loop its
-files are written by a thread of their own (``BackgroundWriter``: the loop only queues each sample,
-JSON and MCAP encoding and the file I/O leave the cycle; ``record_in_background``). A robot whose clock
+``start_recording``/``stop_recording`` open and close it between cycles. In a real-time loop each
+sample is written once the cycle's command is out (``record_after_write``: the JSON and MCAP
+encoding and the file I/O no longer sit between the read and the write; the file order is
+unchanged, a pending sample goes out before any event, flush or close); ``record_in_background``
+writes in a thread of its own instead (``BackgroundWriter``; measured in docs/performance.md: it
+costs the process more CPU than it takes off the loop). A robot whose clock
 restarts (``CanopenRobot`` counts from ``enable()``) is continued: the loop's time never goes back.
 """
 from __future__ import annotations
@@ -287,7 +290,7 @@ class LoopRunner:
                  progress: Callable[[str], None] | None = None, progress_every: float = 1.0,
                  stop_at_end: bool = True, record_reference: bool | None = None, keep_samples: bool = True,
                  continue_after_fault: bool = False, recorder: Callable[[dict, list], Any] | None = None,
-                 record_in_background: bool | None = None):
+                 record_in_background: bool = False, record_after_write: bool | None = None):
         self.robot = robot
         self.controller = controller
         self.supervisor = supervisor
@@ -326,9 +329,11 @@ class LoopRunner:
         self.keep_samples = keep_samples
         self.continue_after_fault = continue_after_fault
         self.recorder = recorder
-        # the recorder's files written by a thread of their own (default: a real-time loop's)
-        self.record_in_background = (recorder is not None and realtime) if record_in_background is None \
-            else bool(record_in_background)
+        self.record_in_background = bool(record_in_background)
+        # a sample written after the cycle's command (default: a real-time loop with a recorder)
+        self.record_after_write = (recorder is not None and realtime) if record_after_write is None \
+            else bool(record_after_write)
+        self._pending_sample: dict | None = None
         self.armed = False  # the drives are powered and commands are written
         self.period_hist = TimingHistogram()
         self.jitter_hist = TimingHistogram()
@@ -512,10 +517,17 @@ class LoopRunner:
         Returns False once a fault has stopped the loop (with ``continue_after_fault`` the cycles go on
         reading and recording; commands wait for ``reset()`` and ``enable()``)."""
         ok = self._cycle(last)
+        if self._pending_sample is not None:  # the command is out: the sample's turn
+            self._write_pending()
         w = self.writer
         if w is not None and w.__class__ is BackgroundWriter:  # the command is out: the writer's turn
             w.wake()
         return ok
+
+    def _write_pending(self) -> None:
+        msg, self._pending_sample = self._pending_sample, None
+        if msg is not None and self.writer is not None:
+            self.writer.write_sample(msg)
 
     def _cycle(self, last: bool) -> bool:
         if self.fault is not None and not self.continue_after_fault:
@@ -711,6 +723,7 @@ class LoopRunner:
 
     def stop_recording(self):
         """Between cycles: close the current recording (complete, with its summary); returns it."""
+        self._write_pending()
         w, self.writer = self.writer, None
         if w is not None:
             w.close()
@@ -766,12 +779,17 @@ class LoopRunner:
             msg[TOPIC_REFERENCE] = {"t": t, "p": r.p.tolist(), "pd": r.pd.tolist(), "pdd": r.pdd.tolist()}
         if TOPIC_PAYLOAD in self._topics:
             msg[TOPIC_PAYLOAD] = self.payload.message(t)
-        self.writer.write_sample(msg)
+        if self.record_after_write:
+            self._pending_sample = msg
+        else:
+            self.writer.write_sample(msg)
 
     def event(self, t: float, kind: str, text: str) -> None:
         """Record a sparse ``/otbot/events`` message (mode, fault, saturation, note)."""
         self.events.append({"t": float(t), "kind": kind, "text": text})
         if self.writer is not None:
+            if self._pending_sample is not None:  # the sample of this cycle first, as it happened
+                self._write_pending()
             self.writer.write_event(t, kind, text)
 
     def _on_saturation(self, ep) -> None:
@@ -798,10 +816,12 @@ class LoopRunner:
         t = max(v.t, self.t)
         self.event(t, "fault", str(self.fault) + (f" ({note})" if note else ""))
         if self.writer is not None:
+            self._write_pending()
             self.writer.flush()
 
     def close(self) -> None:
         if self.writer is not None:
+            self._write_pending()
             self.writer.close()
             self.writer = None
 
