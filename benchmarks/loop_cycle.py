@@ -226,7 +226,8 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
             "compute_write_p50_us": us(w - r, 50), "compute_write_p99_us": us(w - r, 99),
             "work_p50_us": us(w, 50), "work_p99_us": us(w, 99), "work_max_us": us(w, 100),
             "master_rx_us_per_cycle": master_rx * 1e6,
-            "sections_p50_p99_us": {name: (us(acc[0][:k], 50), us(acc[0][:k], 99)) for name, acc in probe.sections.items()},
+            "sections_p50_p99_us": {name: (us(acc[0][:k], 50), us(acc[0][:k], 99))
+                                    for name, acc in probe.sections.items()},
             "threads_us_per_cycle": {k2: round(v * 1e6, 1) for k2, v in sorted(others.items(), key=lambda x: -x[1])
                                      if v > 0},
             "overruns": loop["overruns"] - loop0["overruns"],
@@ -253,16 +254,17 @@ def main(argv=None) -> int:
     if a.json:
         print(json.dumps(row))
         return 0
-    print("| code | rate (Hz) | cycles | work p50 / p99 / max (us) | read p50 / p99 (us) | compute + write p50 / p99 (us) "
-          "| master CAN receive (us per cycle) | overruns | load |")
+    print("| code | rate (Hz) | cycles | work p50 / p99 / max (us) | read p50 / p99 (us) "
+          "| compute + write p50 / p99 (us) | master CAN receive (us per cycle) | overruns | load |")
     print("|---|---|---|---|---|---|---|---|---|")
-    print(f"| {row['label']} | {row['rate']:g} | {row['measured']} | {row['work_p50_us']:.0f} / {row['work_p99_us']:.0f} / "
-          f"{row['work_max_us']:.0f} | {row['read_p50_us']:.0f} / {row['read_p99_us']:.0f} | "
-          f"{row['compute_write_p50_us']:.0f} / {row['compute_write_p99_us']:.0f} | {row['master_rx_us_per_cycle']:.0f} | "
-          f"{row['overruns']} | {row['load']:.1f} |")
+    print(f"| {row['label']} | {row['rate']:g} | {row['measured']} | {row['work_p50_us']:.0f} / "
+          f"{row['work_p99_us']:.0f} / {row['work_max_us']:.0f} | {row['read_p50_us']:.0f} / {row['read_p99_us']:.0f} | "
+          f"{row['compute_write_p50_us']:.0f} / {row['compute_write_p99_us']:.0f} | "
+          f"{row['master_rx_us_per_cycle']:.0f} | {row['overruns']} | {row['load']:.1f} |")
     print("\nloop-thread sections, CPU p50 / p99 (us): " + ", ".join(
         f"{k}: {v[0]:.0f} / {v[1]:.0f}" for k, v in row["sections_p50_p99_us"].items()))
-    print("\nother threads, CPU us per cycle: " + ", ".join(f"{k}: {v}" for k, v in row["threads_us_per_cycle"].items()))
+    print("\nother threads, CPU us per cycle: "
+          + ", ".join(f"{k}: {v}" for k, v in row["threads_us_per_cycle"].items()))
     if row["fault"]:
         print(f"fault: {row['fault']}")
     return 0
