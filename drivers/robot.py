@@ -41,7 +41,7 @@ from drivers.config import LOCKSTEP_IMU_TIMEOUT, RobotConfig
 from drivers.device import NMT_ENTER_PRE_OPERATIONAL, NMT_STOP, CycleTracker, wait_until
 from drivers.faults import DriverError
 from drivers.heartbeat import HeartbeatConsumer, HeartbeatProducer
-from otbot_hw.robot import Command, Fault, Robot, RobotError, RobotFault, Snapshot
+from otbot_hw.robot import Fault, Robot, RobotError, RobotFault, Snapshot
 
 
 def imu_due(sync_index: int, period: float, imu_rate: float) -> bool:
@@ -155,6 +155,8 @@ class CanopenRobot(Robot):
         self.encoder = (CiA406Encoder(self.network, enc, self.tracker, self._add_fault)
                         if enc.source == "encoder" else None)
         self.devices = [*self.drives, *([self.encoder] if self.encoder else [])]
+        self.max_torque = tuple(float(v) for v in config.limits.max_torque)
+        self.torque_quantum = tuple(d.cfg.joint_torque_per_permille for d in self.drives)
         if sdo_timeout is not None:
             for dev in self.devices:
                 dev.node.sdo.RESPONSE_TIMEOUT = sdo_timeout
@@ -453,27 +455,32 @@ class CanopenRobot(Robot):
             self._add_fault(Fault("imu", None, "imu", str(exc) or type(exc).__name__), at_sync=True)
         return self._imu_last
 
-    def write(self, torques) -> Command:
-        u = np.asarray(torques, dtype=float).reshape(-1)
-        if u.shape != (3,) or not np.all(np.isfinite(u)):
-            raise ValueError(f"torques must be 3 finite numbers (tau_r, tau_l, tau_p) N m, got {torques!r}")
-        clamped, sat = self.config.limits.clamp(u)
-        with self._lock:
-            faults = tuple(self._faults)
-            if faults:
-                raise RobotFault("robot is faulted: " + "; ".join(map(str, faults)), faults)
-            if not self.enabled:
-                raise DriverError("drives are not enabled: call enable() first")
-            commanded = np.array([d.stage_torque(c) for d, c in zip(self.drives, clamped)])
+    def _apply(self, torques: list[float]) -> np.ndarray:
+        """``Robot.write``'s back end: stage each drive's torque (quantized to its per-mille unit) and
+        controlword, send the RPDOs; the drives apply them at the next SYNC."""
+        with self._lock:  # the check and the staging as one: a fault staging a quick stop waits
+            self._refuse_unless_writable(self._faults, self.enabled, DriverError)
+            commanded = np.array([d.stage_torque(c) for d, c in zip(self.drives, torques)])
             for d in self.drives:
                 d.controlword = 0x000F
             failed = self._send_rpdos(self.drives)
         if failed:
             self._add_fault(Fault("bus", None, "bus", "; ".join(failed)))
             raise RobotFault("cannot command the drives: " + "; ".join(failed), self.faults)
-        quantum = np.array([d.cfg.joint_torque_per_permille for d in self.drives])
-        sat = sat | (np.abs(commanded - clamped) > 0.5 * quantum + 1e-12)
-        return Command(requested=u, commanded=commanded, saturated=sat)
+        return commanded
+
+    def node_identities(self) -> dict[str, dict]:
+        """Each node's CiA 301 identity object 0x1018 (vendor, product, revision, serial) over SDO."""
+        nodes = {}
+        for dev in self.devices:
+            entry: dict = {"node_id": dev.node_id}
+            for sub, key in ((1, "vendor"), (2, "product"), (3, "revision"), (4, "serial")):
+                try:
+                    entry[key] = int(dev.sdo_read(0x1018, sub))
+                except Exception:  # noqa: BLE001 - a node without (that part of) the identity object
+                    entry[key] = None
+            nodes[dev.name] = entry
+        return nodes
 
     def enable(self) -> None:
         faults = self.faults

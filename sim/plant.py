@@ -53,6 +53,7 @@ import numpy as np
 from drivers.config import LOCKSTEP_HEARTBEAT, LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT, RobotConfig
 from drivers.robot import STANDARD_FRAMES_ONLY, CanopenRobot, imu_due
 from otbot_hw.params import OtbotParams, nominal, parse_load
+from otbot_hw.robot import SimulatedRobot
 from otbot_hw.sensors import NoiseModel
 from otbot_hw.simulation.sensing import StepperSensors
 from otbot_hw.simulation.simulator import ForceSchedule, make_stepper
@@ -432,13 +433,23 @@ def open_sim_imu(config: RobotConfig):
     return pub, drv
 
 
-class SimulatedBusRobot(CanopenRobot):
+class SimulatedBusRobot(CanopenRobot, SimulatedRobot):
     """``CanopenRobot`` talking to a ``Plant`` in this process: everything goes over the bus as with a
-    real robot; only ``truth()`` looks behind it, at the plant's state at the last read's SYNC."""
+    real robot; only the ``SimulatedRobot`` part looks behind it: ``truth()`` (the plant's state at the
+    last read's SYNC), the pivot force, the parameters simulated now and the plant's operator channel."""
+
+    has_operator = True
 
     def __init__(self, plant: Plant, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.plant = plant
+
+    @property
+    def simulated_params(self):
+        return self.plant.params
+
+    def operator(self, command: str) -> dict:
+        return self.plant.operator(command)
 
     def truth(self) -> np.ndarray | None:
         with self.plant.lock:  # the SYNC handler holds it until the state of that SYNC is logged

@@ -182,7 +182,7 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_text, with_imu, say, quiet) -> dict:
-    from otbot_hw.robot import RobotError
+    from otbot_hw.robot import RobotError, operator_channel
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
     from otbot_hw.runtime.bench.buslog import BusLog
     from otbot_hw.runtime.bench.operator import AutomaticOperator, NoOperator, OperatorStopped, PromptOperator
@@ -232,7 +232,7 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
             log = BusLog(log_path).attach(robot.network)
             session.begin_invocation({"bus_log": session.rel(log_path), "bus": args.bus,
                                       **({"seed": meta["seed"]} if "seed" in meta else {})})
-            plant = getattr(robot, "plant", None)
+            plant = operator_channel(robot)  # a simulated robot's operator channel, or None
             operator = (AutomaticOperator(plant, sim_load_text, say=say) if args.yes else
                         PromptOperator(plant, sim_load_text, say=progress))
             say(f"[bench] session {session.path}: steps {', '.join(settings.steps)}, {settings.excitation} excitation, "

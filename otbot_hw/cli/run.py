@@ -64,6 +64,7 @@ def _fail(result: dict, message: str, as_json: bool):
 
 def run(args: argparse.Namespace) -> dict:
     from drivers.faults import DeviceConfigError
+    from drivers.imu import ImuFault
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.robot import RobotError
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
@@ -103,7 +104,6 @@ def run(args: argparse.Namespace) -> dict:
             "source": "robot" if args.bus == "config" else "bus-simulation"}
     with_imu = cfg.imu is not None and not args.no_imu
     if args.bus == "config" and with_imu:
-        from drivers.imu import ImuFault
         from drivers.robot import open_imu
 
         try:  # a port that cannot be opened is bad input (exit 2), as in `otbot imu read`; checked before the bus
@@ -141,10 +141,8 @@ def run(args: argparse.Namespace) -> dict:
               f"error: {exc}", args.json)
     except OSError as exc:
         raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
-    except Exception as exc:
-        if type(exc).__name__ == "ImuFault":
-            _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)
-        raise
+    except ImuFault as exc:
+        _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)
     rec = res.recording
     result = {
         "completed": res.completed, "bus": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
@@ -161,8 +159,8 @@ def run(args: argparse.Namespace) -> dict:
         "busload": {"bits_per_cycle": load.bits_per_cycle, "max_rate": load.max_rate, "load": load.load},
         "loop": res.stats.to_dict(),
         "wall_time": res.stats.wall_time,
-        "warnings": list(getattr(robot, "warnings", [])),
-        "close_problems": list(getattr(robot, "close_report", [])),
+        "warnings": list(robot.warnings),
+        "close_problems": list(robot.close_report),
     }
     if inject is not None:
         from sim.injection import reaction
@@ -191,7 +189,7 @@ def run(args: argparse.Namespace) -> dict:
 
 def _warn(robot, quiet: bool) -> None:
     """What the devices cannot do that the loop would use, said once."""
-    for w in getattr(robot, "warnings", []):
+    for w in robot.warnings:
         progress(f"[run] warning: {w}", not quiet)
 
 
