@@ -237,13 +237,8 @@ def test_supervisor_over_the_bus_quick_stops_the_simulated_drives():
         assert abs(res.recording.joint_vel[-1, 2]) > 0.5
 
 
-def test_cli_fault_during_tracking_exits_1_and_keeps_the_recording(tmp_path, capsys):
-    cfg = tmp_path / "robot.yaml"
-    text = CFG.path.read_text().replace("max_position_error: {value: 0.3, unit: m}",
-                                        "max_position_error: {value: 0.01, unit: m}")
-    cfg.write_text(text)
-    for eds in CFG.path.parent.glob("*.eds"):
-        (tmp_path / eds.name).write_text(eds.read_text())
+def test_cli_fault_during_tracking_exits_1_and_keeps_the_recording(tmp_path, capsys, robot_yaml):
+    cfg = robot_yaml({"max_position_error: {value: 0.3, unit: m}": "max_position_error: {value: 0.01, unit: m}"})
     out = tmp_path / "t.mcap"
     with pytest.raises(SystemExit) as exc:
         main(["track", "corridor", "--sim", "--feedback", "truth", "--config", str(cfg), "--rate", "200",
@@ -473,7 +468,8 @@ def test_bad_safety_configuration_names_the_key(tmp_path, capsys):
     assert SafetyConfig.from_dict({"max_speed": {"value": None, "unit": "m/s"}}).max_speed is None
 
 
-def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(monkeypatch, tmp_path, capsys):
+def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(monkeypatch, tmp_path, capsys,
+                                                                             robot_yaml):
     """``otbot plant --plant-params`` (a heavier platform) as its own process behind slcan; ``otbot run
     --bus config --lockstep`` sees the heavier robot's encoders; ``otbot track FILE.csv --bus config``
     tracks it with EKF feedback (the stand-in) and reports errors of the estimated pose (no truth)."""
@@ -482,15 +478,11 @@ def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(mo
     heavy = P.replace(m_p=1.5 * P.m_p, I_p=1.5 * P.I_p)
     hfile = tmp_path / "heavy.yaml"
     heavy.save(hfile)
-    cfg = tmp_path / "robot.yaml"
-    text = CFG.path.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}")
     # lockstep against a plant process on a loaded machine: watchdogs at 1 s both ways (this test is about physics)
-    text = text.replace("master_heartbeat_consumer: {value: 100, unit: ms}",
-                        "master_heartbeat_consumer: {value: 1000, unit: ms}")
-    assert "master_heartbeat_consumer: {value: 1000, unit: ms}" in text
-    cfg.write_text(text.replace("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}"))
-    for eds in CFG.path.parent.glob("*.eds"):
-        (tmp_path / eds.name).write_text(eds.read_text())
+    cfg = robot_yaml({"  options: {}": "  options: {sleep_after_open: 0}",
+                      "master_heartbeat_consumer: {value: 100, unit: ms}":
+                          "master_heartbeat_consumer: {value: 1000, unit: ms}",
+                      "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 1000, unit: ms}"})
     traj = tmp_path / "step.csv"
     traj.write_text("t,x,y,alpha\n0,0,0,0\n1,0.05,0,0\n2,0.2,0.05,0\n")
     code = "import sys; from otbot_hw.cli import main; sys.exit(main())"
