@@ -182,6 +182,7 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_text, with_imu, say, quiet) -> dict:
+    from otbot_hw.recording import source_metadata
     from otbot_hw.robot import RobotError, operator_channel
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
     from otbot_hw.runtime.bench.buslog import BusLog
@@ -194,7 +195,7 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
             "bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
             "nodes": {d.name: d.node_id for d in cfg.drives}, "pivot_source": cfg.pivot_encoder.source,
-            "source": "bus-simulation" if args.bus == "sim" else "robot"}
+            **source_metadata(simulated=args.bus == "sim", bus=True)}
     if args.bus == "sim":
         seed = args.seed + 1000 * (invocation - 1)  # a resumed simulated session draws new noise
         meta.update(seed=seed, simulated_noise=noise_model(args).to_dict())

@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> dict:
     from drivers.imu import ImuFault
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.robot import RobotError
-    from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
+    from otbot_hw.runtime.backends import BackendOptions, make_backend, source
     from otbot_hw.runtime.openloop import run_torques, saturated_samples
     from otbot_hw.runtime.supervisor import SafetyConfig
 
@@ -100,8 +100,7 @@ def run(args: argparse.Namespace) -> dict:
     meta = {"bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
             "nodes": {d.name: d.node_id for d in cfg.drives}, "config": str(cfg.path),
-            "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture,
-            "source": "robot" if args.bus == "config" else "bus-simulation"}
+            "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture}
     with_imu = cfg.imu is not None and not args.no_imu
     if args.bus == "config" and with_imu:
         from drivers.robot import open_imu
@@ -113,24 +112,22 @@ def run(args: argparse.Namespace) -> dict:
     progress(f"[run] {args.bus} bus ({cfg.bus.interface}:{cfg.bus.channel}), tau = {tau} N m for "
              f"{args.duration:g} s at {cfg.bus.control_rate:g} Hz", not quiet)
     say = None if quiet else (lambda m: progress(f"[run] {m}"))
-    if args.bus == "sim":
-        noise = noise_model(args)
-        meta.update(noise=noise.to_dict(), seed=args.seed)
-        process = inject is not None and inject.kind == "plant-kill"
-        backend = BusSimBackend(cfg, noise, args.seed, with_imu, inject=inject, process=process)
+    process = inject is not None and inject.kind == "plant-kill"
+    backend = make_backend(f"bus {args.bus}", cfg, BackendOptions(
+        noise=noise_model(args), seed=args.seed, with_imu=with_imu, imu_port=args.imu_port, lockstep=args.lockstep,
+        inject=inject, process=process))
+    meta.update(source(backend))
+    model = None
+    if backend.simulated:  # what is simulated is recorded with the run
+        meta.update(noise=backend.noise.to_dict(), seed=args.seed)
         if inject is not None:
             meta["inject"] = str(inject)
         model = plant if plant is not None else ExtendedModel.load(None)
         meta["params"] = model.params.to_dict()
         if model.active_effects():
             meta["effects"] = model.active_effects()
-    else:
-        backend = BusConfigBackend(cfg, args.imu_port, args.lockstep, with_imu)
-        model = None
     try:
-        opened = (backend.open(None if backend.process else model, fixture=args.fixture) if args.bus == "sim"
-                  else backend.open())
-        with opened as robot:
+        with backend.open(None if process else model, fixture=args.fixture) as robot:
             _warn(robot, quiet)
             res = run_torques(robot, torques, cfg.limits, safety, args.out, meta, realtime=backend.realtime,
                               progress=say)
@@ -167,7 +164,7 @@ def run(args: argparse.Namespace) -> dict:
 
         sim_plant = backend.plant
         result["reaction"] = reaction(inject, sim_plant.injected_t, robot, sim_plant.after, cfg.bus.period)
-    if args.bus == "sim" and rec.truth_q is not None and len(rec):
+    if backend.simulated and rec.truth_q is not None and len(rec):
         result["q_final"] = rec.truth_q[-1].tolist()
     if args.plot is not None and len(rec) > 1:
         result["plots"] = write_run_plots(args.plot, rec)
@@ -236,6 +233,7 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     from otbot_hw.cli.simulate import write_plots
     from otbot_hw.params import nominal
     from otbot_hw.plots import plot_series
+    from otbot_hw.recording import source_metadata
     from otbot_hw.runtime.backends import BusSimBackend
     from otbot_hw.runtime.openloop import run_torques
     from otbot_hw.sensors import NoiseModel
@@ -246,7 +244,7 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     params = nominal()
     with BusSimBackend(cfg, NoiseModel.paper(), seed).open(params) as robot:
         res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (300, 1)), cfg.limits, None, path,
-                          {"experiment": "chassis (paper §4.3.2) over CAN", "source": "bus-simulation",
+                          {"experiment": "chassis (paper §4.3.2) over CAN", **source_metadata(simulated=True, bus=True),
                            "noise": NoiseModel.paper().to_dict(), "seed": seed, "params": params.to_dict()})
     wall = res.stats.wall_time
     if not res.completed:

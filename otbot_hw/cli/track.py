@@ -113,18 +113,20 @@ def parse_bursts(items) -> list[tuple[float, float, float]]:
 
 
 def make_backend(kind: str, args, quiet: bool):
-    """The back end of ``kind`` configured from the command line."""
-    from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend, DirectBackend
+    """The back end ``kind`` (a name of ``runtime.backends.BACKENDS``) configured from the command line:
+    the in-process robot takes the configuration as written (its rate --rate, default 1 kHz), a bus
+    back end the bus configuration with the command line's overrides."""
+    from otbot_hw.runtime import backends
 
-    if kind == "sim":
+    if kind == "sim":  # no bus: the configuration's sensors and drives, not its bus
         from drivers.config import load_robot_config
 
         cfg = load_robot_config(args.config)
-        return DirectBackend.from_config(cfg, args.rate or 1000.0, noise_model(args), args.seed, not args.no_imu)
-    cfg, _ = bus_config(args, args.rate, quiet, "track")
-    if kind == "bus sim":
-        return BusSimBackend(cfg, noise_model(args), args.seed, not args.no_imu)
-    return BusConfigBackend(cfg, args.imu_port, args.lockstep, not args.no_imu)
+    else:
+        cfg, _ = bus_config(args, args.rate, quiet, "track")
+    return backends.make_backend(kind, cfg, backends.BackendOptions(
+        rate=args.rate, noise=noise_model(args), seed=args.seed, with_imu=not args.no_imu, imu_port=args.imu_port,
+        lockstep=args.lockstep))
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -205,7 +207,7 @@ def run(args: argparse.Namespace) -> dict:
         meta = {"params": params.to_dict(), "command": "otbot track"}
         if plant is not None:
             meta["plant"] = plant.to_dict() if hasattr(plant, "to_dict") else None
-        if kind != "bus config":
+        if backend.simulated:
             meta.update(noise=noise_model(args).to_dict(), seed=args.seed)
         result = run_scenario(args.scenario, params, limits, t_stab=tstab, robustness=not args.no_robustness,
                               plot_dir=args.plot, animate=args.animate, progress=say, error_bounds=eb, spec=spec,

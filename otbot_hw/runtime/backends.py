@@ -10,6 +10,10 @@ name           robot
                ``otbot plant`` process), paced in real time unless ``lockstep``
 =============  ======================================================================================
 
+``make_backend(name, config, options)`` builds one from the registry ``BACKENDS`` (the command line
+picks by name, never by branching on it); each says what its recordings come from (``source()``,
+built by ``otbot_hw.recording.source_metadata``).
+
 The two simulated back ends take the robot to simulate (``OtbotParams`` or an ``ExtendedModel``
 with effects), its start state and pivot forces per run, and know the ground truth. Only this
 package and ``otbot_hw.cli`` import ``sim`` and ``drivers`` (``tests/test_layering.py``).
@@ -20,9 +24,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 from otbot_hw.motors import MotorLimits
+from otbot_hw.recording import source_metadata
 from otbot_hw.sensors import NoiseModel
-
-BACKENDS = ("sim", "bus sim", "bus config")
 
 
 def encoder_resolution(config) -> tuple[float, float, float]:
@@ -59,6 +62,8 @@ class DirectBackend:
     name: str = "sim"
     realtime: bool = False
     has_truth: bool = True
+    simulated = True  # the robot is simulated (class constants, not fields)
+    bus = False  # behind the CANopen drivers
 
     @classmethod
     def from_config(cls, config, rate: float, noise: NoiseModel | None = None, seed: int | None = 0,
@@ -94,6 +99,11 @@ class DirectBackend:
                 "torque_step": self.torque_step}
 
 
+def source(backend) -> dict:
+    """The metadata ``source`` of a back end's recordings (``otbot_hw.recording.source_metadata``)."""
+    return source_metadata(simulated=backend.simulated, bus=backend.bus)
+
+
 class _ConfiguredRate:
     """The control rate (Hz) and period (s) of the hardware configuration's bus."""
 
@@ -120,6 +130,8 @@ class BusSimBackend(_ConfiguredRate):
     name: str = "bus sim"
     realtime: bool = False
     has_truth: bool = True
+    simulated = True
+    bus = True
     plant: object = field(default=None, init=False, repr=False)  # the last opened plant (its report after close)
 
     def __post_init__(self):
@@ -163,6 +175,8 @@ class BusConfigBackend(_ConfiguredRate):
     paced: bool = False
     name: str = "bus config"
     has_truth: bool = False
+    simulated = False  # the robot that is there (a plant process in lockstep included)
+    bus = True
 
     @property
     def realtime(self) -> bool:
@@ -190,3 +204,46 @@ class BusConfigBackend(_ConfiguredRate):
         b = self.config.bus
         return {"mode": self.name, "interface": b.interface, "channel": b.channel, "rate": b.control_rate,
                 "bitrate": b.bitrate, "lockstep": self.lockstep, "paced": self.paced}
+
+
+@dataclass(frozen=True)
+class BackendOptions:
+    """What a command line chooses for any back end; each takes the part it uses. ``rate`` Hz (None:
+    the configuration's control rate; the direct robot's default 1 kHz), ``noise``/``seed`` and
+    ``with_imu`` (simulated sensors), ``imu_port`` and ``lockstep`` (the configured bus), ``inject``
+    and ``process`` (the simulated bus: a fault to inject, the plant as its own process)."""
+
+    rate: float | None = None
+    noise: NoiseModel | None = None
+    seed: int | None = 0
+    with_imu: bool = True
+    imu_port: str | None = None
+    lockstep: bool = False
+    inject: object = None
+    process: bool = False
+
+
+def _direct(config, o: BackendOptions) -> DirectBackend:
+    return DirectBackend.from_config(config, o.rate or 1000.0, o.noise, o.seed, o.with_imu)
+
+
+def _bus_sim(config, o: BackendOptions) -> BusSimBackend:
+    return BusSimBackend(config, o.noise, o.seed, o.with_imu, inject=o.inject, process=o.process)
+
+
+def _bus_config(config, o: BackendOptions) -> BusConfigBackend:
+    return BusConfigBackend(config, o.imu_port, o.lockstep, o.with_imu)
+
+
+#: The back ends by name: name -> factory(config, BackendOptions).
+BACKENDS = {"sim": _direct, "bus sim": _bus_sim, "bus config": _bus_config}
+
+
+def make_backend(name: str, config, options: BackendOptions | None = None):
+    """The back end ``name`` (a key of ``BACKENDS``) for the hardware configuration ``config``
+    (``drivers.config.RobotConfig``); ValueError for an unknown name."""
+    try:
+        factory = BACKENDS[name]
+    except KeyError:
+        raise ValueError(f"unknown back end {name!r} (known: {', '.join(BACKENDS)})") from None
+    return factory(config, options or BackendOptions())

@@ -55,7 +55,7 @@ from otbot_hw.control.gains import gains_from_tstab
 from otbot_hw.control.trajectories import PlacedTrajectory, StopTrajectory, TrajectoryError
 from otbot_hw.json_output import json_safe
 from otbot_hw.motors import MOTORS
-from otbot_hw.recording import RecordingError
+from otbot_hw.recording import RecordingError, source_metadata
 from otbot_hw.robot import Robot, RobotError
 from otbot_hw.runtime.control_protocol import ArgumentLimits, CommandRefused, ProtocolError
 from otbot_hw.runtime.control_socket import ControlServer, LoopMailbox, Peer
@@ -213,7 +213,7 @@ class Daemon:
             return sess
 
         sup = Supervisor(s.limits, s.safety, period, realtime=True)
-        meta = {"source": "otbot daemon", "params": self.params.to_dict(), **(s.metadata or {})}
+        meta = {**source_metadata(program="otbot daemon"), "params": self.params.to_dict(), **(s.metadata or {})}
         self.runner = runner = LoopRunner(
             robot, None, sup, self._new_feedback(s.start_pose, period), metadata=meta, realtime=True,
             stop_at_end=False, record_reference=True, keep_samples=False, continue_after_fault=True,

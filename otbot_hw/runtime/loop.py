@@ -47,7 +47,7 @@ import numpy as np
 
 from otbot_hw.control.computed_torque import TaskState
 from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS,
-                                TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter)
+                                TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter, source_metadata)
 from otbot_hw.robot import Robot, RobotError, SimulatedRobot, Snapshot
 from otbot_hw.runtime.controllers import ControlStep, Controller, Feedback, Reference
 from otbot_hw.runtime.feedback import FeedbackUnavailable, StateEstimate
@@ -550,7 +550,7 @@ class LoopRunner:
             topics.append(TOPIC_REFERENCE)
         self._topics = set(topics)
         self._topic_list = topics
-        meta = {"source": "loop", "sample_period": self.period, "realtime": self.realtime, **self.metadata}
+        meta = {**source_metadata(program="loop"), "sample_period": self.period, "realtime": self.realtime, **self.metadata}
         if self._has_imu and self.robot.imu_rate:
             meta.setdefault("imu_rate", float(self.robot.imu_rate))
         if self.feedback is not None:
