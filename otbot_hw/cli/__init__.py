@@ -112,6 +112,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = args.func(args)
         if getattr(args, "json", False) and result is not None:
             print(json.dumps(result, allow_nan=False))
+        sys.stdout.flush()
+    except BrokenPipeError:  # the reader left (``otbot ... --json | head -c 100``): no traceback
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's own flush must not fail
+        print(f"{prog}: output closed by the reader", file=sys.stderr)
+        return 1
     except Exception as exc:  # the input errors, imported only when something failed
         if not isinstance(exc, CliError) and not isinstance(exc, input_errors()):
             raise

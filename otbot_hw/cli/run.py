@@ -16,7 +16,7 @@ import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import duration, output_file, output_folder, sample_count
+from otbot_hw.cli.checks import duration, output_file, output_folder, sample_count, write_failure
 
 
 def register(sub) -> None:
@@ -92,6 +92,9 @@ def run(args: argparse.Namespace) -> dict:
             inject = Injection.parse(args.inject)
         except ValueError as exc:
             raise CliError(str(exc)) from None
+        if inject.at >= n * cfg.bus.period:
+            raise CliError(f"--inject {args.inject}: {inject.at:g} s is outside the run ({n * cfg.bus.period:g} s "
+                           "of plant time from the enable): nothing would be injected; give a time within --duration")
         if inject.kind.startswith("imu") and (cfg.imu is None or args.no_imu):
             raise CliError(f"--inject {inject.kind}: the run has no IMU")
         if inject.kind == "plant-kill" and args.plant_params is not None:
@@ -137,7 +140,7 @@ def run(args: argparse.Namespace) -> dict:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
     except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+        raise write_failure(exc, args.out or "output") from None
     except ImuFault as exc:
         _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)
     rec = res.recording

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, checks, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import output_file, output_folder
+from otbot_hw.cli.checks import output_file, output_folder, write_failure
 
 _TIMES = "Settle times: seconds until the position and velocity errors stay below 2 % of the event's peak"
 
@@ -112,6 +112,20 @@ def parse_bursts(items) -> list[tuple[float, float, float]]:
     return out
 
 
+def check_sizes(name: str, duration: float, rate_hz: float) -> None:
+    """CliError before any work when a trajectory of ``duration`` s is too long to check or run at ``rate_hz``."""
+    from otbot_hw.control.feasibility import MAX_POINTS, feasibility_points
+
+    n = int(math.ceil(duration * rate_hz - 1e-9))
+    if not math.isfinite(duration) or n > checks.MAX_SAMPLES:
+        raise CliError(f"trajectory {name} lasts {duration:g} s: at {rate_hz:g} Hz that is {n} samples; at most "
+                       f"{checks.MAX_SAMPLES} (lower --rate or shorten the trajectory)")
+    pts = feasibility_points(duration)
+    if pts > MAX_POINTS:
+        raise CliError(f"trajectory {name} lasts {duration:g} s: its torque-feasibility check would bound {pts} "
+                       f"points (every 0.01 s); at most {MAX_POINTS} ({(MAX_POINTS - 1) * 0.01:g} s)")
+
+
 def make_backend(kind: str, args, quiet: bool):
     """The back end ``kind`` (a name of ``runtime.backends.BACKENDS``) configured from the command line:
     the in-process robot takes the configuration as written (its rate --rate, default 1 kHz), a bus
@@ -176,6 +190,9 @@ def run(args: argparse.Namespace) -> dict:
     say = (lambda m: progress(f"[track] {m}", not args.json))
     try:
         spec = build_spec(args.scenario, params, limits, say)
+        # the in-process robot's rate is known without its configuration; a bus's comes with its configuration
+        backend = None if kind == "sim" else make_backend(kind, args, args.json)
+        check_sizes(spec.name, spec.reference.duration, args.rate or 1000.0 if backend is None else backend.rate)
         if args.strict:
             rep = check_feasibility(spec.reference, params, gains_from_tstab(tstab), limits, eb)
             if not rep.feasible:
@@ -184,7 +201,7 @@ def run(args: argparse.Namespace) -> dict:
                                f"the {v['limit_Nm']:g} N m limit from t = {v['t_start']:.2f} s to {v['t_end']:.2f} s "
                                f"({len(rep.violations)} violation(s))")
         safety = SafetyConfig.load(args.config)
-        backend = make_backend(kind, args, args.json)
+        backend = backend or make_backend(kind, args, args.json)
         fixes = None
         if args.fixes is not None:
             from sim.mocap import MotionCapture
@@ -221,7 +238,7 @@ def run(args: argparse.Namespace) -> dict:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
     except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+        raise write_failure(exc, args.out or args.plot or args.animate or "output") from None
     if not result["completed"]:
         where = f"; recording up to the fault: {args.out}" if args.out else ""
         if not args.json and "max_abs_error" in result:

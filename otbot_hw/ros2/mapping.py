@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from otbot_hw.ros2 import BagError
 from otbot_hw.ros2.messages import JOINT_NAMES
@@ -189,13 +188,11 @@ def load_map(path: str | Path | None) -> BagMap:
     """The mapping of ``path`` (None: the default, the common layout)."""
     if path is None:
         return BagMap()
+    from otbot_hw.params import ParameterError, read_yaml
+
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise BagError(f"--map {p}: cannot read: {exc.strerror}") from None
-    except UnicodeDecodeError:
-        raise BagError(f"--map {p}: not a text file") from None
-    except yaml.YAMLError as exc:
-        raise BagError(f"--map {p}: not valid YAML: {' '.join(str(exc).split())}") from None
+    try:  # the project's YAML rules: 1.2 numbers, a key written twice is an error, a size cap
+        data = read_yaml(p, "map file")
+    except ParameterError as exc:
+        raise BagError(f"--map {' '.join(str(exc).split())}") from None
     return map_from_dict(data, f"--map {p}")

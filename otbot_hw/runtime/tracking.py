@@ -253,7 +253,7 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
 
         say("torque-feasibility check (interval bound) ...")
         rep = feas(spec.reference, params, gains, limits, error_bounds or ErrorBounds.default(),
-                   heading0=0.0 if spec.x0 is None else float(spec.x0[2] - spec.x0[5]))
+                   heading0=0.0 if spec.x0 is None else float(spec.x0[2] - spec.x0[5]), progress=say)
         result["feasibility"] = rep.to_dict()
         for v in rep.violations[:10]:
             say(f"feasibility: {v['motor']} may exceed {v['limit_Nm']:g} N m on "
