@@ -37,7 +37,7 @@ import numpy as np
 
 from drivers.cia402 import STOPPED_STATES, CiA402Drive
 from drivers.cia406 import CiA406Encoder
-from drivers.config import LOCKSTEP_IMU_TIMEOUT, RobotConfig
+from drivers.config import RobotConfig
 from drivers.device import NMT_ENTER_PRE_OPERATIONAL, NMT_STOP, CycleTracker, wait_until
 from drivers.faults import DriverError
 from drivers.heartbeat import HeartbeatConsumer, HeartbeatProducer
@@ -109,13 +109,10 @@ class ReceiveErrors(can.Listener):
 class CanopenRobot(Robot):
     """The robot over CANopen: three ``CiA402Drive`` s, the ``CiA406Encoder`` (unless phi_p comes
     from the pivot drive), heartbeat consumer and producer, and an optional IMU object
-    (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``; in lockstep
-    also ``timeout`` and ``restart_watchdog(t)``).
+    (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``; the newest
+    sample is taken, never awaited: lockstep with a simulated IMU is ``sim.lockstep.ImuLockstep``).
 
-    ``bus``: a python-can bus to use instead of opening ``config.bus``; ``imu_lockstep``: wait,
-    after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC; its
-    stream watchdog then counts from the SYNC and lasts at least ``LOCKSTEP_IMU_TIMEOUT``);
-    ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control
+    ``bus``: a python-can bus to use instead of opening ``config.bus``; ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control
     period (else lockstep: back to back, each SYNC's TPDOs awaited up to ``lockstep_timeout`` s,
     and the drives get no period-based watchdogs since no period is kept); ``sdo_timeout``: s an
     SDO answer is awaited (canopen's 0.3 s by default).
@@ -131,7 +128,7 @@ class CanopenRobot(Robot):
     #: Lockstep: once one TPDO of a SYNC arrived, wait at most this long (s) for the others.
     LOCKSTEP_SETTLE = 0.05
 
-    def __init__(self, config: RobotConfig, bus=None, imu=None, imu_lockstep: bool = False,
+    def __init__(self, config: RobotConfig, bus=None, imu=None,
                  realtime: bool = False, close_imu: bool = True, lockstep_timeout: float = 1.0,
                  sdo_timeout: float | None = None):
         self.config = config
@@ -168,12 +165,7 @@ class CanopenRobot(Robot):
         self.master_heartbeat = HeartbeatProducer(self.network, config.bus.master_node_id, config.bus.master_heartbeat)
         self.imu = imu
         self.close_imu = close_imu
-        self.imu_lockstep = imu_lockstep
         self.imu_timeout = config.imu.timeout if config.imu else 0.5
-        if imu_lockstep:  # no real-time deadline: the plant's sample of a SYNC may come late
-            self.imu_timeout = max(self.imu_timeout, LOCKSTEP_IMU_TIMEOUT)
-            if imu is not None:
-                imu.timeout = max(imu.timeout, LOCKSTEP_IMU_TIMEOUT)
         self.imu_rate = float(config.imu.rate_hz) if config.imu else 1.0 / self.period
         self._syncs = 0  # SYNCs sent since open()
         self._misses: dict[tuple[int, int], int] = {}  # consecutive SYNCs without this TPDO
@@ -439,18 +431,12 @@ class CanopenRobot(Robot):
         return snap
 
     def _read_imu(self, t_sync: float, sync_index: int):
-        """Latest IMU sample; in lockstep, on SYNCs where the simulated IMU publishes, the one
-        published for this SYNC."""
-        wait_new = self.imu_lockstep and imu_due(sync_index, self.period, self.imu_rate)
+        """The newest IMU sample (never waited for: the IMU streams at its own rate; lockstep with a
+        simulated IMU is ``sim.lockstep``'s)."""
         try:
-            if self.imu_lockstep:  # the plant publishes per SYNC: the stream is due from this one
-                self.imu.restart_watchdog(t_sync)
-            sample = self.imu.read(timeout=self.imu_timeout if wait_new else 0)
+            sample = self.imu.read(timeout=0)
             if sample is not None:
                 self._imu_last = sample
-            elif wait_new:
-                self._add_fault(Fault("imu", None, "imu", f"no IMU sample within {self.imu_timeout:g} s of SYNC"),
-                                at_sync=True)
         except Exception as exc:  # drivers.imu.ImuFault: device error, timeout, disconnected port
             self._add_fault(Fault("imu", None, "imu", str(exc) or type(exc).__name__), at_sync=True)
         return self._imu_last

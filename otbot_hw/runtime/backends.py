@@ -186,6 +186,7 @@ class BusConfigBackend(_ConfiguredRate):
     def open(self, plant=None, x0=None, forces=None, fixture: str = "floor"):
         from drivers.config import LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT
         from drivers.robot import CanopenRobot, open_imu
+        from sim.lockstep import LockstepCanopenRobot
 
         if plant is not None or forces is not None:
             raise ValueError("the configured bus runs the robot that is there: no plant parameters or forces")
@@ -194,8 +195,9 @@ class BusConfigBackend(_ConfiguredRate):
         if self.lockstep:  # a simulated plant answers in its own time: wait for it longer than for a drive
             kw = {"lockstep_timeout": LOCKSTEP_TIMEOUT, "sdo_timeout": LOCKSTEP_SDO_TIMEOUT}
         imu = open_imu(config.imu, port=self.imu_port) if (self.with_imu and config.imu is not None) else None
-        robot = CanopenRobot(config, imu=imu, realtime=self.paced and not self.lockstep, imu_lockstep=self.lockstep,
-                             **kw)
+        # lockstep is the simulated plant's property (sim.lockstep): the real driver never waits for its IMU
+        robot = (LockstepCanopenRobot if self.lockstep else CanopenRobot)(
+            config, imu=imu, realtime=self.paced and not self.lockstep, **kw)
         with robot:
             robot.open()
             yield robot
