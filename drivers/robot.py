@@ -112,10 +112,11 @@ class CanopenRobot(Robot):
     (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``; the newest
     sample is taken, never awaited: lockstep with a simulated IMU is ``sim.lockstep.ImuLockstep``).
 
-    ``bus``: a python-can bus to use instead of opening ``config.bus``; ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control
-    period (else lockstep: back to back, each SYNC's TPDOs awaited up to ``lockstep_timeout`` s,
-    and the drives get no period-based watchdogs since no period is kept); ``sdo_timeout``: s an
-    SDO answer is awaited (canopen's 0.3 s by default).
+    ``bus``: a python-can bus to use instead of opening ``config.bus``; ``close_imu``: whether
+    ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control period (else lockstep: back
+    to back, each SYNC's TPDOs awaited up to ``lockstep_timeout`` s, and the drives get no period-based
+    watchdogs since no period is kept); ``sdo_timeout``: s an SDO answer is awaited (canopen's 0.3 s by
+    default).
 
     The constructor reads the object dictionaries and refuses (``DeviceConfigError``) what cannot
     run, before any bus is opened. ``warnings``: what the devices cannot do that the loop would

@@ -269,6 +269,13 @@ def format_status(s: dict) -> str:
         k = lambda v: _num(v * 1e3 if isinstance(v, (int, float)) else v, "{:.1f}")  # noqa: E731
         lines.append(("tracking", f"error x {k(err.get('x'))} mm, y {k(err.get('y'))} mm, "
                                   f"alpha {k(err.get('alpha'))} mrad"))
+    pay = s.get("payload")
+    if isinstance(pay, dict) and isinstance(pay.get("estimate"), dict):
+        units = {"m_p": "kg", "I_p": "kg m^2", "x_F": "m", "y_F": "m"}
+        est = ", ".join(f"{n} {_num(e.get('value'), '{:.4g}')} ± {_num(e.get('std'), '{:.2g}')} {units.get(n, '')}"
+                        + ("" if e.get("confident") else " (file)") for n, e in pay["estimate"].items()
+                        if isinstance(e, dict))
+        lines.append(("payload", f"{est}; {pay.get('state')}"))
     faults = s.get("faults") or []
     lines.append(("faults", "none" if not faults else format_fault(faults[0])))
     lines += [("", format_fault(f)) for f in faults[1:]]

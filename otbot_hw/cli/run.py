@@ -242,12 +242,13 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     from otbot_hw.sensors import NoiseModel
 
     cfg = load_robot_config()
-    progress("[demo] 3/5 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
+    progress("[demo] 3/6 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
     path = out_dir / "chassis_bus.mcap"
     params = nominal()
     with BusSimBackend(cfg, NoiseModel.paper(), seed).open(params) as robot:
         res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (300, 1)), cfg.limits, None, path,
-                          {"experiment": "chassis (paper §4.3.2) over CAN", **source_metadata(simulated=True, bus=True),
+                          {"experiment": "chassis (paper §4.3.2) over CAN",
+                           **source_metadata(simulated=True, bus=True),
                            "noise": NoiseModel.paper().to_dict(), "seed": seed, "params": params.to_dict()})
     wall = res.stats.wall_time
     if not res.completed:

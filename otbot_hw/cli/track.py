@@ -63,6 +63,10 @@ def register(sub) -> None:
     p.add_argument("--slip-burst", action="append", default=None, metavar="T0:DURATION:K_SLIP",
                    help="a burst of wheel slip in the simulated robot: the extended model's k_slip (rad/(s N m)) for "
                         "DURATION s from T0 s of robot time (repeatable; --sim and --bus sim)")
+    p.add_argument("--adapt", choices=("payload",), default=None,
+                   help="payload: estimate the platform + load (m_p, I_p, x_F, y_F) online and let the law use it once "
+                        "confident (settings and bounds: daemon.adaptation in --config); --json adds payload_estimate "
+                        "and adaptation")
     p.add_argument("--out", type=Path, default=None, metavar="RUN.mcap", help="record the run (project MCAP format)")
     p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write PNG plots into DIR")
     p.add_argument("--animate", type=Path, default=None, metavar="OUT.gif", help="write a GIF animation")
@@ -175,6 +179,11 @@ def run(args: argparse.Namespace) -> dict:
     output_folder(args.plot, "--plot")
     output_file(args.out, "--out")
     tstab = parse_tstab(args.tstab)
+    adapt = None
+    if args.adapt == "payload":
+        from otbot_hw.estimation.payload import AdaptationConfig
+
+        adapt = AdaptationConfig.load(args.config).with_(enabled=True)
     model = ExtendedModel.load(args.params)
     params = model.params
     effects = model.eff if model.active_effects() else None
@@ -229,7 +238,7 @@ def run(args: argparse.Namespace) -> dict:
         result = run_scenario(args.scenario, params, limits, t_stab=tstab, robustness=not args.no_robustness,
                               plot_dir=args.plot, animate=args.animate, progress=say, error_bounds=eb, spec=spec,
                               plant=plant, effects=effects, backend=backend, feedback=args.feedback, safety=safety,
-                              path=args.out, metadata=meta, config_path=args.config, fixes=fixes)
+                              path=args.out, metadata=meta, config_path=args.config, fixes=fixes, adapt=adapt)
         if effects is not None:
             result["compensated_effects"] = model.active_effects()
     except TrajectoryError as exc:
@@ -252,7 +261,9 @@ def run(args: argparse.Namespace) -> dict:
 
 def _fail(result: dict, message: str, as_json: bool):
     if as_json:
-        print(json.dumps(result, allow_nan=False, default=str))
+        from otbot_hw.json_output import json_safe
+
+        print(json.dumps(json_safe(result), allow_nan=False, default=str))
     print(f"otbot track: {message}", file=sys.stderr)
     raise SystemExit(1)
 
@@ -280,6 +291,11 @@ def _print_human(r: dict) -> None:
         print(f"  event t = {ev['t']:g} s {ev['kind']}: settle " + ("not within window" if s is None else f"{s:.3f} s"))
     if r.get("saturation"):
         print(f"  saturation episodes: {len(r['saturation'])}")
+    if r.get("payload_estimate"):
+        pe, ad = r["payload_estimate"], r["adaptation"]
+        print("  payload estimate (platform + load): " + ", ".join(
+            f"{k} {v['value']:.3g} ± {v['std']:.2g}" for k, v in pe.items())
+              + f" (kg, kg m^2, m); converged {_s(ad['converged_s'])}, law switched {_s(ad['switched_s'])}, {ad['state']}")
     if "feasibility" in r:
         print(f"  feasibility: {'ok' if r['feasibility']['feasible'] else 'limits can be exceeded'}")
     if "open_loop" in r:
@@ -302,3 +318,7 @@ def _print_human(r: dict) -> None:
         print(f"  FAULT: {r['fault']['kind']} at t = {r['fault']['t']:.3f} s: {r['fault']['text']}")
     for p in r.get("plots", []):
         print(f"  plot: {p}")
+
+
+def _s(v) -> str:
+    return "never" if v is None else f"at {v:.2f} s"

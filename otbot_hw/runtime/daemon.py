@@ -198,6 +198,10 @@ class Daemon:
             stop_at_end=False, record_reference=True, keep_samples=False, continue_after_fault=True,
             recorder=self.recordings.recorder(period))
         self.modes.runner = runner
+        adapter = self._new_adapter(period)
+        if adapter is not None:  # its estimate on /otbot/payload, its events and bounds fault through the loop
+            runner.payload = adapter
+            adapter.on_fault, adapter.on_event = runner.trip, runner.event
         runner.start(enable=False)
         runner.cycle()
         gc.freeze()  # what booting the drives created, too (no collection: that would stall the bus)
@@ -236,8 +240,19 @@ class Daemon:
                             imu_accel=g, imu_gyro=z, imu_time=float(k))
             est = fb.start(snap, None) if k == 0 else fb.step(snap, None, z)
         TrackingController(self.law, StopTrajectory(est.pose), period).update(period, _probe_feedback(period), snap)
+        self._new_adapter(period)
         gc.collect()
         gc.freeze()
+
+    def _new_adapter(self, period: float):
+        """Online payload adaptation (``daemon.adaptation``; None when disabled), on the law from now on."""
+        cfg = self.settings.daemon.adaptation
+        if cfg is None or not cfg.enabled:
+            return None
+        from otbot_hw.runtime.controllers import PayloadAdapter
+
+        self.law.adapter = PayloadAdapter(self.law, cfg, period)
+        return self.law.adapter
 
     def _new_feedback(self, pose, period: float) -> EkfFeedback:
         """The pose EKF, starting at ``pose`` (x, y m, alpha rad)."""
@@ -318,11 +333,22 @@ class Daemon:
             pose = est.pose if est is not None and np.all(np.isfinite(est.pose)) else self.settings.start_pose
             feedback = self._new_feedback(pose, r.period)
         was = str(r.fault) if r.fault is not None else "robot faults"
+        adapter = getattr(self.law, "adapter", None)
+        if adapter is not None and r.fault is not None and r.fault.kind == "payload":
+            adapter.reset()  # the file's platform parameters (already restored), adaptation starts over
         r.reset(feedback)
         self.seen_fault = None
         self._fault_texts = ()
         self.modes.set_mode("idle", f"idle: reset by {peer} (was {was})")
         return {"mode": "idle", "cleared": was}
+
+    def payload_status(self) -> dict | None:
+        """Online payload adaptation: {estimate: {m_p, I_p, x_F, y_F: {value, std, confident}}, state,
+        converged_s, switched_s (robot time, s), changes, law, fault}; None when disabled."""
+        a = getattr(self.law, "adapter", None)
+        if a is None:
+            return None
+        return {"estimate": a.payload_estimate(), **a.summary()}
 
     # -- summary -----------------------------------------------------------------------------
     def summary(self) -> dict:

@@ -89,6 +89,13 @@ class DaemonConfig:
     velocity: VelocityConfig = field(default_factory=VelocityConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    adaptation: Any = field(default_factory=lambda: _adaptation_default())  # estimation.payload.AdaptationConfig
+
+
+def _adaptation_default():
+    from otbot_hw.estimation.payload import AdaptationConfig
+
+    return AdaptationConfig()
 
 
 _SIZE_UNITS = {"bytes": 1, "KiB": 2 ** 10, "MiB": 2 ** 20, "GiB": 2 ** 30}
@@ -163,7 +170,7 @@ class _Section:
 
 def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
     """Validate a ``daemon`` mapping (None: all defaults); relative paths are relative to the cwd."""
-    top = _Section(source, "daemon", data, ("socket", "velocity", "recording", "telemetry"))
+    top = _Section(source, "daemon", data, ("socket", "velocity", "recording", "telemetry", "adaptation"))
     s = _Section(source, "daemon.socket", top.data.get("socket"),
                  ("path", "allowed_users", "allowed_groups", "max_request", "max_clients", "reserved_clients",
                   "request_timeout", "idle_timeout"))
@@ -218,7 +225,10 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
         raise t.err("enabled", f"must be true or false, got {enabled!r}")
     tel = TelemetryConfig(enabled=enabled, host=t.text("host", dt.host),
                           port=t.integer("port", dt.port, 0, 65535), rate=t.quantity("rate", "Hz", dt.rate))
-    return DaemonConfig(socket=sock, velocity=vel, recording=rec, telemetry=tel)
+    from otbot_hw.estimation.payload import AdaptationConfig
+
+    return DaemonConfig(socket=sock, velocity=vel, recording=rec, telemetry=tel,
+                        adaptation=AdaptationConfig.from_section(top.data.get("adaptation"), source))
 
 
 def load_daemon_config(path: str | Path | None = None) -> DaemonConfig:
@@ -235,4 +245,5 @@ def load_daemon_config(path: str | Path | None = None) -> DaemonConfig:
         sock = ControlSocketConfig(**{**sock.__dict__, "path": base / sock.path})
     if not rec.dir.is_absolute():
         rec = RecordingConfig(**{**rec.__dict__, "dir": base / rec.dir})
-    return DaemonConfig(socket=sock, velocity=cfg.velocity, recording=rec, telemetry=cfg.telemetry)
+    return DaemonConfig(socket=sock, velocity=cfg.velocity, recording=rec, telemetry=cfg.telemetry,
+                        adaptation=cfg.adaptation)

@@ -2,11 +2,12 @@
 ``benchmarks/daemon.py`` and bench scripts that need a daemon they can signal or kill.
 
 ``config_copy(folder)`` copies a hardware configuration with its object dictionaries and text
-replaced (the tests' one set-up, ``tests/conftest.py``); ``local_config(folder)`` writes a copy of a hardware configuration that this user may command
-(``daemon.socket.allowed_users``), with the object dictionaries beside it and no slcan settle delay;
-``DaemonProcess`` starts ``otbot daemon``, waits until it answers ``status`` and talks to it like
-``otbot ctl``; ``plant_bus_args`` puts it on a ``sim.plant.PlantProcess``; ``realtime_priority``
-gives a process SCHED_FIFO, as the unit's CPUSchedulingPolicy=fifo would.
+replaced (the tests' one set-up, ``tests/conftest.py``); ``local_config(folder)`` writes a copy of a
+hardware configuration that this user may command (``daemon.socket.allowed_users``), with the object
+dictionaries beside it and no slcan settle delay; ``DaemonProcess`` starts ``otbot daemon``, waits
+until it answers ``status`` and talks to it like ``otbot ctl``; ``plant_bus_args`` puts it on a
+``sim.plant.PlantProcess``; ``realtime_priority`` gives a process SCHED_FIFO, as the unit's
+CPUSchedulingPolicy=fifo would.
 """
 from __future__ import annotations
 
