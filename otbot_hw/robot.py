@@ -144,7 +144,7 @@ class Robot(abc.ABC):
         q = self.torque_quantum
         if q is not None:
             sat = [s or abs(c - a) > 0.5 * dq + 1e-12 for s, c, a, dq in zip(sat, commanded.tolist(), clamped, q)]
-        return Command(requested=u, commanded=commanded, saturated=np.array(sat))
+        return Command(requested=u, commanded=commanded, saturated=np.array(sat, dtype=bool))
 
     @abc.abstractmethod
     def _apply(self, torques: list[float]) -> np.ndarray:

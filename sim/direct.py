@@ -155,7 +155,7 @@ class DirectSimRobot(SimulatedRobot):
 
     def _apply(self, torques: list[float]) -> np.ndarray:
         self._refuse_unless_writable(self._faults, self._all_enabled)
-        cmd = np.array(torques)
+        cmd = np.array(torques, dtype=float)
         if self.torque_step:
             cmd = np.round(cmd / self.torque_step) * self.torque_step
         self._u = cmd
