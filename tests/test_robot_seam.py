@@ -118,3 +118,58 @@ def test_back_ends_come_from_the_registry():
     assert [source(b)["source"] for b in made.values()] == ["simulation", "bus-simulation", "robot"]
     with pytest.raises(ValueError, match="unknown back end 'bus moon'"):
         make_backend("bus moon", cfg)
+
+
+class FakeImu:
+    """Records how the driver asks for samples; never has one."""
+
+    timeout = 0.05
+
+    def __init__(self):
+        self.reads, self.restarts = [], []
+
+    def read(self, timeout=None):
+        self.reads.append(timeout)
+        return None
+
+    def restart_watchdog(self, t):
+        self.restarts.append(t)
+
+
+def _driver(cls, **kw):
+    import uuid
+
+    import can
+
+    from drivers.config import load_robot_config
+
+    cfg = load_robot_config()
+    bus = can.Bus(interface="virtual", channel=f"seam-{uuid.uuid4().hex[:8]}")
+    imu = FakeImu()
+    return cls(cfg, bus=bus, imu=imu, close_imu=False, **kw), imu, bus
+
+
+def test_the_real_driver_never_waits_for_its_imu_and_lockstep_is_the_simulated_back_ends():
+    from drivers.config import LOCKSTEP_IMU_TIMEOUT
+    from drivers.robot import CanopenRobot
+    from sim.lockstep import LockstepCanopenRobot
+
+    robot, imu, bus = _driver(CanopenRobot)
+    try:
+        assert robot._read_imu(0.0, 0) is None and robot._read_imu(0.01, 1) is None
+        assert imu.reads == [0, 0] and imu.restarts == [] and not robot.faults  # newest sample, no wait
+    finally:
+        bus.shutdown()
+    robot, imu, bus = _driver(LockstepCanopenRobot)
+    try:
+        robot._read_imu(5.0, 0)  # the IMU is due at SYNC 0: its sample awaited, the stream's watchdog restarted
+        assert imu.restarts == [5.0] and imu.reads == [robot.imu_timeout] and robot.imu_timeout >= LOCKSTEP_IMU_TIMEOUT
+        assert [f.kind for f in robot.faults] == ["imu"]  # none came
+    finally:
+        bus.shutdown()
+    robot, imu, bus = _driver(LockstepCanopenRobot, imu_lockstep=False)  # a plant paced in real time
+    try:
+        robot._read_imu(5.0, 0)
+        assert imu.reads == [0] and imu.restarts == []
+    finally:
+        bus.shutdown()
