@@ -7,7 +7,8 @@ name           robot
 ``bus sim``    ``sim.plant.SimulatedBusRobot``: the CANopen drivers over python-can's virtual bus to
                the simulated drives/encoder/IMU (``sim.plant.Plant``) in this process, lockstep
 ``bus config`` ``drivers.robot.CanopenRobot`` on the configured bus (the real robot, or an
-               ``otbot plant`` process), paced in real time unless ``lockstep``
+               ``otbot plant`` process), paced in real time with the drives' watchdogs armed
+               unless ``lockstep``
 =============  ======================================================================================
 
 ``make_backend(name, config, options)`` builds one from the registry ``BACKENDS`` (the command line
@@ -163,10 +164,10 @@ class BusSimBackend(_ConfiguredRate):
 class BusConfigBackend(_ConfiguredRate):
     """``bus config``: ``CanopenRobot`` on the configured bus and IMU port (``imu_port`` overrides
     it); ``lockstep``: the other end is a simulated plant (SYNCs back to back, IMU sample awaited per
-    SYNC) instead of a real robot paced in real time. ``paced``: the robot keeps the period itself
-    (``CanopenRobot(realtime=True)``: each SYNC's TPDOs awaited within the period, the drives' SYNC
-    and RPDO watchdogs armed, a fault reaction's SYNCs one period apart) — the daemon, which runs
-    for hours on the real bus; otherwise only the loop runner paces the reads."""
+    SYNC) instead of a real robot paced in real time. Every run that is not lockstep is paced by the
+    loop runner (the one clock) and arms the drives' SYNC and RPDO watchdogs (0x1006, 0x1400:05):
+    ``CanopenRobot(realtime=True)``, each SYNC's TPDOs awaited within the period. ``paced`` is that
+    fact (``not lockstep``), kept for callers that still pass it: a value passed is ignored."""
 
     config: object  # drivers.config.RobotConfig
     imu_port: str | None = None
@@ -177,6 +178,9 @@ class BusConfigBackend(_ConfiguredRate):
     has_truth: bool = False
     simulated = False  # the robot that is there (a plant process in lockstep included)
     bus = True
+
+    def __post_init__(self):
+        self.paced = not self.lockstep  # watchdog arming is configuration, not a caller's choice
 
     @property
     def realtime(self) -> bool:
@@ -197,7 +201,7 @@ class BusConfigBackend(_ConfiguredRate):
         imu = open_imu(config.imu, port=self.imu_port) if (self.with_imu and config.imu is not None) else None
         # lockstep is the simulated plant's property (sim.lockstep): the real driver never waits for its IMU
         robot = (LockstepCanopenRobot if self.lockstep else CanopenRobot)(
-            config, imu=imu, realtime=self.paced and not self.lockstep, **kw)
+            config, imu=imu, realtime=not self.lockstep, **kw)
         with robot:
             robot.open()
             yield robot
