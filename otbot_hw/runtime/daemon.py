@@ -3,8 +3,8 @@ control socket, recorded, shown live in Foxglove and watched by systemd (``otbot
 ``docs/daemon.md``).
 
 Threads: the loop runs on the thread that calls ``Daemon.serve`` (the main thread in ``otbot
-daemon``); the control server's I/O and dispatch threads call this class's command methods
-(``CommandHandler``). Every change of mode runs on the loop thread, between two cycles, handed
+daemon``); the control server's I/O and dispatch threads call the command handlers
+(``daemon_commands.DaemonCommands``, a ``CommandHandler``). Every change of mode runs on the loop thread, between two cycles, handed
 over through the ``LoopMailbox``; ``estop`` alone acts from the I/O thread, through the runner's
 thread-safe ``trip`` (it wakes the loop's real-time wait, which quick-stops before anything else).
 
