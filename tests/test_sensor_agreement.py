@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from otbot_hw.model import effects as fx
+from otbot_hw.model.sensor_model import sensor_outputs
 from otbot_hw.params import nominal
 from otbot_hw.simulation.sensing import StepperSensors
 from otbot_hw.simulation.simulator import make_stepper, simulate_extended
@@ -58,7 +59,7 @@ def test_stepper_sensors_equal_batch_sensor_outputs_for_every_effect(name, lag, 
     U, dt = _commands(), 0.01
     got = _stepped(model, U, dt)
     tr = simulate_extended(model.params, model.eff, U, dt)
-    want = fx.sensor_outputs(tr, model.params, model.eff)
+    want = sensor_outputs(tr, model.params, model.eff)
     for ch in got:
         np.testing.assert_allclose(got[ch], want[ch], rtol=0, atol=1e-12, err_msg=f"{name}: {ch}")
 
@@ -69,6 +70,6 @@ def test_stepper_sensors_equal_batch_sensor_outputs_off_the_floor(fixture):
     U, dt = _commands(), 0.01
     got = _stepped(model, U, dt, fixture)
     tr = simulate_extended(model.params, model.eff, U, dt, fixture=fixture)
-    want = fx.sensor_outputs(tr, model.params, model.eff)
+    want = sensor_outputs(tr, model.params, model.eff)
     for ch in got:
         np.testing.assert_allclose(got[ch], want[ch], rtol=0, atol=1e-12, err_msg=f"{fixture}: {ch}")

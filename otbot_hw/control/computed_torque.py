@@ -18,7 +18,7 @@ import numpy as np
 from otbot_hw.control.gains import Gains, gains_from_tstab
 from otbot_hw.control.task_model import computed_torque, reference_state
 from otbot_hw.model.compiled import FLOOR
-from otbot_hw.model.effects import compensated_command
+from otbot_hw.model.effect_physics import compensated_command
 from otbot_hw.params import OtbotParams
 
 

@@ -17,8 +17,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from otbot_hw.model import compiled
-from otbot_hw.model import effects as fx
+from otbot_hw.model.compiled import FLOOR
+from otbot_hw.model.effect_physics import actuated_torque
+from otbot_hw.simulation.integrators import ext_rk4_zoh, rk4_zoh
 from otbot_hw.simulation.simulator import default_substeps
 
 _L1, _L2, _R = 0, 1, 2
@@ -48,7 +49,7 @@ def predict_paper(p, pd, phi_p, u, dt, substeps, prm):
     x = task_state_vector(p, pd, phi_p, prm)
     U = np.empty((1, 3))
     U[0, 0], U[0, 1], U[0, 2] = u[0], u[1], u[2]
-    return compiled.rk4_zoh(x, U, np.zeros((1, 2)), dt, substeps, prm, compiled.FLOOR)[1]
+    return rk4_zoh(x, U, np.zeros((1, 2)), dt, substeps, prm, FLOOR)[1]
 
 
 class TaskStatePredictor:
@@ -79,6 +80,6 @@ class TaskStatePredictor:
         else:
             x = task_state_vector(p, p_dot, float(phi_p), self._prm)
             self._U[0] = u
-            tau0 = fx.actuated_torque(self._U[0], self.eff)
-            x1 = fx.ext_rk4_zoh(x, tau0, self._U, self._F, h, sub, self._prm, self.eff, compiled.FLOOR)[0][1]
+            tau0 = actuated_torque(self._U[0], self.eff)
+            x1 = ext_rk4_zoh(x, tau0, self._U, self._F, h, sub, self._prm, self.eff, FLOOR)[0][1]
         return x1[0:3], x1[6:9], float(x1[5])

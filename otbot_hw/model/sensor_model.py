@@ -1,0 +1,202 @@
+"""The sensor model, written once: what the joint encoders and the IMU read at a sample of a run of the
+model (the paper's model is the extended model with every effect at zero), noise-free.
+
+* Encoders (rad, rad/s, ``phi_r, phi_l, phi_p``): the wheel angles (rolling angle psi_i times the
+  radius ratio rho_i = r / r_i) plus the slip angle, times the encoder scale error (1 + e_i); rates
+  alike with the slip rate; the pivot reads phi_p.
+* IMU (m/s^2, rad/s, in the IMU frame = the platform frame B'' rotated by psi about z): the specific
+  force of the point (d_x, d_y) of B'' (lever arm from the pivot), the slope's in-plane gravity seen as
+  -R^T g_plane (floor only), biases; z reads ``GRAVITY``; the rate alpha_dot + b_gz.
+* IMU latency d_imu: the IMU sample stamped t_k was taken at t_k - d_imu, inside some zero-order-hold
+  interval j; the reading runs linearly from its value just after sample j (under command u_j) to its
+  value just before sample j + 1 (the *left limit*, still under u_j) -- not across the torque step at
+  a sample (``delay_held``). Held at its first value before t_0.
+
+``sample_motion_into`` gives the motion at a sample (accelerations and slip rates: one evaluation of
+the extended model's derivative, the integrator's first stage), ``sensor_samples`` the readings
+before the latency for a run or a single sample, ``delay_held`` the latency. The batch sensor outputs
+of a trajectory (``sensor_outputs``: identification, the diagnosis, simulated recordings) and the
+sample-by-sample sensors of a stepped simulation (``otbot_hw.simulation.sensing.StepperSensors``: the
+direct and bus simulated robots) call exactly these functions, so they agree to rounding
+(``tests/test_sensor_agreement.py``).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from otbot_hw.model.constants import GRAVITY
+from otbot_hw.model.effect_catalog import B_AX, B_AY, B_GZ, D_IMU, D_X, D_Y, E_R, G_X, G_Y, PSI, T_I
+from otbot_hw.model.effect_physics import ext_derivative_into, radius_ratios
+
+CHANNELS = ("joint_pos", "joint_vel", "imu_accel", "imu_gyro")
+
+
+@njit(cache=True)
+def imu_sample_into(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor, acc):
+    """Write the IMU specific force (3,) m/s^2 (no latency) at one sample into ``acc``: platform angle
+    alpha (rad) and rate alpha_d (rad/s), pivot acceleration (xdd, ydd) m/s^2 (ground frame), alpha_dd
+    (rad/s^2); the slope acts on the ``floor`` fixture only. The rate reads alpha_d + b_gz."""
+    c, s = np.cos(alpha), np.sin(alpha)
+    ax = c * xdd + s * ydd
+    ay = -s * xdd + c * ydd
+    if floor:
+        ax = ax - (c * eff[G_X] + s * eff[G_Y])
+        ay = ay - (-s * eff[G_X] + c * eff[G_Y])
+    dx, dy = eff[D_X], eff[D_Y]
+    ax = ax - alpha_dd * dy - alpha_d ** 2 * dx
+    ay = ay + alpha_dd * dx - alpha_d ** 2 * dy
+    cp, sp = np.cos(eff[PSI]), np.sin(eff[PSI])
+    acc[0] = cp * ax + sp * ay + eff[B_AX]
+    acc[1] = -sp * ax + cp * ay + eff[B_AY]
+    acc[2] = GRAVITY
+
+
+@njit(cache=True)
+def imu_from_motion_compiled(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor):
+    n = alpha.shape[0]
+    acc = np.empty((n, 3))
+    gyro = np.zeros((n, 3))
+    for k in range(n):
+        imu_sample_into(alpha[k], alpha_d[k], xdd[k], ydd[k], alpha_dd[k], eff, floor, acc[k])
+        gyro[k, 2] = alpha_d[k] + eff[B_GZ]
+    return acc, gyro
+
+
+def imu_from_motion(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor: bool = True):
+    """IMU specific force (N, 3) m/s^2 and rate (N, 3) rad/s from the platform motion (no latency),
+    ``imu_sample_into`` at each sample (arrays (N,) of alpha, alpha_dot, x_dd, y_dd, alpha_dd)."""
+    f = [np.ascontiguousarray(np.asarray(v, dtype=float).reshape(-1)) for v in (alpha, alpha_d, xdd, ydd, alpha_dd)]
+    return imu_from_motion_compiled(*f, np.asarray(eff, dtype=float), bool(floor))
+
+
+@njit(cache=True)
+def sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, dz, gen, acc, g2, slip):
+    """Write the accelerations q_ddot (6,) and the wheel slip rates (2,) rad/s at state x (12,) under the
+    delivered torque tau (3,) N m and pivot force f (2,) N into qdd, sd: the extended model's derivative
+    (``effect_physics.ext_derivative_into``, the RK4's first stage); dz (14,), gen, acc, g2 (6,), slip
+    (2,) scratch."""
+    z = np.zeros(14)
+    z[:12] = x
+    ext_derivative_into(z, tau, f, eff, prm, fixture, dz, gen, acc, g2, slip)
+    for i in range(6):
+        qdd[i] = dz[6 + i]
+    sd[0] = dz[12]
+    sd[1] = dz[13]
+
+
+@njit(cache=True, nogil=True)
+def sensor_samples(X, S, TAU, F, TAU_L, F_L, QDD, SD, eff, prm, fixture):
+    """Sensor readings before the IMU latency at N samples: states X (N, 12) (rolling-angle
+    coordinates), slip angles S (N, 2) rad, delivered torques TAU (N, 3) N m and pivot forces F (N, 2)
+    N acting just after each sample, and TAU_L, F_L just before it (the previous interval's; only used
+    for the left limit of the IMU with a latency and no current-loop lag, whose torque jumps at a
+    command step). QDD (N, 6), SD (N, 2): the accelerations and slip rates after each sample when the
+    integrator already has them (``ext_rk4_zoh_samples``), or arrays with 0 rows to evaluate them here.
+
+    Returns POS, VEL (N, 3) rad, rad/s; ACC_R, ACC_L (N, 3) m/s^2 just after and just before each
+    sample; GYRO (N, 3) rad/s; all in the recording's frames."""
+    n = X.shape[0]
+    POS, VEL, GYRO = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 3))
+    ACC_R, ACC_L = np.empty((n, 3)), np.empty((n, 3))
+    floor = fixture == 0
+    given = QDD.shape[0] == n
+    left = eff[D_IMU] > 0.0 and eff[T_I] == 0.0
+    rho = radius_ratios(eff)
+    qdd, qdl, sd, sdl = np.empty(6), np.empty(6), np.empty(2), np.empty(2)
+    dz, gen, acc, g2, slip = np.empty(14), np.empty(6), np.empty(6), np.empty(6), np.empty(2)
+    for k in range(n):
+        x = X[k]
+        if given:
+            for i in range(6):
+                qdd[i] = QDD[k, i]
+            sd[0], sd[1] = SD[k, 0], SD[k, 1]
+        else:
+            sample_motion_into(x, TAU[k], F[k], eff, prm, fixture, qdd, sd, dz, gen, acc, g2, slip)
+        for i in range(2):
+            scale = 1.0 + eff[E_R + i]
+            POS[k, i] = scale * (rho[i] * x[3 + i] + S[k, i])
+            VEL[k, i] = scale * (rho[i] * x[9 + i] + sd[i])
+        POS[k, 2] = x[5]
+        VEL[k, 2] = x[11]
+        imu_sample_into(x[2], x[8], qdd[0], qdd[1], qdd[2], eff, floor, ACC_R[k])
+        if left:
+            sample_motion_into(x, TAU_L[k], F_L[k], eff, prm, fixture, qdl, sdl, dz, gen, acc, g2, slip)
+            imu_sample_into(x[2], x[8], qdl[0], qdl[1], qdl[2], eff, floor, ACC_L[k])
+        else:
+            for i in range(3):
+                ACC_L[k, i] = ACC_R[k, i]
+        GYRO[k, 2] = x[8] + eff[B_GZ]
+    return POS, VEL, ACC_R, ACC_L, GYRO
+
+
+def delay_held(t: np.ndarray, right: np.ndarray, left: np.ndarray, d: float) -> np.ndarray:
+    """A signal sampled d seconds late whose samples jump at the sample instants t (N,) (uniform):
+    ``right`` (N, k) just after each sample, ``left`` (N, k) just before; inside interval j the value
+    runs linearly from right[j] to left[j + 1]. Held at its first value before t_0."""
+    if d <= 0.0 or len(t) < 2:
+        return right
+    dt = t[1] - t[0]
+    tq = t - d
+    j = np.clip(np.floor((tq - t[0]) / dt + 1e-9).astype(int), 0, len(t) - 2)
+    f = np.clip((tq - t[j]) / dt, 0.0, 1.0)[:, None]
+    out = (1.0 - f) * right[j] + f * left[j + 1]
+    out[tq <= t[0]] = right[0]
+    return out
+
+
+def delay(t: np.ndarray, y: np.ndarray, d: float) -> np.ndarray:
+    """y (N, k) sampled d seconds late: y(t_k - d) by linear interpolation (held before t_0), any grid t."""
+    if d == 0.0:
+        return y
+    out = np.empty_like(y)
+    for j in range(y.shape[1]):
+        out[:, j] = np.interp(t - d, t, y[:, j])
+    return out
+
+
+def left_inputs(tau: np.ndarray, u: np.ndarray, f: np.ndarray, eff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Delivered torques (N, 3) N m and pivot forces (N, 2) N just before each sample of a run whose
+    delivered torques after the samples are ``tau`` and whose held commands and forces are ``u``, ``f``
+    (N, ...; row k held on [t_k, t_k+1)): the previous interval's (the first sample's own before t_0).
+    With a current-loop lag the delivered torque is continuous: ``tau`` itself."""
+    from otbot_hw.model.effect_physics import actuated_torques
+
+    tau_l, f_l = tau.copy(), f.copy()
+    if len(tau) > 1:
+        if eff[T_I] == 0.0:
+            tau_l[1:] = actuated_torques(np.ascontiguousarray(u[:-1], dtype=float), eff)
+        f_l[1:] = f[:-1]
+    return tau_l, f_l
+
+
+def sensor_outputs(traj, params, eff: np.ndarray, slip_rate: np.ndarray | None = None,
+                   qdd: np.ndarray | None = None, forces: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Noise-free sensor readings of a run (``otbot_hw.simulation.simulator.Trajectory`` with its
+    delivered torques ``tau`` and slip angles ``slip``; ``params`` an ``OtbotParams``), the sensor effects
+    of ``eff`` applied. ``qdd`` (N, 6) and ``slip_rate`` (N, 2): the accelerations and slip rates at
+    the samples when the integrator gave them (default: the trajectory's own, ``ext_rk4_zoh_samples``),
+    else evaluated here (with the trajectory's pivot forces ``f``, or ``forces``).
+
+    Returns ``joint_pos``, ``joint_vel`` (N, 3) rad, rad/s and ``imu_accel``, ``imu_gyro`` (N, 3)
+    m/s^2, rad/s in the IMU frame (= B'' rotated by psi), as the recording stores them."""
+    from otbot_hw.model.fixtures import fixture_code
+
+    x = np.ascontiguousarray(traj.x, dtype=float)
+    n = len(x)
+    eff = np.asarray(eff, dtype=float)
+    tau = np.ascontiguousarray(traj.tau, dtype=float)
+    f = forces if forces is not None else getattr(traj, "f", None)
+    f = np.zeros((n, 2)) if f is None else np.ascontiguousarray(f, dtype=float)
+    tau_l, f_l = left_inputs(tau, np.asarray(traj.u, dtype=float), f, eff)
+    qdd = getattr(traj, "qdd", None) if qdd is None else qdd
+    slip_rate = getattr(traj, "slip_rate", None) if slip_rate is None else slip_rate
+    if qdd is None or slip_rate is None:
+        QDD, SD = np.empty((0, 6)), np.empty((0, 2))
+    else:
+        QDD, SD = np.ascontiguousarray(qdd, dtype=float), np.ascontiguousarray(slip_rate, dtype=float)
+    pos, vel, acc_r, acc_l, gyro = sensor_samples(x, np.ascontiguousarray(traj.slip, dtype=float), tau, f, tau_l,
+                                                  f_l, QDD, SD, eff, params.as_array(), fixture_code(traj.fixture))
+    d = float(eff[D_IMU])
+    return {"joint_pos": pos, "joint_vel": vel, "imu_accel": delay_held(traj.t, acc_r, acc_l, d),
+            "imu_gyro": delay_held(traj.t, gyro, gyro, d)}
