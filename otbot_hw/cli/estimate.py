@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag
+from otbot_hw.model.angles import wrap_angle
 
 
 def register(sub) -> None:
@@ -38,7 +39,7 @@ def register(sub) -> None:
 def error_summary(rec, run) -> dict:
     """{'max': {x, y, alpha}, 'rms': {...}} of estimate - truth (m, m, rad; alpha wrapped)."""
     e = run.pose - rec.truth_q[:, :3]
-    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    e[:, 2] = wrap_angle(e[:, 2])
     names = ("x", "y", "alpha")
     return {"max": {n: float(np.abs(e[:, i]).max()) for i, n in enumerate(names)},
             "rms": {n: float(np.sqrt(np.mean(e[:, i] ** 2))) for i, n in enumerate(names)}}

@@ -80,6 +80,7 @@ from scipy.stats import chi2
 from otbot_hw.estimation import kernels
 from otbot_hw.estimation.config import EstimatorConfig
 from otbot_hw.model import compiled
+from otbot_hw.model.angles import wrap_angle  # noqa: F401  (the one angle wrap; importable from here)
 from otbot_hw.params import OtbotParams
 
 N_STATE = 14
@@ -88,7 +89,6 @@ STATE_NAMES = ("x", "y", "alpha", "x_dot", "y_dot", "alpha_dot", "gyro_bias", "a
                "kappa", "pivot_quantization", "alpha_dd_unmodelled", "accel_noise_x", "accel_noise_y")
 #: Update kinds and their dimensions.
 UPDATE_KINDS = {"encoders": 3, "heading": 1, "zupt": 3, "gyro": 1, "accel": 2, "fix": 3}
-TWO_PI = 2 * math.pi
 #: Default std of the start pose (m, m, rad): the start defines the frame. Prior std of the twist.
 INITIAL_POSE_STD = (1e-6, 1e-6, 1e-6)
 INITIAL_TWIST_STD = (0.01, 0.01, 0.01)
@@ -108,11 +108,6 @@ _FD_STEP = 1e-6
 
 class EstimatorFault(RuntimeError):
     """NaN or stale sensor data, non-monotonic time, a diverged filter. str() says which, in words."""
-
-
-def wrap_angle(a: float) -> float:
-    """a wrapped into [-pi, pi) (rad)."""
-    return (a + math.pi) % TWO_PI - math.pi
 
 
 @dataclass(frozen=True)
@@ -170,6 +165,7 @@ class PoseEKF:
         self._l1, self._l2, self._r = params.l1, params.l2, params.r
         self._k = params.r / (2 * params.l2)
         self._prm = params.as_array()
+        self._xs = np.empty(12)  # the model state the dynamic-model prediction evaluates at
         self.gate = {kind: float(chi2.ppf(cfg.gate_probability, dof)) for kind, dof in UPDATE_KINDS.items()}
         self._var_q = cfg.pivot_angle_sigma ** 2  # the pivot angle's quantization variance (rad^2)
         self._half_width_p = math.sqrt(3.0) * cfg.pivot_angle_sigma  # half a count: the reading's error bound
@@ -549,21 +545,10 @@ class PoseEKF:
 
     # ------------------------------------------------------------------ dynamic-model prediction
     def _model_acceleration(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """p_dd (3,) of the paper's model at state s (pose, twist) and the pivot reading under u (N m)."""
-        phi_p = self._phi_p
-        xs = np.empty(12)
-        xs[0:3] = s[0:3]
-        xs[3] = xs[4] = 0.0
-        xs[5] = phi_p
-        xs[6:9] = s[3:6]
-        th = s[2] - phi_p
-        c, si = math.cos(th), math.sin(th)
-        l1, l2, r = self._l1, self._l2, self._r
-        vx, vy, va = s[3], s[4], s[5]
-        xs[9] = ((l1 * c - l2 * si) * vx + (l2 * c + l1 * si) * vy) / (r * l1)
-        xs[10] = ((l1 * c + l2 * si) * vx + (-l2 * c + l1 * si) * vy) / (r * l1)
-        xs[11] = (si * vx - c * vy) / l1 + va
-        return compiled.accelerations(xs, u, self._zero2, self._zero6, self._prm)[:3]
+        """p_dd (3,) of the paper's model at filter state s and the pivot reading under u (N m); the model
+        state is built in one place (``kernels.model_state``: the true pivot angle, reading less e_p)."""
+        kernels.model_state(s, self._phi_p, self._prm, self._xs)
+        return compiled.accelerations(self._xs, u, self._zero2, self._zero6, self._prm)[:3]
 
     def _model_jacobian(self, s: np.ndarray, u: np.ndarray):
         """(p_dd (3,), d p_dd / d (alpha, x_dot, y_dot, alpha_dot) (3, 4)) by forward differences."""

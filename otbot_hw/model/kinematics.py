@@ -21,15 +21,6 @@ from numba.extending import register_jitable
 
 from otbot_hw.params import OtbotParams
 
-TWO_PI = 2.0 * math.pi
-
-
-@register_jitable
-def wrap_angle(a):
-    """a wrapped into [-pi, pi) (rad); floats and numpy arrays alike. The one angle wrap of the project."""
-    return (a + math.pi) % TWO_PI - math.pi
-
-
 @register_jitable
 def fik_entries(s, c, l1, l2, r):
     """M_FIK's varying entries (b00, b01, b10, b11) and kf = r / (2 l2) at sin, cos of theta:
