@@ -33,6 +33,7 @@ class StepperSensors:
         self.latency = float(stepper.eff[D_IMU])
         n = int(math.ceil(self.latency / self.period)) + 2 if self.latency > 0 else 0
         self._history: deque = deque(maxlen=max(n, 2))
+        self._last = None  # (sample key, readings) of the last read
 
     @property
     def eff(self) -> np.ndarray:
@@ -43,8 +44,14 @@ class StepperSensors:
         return self.stepper.delivered_torque(u)
 
     def _read(self, u: np.ndarray, f: np.ndarray | None):
-        """(pos, vel, acc just after, acc just before, gyro) (3,) each at the current sample."""
+        """(pos, vel, acc just after, acc just before, gyro) (3,) each at the current sample. The
+        encoders do not depend on the pivot force (``f`` None): a read at the same sample under the same
+        command serves them."""
         st = self.stepper
+        u = np.asarray(u, dtype=float)
+        key = (st.t, st.x[0], u.tobytes())
+        if f is None and self._last is not None and self._last[0] == key:
+            return self._last[1]
         eff = st.eff
         f = np.zeros(2) if f is None else np.asarray(f, dtype=float)
         tau = st.delivered_torque(u)
@@ -56,7 +63,9 @@ class StepperSensors:
         out = sensor_samples(st.x.reshape(1, 12), st.slip.reshape(1, 2), np.asarray(tau, dtype=float).reshape(1, 3),
                              f.reshape(1, 2), np.asarray(tau_l, dtype=float).reshape(1, 3), f_l.reshape(1, 2),
                              _NONE6, _NONE2, eff, st._prm, st._code)
-        return tuple(v[0] for v in out)
+        out = tuple(v[0] for v in out)
+        self._last = (key, out)
+        return out
 
     def joints(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Encoder angles (3,) rad and rates (3,) rad/s (phi_r, phi_l, phi_p) at the current state."""
