@@ -4,7 +4,7 @@ The runs: the corridor and the figure-8 (``otbot_hw.control.scenarios``) tracked
 simulator's true state at the bus rate (100 Hz), then replayed under the same torques on the extended
 model (``simulate_extended``) with the effect under study -- constant wheel slip (k_slip), slip bursts
 (k_slip switched on for short spans), a gyro bias (b_gz) -- and read through the extended model's
-sensor outputs (``effects.sensor_outputs``) with the paper's noise (``NoiseModel.paper()``) and the
+sensor outputs (``sensor_model.sensor_outputs``) with the paper's noise (``NoiseModel.paper()``) and the
 configured encoders' quantization (wheels 4096 x 10 counts per revolution, pivot 16384; count boundaries at
 a random offset from the joints' zero, drawn per seed). Slip leaves the
 body's motion unchanged (the contact transmits the force), so one closed-loop run serves every variant.

@@ -53,7 +53,7 @@ class ComputedTorqueController:
 
     ``params`` may be an ``ExtendedModel`` (e.g. a diagnosed model, ``otbot diagnose --out``): its
     physical and actuator effects are then compensated by feedforward. The law's torque u is what the
-    paper's model needs; the command sent is ``effects.compensated_command`` of it, evaluated on the
+    paper's model needs; the command sent is ``effect_physics.compensated_command`` of it, evaluated on the
     desired motion (p_d, p_dot_d) and the measured pivot angle, so friction signs follow the reference
     and do not chatter with noisy feedback. The compensation is part of u_traj (u_corr is unchanged).
     """

@@ -107,7 +107,7 @@ def default_substeps(dt: float, fixture: str = "floor") -> int:
 
     On the stand a free wheel has the short time constant I_a / b_w (about 58 ms
     nominally), so the step there is five times smaller. The extended model's stiffest
-    terms, the smoothed Coulomb signs (rate c / width / I_eff, ``effects.sign_width``), stay
+    terms, the smoothed Coulomb signs (rate c / width / I_eff, ``effect_physics.sign_width``), stay
     inside RK4's stability limit (h * rate < 2.78) with these steps for c up to its 2 N m
     bound: h * rate = 2.1 for a wheel on the floor (I_eff >= 0.048 kg m^2), 1.9 on the stand
     (I_a = 0.0104 kg m^2), 1.6 at the pivot (>= 0.31 kg m^2).
