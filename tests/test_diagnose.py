@@ -348,11 +348,10 @@ def test_fast_paths_give_the_plain_numbers():
     import dataclasses
 
     from otbot_hw.diagnose import residuals as R
-    from otbot_hw.model import effects as fx
     from otbot_hw.model import effect_physics as phys
-    from otbot_hw.simulation import integrators
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.model.fixtures import fixture_code
+    from otbot_hw.simulation import integrators
 
     rng = np.random.default_rng(3)
     U, F = rng.normal(0, 1.5, (200, 3)), rng.normal(0, 2, (200, 2))

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from otbot_hw.model import compiled
-from otbot_hw.model import effects as fx
 from otbot_hw.model import effect_physics as phys
+from otbot_hw.model import effects as fx
 from otbot_hw.model import sensor_model
 from otbot_hw.model.dynamics import kinetic_energy
 from otbot_hw.simulation.simulator import simulate, simulate_extended

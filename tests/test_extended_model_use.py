@@ -12,8 +12,8 @@ from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.task_model import reference_state, task_space
 from otbot_hw.control.trajectories import corridor
 from otbot_hw.model import compiled
-from otbot_hw.model import effects as fx
 from otbot_hw.model import effect_physics as phys
+from otbot_hw.model import effects as fx
 from otbot_hw.model.kinematics import inverse_kinematics_matrix
 from otbot_hw.params import DEFAULT_PARAMS_FILE, OtbotParams, ParameterError, nominal
 from otbot_hw.simulation.simulator import Stepper, make_stepper, simulate, simulate_extended

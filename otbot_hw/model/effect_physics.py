@@ -49,10 +49,9 @@ from numba import njit
 
 from otbot_hw.model import compiled
 from otbot_hw.model.constants import GRAVITY
-from otbot_hw.model.effect_catalog import (B_AX, B_AY, B_GZ, C_AIR, C_L, C_P, C_R, C_RR, D_IMU, D_X, D_Y, DB_W, DR_L,
-                                           DR_R, E_L, E_R, F_CST, G_X, G_Y, K_L, K_P, K_R, K_SLIP, N_CST, PSI, S_W,
-                                           T_I, T_TRAC, U_MAX_R, V_S, WIDTH_MIN_CASTER, WIDTH_MIN_PIVOT,
-                                           WIDTH_MIN_WHEEL, WIDTH_PER_N_CASTER, WIDTH_PER_NM_PIVOT,
+from otbot_hw.model.effect_catalog import (C_AIR, C_P, C_R, C_RR, DB_W, DR_L, DR_R, F_CST, G_X, G_Y, K_L, K_P, K_R,
+                                           K_SLIP, N_CST, S_W, T_TRAC, U_MAX_R, V_S, WIDTH_MIN_CASTER,
+                                           WIDTH_MIN_PIVOT, WIDTH_MIN_WHEEL, WIDTH_PER_N_CASTER, WIDTH_PER_NM_PIVOT,
                                            WIDTH_PER_NM_WHEEL, X_C1)
 from otbot_hw.model.kinematics import fik_entries
 
