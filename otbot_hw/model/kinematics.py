@@ -10,7 +10,9 @@ theta (``fik_entries``, ``iik_entries``, ``iik_dot_entries``, ``model_state_into
 with numba (``register_jitable``): Python calls them as they are (numpy or symbolic entries: the
 planner passes CasADi symbols to the matrix functions below, which build from them) and numba-compiled
 callers (the dynamics kernel ``otbot_hw.model.compiled``, the extended model, the EKF's kernels)
-compile them inline.
+inline them at numba-IR level (``inline="always"``: as a called function they cost the dynamics a
+third of its speed, 0.16 -> 0.22 us per evaluation, ``benchmarks/model.py``). A numba cache entry is
+invalidated by its own file only: after editing these formulas clear ``__pycache__``.
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from numba.extending import register_jitable
 
 from otbot_hw.params import OtbotParams
 
-@register_jitable
+@register_jitable(inline="always")
 def fik_entries(s, c, l1, l2, r):
     """M_FIK's varying entries (b00, b01, b10, b11) and kf = r / (2 l2) at sin, cos of theta:
     M_FIK = [[b00, b01, 0], [b10, b11, 0], [kf, -kf, 1]] (paper §2.3.1)."""
@@ -29,7 +31,7 @@ def fik_entries(s, c, l1, l2, r):
     return kf * (l2 * c - l1 * s), kf * (l2 * c + l1 * s), kf * (l1 * c + l2 * s), kf * (-l1 * c + l2 * s), kf
 
 
-@register_jitable
+@register_jitable(inline="always")
 def iik_entries(s, c, l1, l2, r):
     """M_IIK's varying entries (a00, a01, a10, a11, a20, a21) at sin, cos of theta:
     M_IIK = [[a00, a01, 0], [a10, a11, 0], [a20, a21, 1]] = M_FIK^-1 (paper §2.3.2)."""
@@ -38,7 +40,7 @@ def iik_entries(s, c, l1, l2, r):
             s / l1, -c / l1)
 
 
-@register_jitable
+@register_jitable(inline="always")
 def iik_dot_entries(s, c, thd, l1, l2, r):
     """dM_IIK/dt's entries (d00, d01, d10, d11, d20, d21) at sin, cos of theta and theta_dot (third
     column zero); with thd = 1 the derivative of M_IIK with respect to theta."""
@@ -47,7 +49,7 @@ def iik_dot_entries(s, c, thd, l1, l2, r):
             c / l1 * thd, s / l1 * thd)
 
 
-@register_jitable
+@register_jitable(inline="always")
 def model_state_into(x, y, alpha, vx, vy, va, phi_p, l1, l2, r, out):
     """Write the model state (q, q_dot) (12,) of a pose (x, y, alpha) m, rad, a twist (vx, vy, va) m/s,
     rad/s and the true pivot angle phi_p (rad) into ``out``: wheel angles 0 (the dynamics does not
