@@ -27,7 +27,7 @@ from numba import njit
 
 from otbot_hw.model.constants import GRAVITY
 from otbot_hw.model.effect_catalog import B_AX, B_AY, B_GZ, D_IMU, D_X, D_Y, E_R, G_X, G_Y, PSI, T_I
-from otbot_hw.model.effect_physics import ext_derivative_into, radius_ratios
+from otbot_hw.model.effect_physics import actuated_torque, ext_derivative_into, radius_ratios
 
 CHANNELS = ("joint_pos", "joint_vel", "imu_accel", "imu_gyro")
 
@@ -71,13 +71,15 @@ def imu_from_motion(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor: bool = True)
 
 
 @njit(cache=True)
-def sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, dz, gen, acc, g2, slip):
+def sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, z, dz, gen, acc, g2, slip):
     """Write the accelerations q_ddot (6,) and the wheel slip rates (2,) rad/s at state x (12,) under the
     delivered torque tau (3,) N m and pivot force f (2,) N into qdd, sd: the extended model's derivative
-    (``effect_physics.ext_derivative_into``, the RK4's first stage); dz (14,), gen, acc, g2 (6,), slip
+    (``effect_physics.ext_derivative_into``, the RK4's first stage); z, dz (14,), gen, acc, g2 (6,), slip
     (2,) scratch."""
-    z = np.zeros(14)
-    z[:12] = x
+    for i in range(12):
+        z[i] = x[i]
+    z[12] = 0.0
+    z[13] = 0.0
     ext_derivative_into(z, tau, f, eff, prm, fixture, dz, gen, acc, g2, slip)
     for i in range(6):
         qdd[i] = dz[6 + i]
@@ -85,49 +87,89 @@ def sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, dz, gen, acc, g2, 
     sd[1] = dz[13]
 
 
+#: Length of the work vector of ``readings_into``.
+WORK = 64
+
+
+@njit(cache=True)
+def readings_into(x, s_r, s_l, tau, f, tau_l, f_l, given, qdd_in, sd_in, eff, prm, fixture, pos, vel, acc_r, acc_l,
+                  gyro, work):
+    """The sensor model at one sample, written into pos, vel (3,) rad, rad/s, acc_r, acc_l (3,) m/s^2 (IMU
+    specific force just after and just before the sample, before the latency) and gyro (3,) rad/s: state x
+    (12,) (rolling-angle coordinates), wheel slip angles s_r, s_l (rad), delivered torque tau (3,) N m and
+    pivot force f (2,) N acting just after the sample, tau_l, f_l just before it (the previous interval's;
+    used for the left limit only with an IMU latency and no current-loop lag, whose torque jumps at a
+    command step). ``given``: the accelerations qdd_in (6,) and slip rates sd_in (2,) after the sample are
+    known (the integrator's first stage), else evaluated here. ``work`` (``WORK``,) scratch."""
+    qdd, qdl, sd, sdl = work[0:6], work[6:12], work[12:14], work[14:16]
+    z, dz, gen, acc, g2, slip = work[16:30], work[30:44], work[44:50], work[50:56], work[56:62], work[62:64]
+    if given:
+        for i in range(6):
+            qdd[i] = qdd_in[i]
+        sd[0], sd[1] = sd_in[0], sd_in[1]
+    else:
+        sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, z, dz, gen, acc, g2, slip)
+    rho = radius_ratios(eff)
+    pos[0] = (1.0 + eff[E_R]) * (rho[0] * x[3] + s_r)
+    pos[1] = (1.0 + eff[E_R + 1]) * (rho[1] * x[4] + s_l)
+    vel[0] = (1.0 + eff[E_R]) * (rho[0] * x[9] + sd[0])
+    vel[1] = (1.0 + eff[E_R + 1]) * (rho[1] * x[10] + sd[1])
+    pos[2] = x[5]
+    vel[2] = x[11]
+    floor = fixture == 0
+    imu_sample_into(x[2], x[8], qdd[0], qdd[1], qdd[2], eff, floor, acc_r)
+    if eff[D_IMU] > 0.0 and eff[T_I] == 0.0:
+        sample_motion_into(x, tau_l, f_l, eff, prm, fixture, qdl, sdl, z, dz, gen, acc, g2, slip)
+        imu_sample_into(x[2], x[8], qdl[0], qdl[1], qdl[2], eff, floor, acc_l)
+    else:
+        for i in range(3):
+            acc_l[i] = acc_r[i]
+    gyro[0] = 0.0
+    gyro[1] = 0.0
+    gyro[2] = x[8] + eff[B_GZ]
+
+
 @njit(cache=True, nogil=True)
 def sensor_samples(X, S, TAU, F, TAU_L, F_L, QDD, SD, eff, prm, fixture):
-    """Sensor readings before the IMU latency at N samples: states X (N, 12) (rolling-angle
-    coordinates), slip angles S (N, 2) rad, delivered torques TAU (N, 3) N m and pivot forces F (N, 2)
-    N acting just after each sample, and TAU_L, F_L just before it (the previous interval's; only used
-    for the left limit of the IMU with a latency and no current-loop lag, whose torque jumps at a
-    command step). QDD (N, 6), SD (N, 2): the accelerations and slip rates after each sample when the
-    integrator already has them (``ext_rk4_zoh_samples``), or arrays with 0 rows to evaluate them here.
+    """``readings_into`` at N samples: states X (N, 12), slip angles S (N, 2) rad, delivered torques TAU
+    (N, 3) N m and pivot forces F (N, 2) N just after each sample, TAU_L, F_L just before it; QDD (N, 6),
+    SD (N, 2) the accelerations and slip rates after each sample when the integrator already has them
+    (``ext_rk4_zoh_samples``), or arrays with 0 rows to evaluate them here.
 
     Returns POS, VEL (N, 3) rad, rad/s; ACC_R, ACC_L (N, 3) m/s^2 just after and just before each
     sample; GYRO (N, 3) rad/s; all in the recording's frames."""
     n = X.shape[0]
-    POS, VEL, GYRO = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 3))
+    POS, VEL, GYRO = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
     ACC_R, ACC_L = np.empty((n, 3)), np.empty((n, 3))
-    floor = fixture == 0
     given = QDD.shape[0] == n
-    left = eff[D_IMU] > 0.0 and eff[T_I] == 0.0
-    rho = radius_ratios(eff)
-    qdd, qdl, sd, sdl = np.empty(6), np.empty(6), np.empty(2), np.empty(2)
-    dz, gen, acc, g2, slip = np.empty(14), np.empty(6), np.empty(6), np.empty(6), np.empty(2)
+    work = np.empty(WORK)
+    none6, none2 = np.empty(6), np.empty(2)
     for k in range(n):
-        x = X[k]
         if given:
-            for i in range(6):
-                qdd[i] = QDD[k, i]
-            sd[0], sd[1] = SD[k, 0], SD[k, 1]
+            readings_into(X[k], S[k, 0], S[k, 1], TAU[k], F[k], TAU_L[k], F_L[k], True, QDD[k], SD[k], eff, prm,
+                          fixture, POS[k], VEL[k], ACC_R[k], ACC_L[k], GYRO[k], work)
         else:
-            sample_motion_into(x, TAU[k], F[k], eff, prm, fixture, qdd, sd, dz, gen, acc, g2, slip)
-        for i in range(2):
-            scale = 1.0 + eff[E_R + i]
-            POS[k, i] = scale * (rho[i] * x[3 + i] + S[k, i])
-            VEL[k, i] = scale * (rho[i] * x[9 + i] + sd[i])
-        POS[k, 2] = x[5]
-        VEL[k, 2] = x[11]
-        imu_sample_into(x[2], x[8], qdd[0], qdd[1], qdd[2], eff, floor, ACC_R[k])
-        if left:
-            sample_motion_into(x, TAU_L[k], F_L[k], eff, prm, fixture, qdl, sdl, dz, gen, acc, g2, slip)
-            imu_sample_into(x[2], x[8], qdl[0], qdl[1], qdl[2], eff, floor, ACC_L[k])
-        else:
-            for i in range(3):
-                ACC_L[k, i] = ACC_R[k, i]
-        GYRO[k, 2] = x[8] + eff[B_GZ]
+            readings_into(X[k], S[k, 0], S[k, 1], TAU[k], F[k], TAU_L[k], F_L[k], False, none6, none2, eff, prm,
+                          fixture, POS[k], VEL[k], ACC_R[k], ACC_L[k], GYRO[k], work)
     return POS, VEL, ACC_R, ACC_L, GYRO
+
+
+@njit(cache=True)
+def stepper_readings_into(x, slip, tau_state, u, f, u_last, f_last, has_last, eff, prm, fixture, out, work):
+    """``readings_into`` at the current sample of a stepped simulation, into out (5, 3) (pos, vel, acc_r,
+    acc_l, gyro): state x, accumulated slip (2,), the delivered torque reached at the end of the last
+    interval ``tau_state``, the command u (3,) and force f (2,) acting now, the last interval's u_last,
+    f_last (``has_last`` False before the first step). The delivered torque: with a current-loop lag
+    ``tau_state`` (continuous), else the actuated command (gain, saturation)."""
+    if eff[T_I] > 0.0:
+        tau = tau_state
+        tau_l = tau_state
+    else:
+        tau = actuated_torque(u, eff)
+        tau_l = actuated_torque(u_last, eff) if has_last else tau
+    f_l = f_last if has_last else f
+    readings_into(x, slip[0], slip[1], tau, f, tau_l, f_l, False, work[:6], work[:2], eff, prm, fixture, out[0],
+                  out[1], out[2], out[3], out[4], work)
 
 
 def delay_held(t: np.ndarray, right: np.ndarray, left: np.ndarray, d: float) -> np.ndarray:

@@ -3,7 +3,7 @@
 ``StepperSensors`` reads the noise-free joint encoders and IMU at the stepper's current state x_k,
 with the command u_k already acting (the convention of ``otbot_hw.recording``: the IMU at t_k sees
 the acceleration under u_k), through the one sensor model ``otbot_hw.model.sensor_model`` that the
-batch outputs of a trajectory use too (``sensor_samples`` on this one sample, with the previous
+batch outputs of a trajectory use too (``readings_into`` at this one sample, with the previous
 step's command as the left limit; the IMU latency by ``delay_held`` on the history of the loop's
 samples, held before the first one). The paper's model is the extended one with every effect at zero.
 So the sampler and the batch outputs (``otbot_hw.simulation.runs.extended_recording``) give the same
@@ -17,11 +17,8 @@ from collections import deque
 
 import numpy as np
 
-from otbot_hw.model.effect_catalog import D_IMU, T_I
-from otbot_hw.model.effect_physics import actuated_torque
-from otbot_hw.model.sensor_model import delay_held, sensor_samples
-
-_NONE6, _NONE2 = np.empty((0, 6)), np.empty((0, 2))
+from otbot_hw.model.effect_catalog import D_IMU
+from otbot_hw.model.sensor_model import WORK, delay_held, stepper_readings_into
 
 
 class StepperSensors:
@@ -34,6 +31,7 @@ class StepperSensors:
         n = int(math.ceil(self.latency / self.period)) + 2 if self.latency > 0 else 0
         self._history: deque = deque(maxlen=max(n, 2))
         self._last = None  # (sample key, readings) of the last read
+        self._out, self._work, self._zero2 = np.empty((5, 3)), np.empty(WORK), np.zeros(2)
 
     @property
     def eff(self) -> np.ndarray:
@@ -44,26 +42,21 @@ class StepperSensors:
         return self.stepper.delivered_torque(u)
 
     def _read(self, u: np.ndarray, f: np.ndarray | None):
-        """(pos, vel, acc just after, acc just before, gyro) (3,) each at the current sample. The
-        encoders do not depend on the pivot force (``f`` None): a read at the same sample under the same
-        command serves them."""
+        """(pos, vel, acc just after, acc just before, gyro) (3,) each at the current sample
+        (``sensor_model.stepper_readings_into``). The encoders do not depend on the pivot force (``f``
+        None): a read at the same sample under the same command serves them."""
         st = self.stepper
-        u = np.asarray(u, dtype=float)
+        u = np.ascontiguousarray(u, dtype=float)
         key = (st.t, st.x[0], u.tobytes())
         if f is None and self._last is not None and self._last[0] == key:
             return self._last[1]
-        eff = st.eff
-        f = np.zeros(2) if f is None else np.asarray(f, dtype=float)
-        tau = st.delivered_torque(u)
-        if st.u_last is None:
-            tau_l, f_l = tau, f
-        else:
-            tau_l = st.tau if eff[T_I] > 0 else actuated_torque(st.u_last, eff)
-            f_l = st.f_last
-        out = sensor_samples(st.x.reshape(1, 12), st.slip.reshape(1, 2), np.asarray(tau, dtype=float).reshape(1, 3),
-                             f.reshape(1, 2), np.asarray(tau_l, dtype=float).reshape(1, 3), f_l.reshape(1, 2),
-                             _NONE6, _NONE2, eff, st._prm, st._code)
-        out = tuple(v[0] for v in out)
+        f = self._zero2 if f is None else np.ascontiguousarray(f, dtype=float)
+        has_last = st.u_last is not None
+        stepper_readings_into(st.x, st.slip, st.tau, u, f, st.u_last if has_last else u,
+                              st.f_last if has_last else f, has_last, st.eff, st._prm, st._code, self._out,
+                              self._work)
+        o = self._out.copy()
+        out = (o[0], o[1], o[2], o[3], o[4])
         self._last = (key, out)
         return out
 
