@@ -19,6 +19,7 @@ from numba import njit
 
 from otbot_hw.model.compiled import FLOOR
 from otbot_hw.model.effect_physics import actuated_torque
+from otbot_hw.model.kinematics import model_state_into
 from otbot_hw.simulation.integrators import ext_rk4_zoh, rk4_zoh
 from otbot_hw.simulation.simulator import default_substeps
 
@@ -29,17 +30,8 @@ _L1, _L2, _R = 0, 1, 2
 def task_state_vector(p, pd, phi_p, prm):
     """State x (12,) with pivot pose p, twist pd, pivot angle phi_p, wheel angles 0 and the wheel and
     pivot rates the rolling constraints imply (phi_dot = M_IIK p_dot)."""
-    l1, l2, r = prm[_L1], prm[_L2], prm[_R]
-    x = np.zeros(12)
-    x[0], x[1], x[2] = p[0], p[1], p[2]
-    x[5] = phi_p
-    x[6], x[7], x[8] = pd[0], pd[1], pd[2]
-    th = p[2] - phi_p
-    st, ct = np.sin(th), np.cos(th)
-    k = 1.0 / (r * l1)
-    x[9] = (l1 * ct - l2 * st) * k * pd[0] + (l2 * ct + l1 * st) * k * pd[1]
-    x[10] = (l1 * ct + l2 * st) * k * pd[0] + (-l2 * ct + l1 * st) * k * pd[1]
-    x[11] = st / l1 * pd[0] - ct / l1 * pd[1] + pd[2]
+    x = np.empty(12)
+    model_state_into(p[0], p[1], p[2], pd[0], pd[1], pd[2], phi_p, prm[_L1], prm[_L2], prm[_R], x)
     return x
 
 
