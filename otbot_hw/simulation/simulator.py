@@ -234,7 +234,7 @@ class Stepper:
         if isinstance(plant, OtbotParams):
             params, eff = plant, effect_vector()
         else:
-            params, eff = plant.params, check_effects(plant.eff).copy()
+            params, eff = plant.params, check_effects(plant.eff)  # shared: sim.effect_schedule writes into it
         self.params = params
         self.eff = eff
         self.dt = dt
