@@ -105,8 +105,8 @@ def measure(x: np.ndarray, u: np.ndarray, f: np.ndarray, params: OtbotParams, no
     rng = rng if rng is not None else np.random.default_rng(0)
     n = len(x)
     x, u, f = (np.ascontiguousarray(a, dtype=float) for a in (x, u, f))
-    phi, phid, acc, _, gyro = sensor_samples(x, np.zeros((n, 2)), u, f, u, f, np.empty((0, 6)), np.empty((0, 2)),
-                                             _PAPER, params.as_array(), fixture_code(fixture))
+    phi, phid, acc, _, gyro = sensor_samples(x, np.zeros((n, 2)), u, f, u, f, None, None, _PAPER, params.as_array(),
+                                             fixture_code(fixture))
     phi = quantize(phi, noise.counts_per_rev)
     acc = acc + noise.accel * rng.standard_normal((n, 3))
     gyro = gyro + noise.gyro * rng.standard_normal((n, 3))

@@ -12,31 +12,34 @@ model (the paper's model is the extended model with every effect at zero), noise
   value just before sample j + 1 (the *left limit*, still under u_j) -- not across the torque step at
   a sample (``delay_held``). Held at its first value before t_0.
 
-``sample_motion_into`` gives the motion at a sample (accelerations and slip rates: one evaluation of
-the extended model's derivative, the integrator's first stage), ``sensor_samples`` the readings
-before the latency for a run or a single sample, ``delay_held`` the latency. The batch sensor outputs
-of a trajectory (``sensor_outputs``: identification, the diagnosis, simulated recordings) and the
-sample-by-sample sensors of a stepped simulation (``otbot_hw.simulation.sensing.StepperSensors``: the
-direct and bus simulated robots) call exactly these functions, so they agree to rounding
+The formulas (``wheel_encoder``, ``imu_specific_force``, ``gyro_rate``) are written once and registered
+with numba (``register_jitable``): ``sensor_samples`` applies them to a whole run elementwise (numpy;
+identification, the diagnosis, simulated recordings through ``sensor_outputs``), ``stepper_readings_into``
+to the current sample of a stepped simulation (compiled; ``otbot_hw.simulation.sensing.StepperSensors``,
+the direct and bus simulated robots). The motion at a sample (accelerations and slip rates) is one
+evaluation of the extended model's derivative (``sample_motion_into``, the integrator's first stage), the
+latency ``delay_held`` for both. So the batch and the stepped sensors agree to rounding
 (``tests/test_sensor_agreement.py``).
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from numba.extending import register_jitable
 
 from otbot_hw.model.constants import GRAVITY
-from otbot_hw.model.effect_catalog import B_AX, B_AY, B_GZ, D_IMU, D_X, D_Y, E_R, G_X, G_Y, PSI, T_I
-from otbot_hw.model.effect_physics import actuated_torque, ext_derivative_into, radius_ratios
+from otbot_hw.model.effect_catalog import B_AX, B_AY, B_GZ, D_IMU, D_X, D_Y, DR_R, E_R, G_X, G_Y, PSI, T_I
+from otbot_hw.model.effect_physics import actuated_torque, ext_derivative_into
 
 CHANNELS = ("joint_pos", "joint_vel", "imu_accel", "imu_gyro")
 
 
-@njit(cache=True)
-def imu_sample_into(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor, acc):
-    """Write the IMU specific force (3,) m/s^2 (no latency) at one sample into ``acc``: platform angle
-    alpha (rad) and rate alpha_d (rad/s), pivot acceleration (xdd, ydd) m/s^2 (ground frame), alpha_dd
-    (rad/s^2); the slope acts on the ``floor`` fixture only. The rate reads alpha_d + b_gz."""
+@register_jitable(inline="always")
+def imu_specific_force(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor):
+    """IMU specific force (a_x, a_y) m/s^2 in the IMU frame (no latency; z reads ``GRAVITY``): platform
+    angle alpha (rad) and rate alpha_d (rad/s), pivot acceleration (xdd, ydd) m/s^2 (ground frame),
+    alpha_dd (rad/s^2); the slope acts on the ``floor`` fixture only. Scalars (compiled callers) or
+    arrays (numpy, elementwise)."""
     c, s = np.cos(alpha), np.sin(alpha)
     ax = c * xdd + s * ydd
     ay = -s * xdd + c * ydd
@@ -47,30 +50,37 @@ def imu_sample_into(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor, acc):
     ax = ax - alpha_dd * dy - alpha_d ** 2 * dx
     ay = ay + alpha_dd * dx - alpha_d ** 2 * dy
     cp, sp = np.cos(eff[PSI]), np.sin(eff[PSI])
-    acc[0] = cp * ax + sp * ay + eff[B_AX]
-    acc[1] = -sp * ax + cp * ay + eff[B_AY]
-    acc[2] = GRAVITY
+    return cp * ax + sp * ay + eff[B_AX], -sp * ax + cp * ay + eff[B_AY]
 
 
-@njit(cache=True)
-def imu_from_motion_compiled(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor):
-    n = alpha.shape[0]
-    acc = np.empty((n, 3))
-    gyro = np.zeros((n, 3))
-    for k in range(n):
-        imu_sample_into(alpha[k], alpha_d[k], xdd[k], ydd[k], alpha_dd[k], eff, floor, acc[k])
-        gyro[k, 2] = alpha_d[k] + eff[B_GZ]
-    return acc, gyro
+@register_jitable(inline="always")
+def gyro_rate(alpha_d, eff):
+    """Gyro z reading (rad/s): alpha_dot plus the gyro bias (x and y read 0)."""
+    return alpha_d + eff[B_GZ]
+
+
+@register_jitable(inline="always")
+def wheel_encoder(psi, s, i, eff):
+    """Reading of wheel encoder i (0 right, 1 left) for the rolling angle psi and the slip angle s (rad),
+    or for their rates (rad/s): (1 + e_i) (rho_i psi + s), rho_i = r / r_i. Scalars or arrays."""
+    return (1.0 + eff[E_R + i]) * (psi / (1.0 + eff[DR_R + i]) + s)
 
 
 def imu_from_motion(alpha, alpha_d, xdd, ydd, alpha_dd, eff, floor: bool = True):
     """IMU specific force (N, 3) m/s^2 and rate (N, 3) rad/s from the platform motion (no latency),
-    ``imu_sample_into`` at each sample (arrays (N,) of alpha, alpha_dot, x_dd, y_dd, alpha_dd)."""
-    f = [np.ascontiguousarray(np.asarray(v, dtype=float).reshape(-1)) for v in (alpha, alpha_d, xdd, ydd, alpha_dd)]
-    return imu_from_motion_compiled(*f, np.asarray(eff, dtype=float), bool(floor))
+    ``imu_specific_force`` and ``gyro_rate`` on arrays (N,) of alpha, alpha_dot, x_dd, y_dd, alpha_dd."""
+    alpha, alpha_d = np.asarray(alpha, dtype=float), np.asarray(alpha_d, dtype=float)
+    acc = np.empty((len(alpha), 3))
+    acc[:, 0], acc[:, 1] = imu_specific_force(alpha, alpha_d, np.asarray(xdd, dtype=float),
+                                              np.asarray(ydd, dtype=float), np.asarray(alpha_dd, dtype=float),
+                                              eff, floor)
+    acc[:, 2] = GRAVITY
+    gyro = np.zeros((len(alpha), 3))
+    gyro[:, 2] = gyro_rate(alpha_d, eff)
+    return acc, gyro
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, z, dz, gen, acc, g2, slip):
     """Write the accelerations q_ddot (6,) and the wheel slip rates (2,) rad/s at state x (12,) under the
     delivered torque tau (3,) N m and pivot force f (2,) N into qdd, sd: the extended model's derivative
@@ -87,80 +97,64 @@ def sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, z, dz, gen, acc, g
     sd[1] = dz[13]
 
 
-#: Length of the work vector of ``readings_into``.
-WORK = 64
-
-
-@njit(cache=True)
-def readings_into(x, s_r, s_l, tau, f, tau_l, f_l, given, qdd_in, sd_in, eff, prm, fixture, pos, vel, acc_r, acc_l,
-                  gyro, work):
-    """The sensor model at one sample, written into pos, vel (3,) rad, rad/s, acc_r, acc_l (3,) m/s^2 (IMU
-    specific force just after and just before the sample, before the latency) and gyro (3,) rad/s: state x
-    (12,) (rolling-angle coordinates), wheel slip angles s_r, s_l (rad), delivered torque tau (3,) N m and
-    pivot force f (2,) N acting just after the sample, tau_l, f_l just before it (the previous interval's;
-    used for the left limit only with an IMU latency and no current-loop lag, whose torque jumps at a
-    command step). ``given``: the accelerations qdd_in (6,) and slip rates sd_in (2,) after the sample are
-    known (the integrator's first stage), else evaluated here. ``work`` (``WORK``,) scratch."""
-    qdd, qdl, sd, sdl = work[0:6], work[6:12], work[12:14], work[14:16]
-    z, dz, gen, acc, g2, slip = work[16:30], work[30:44], work[44:50], work[50:56], work[56:62], work[62:64]
-    if given:
-        for i in range(6):
-            qdd[i] = qdd_in[i]
-        sd[0], sd[1] = sd_in[0], sd_in[1]
-    else:
-        sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, z, dz, gen, acc, g2, slip)
-    rho = radius_ratios(eff)
-    pos[0] = (1.0 + eff[E_R]) * (rho[0] * x[3] + s_r)
-    pos[1] = (1.0 + eff[E_R + 1]) * (rho[1] * x[4] + s_l)
-    vel[0] = (1.0 + eff[E_R]) * (rho[0] * x[9] + sd[0])
-    vel[1] = (1.0 + eff[E_R + 1]) * (rho[1] * x[10] + sd[1])
-    pos[2] = x[5]
-    vel[2] = x[11]
-    floor = fixture == 0
-    imu_sample_into(x[2], x[8], qdd[0], qdd[1], qdd[2], eff, floor, acc_r)
-    if eff[D_IMU] > 0.0 and eff[T_I] == 0.0:
-        sample_motion_into(x, tau_l, f_l, eff, prm, fixture, qdl, sdl, z, dz, gen, acc, g2, slip)
-        imu_sample_into(x[2], x[8], qdl[0], qdl[1], qdl[2], eff, floor, acc_l)
-    else:
-        for i in range(3):
-            acc_l[i] = acc_r[i]
-    gyro[0] = 0.0
-    gyro[1] = 0.0
-    gyro[2] = x[8] + eff[B_GZ]
-
-
 @njit(cache=True, nogil=True)
+def sample_motion(X, TAU, F, eff, prm, fixture):
+    """``sample_motion_into`` at N samples: accelerations (N, 6) and slip rates (N, 2)."""
+    n = X.shape[0]
+    QDD, SD = np.empty((n, 6)), np.empty((n, 2))
+    z, dz, gen, acc, g2, slip = np.empty(14), np.empty(14), np.empty(6), np.empty(6), np.empty(6), np.empty(2)
+    for k in range(n):
+        sample_motion_into(X[k], TAU[k], F[k], eff, prm, fixture, QDD[k], SD[k], z, dz, gen, acc, g2, slip)
+    return QDD, SD
+
+
+def needs_left_limit(eff) -> bool:
+    """Whether the IMU's value just before a sample differs from the one just after: with a latency (it
+    interpolates inside an interval) and no current-loop lag (the delivered torque jumps at a command)."""
+    return bool(eff[D_IMU] > 0.0 and eff[T_I] == 0.0)
+
+
 def sensor_samples(X, S, TAU, F, TAU_L, F_L, QDD, SD, eff, prm, fixture):
-    """``readings_into`` at N samples: states X (N, 12), slip angles S (N, 2) rad, delivered torques TAU
-    (N, 3) N m and pivot forces F (N, 2) N just after each sample, TAU_L, F_L just before it; QDD (N, 6),
-    SD (N, 2) the accelerations and slip rates after each sample when the integrator already has them
-    (``ext_rk4_zoh_samples``), or arrays with 0 rows to evaluate them here.
+    """The sensor model at N samples, before the IMU latency: states X (N, 12) (rolling-angle
+    coordinates), wheel slip angles S (N, 2) rad, delivered torques TAU (N, 3) N m and pivot forces F
+    (N, 2) N acting just after each sample, TAU_L, F_L just before it (the previous interval's; used for
+    the left limit only, ``needs_left_limit``); QDD (N, 6), SD (N, 2) the accelerations and slip rates
+    after each sample when the integrator already has them (``ext_rk4_zoh_samples``), or None to
+    evaluate them (``sample_motion``).
 
     Returns POS, VEL (N, 3) rad, rad/s; ACC_R, ACC_L (N, 3) m/s^2 just after and just before each
     sample; GYRO (N, 3) rad/s; all in the recording's frames."""
-    n = X.shape[0]
-    POS, VEL, GYRO = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
-    ACC_R, ACC_L = np.empty((n, 3)), np.empty((n, 3))
-    given = QDD.shape[0] == n
-    work = np.empty(WORK)
-    none6, none2 = np.empty(6), np.empty(2)
-    for k in range(n):
-        if given:
-            readings_into(X[k], S[k, 0], S[k, 1], TAU[k], F[k], TAU_L[k], F_L[k], True, QDD[k], SD[k], eff, prm,
-                          fixture, POS[k], VEL[k], ACC_R[k], ACC_L[k], GYRO[k], work)
-        else:
-            readings_into(X[k], S[k, 0], S[k, 1], TAU[k], F[k], TAU_L[k], F_L[k], False, none6, none2, eff, prm,
-                          fixture, POS[k], VEL[k], ACC_R[k], ACC_L[k], GYRO[k], work)
+    if QDD is None or SD is None:
+        QDD, SD = sample_motion(X, TAU, F, eff, prm, fixture)
+    n = len(X)
+    floor = fixture == 0
+    POS, VEL = X[:, 3:6].copy(), X[:, 9:12].copy()
+    for i in range(2):
+        POS[:, i] = wheel_encoder(X[:, 3 + i], S[:, i], i, eff)
+        VEL[:, i] = wheel_encoder(X[:, 9 + i], SD[:, i], i, eff)
+    ACC_R = np.empty((n, 3))
+    ACC_R[:, 0], ACC_R[:, 1] = imu_specific_force(X[:, 2], X[:, 8], QDD[:, 0], QDD[:, 1], QDD[:, 2], eff, floor)
+    ACC_R[:, 2] = GRAVITY
+    if needs_left_limit(eff):
+        QL, _ = sample_motion(X, TAU_L, F_L, eff, prm, fixture)
+        ACC_L = np.empty((n, 3))
+        ACC_L[:, 0], ACC_L[:, 1] = imu_specific_force(X[:, 2], X[:, 8], QL[:, 0], QL[:, 1], QL[:, 2], eff, floor)
+        ACC_L[:, 2] = GRAVITY
+    else:
+        ACC_L = ACC_R
+    GYRO = np.zeros((n, 3))
+    GYRO[:, 2] = gyro_rate(X[:, 8], eff)
     return POS, VEL, ACC_R, ACC_L, GYRO
 
 
 @njit(cache=True)
-def stepper_readings_into(x, slip, tau_state, u, f, u_last, f_last, has_last, eff, prm, fixture, out, work):
-    """``readings_into`` at the current sample of a stepped simulation, into out (5, 3) (pos, vel, acc_r,
-    acc_l, gyro): state x, accumulated slip (2,), the delivered torque reached at the end of the last
-    interval ``tau_state``, the command u (3,) and force f (2,) acting now, the last interval's u_last,
-    f_last (``has_last`` False before the first step). The delivered torque: with a current-loop lag
-    ``tau_state`` (continuous), else the actuated command (gain, saturation)."""
+def stepper_readings_into(x, s, tau_state, u, f, u_last, f_last, has_last, eff, prm, fixture, out, work):
+    """The sensor model (the formulas ``sensor_samples`` applies to a run) at the current sample of a
+    stepped simulation, into out (5, 3) (pos, vel, acc_r, acc_l, gyro): state x, accumulated slip s (2,),
+    the delivered torque reached at the end of the last interval ``tau_state``, the command u (3,) and
+    force f (2,) acting now, the last interval's u_last, f_last (``has_last`` False before the first
+    step); ``work`` (``WORK``,) scratch. The delivered torque: with a current-loop lag ``tau_state``
+    (continuous), else the actuated command (gain, saturation)."""
     if eff[T_I] > 0.0:
         tau = tau_state
         tau_l = tau_state
@@ -168,8 +162,27 @@ def stepper_readings_into(x, slip, tau_state, u, f, u_last, f_last, has_last, ef
         tau = actuated_torque(u, eff)
         tau_l = actuated_torque(u_last, eff) if has_last else tau
     f_l = f_last if has_last else f
-    readings_into(x, slip[0], slip[1], tau, f, tau_l, f_l, False, work[:6], work[:2], eff, prm, fixture, out[0],
-                  out[1], out[2], out[3], out[4], work)
+    qdd, qdl, sd, sdl = work[0:6], work[6:12], work[12:14], work[14:16]
+    z, dz, gen, acc, g2, slip = work[16:30], work[30:44], work[44:50], work[50:56], work[56:62], work[62:64]
+    sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, z, dz, gen, acc, g2, slip)
+    floor = fixture == 0
+    for i in range(2):
+        out[0, i] = wheel_encoder(x[3 + i], s[i], i, eff)
+        out[1, i] = wheel_encoder(x[9 + i], sd[i], i, eff)
+    out[0, 2], out[1, 2] = x[5], x[11]
+    out[2, 0], out[2, 1] = imu_specific_force(x[2], x[8], qdd[0], qdd[1], qdd[2], eff, floor)
+    if eff[D_IMU] > 0.0 and eff[T_I] == 0.0:  # needs_left_limit
+        sample_motion_into(x, tau_l, f_l, eff, prm, fixture, qdl, sdl, z, dz, gen, acc, g2, slip)
+        out[3, 0], out[3, 1] = imu_specific_force(x[2], x[8], qdl[0], qdl[1], qdl[2], eff, floor)
+    else:
+        out[3, 0], out[3, 1] = out[2, 0], out[2, 1]
+    out[2, 2] = out[3, 2] = GRAVITY
+    out[4, 0] = out[4, 1] = 0.0
+    out[4, 2] = gyro_rate(x[8], eff)
+
+
+#: Length of the work vector of ``stepper_readings_into``.
+WORK = 64
 
 
 def delay_held(t: np.ndarray, right: np.ndarray, left: np.ndarray, d: float) -> np.ndarray:
@@ -233,10 +246,8 @@ def sensor_outputs(traj, params, eff: np.ndarray, slip_rate: np.ndarray | None =
     tau_l, f_l = left_inputs(tau, np.asarray(traj.u, dtype=float), f, eff)
     qdd = getattr(traj, "qdd", None) if qdd is None else qdd
     slip_rate = getattr(traj, "slip_rate", None) if slip_rate is None else slip_rate
-    if qdd is None or slip_rate is None:
-        QDD, SD = np.empty((0, 6)), np.empty((0, 2))
-    else:
-        QDD, SD = np.ascontiguousarray(qdd, dtype=float), np.ascontiguousarray(slip_rate, dtype=float)
+    QDD = None if qdd is None else np.ascontiguousarray(qdd, dtype=float)
+    SD = None if slip_rate is None else np.ascontiguousarray(slip_rate, dtype=float)
     pos, vel, acc_r, acc_l, gyro = sensor_samples(x, np.ascontiguousarray(traj.slip, dtype=float), tau, f, tau_l,
                                                   f_l, QDD, SD, eff, params.as_array(), fixture_code(traj.fixture))
     d = float(eff[D_IMU])

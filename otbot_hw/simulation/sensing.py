@@ -3,7 +3,7 @@
 ``StepperSensors`` reads the noise-free joint encoders and IMU at the stepper's current state x_k,
 with the command u_k already acting (the convention of ``otbot_hw.recording``: the IMU at t_k sees
 the acceleration under u_k), through the one sensor model ``otbot_hw.model.sensor_model`` that the
-batch outputs of a trajectory use too (``readings_into`` at this one sample, with the previous
+batch outputs of a trajectory use too (``stepper_readings_into`` at this one sample, with the previous
 step's command as the left limit; the IMU latency by ``delay_held`` on the history of the loop's
 samples, held before the first one). The paper's model is the extended one with every effect at zero.
 So the sampler and the batch outputs (``otbot_hw.simulation.runs.extended_recording``) give the same
