@@ -243,7 +243,7 @@ def sensor_outputs(traj, params, eff: np.ndarray, slip_rate: np.ndarray | None =
     tau = np.ascontiguousarray(traj.tau, dtype=float)
     f = forces if forces is not None else getattr(traj, "f", None)
     f = np.zeros((n, 2)) if f is None else np.ascontiguousarray(f, dtype=float)
-    tau_l, f_l = left_inputs(tau, np.asarray(traj.u, dtype=float), f, eff)
+    tau_l, f_l = left_inputs(tau, np.asarray(traj.u, dtype=float), f, eff) if needs_left_limit(eff) else (tau, f)
     qdd = getattr(traj, "qdd", None) if qdd is None else qdd
     slip_rate = getattr(traj, "slip_rate", None) if slip_rate is None else slip_rate
     QDD = None if qdd is None else np.ascontiguousarray(qdd, dtype=float)
