@@ -29,7 +29,7 @@ from otbot_hw.model.effect_catalog import EFFECT_INDEX, N_EFFECT, effect_vector
 from otbot_hw.model.effect_physics import actuated_torque
 from otbot_hw.model.fixtures import fixture_code, held_chassis_accelerations
 from otbot_hw.params import OtbotParams
-from otbot_hw.simulation.integrators import EXT_WORK, ext_rk4_into, ext_rk4_zoh_samples, rk4_zoh
+from otbot_hw.simulation.integrators import ext_rk4_into, ext_rk4_zoh_samples, rk4_zoh
 
 T_I_INDEX = EFFECT_INDEX["T_i"]
 
@@ -248,9 +248,9 @@ class Stepper:
         self._code = fixture_code(fixture)
         self._prm = params.as_array()
         self._substeps = substeps or default_substeps(dt, fixture)
-        # one interval's outputs and the integrator's scratch, allocated once
+        # one interval's outputs, allocated once
         self._X, self._TAU, self._S = np.empty((2, 12)), np.empty((2, 3)), np.empty((2, 2))
-        self._none6, self._none2, self._work = np.empty((0, 6)), np.empty((0, 2)), np.empty(EXT_WORK)
+        self._none6, self._none2 = np.empty((0, 6)), np.empty((0, 2))
 
     def set_params(self, params: OtbotParams) -> None:
         """Change the plant parameters (e.g. a load placed on the platform)."""
@@ -271,7 +271,7 @@ class Stepper:
             raise ValueError(f"torques must be finite, got {u}")
         F = np.zeros((1, 2)) if f is None else np.asarray(f, dtype=float).reshape(1, 2)
         ext_rk4_into(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code, self._X,
-                     self._TAU, self._S, self._none6, self._none2, self._work)
+                     self._TAU, self._S, self._none6, self._none2)
         self.x, self.tau = self._X[1].copy(), self._TAU[1].copy()
         self.slip = self.slip + self._S[1]  # the slip rate does not depend on the slip: the steps add up
         self.u_last, self.f_last = U[0], F[0]
