@@ -9,8 +9,14 @@ so the torque written before a ``read()`` is held from that SYNC to the next one
 snapshot returned by that ``read()`` holds the joints at the same SYNC (the convention of
 ``otbot_hw.robot``).
 
-With ``realtime=True`` each ``read()`` waits for the next period boundary (real robot); without,
-cycles run back to back (lockstep with a simulated plant, faster than real time).
+``read()`` never waits for a period boundary: the loop that calls it owns the clock. With
+``realtime=True`` (a paced bus: the real robot) the drives' SYNC and RPDO watchdogs are armed, each
+SYNC's TPDOs are awaited within the period, and the driver's own multi-SYNC sequences (enable, fault
+reaction, fault reset) keep one SYNC per period; without, against a simulated plant, cycles run
+back to back (lockstep). Each cycle's controlword comes from what the master commands and what the
+drive reports (``drivers.cia402.cyclic_controlword``): a drive found stopped is never re-enabled.
+While the drives are enabled the master's heartbeat is withheld once the loop has run no cycle for
+``bus.loop_liveness`` periods.
 
 Fault reaction (here, so it holds under any loop): a fault stages a quick stop with zero torque
 for every drive and sends it at once; the SYNC cycle is then kept alive, for at most
@@ -115,9 +121,10 @@ class CanopenRobot(Robot):
     ``bus``: a python-can bus to use instead of opening ``config.bus``; ``imu_lockstep``: wait,
     after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC; its
     stream watchdog then counts from the SYNC and lasts at least ``LOCKSTEP_IMU_TIMEOUT``);
-    ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control
-    period (else lockstep: back to back, each SYNC's TPDOs awaited up to ``lockstep_timeout`` s,
-    and the drives get no period-based watchdogs since no period is kept); ``sdo_timeout``: s an
+    ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: a bus paced by its loop at
+    the control period (drives' SYNC/RPDO watchdogs armed, TPDOs awaited within the period; else
+    lockstep: each SYNC's TPDOs awaited up to ``lockstep_timeout`` s, and the drives get no
+    period-based watchdogs since no period is kept); ``sdo_timeout``: s an
     SDO answer is awaited (canopen's 0.3 s by default).
 
     The constructor reads the object dictionaries and refuses (``DeviceConfigError``) what cannot
@@ -163,7 +170,11 @@ class CanopenRobot(Robot):
             self.heartbeats.add(d.node_id, d.name, dc.heartbeat_consumer)
         if self.encoder:
             self.heartbeats.add(self.encoder.node_id, self.encoder.name, enc.heartbeat_consumer)
-        self.master_heartbeat = HeartbeatProducer(self.network, config.bus.master_node_id, config.bus.master_heartbeat)
+        self.master_heartbeat = HeartbeatProducer(self.network, config.bus.master_node_id, config.bus.master_heartbeat,
+                                                  alive=self._loop_alive)
+        self._loop_t: float | None = None  # wall time of the loop's last read() / write()
+        self._stalled = False  # the heartbeat is being withheld
+        self._nmt_stopped: set[int] = set()  # nodes this master sent NMT STOP (a reaction's escalation)
         self.imu = imu
         self.close_imu = close_imu
         self.imu_lockstep = imu_lockstep
@@ -182,7 +193,6 @@ class CanopenRobot(Robot):
         self._sync_t = 0.0
         self._sync_index = -1  # SYNCs sent since open(), minus one: the index of the last one
         self._sync_wall = time.monotonic()
-        self._next = None
         self._open = False
         self._reaction_pending = False
         self._wake = threading.Event()
@@ -257,7 +267,18 @@ class CanopenRobot(Robot):
         problems += self.problems
         self._open = False
         self._wake.set()
-        off = self._off_bus()
+        def attempt(what: str, fn) -> None:
+            try:
+                fn()
+            except Exception as exc:  # noqa: BLE001 - close() reports, never raises
+                problems.append(f"{what}: {exc}")
+
+        # PRE-OPERATIONAL first: it brings back a node the reaction stopped with NMT STOP (SDO works
+        # again there), and PDOs stop; then 0x1016 off while the master's heartbeat still runs
+        for dev in self.devices:
+            attempt(f"{dev.name} (node {dev.node_id}): NMT PRE-OPERATIONAL not sent",
+                    lambda dev=dev: dev.nmt_command(NMT_ENTER_PRE_OPERATIONAL))
+        off = self._off_bus() - self._nmt_stopped  # (a node we stopped is back in PRE-OPERATIONAL)
         if not any(f.kind == "bus" for f in self.faults):
             for d in self.drives:  # a master that leaves in order is not a lost master
                 if d.has(0x1016, 1) and d.node_id in self._configured and d.node_id not in off:
@@ -265,16 +286,6 @@ class CanopenRobot(Robot):
                         d.sdo_write(0x1016, 1, 0)
                     except RobotError as exc:
                         problems.append(f"{d.name} (node {d.node_id}): heartbeat consumer not switched off: {exc}")
-
-        def attempt(what: str, fn) -> None:
-            try:
-                fn()
-            except Exception as exc:  # noqa: BLE001 - close() reports, never raises
-                problems.append(f"{what}: {exc}")
-
-        for dev in self.devices:
-            attempt(f"{dev.name} (node {dev.node_id}): NMT PRE-OPERATIONAL not sent",
-                    lambda dev=dev: dev.nmt_command(NMT_ENTER_PRE_OPERATIONAL))
         attempt("master heartbeat not stopped", self.master_heartbeat.stop)
         if self._safety is not None:
             self._safety.join(timeout=2.0)
@@ -284,6 +295,18 @@ class CanopenRobot(Robot):
         attempt("CAN bus not released", self.network.disconnect)
         self.close_report = problems
         return list(problems)
+
+    def _loop_alive(self) -> bool:
+        """False while the drives are enabled and the control loop has run no cycle (``read`` or
+        ``write``) for ``bus.loop_liveness`` periods: the master's heartbeat is then withheld."""
+        t = self._loop_t
+        n = self.config.bus.loop_liveness
+        alive = not self.enabled or t is None or time.monotonic() - t <= n * self.period
+        if not alive and not self._stalled:
+            self.problems.append(f"the control loop ran no cycle for {n} periods (bus.loop_liveness) while the drives "
+                                 "were enabled: master heartbeat withheld, the drives' watchdogs stop them")
+        self._stalled = not alive
+        return alive
 
     # -- faults ------------------------------------------------------------------------------------
     def _bus_time(self, wall: float | None = None) -> float:
@@ -361,15 +384,20 @@ class CanopenRobot(Robot):
                 failed.append(f"{d.name} (node {d.node_id}): RPDO not sent: {exc}")
         return failed
 
-    def _sync_cycle(self) -> set[tuple[int, int]]:
-        """One SYNC: pace (realtime), send it, wait for the TPDOs, count misses (stale faults after
-        ``bus.tpdo_timeout`` consecutive ones), check statuswords. Returns the (node, TPDO) pairs
-        that arrived."""
+    def _space(self) -> None:
+        """Paced bus, in the driver's own multi-SYNC sequences (enable, fault reaction, fault reset),
+        which run while the loop waits: the next SYNC no sooner than one period after the last one.
+        ``read()`` itself never waits: the loop runner owns the clock."""
         if self.realtime:
-            now = time.monotonic()
-            self._next = now if self._next is None else max(self._next + self.period, now)
-            time.sleep(max(0.0, self._next - time.monotonic()))
-        off = {f.node for f in self.faults if f.kind in ("heartbeat", "nmt")}
+            time.sleep(max(0.0, self._sync_wall + self.period - time.monotonic()))
+
+    def _sync_cycle(self, spaced: bool = False) -> set[tuple[int, int]]:
+        """One SYNC (``spaced``: see ``_space``): send it, wait for the TPDOs, count misses (stale
+        faults after ``bus.tpdo_timeout`` consecutive ones), check each statusword against what the
+        master commands. Returns the (node, TPDO) pairs that arrived."""
+        if spaced:
+            self._space()
+        off = {f.node for f in self.faults if f.kind in ("heartbeat", "nmt")} | self._nmt_stopped
         expected = [k for d in self.devices if d.node_id not in off for k in d.expected_tpdos()]
         self.tracker.begin(expected)
         t_sync = time.monotonic()
@@ -404,16 +432,18 @@ class CanopenRobot(Robot):
             f = d.check_statusword()
             if f:
                 self._add_fault(f, at_sync=True)
-            elif (self.enabled and (d.node_id, d.status_tpdo) in arrived and d.state != "OPERATION ENABLED"
-                  and d.node_id not in off):
-                self._add_fault(d.fault("statusword", f"drive left OPERATION ENABLED without a command: now "
-                                                      f"{d.state}"), at_sync=True)
+            elif (d.node_id, d.status_tpdo) in arrived and d.node_id not in off:
+                with self._lock:  # the command and the check as one: a fault staging a quick stop waits
+                    why = d.unexpected_state()
+                    if why:
+                        self._add_fault(d.fault("statusword", why), at_sync=True)
         return arrived
 
     def read(self) -> Snapshot:
         if not self._open:
             raise DriverError("robot is not open: call open() first")
         with self._cycle_lock:
+            self._loop_t = time.monotonic()
             cycle = self._cycle
             sync_index = self._syncs
             self._sync_cycle()
@@ -464,9 +494,10 @@ class CanopenRobot(Robot):
                 raise RobotFault("robot is faulted: " + "; ".join(map(str, faults)), faults)
             if not self.enabled:
                 raise DriverError("drives are not enabled: call enable() first")
-            commanded = np.array([d.stage_torque(c) for d, c in zip(self.drives, clamped)])
-            for d in self.drives:
-                d.controlword = 0x000F
+            self._loop_t = time.monotonic()
+            # each drive's controlword from the master's command and the drive's reported state:
+            # a drive found stopped (by itself) is not re-enabled, and gets no torque
+            commanded = np.array([d.stage_cyclic(c) for d, c in zip(self.drives, clamped)])
             failed = self._send_rpdos(self.drives)
         if failed:
             self._add_fault(Fault("bus", None, "bus", "; ".join(failed)))
@@ -490,6 +521,7 @@ class CanopenRobot(Robot):
                         failed = self._send_rpdos(self.drives)
                     if failed:
                         self._add_fault(Fault("bus", None, "bus", "; ".join(failed)))
+                    self._space()
                     self.read()
                     if self.faults:
                         raise RobotFault("fault while enabling: " + "; ".join(map(str, self.faults)), self.faults)
@@ -521,7 +553,7 @@ class CanopenRobot(Robot):
                     for d in self.drives:
                         d.stage_quick_stop()
                     rec["not_sent"] += self._send_rpdos(self.drives)
-                arrived = self._sync_cycle()
+                arrived = self._sync_cycle(spaced=True)
                 rec["cycles"] += 1
                 off = self._off_bus()
                 for d in self.drives:
@@ -534,6 +566,9 @@ class CanopenRobot(Robot):
                 why = ("off the bus" if d.node_id in self._off_bus()
                        else f"no quick stop confirmed within {n_max} periods")
                 try:
+                    if d.node_id not in self._off_bus():  # our own NMT STOP: expected, no second reaction
+                        self.heartbeats.expect_node(d.node_id, "STOPPED")
+                        self._nmt_stopped.add(d.node_id)
                     d.nmt_command(NMT_STOP)
                     rec["escalated"].append(d.name)
                     msg = f"{d.name} (node {d.node_id}): {why}: NMT STOP sent (the drive applies 0x6007)"
@@ -543,14 +578,14 @@ class CanopenRobot(Robot):
                 if d.node_id not in self._off_bus():
                     self._add_fault(d.fault("statusword", f"{why} ({reason})"))
         if disable:
-            reachable = [d for d in self.drives if d.node_id not in self._off_bus()]
+            reachable = [d for d in self.drives if d.node_id not in self._off_bus() | self._nmt_stopped]
             if reachable:
                 with self._lock:
                     for d in self.drives:
                         d.stage_disable()
                     rec["not_sent"] += self._send_rpdos(reachable)
                 for _ in range(n_max):
-                    arrived = self._sync_cycle()
+                    arrived = self._sync_cycle(spaced=True)
                     rec["cycles"] += 1
                     if all((d.node_id, d.status_tpdo) in arrived and d.state not in ("OPERATION ENABLED",
                                                                                   "QUICK STOP ACTIVE")
@@ -579,12 +614,19 @@ class CanopenRobot(Robot):
 
     def fault_reset(self) -> None:
         with self._cycle_lock:
+            for node in sorted(self._nmt_stopped):  # escalated nodes kept their setup: start their PDOs again
+                dev = next(d for d in self.devices if d.node_id == node)
+                try:
+                    dev.start()
+                except Exception as exc:  # noqa: BLE001 - reported; the heartbeat check says the rest
+                    self.problems.append(f"{dev.name} (node {node}): NMT START not sent: {exc}")
+            self._nmt_stopped.clear()
             for edge in (False, True):
                 with self._lock:
                     for d in self.drives:
                         d.stage_fault_reset(edge)
                     self._send_rpdos(self.drives)
-                self._sync_cycle()
+                self._sync_cycle(spaced=True)
             with self._lock:
                 self._faults.clear()
                 self._fault_t.clear()

@@ -151,6 +151,10 @@ def _write_config(tmp_path: Path, old: str, new: str) -> Path:
     ("source: encoder", "source: magic", "pivot_encoder.source"),
     ("interface: socketcan", "interface: carrier-pigeon", "bus.interface"),
     ("bus:\n", "bus_renamed:\n", "missing section 'bus'"),
+    ("quick_stop_option: 2", "quick_stop_option: 9", "drives.quick_stop_option"),
+    ("quick_stop_option: 2", "quick_stop_option: fast", "drives.quick_stop_option"),
+    ("loop_liveness: {value: 3, unit: periods}", "loop_liveness: {value: 0, unit: periods}", "bus.loop_liveness"),
+    ("loop_liveness: {value: 3, unit: periods}", "loop_liveness: {value: 2.5, unit: periods}", "bus.loop_liveness"),
 ])
 def test_bad_config_is_rejected_naming_the_key(tmp_path, old, new, key):
     with pytest.raises(ParameterError, match=key.replace("[", r"\[").replace("]", r"\]")):

@@ -74,7 +74,7 @@ def test_inject_refuses_what_it_cannot_do(capsys):
                         (["--inject", "emcy"], "KIND@SECONDS"),
                         (["--inject", "emcy@-1"], ">= 0"),
                         (["--inject", "emcy@1:elbow"], "device must be one of"),
-                        (["--inject", "imu-loss@0.1", "--no-imu"], "has no IMU"),
+                        (["--inject", "imu-loss@0.05", "--no-imu"], "has no IMU"),
                         (["--bus", "config", "--inject", "emcy@0.1"], "needs --bus sim")):
         assert main(["run", *args, "--duration", "0.1"]) == 2
         err = capsys.readouterr().err

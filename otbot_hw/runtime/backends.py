@@ -7,7 +7,8 @@ name           robot
 ``bus sim``    ``sim.plant.SimulatedBusRobot``: the CANopen drivers over python-can's virtual bus to
                the simulated drives/encoder/IMU (``sim.plant.Plant``) in this process, lockstep
 ``bus config`` ``drivers.robot.CanopenRobot`` on the configured bus (the real robot, or an
-               ``otbot plant`` process), paced in real time unless ``lockstep``
+               ``otbot plant`` process), paced in real time with the drives' watchdogs armed
+               unless ``lockstep``
 =============  ======================================================================================
 
 The two simulated back ends take the robot to simulate (``OtbotParams`` or an ``ExtendedModel``
@@ -151,10 +152,10 @@ class BusSimBackend(_ConfiguredRate):
 class BusConfigBackend(_ConfiguredRate):
     """``bus config``: ``CanopenRobot`` on the configured bus and IMU port (``imu_port`` overrides
     it); ``lockstep``: the other end is a simulated plant (SYNCs back to back, IMU sample awaited per
-    SYNC) instead of a real robot paced in real time. ``paced``: the robot keeps the period itself
-    (``CanopenRobot(realtime=True)``: each SYNC's TPDOs awaited within the period, the drives' SYNC
-    and RPDO watchdogs armed, a fault reaction's SYNCs one period apart) — the daemon, which runs
-    for hours on the real bus; otherwise only the loop runner paces the reads."""
+    SYNC) instead of a real robot paced in real time. Every run that is not lockstep is paced by the
+    loop runner (the one clock) and arms the drives' SYNC and RPDO watchdogs (0x1006, 0x1400:05):
+    ``CanopenRobot(realtime=True)``, each SYNC's TPDOs awaited within the period. ``paced`` is that
+    fact (``not lockstep``), kept for callers that still pass it: a value passed is ignored."""
 
     config: object  # drivers.config.RobotConfig
     imu_port: str | None = None
@@ -163,6 +164,9 @@ class BusConfigBackend(_ConfiguredRate):
     paced: bool = False
     name: str = "bus config"
     has_truth: bool = False
+
+    def __post_init__(self):
+        self.paced = not self.lockstep  # watchdog arming is configuration, not a caller's choice
 
     @property
     def realtime(self) -> bool:
@@ -180,7 +184,7 @@ class BusConfigBackend(_ConfiguredRate):
         if self.lockstep:  # a simulated plant answers in its own time: wait for it longer than for a drive
             kw = {"lockstep_timeout": LOCKSTEP_TIMEOUT, "sdo_timeout": LOCKSTEP_SDO_TIMEOUT}
         imu = open_imu(config.imu, port=self.imu_port) if (self.with_imu and config.imu is not None) else None
-        robot = CanopenRobot(config, imu=imu, realtime=self.paced and not self.lockstep, imu_lockstep=self.lockstep,
+        robot = CanopenRobot(config, imu=imu, realtime=not self.lockstep, imu_lockstep=self.lockstep,
                              **kw)
         with robot:
             robot.open()
