@@ -280,10 +280,9 @@ def _print_human(r: dict) -> None:
               f"x_dot {e['x_dot'] * 1e3:.2f} mm/s, y_dot {e['y_dot'] * 1e3:.2f} mm/s")
     ee = r.get("estimation_error")
     if ee is not None:
-        for k in ("max", "rms"):
-            e = ee[k]
-            print(f"  estimation error (estimate - truth), {k}: x {e['x'] * 1e3:.3f} mm, y {e['y'] * 1e3:.3f} mm, "
-                  f"alpha {e['alpha']:.2e} rad")
+        from otbot_hw.estimation.errors import describe_estimation_error
+
+        print("  " + describe_estimation_error(ee))
     for m, v in r["peak_torque"].items():
         print(f"  peak torque {m}: {v['peak_Nm']:.2f} N m (limit {v['limit_Nm']:g})")
     for ev in r["events"]:

@@ -85,9 +85,9 @@ from otbot_hw.estimation.ekf_state import (  # noqa: F401 (the state layout and 
 from otbot_hw.estimation.model_prediction import ModelPrediction
 from otbot_hw.estimation.pivot_quantization import PivotQuantization
 from otbot_hw.estimation.standstill import StandstillDetector
+from otbot_hw.model.angles import wrap_angle  # noqa: F401  (the one angle wrap; importable from here)
 from otbot_hw.params import OtbotParams
 
-TWO_PI = 2 * math.pi
 #: A wheel heading that disagrees this long (s) while the joint rates agree has moved: re-anchor it.
 REANCHOR_AFTER = 0.02
 #: Largest factor by which the adaptation may multiply the variance of d's walk (walk x 1000).
@@ -98,11 +98,6 @@ YAW_SUSPECT_SCALE = 2.0
 #: The yaw states whose covariance the adaptation inflates: alpha_dot, d (alpha too let a joint-rate update
 #: throw it by 0.1 rad on a 280 kg load; its error is re-anchored on the wheel heading instead).
 _YAW = [5, 11]
-
-
-def wrap_angle(a: float) -> float:
-    """a wrapped into [-pi, pi) (rad)."""
-    return (a + math.pi) % TWO_PI - math.pi
 
 
 class PoseEKF(ModelPrediction):
@@ -125,6 +120,7 @@ class PoseEKF(ModelPrediction):
         self._l1, self._l2, self._r = params.l1, params.l2, params.r
         self._k = params.r / (2 * params.l2)
         self._prm = params.as_array()
+        self._xs = np.empty(12)  # the model state the dynamic-model prediction evaluates at
         self.gate = {kind: float(chi2.ppf(cfg.gate_probability, dof)) for kind, dof in UPDATE_KINDS.items()}
         self.pivot = PivotQuantization(cfg.pivot_angle_sigma, params.l1)  # e_p: the pivot reading's error
         self._var_q = self.pivot.var

@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 
+from otbot_hw.estimation import kernels
 from otbot_hw.estimation.ekf_state import A, BAX, BAY, BG, DA, N_STATE, VA, VX, VY, X, Y, EstimatorFault
 from otbot_hw.model import compiled
 
@@ -33,21 +34,10 @@ class ModelPrediction:
         return fx + c * dp[0] + s * dp[1], fy - s * dp[0] + c * dp[1]
 
     def _model_acceleration(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """p_dd (3,) of the paper's model at state s (pose, twist) and the pivot reading under u (N m)."""
-        phi_p = self._phi_p
-        xs = np.empty(12)
-        xs[0:3] = s[0:3]
-        xs[3] = xs[4] = 0.0
-        xs[5] = phi_p
-        xs[6:9] = s[3:6]
-        th = s[2] - phi_p
-        c, si = math.cos(th), math.sin(th)
-        l1, l2, r = self._l1, self._l2, self._r
-        vx, vy, va = s[3], s[4], s[5]
-        xs[9] = ((l1 * c - l2 * si) * vx + (l2 * c + l1 * si) * vy) / (r * l1)
-        xs[10] = ((l1 * c + l2 * si) * vx + (-l2 * c + l1 * si) * vy) / (r * l1)
-        xs[11] = (si * vx - c * vy) / l1 + va
-        return compiled.accelerations(xs, u, self._zero2, self._zero6, self._prm)[:3]
+        """p_dd (3,) of the paper's model at filter state s and the pivot reading under u (N m); the model
+        state is built in one place (``kernels.model_state``: the true pivot angle, reading less e_p)."""
+        kernels.model_state(s, self._phi_p, self._prm, self._xs)
+        return compiled.accelerations(self._xs, u, self._zero2, self._zero6, self._prm)[:3]
 
     def _model_jacobian(self, s: np.ndarray, u: np.ndarray):
         """(p_dd (3,), d p_dd / d (alpha, x_dot, y_dot, alpha_dot) (3, 4)) by forward differences."""

@@ -46,11 +46,11 @@ def extended_recording(model, torques: np.ndarray, dt: float, noise: NoiseModel 
     Ground truth q holds the rolling angles of the wheels (equal to the wheel angles without a radius
     asymmetry); the effects are written to the ``effects`` metadata entry.
     """
-    from otbot_hw.model import effects as fx
+    from otbot_hw.model.sensor_model import sensor_outputs
 
     noise = noise or NoiseModel()
     traj = simulate_extended(model.params, model.eff, torques, dt, fixture=fixture)
-    s = fx.sensor_outputs(traj, model.params, model.eff)
+    s = sensor_outputs(traj, model.params, model.eff)
     rng = np.random.default_rng(seed)
     n = len(traj.t)
     acc = s["imu_accel"] + noise.accel * rng.standard_normal((n, 3))
