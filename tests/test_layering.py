@@ -8,7 +8,7 @@
 * no import cycle among the project's modules (``otbot_hw``, ``sim``, ``drivers``);
 * outside ``sim/`` and the tests, no attribute probe (``getattr``/``hasattr`` with a literal name) of a
   member only simulated robots have (``plant``, ``truth_force``, ...): a capability is declared, not
-  guessed. Today's offenders are a known-debt list that may only shrink.
+  guessed (the known-debt list of offenders is empty).
 
 Every import is checked, including those inside functions.
 """
@@ -26,10 +26,9 @@ WIRING = ("otbot_hw/cli/", "otbot_hw/runtime/")
 PACKAGES = ("otbot_hw", "sim", "drivers")
 #: Members only simulated robots have: probing a Robot for them guesses a capability.
 SIMULATED_ONLY = ("plant", "truth_force", "stepper", "sensors", "t_plant", "inject_fault", "operator", "report")
-#: Known debt: (file, member) probes that existed when the rule came (issue 19 item 2 removes them). May
-#: only shrink: a probe not listed fails the test.
-KNOWN_PROBES = {("otbot_hw/runtime/loop.py", "truth_force"), ("otbot_hw/runtime/bench/procedure.py", "plant"),
-                ("otbot_hw/cli/bench.py", "plant")}
+#: Known debt: (file, member) probes of simulated-only members outside sim/ and tests. Empty since the
+#: ``SimulatedRobot`` interface declares them (issue 19 item 2); a probe not listed fails the test.
+KNOWN_PROBES: set[tuple[str, str]] = set()
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:
