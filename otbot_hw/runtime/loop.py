@@ -52,8 +52,9 @@ import numpy as np
 
 from otbot_hw.control.computed_torque import TaskState
 from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS,
-                                TOPIC_PAYLOAD, TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter)
-from otbot_hw.robot import Robot, RobotError, Snapshot
+                                TOPIC_PAYLOAD, TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter,
+                                source_metadata)
+from otbot_hw.robot import Robot, RobotError, SimulatedRobot, Snapshot
 from otbot_hw.runtime.controllers import ControlStep, Controller, Feedback, Reference
 from otbot_hw.runtime.feedback import FeedbackUnavailable, StateEstimate
 from otbot_hw.runtime.supervisor import Supervisor, Violation
@@ -316,7 +317,7 @@ class LoopRunner:
         self._last_est: StateEstimate | None = None
         self._has_truth = None
         self._has_imu = robot.has_imu
-        self._truth_force = getattr(robot, "truth_force", None)  # simulated robots: the pivot force
+        self._truth_force = robot.truth_force if isinstance(robot, SimulatedRobot) else None  # the pivot force
         self._periods: list[float] = []
         self._compute: list[float] = []
         self._t_last_read = None
@@ -684,8 +685,9 @@ class LoopRunner:
             topics.append(TOPIC_PAYLOAD)
         self._topics = set(topics)
         self._topic_list = topics
-        meta = {"source": "loop", "sample_period": self.period, "realtime": self.realtime, **self.metadata}
-        if self._has_imu and getattr(self.robot, "imu_rate", None):
+        meta = {**source_metadata(program="loop"), "sample_period": self.period, "realtime": self.realtime,
+                **self.metadata}
+        if self._has_imu and self.robot.imu_rate:
             meta.setdefault("imu_rate", float(self.robot.imu_rate))
         if self.feedback is not None:
             meta.setdefault("feedback", self.feedback.name)
