@@ -44,7 +44,11 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-RELAX = {"max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {value: 1000000000"}
+#: as benchmarks/daemon.py: overruns counted, not a fault; heartbeat consumers given 0.5 s (a stall of
+#: the shared machine ends no measurement)
+RELAX = {"max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {value: 1000000000",
+         "master_heartbeat_consumer: {value: 100, unit: ms}": "master_heartbeat_consumer: {value: 500, unit: ms}",
+         "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 500, unit: ms}"}
 
 
 def _request(sock: Path, cmd: str, **args):
