@@ -30,9 +30,10 @@ import math
 from dataclasses import dataclass
 
 import canopen
-from canopen.profiles.p402 import BaseNode402, OperationMode
+from canopen.profiles.p402 import BaseNode402, OperationMode, State402
 from canopen.sdo import SdoAbortedError
 
+from drivers import pdo_codec
 from drivers.config import DriveConfig
 from drivers.device import CanopenDevice, pdo_bytes, pdo_get, pdo_put
 from drivers.faults import DeviceConfigError, DriverError, error_meaning
@@ -127,13 +128,39 @@ def no_torque_mode(bits: int) -> str:
 
 
 class Node402(BaseNode402):
-    """``BaseNode402`` that ignores TPDOs of the wrong length instead of decoding garbage."""
+    """``BaseNode402`` that ignores TPDOs of the wrong length instead of decoding garbage, and whose
+    ``state`` is worked out once per statusword value (it is asked several times a cycle)."""
+
+    _sw_seen: int | None = None
+    _state_seen = "UNKNOWN"
 
     def on_TPDOs_update_callback(self, mapobject):
         if len(mapobject.data) != pdo_bytes(mapobject):
             return
         for obj in mapobject:
             self.tpdo_values[obj.index] = pdo_get(obj)
+
+    @property
+    def state(self) -> str:
+        sw = self.tpdo_values.get(0x6041)
+        if sw is None:  # not in a TPDO: canopen's SDO fallback
+            return BaseNode402.state.fget(self)
+        if sw != self._sw_seen:
+            self._state_seen = _state_of(sw)
+            self._sw_seen = sw
+        return self._state_seen
+
+    @state.setter
+    def state(self, target: str) -> None:
+        BaseNode402.state.fset(self, target)
+
+
+def _state_of(statusword: int) -> str:
+    """CiA 402 state of a statusword (canopen's ``State402.SW_MASK`` table)."""
+    for state, (mask, bits) in State402.SW_MASK.items():
+        if statusword & mask == bits:
+            return state
+    return "UNKNOWN"
 
 
 def interpolation_period(period: float) -> tuple[int, int]:
@@ -244,6 +271,7 @@ class CiA402Drive(CanopenDevice):
         self.node.rpdo_pointers.clear()
         self.node.setup_pdos(upload=False)  # BaseNode402 caches TPDO values / RPDO pointers
         self.hook_tpdos()  # after BaseNode402's cache update, so tpdo_values are fresh here
+        self._rpdo_frames = None  # compiled at the first transmit
         self._last_raw_pos = None
         self.controlword = CW_DISABLE_VOLTAGE
         self.commanded = DISABLED
@@ -322,14 +350,27 @@ class CiA402Drive(CanopenDevice):
     def permille_to_torque(self, pm: int) -> float:
         return self.cfg.polarity * pm * self.cfg.joint_torque_per_permille
 
+    def _carried(self) -> tuple:
+        """(TPDO with the statusword, with torque actual, with error code) of the current plan;
+        worked out once per plan (asked every cycle)."""
+        plan = self.plan
+        if self._carried_plan is not plan:
+            self._carried_for = ((None, None, None) if plan is None else
+                                 (plan.tx.carrying(0x6041), plan.tx.carrying(0x6077), plan.tx.carrying(0x603F)))
+            self._carried_plan = plan
+        return self._carried_for
+
+    _carried_plan = None
+    _carried_for = (None, None, None)
+
     @property
     def status_tpdo(self) -> int | None:
         """Number of the TPDO that carries the statusword."""
-        return self.plan.tx.carrying(0x6041) if self.plan is not None else None
+        return self._carried()[0]
 
     @property
     def reports_torque(self) -> bool:
-        return self.plan is not None and self.plan.tx.carrying(0x6077) is not None
+        return self._carried()[1] is not None
 
     # -- reception -------------------------------------------------------------------------------
     def on_valid_tpdo(self, number: int, pdo_map) -> None:
@@ -347,10 +388,12 @@ class CiA402Drive(CanopenDevice):
         v = self.node.tpdo_values
         c = self.cfg
         sw = v.get(0x6041, 0)
-        torque = self.permille_to_torque(v.get(0x6077, 0)) if self.reports_torque else math.nan
+        _, torque_tpdo, error_tpdo = self._carried()
+        torque = self.permille_to_torque(v.get(0x6077, 0)) if torque_tpdo is not None else math.nan
         return DriveReading(position=c.polarity * self._pos_counts * c.rad_per_count,
                             velocity=c.polarity * v.get(0x606C, 0) * c.rad_s_per_velocity_unit,
-                            torque=torque, statusword=sw, state=self.state, error_code=self.error_code(),
+                            torque=torque, statusword=sw, state=self.node.state,
+                            error_code=v.get(0x603F, 0) if error_tpdo is not None else self.last_emcy_code,
                             mode=v.get(0x6061, 0))
 
     @property
@@ -360,7 +403,7 @@ class CiA402Drive(CanopenDevice):
 
     def error_code(self) -> int | None:
         """0x603F from the last TPDO; where the drive does not send it, the last EMCY code (or None)."""
-        if self.plan is not None and self.plan.tx.carrying(0x603F) is not None:
+        if self._carried()[2] is not None:
             return self.node.tpdo_values.get(0x603F, 0)
         return self.last_emcy_code
 
@@ -434,7 +477,21 @@ class CiA402Drive(CanopenDevice):
         return self.permille_to_torque(self.target_permille)
 
     def transmit(self) -> None:
-        """Send the RPDO(s) with controlword and target torque; the drive applies them at the next SYNC."""
+        """Send the RPDO(s) with controlword and target torque; the drive applies them at the next SYNC.
+        Each RPDO is packed by its precompiled layout (``drivers.pdo_codec``) where one struct
+        expresses it, else by canopen's variables."""
+        frames = self._rpdo_frames
+        if frames is None:
+            frames = self._rpdo_frames = self._compile_rpdos()
+        if frames:
+            send = self.network.send_message
+            for m, layout in frames:
+                values = [self.controlword if i == 0x6040 else self.target_permille if i == 0x6071 else self._fill[i]
+                          for i in layout.indices]
+                data = layout.encode(values)
+                m.data[:] = data  # canopen's view of the map stays current
+                send(m.cob_id, data)
+            return
         p = self.node.rpdo_pointers
         pdo_put(p[0x6040], self.controlword)
         pdo_put(p[0x6071], self.target_permille)
@@ -443,3 +500,18 @@ class CiA402Drive(CanopenDevice):
         parents = {id(p[0x6040].pdo_parent): p[0x6040].pdo_parent, id(p[0x6071].pdo_parent): p[0x6071].pdo_parent}
         for m in parents.values():
             m.transmit()
+
+    _rpdo_frames: list | None = None
+
+    def _compile_rpdos(self) -> list:
+        """[(PdoMap, PdoLayout)] of the RPDOs carrying controlword and target torque, [] when one of
+        them cannot be packed by one struct or carries an object the driver does not fill."""
+        p = self.node.rpdo_pointers
+        maps = {id(p[i].pdo_parent): p[i].pdo_parent for i in (0x6040, 0x6071)}
+        frames = []
+        for m in maps.values():
+            layout = pdo_codec.compile_map(m)
+            if layout is None or any(i not in (0x6040, 0x6071) and i not in self._fill for i in layout.indices):
+                return []
+            frames.append((m, layout))
+        return frames

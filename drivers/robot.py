@@ -43,11 +43,11 @@ import numpy as np
 
 from drivers.cia402 import STOPPED_STATES, CiA402Drive
 from drivers.cia406 import CiA406Encoder
-from drivers.config import LOCKSTEP_IMU_TIMEOUT, RobotConfig
+from drivers.config import RobotConfig
 from drivers.device import NMT_ENTER_PRE_OPERATIONAL, NMT_STOP, CycleTracker, wait_until
 from drivers.faults import DriverError
 from drivers.heartbeat import HeartbeatConsumer, HeartbeatProducer
-from otbot_hw.robot import Command, Fault, Robot, RobotError, RobotFault, Snapshot
+from otbot_hw.robot import Fault, Robot, RobotError, RobotFault, Snapshot
 
 
 def imu_due(sync_index: int, period: float, imu_rate: float) -> bool:
@@ -115,17 +115,14 @@ class ReceiveErrors(can.Listener):
 class CanopenRobot(Robot):
     """The robot over CANopen: three ``CiA402Drive`` s, the ``CiA406Encoder`` (unless phi_p comes
     from the pivot drive), heartbeat consumer and producer, and an optional IMU object
-    (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``; in lockstep
-    also ``timeout`` and ``restart_watchdog(t)``).
+    (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``; the newest
+    sample is taken, never awaited: lockstep with a simulated IMU is ``sim.lockstep.ImuLockstep``).
 
-    ``bus``: a python-can bus to use instead of opening ``config.bus``; ``imu_lockstep``: wait,
-    after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC; its
-    stream watchdog then counts from the SYNC and lasts at least ``LOCKSTEP_IMU_TIMEOUT``);
-    ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: a bus paced by its loop at
-    the control period (drives' SYNC/RPDO watchdogs armed, TPDOs awaited within the period; else
-    lockstep: each SYNC's TPDOs awaited up to ``lockstep_timeout`` s, and the drives get no
-    period-based watchdogs since no period is kept); ``sdo_timeout``: s an
-    SDO answer is awaited (canopen's 0.3 s by default).
+    ``bus``: a python-can bus to use instead of opening ``config.bus``; ``close_imu``: whether
+    ``close()`` closes the IMU too; ``realtime``: a bus paced by its loop at the control period
+    (drives' SYNC/RPDO watchdogs armed, TPDOs awaited within the period; else lockstep: each SYNC's
+    TPDOs awaited up to ``lockstep_timeout`` s, and the drives get no period-based watchdogs since no
+    period is kept); ``sdo_timeout``: s an SDO answer is awaited (canopen's 0.3 s by default).
 
     The constructor reads the object dictionaries and refuses (``DeviceConfigError``) what cannot
     run, before any bus is opened. ``warnings``: what the devices cannot do that the loop would
@@ -138,7 +135,7 @@ class CanopenRobot(Robot):
     #: Lockstep: once one TPDO of a SYNC arrived, wait at most this long (s) for the others.
     LOCKSTEP_SETTLE = 0.05
 
-    def __init__(self, config: RobotConfig, bus=None, imu=None, imu_lockstep: bool = False,
+    def __init__(self, config: RobotConfig, bus=None, imu=None,
                  realtime: bool = False, close_imu: bool = True, lockstep_timeout: float = 1.0,
                  sdo_timeout: float | None = None):
         self.config = config
@@ -162,6 +159,9 @@ class CanopenRobot(Robot):
         self.encoder = (CiA406Encoder(self.network, enc, self.tracker, self._add_fault)
                         if enc.source == "encoder" else None)
         self.devices = [*self.drives, *([self.encoder] if self.encoder else [])]
+        self._by_id = {d.node_id: d for d in self.devices}
+        self.max_torque = tuple(float(v) for v in config.limits.max_torque)
+        self.torque_quantum = tuple(d.cfg.joint_torque_per_permille for d in self.drives)
         if sdo_timeout is not None:
             for dev in self.devices:
                 dev.node.sdo.RESPONSE_TIMEOUT = sdo_timeout
@@ -177,12 +177,7 @@ class CanopenRobot(Robot):
         self._nmt_stopped: set[int] = set()  # nodes this master sent NMT STOP (a reaction's escalation)
         self.imu = imu
         self.close_imu = close_imu
-        self.imu_lockstep = imu_lockstep
         self.imu_timeout = config.imu.timeout if config.imu else 0.5
-        if imu_lockstep:  # no real-time deadline: the plant's sample of a SYNC may come late
-            self.imu_timeout = max(self.imu_timeout, LOCKSTEP_IMU_TIMEOUT)
-            if imu is not None:
-                imu.timeout = max(imu.timeout, LOCKSTEP_IMU_TIMEOUT)
         self.imu_rate = float(config.imu.rate_hz) if config.imu else 1.0 / self.period
         self._syncs = 0  # SYNCs sent since open()
         self._misses: dict[tuple[int, int], int] = {}  # consecutive SYNCs without this TPDO
@@ -416,7 +411,7 @@ class CanopenRobot(Robot):
             missing = self.tracker.wait(max(0.0, t_sync + self.TPDO_WINDOW * self.period - time.monotonic()))
         else:
             missing = self.tracker.wait(self.lockstep_timeout, settle=self.LOCKSTEP_SETTLE)
-        byid = {d.node_id: d for d in self.devices}
+        byid = self._by_id
         n_max = self.config.bus.tpdo_timeout
         for key in expected:
             if key in missing:
@@ -467,44 +462,43 @@ class CanopenRobot(Robot):
         return snap
 
     def _read_imu(self, t_sync: float, sync_index: int):
-        """Latest IMU sample; in lockstep, on SYNCs where the simulated IMU publishes, the one
-        published for this SYNC."""
-        wait_new = self.imu_lockstep and imu_due(sync_index, self.period, self.imu_rate)
+        """The newest IMU sample (never waited for: the IMU streams at its own rate; lockstep with a
+        simulated IMU is ``sim.lockstep``'s)."""
         try:
-            if self.imu_lockstep:  # the plant publishes per SYNC: the stream is due from this one
-                self.imu.restart_watchdog(t_sync)
-            sample = self.imu.read(timeout=self.imu_timeout if wait_new else 0)
+            sample = self.imu.read(timeout=0)
             if sample is not None:
                 self._imu_last = sample
-            elif wait_new:
-                self._add_fault(Fault("imu", None, "imu", f"no IMU sample within {self.imu_timeout:g} s of SYNC"),
-                                at_sync=True)
         except Exception as exc:  # drivers.imu.ImuFault: device error, timeout, disconnected port
             self._add_fault(Fault("imu", None, "imu", str(exc) or type(exc).__name__), at_sync=True)
         return self._imu_last
 
-    def write(self, torques) -> Command:
-        u = np.asarray(torques, dtype=float).reshape(-1)
-        if u.shape != (3,) or not np.all(np.isfinite(u)):
-            raise ValueError(f"torques must be 3 finite numbers (tau_r, tau_l, tau_p) N m, got {torques!r}")
-        clamped, sat = self.config.limits.clamp(u)
-        with self._lock:
-            faults = tuple(self._faults)
-            if faults:
-                raise RobotFault("robot is faulted: " + "; ".join(map(str, faults)), faults)
-            if not self.enabled:
-                raise DriverError("drives are not enabled: call enable() first")
+    def _apply(self, torques: list[float]) -> np.ndarray:
+        """``Robot.write``'s back end: stage each drive's torque (quantized to its per-mille unit) and
+        its controlword, send the RPDOs; the drives apply them at the next SYNC."""
+        with self._lock:  # the check and the staging as one: a fault staging a quick stop waits
+            self._refuse_unless_writable(self._faults, self.enabled, DriverError)
             self._loop_t = time.monotonic()
             # each drive's controlword from the master's command and the drive's reported state:
             # a drive found stopped (by itself) is not re-enabled, and gets no torque
-            commanded = np.array([d.stage_cyclic(c) for d, c in zip(self.drives, clamped)])
+            commanded = np.array([d.stage_cyclic(c) for d, c in zip(self.drives, torques)])
             failed = self._send_rpdos(self.drives)
         if failed:
             self._add_fault(Fault("bus", None, "bus", "; ".join(failed)))
             raise RobotFault("cannot command the drives: " + "; ".join(failed), self.faults)
-        quantum = np.array([d.cfg.joint_torque_per_permille for d in self.drives])
-        sat = sat | (np.abs(commanded - clamped) > 0.5 * quantum + 1e-12)
-        return Command(requested=u, commanded=commanded, saturated=sat)
+        return commanded
+
+    def node_identities(self) -> dict[str, dict]:
+        """Each node's CiA 301 identity object 0x1018 (vendor, product, revision, serial) over SDO."""
+        nodes = {}
+        for dev in self.devices:
+            entry: dict = {"node_id": dev.node_id}
+            for sub, key in ((1, "vendor"), (2, "product"), (3, "revision"), (4, "serial")):
+                try:
+                    entry[key] = int(dev.sdo_read(0x1018, sub))
+                except Exception:  # noqa: BLE001 - a node without (that part of) the identity object
+                    entry[key] = None
+            nodes[dev.name] = entry
+        return nodes
 
     def enable(self) -> None:
         faults = self.faults

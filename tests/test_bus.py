@@ -20,6 +20,7 @@ from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording
 from otbot_hw.runtime.openloop import run_torques
 from otbot_hw.sensors import NoiseModel, encoders_ideal, imu_sigma
+from sim.lockstep import LockstepCanopenRobot
 from sim.plant import simulated_robot
 from otbot_hw.simulation.runs import simulated_recording
 from otbot_hw.simulation.simulator import ForceSchedule, PivotForce, simulate
@@ -265,7 +266,7 @@ def test_plant_in_another_process_over_slcan_on_a_pty():
         assert info["can_interface"] == "slcan" and info["can_channel"].startswith("/dev/")
         cfg = lenient(CFG).replace_bus(interface="slcan", channel=info["can_channel"],
                                        options={"sleep_after_open": 0})
-        robot = CanopenRobot(cfg, imu=open_imu(cfg.imu, port=info["imu_port"]), imu_lockstep=True)
+        robot = LockstepCanopenRobot(cfg, imu=open_imu(cfg.imu, port=info["imu_port"]))
         n = 60
         with robot:
             robot.open()
@@ -364,7 +365,8 @@ def test_the_loop_runner_paces_and_the_driver_never_sleeps_to_pace():
                 robot.write([0.0, 0.0, 0.0])
                 robot.read()
             elapsed = time.monotonic() - t0
-            assert plant.k == k0 + 11
+            with plant.lock:  # the plant steps its model after sending a SYNC's TPDOs: let it finish
+                assert plant.k == k0 + 11
             # 11 cycles back to back: the plant answers each SYNC within a fraction of a period
             assert elapsed < 11 * cfg.bus.period * 0.6, elapsed
             robot.quick_stop()
@@ -396,7 +398,6 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
     IMU ticks of the second master line up with the plant's because the node resets restart the count."""
     import can
 
-    from drivers.robot import CanopenRobot
     from sim.plant import VirtualPlant, open_sim_imu
 
     cfg = lenient(CFG).replace_bus(channel="otbot-two-masters", control_rate=1000.0)
@@ -404,8 +405,8 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
     try:
         with VirtualPlant(cfg, imu=pub, noise=NoiseModel()) as plant:
             for master in range(2):
-                robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), imu=drv,
-                                     imu_lockstep=True, close_imu=False, sdo_timeout=1.0)
+                robot = LockstepCanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), imu=drv,
+                                             close_imu=False, sdo_timeout=1.0)
                 robot.open()
                 robot.enable()
                 for _ in range(23 + 10 * master):
