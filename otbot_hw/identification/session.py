@@ -144,6 +144,15 @@ class SessionResult:
             "std = one standard deviation including the uncertainty of the earlier steps.\n"
             + ip0 + ("The platform entries are the loaded working platform." if self.loaded else "")))
 
+    def combination(self, weights: Mapping[str, float]) -> dict[str, float]:
+        """``{value, std}`` of sum_n w_n theta_n (session symbols), std from the full covariance: e.g. the
+        floor runs' total mass {"m_c": 1, "m_p0": 1}, which the data identify even when neither term is."""
+        value = float(sum(w * self.values[n] for n, w in weights.items()))
+        names = list(weights)
+        C = self.covariance.sub(names)
+        w = np.array([weights[n] for n in names], dtype=float)
+        return {"value": value, "std": float(np.sqrt(max(w @ C @ w, 0.0)))}
+
     def error_sigma(self) -> dict[str, float] | None:
         """(estimate - truth) / std per estimated symbol (simulated recordings only)."""
         if self.truth is None:

@@ -61,6 +61,9 @@ PROBE_PAUSE = 0.1     # s of zero torque after the probe doublet
 SETTLE_TIME = 2.5     # s of braking after the probe
 #: EMCY codes of the drives' communication watchdogs (CiA 301): SYNC timeout, life guard / heartbeat
 WATCHDOG_CODES = (0x8100, 0x8130)
+#: prior std of the unloaded platform's mass when nobody weighs it, as a fraction of the file's value (a CAD
+#: mass may be off by tens of per cent)
+UNWEIGHED_FRACTION = 0.2
 
 
 @dataclass(frozen=True)
@@ -181,13 +184,45 @@ class BenchProcedure:
         self.specs: dict[str, ExperimentSpec] = {}
         self.designs: dict[str, dict] = {}
         self.idle_resets: list = []
+        self.notices: list[str] = []
+
+    # -- the unloaded platform: what a floor run cannot tell -----------------------------------------
+    def weigh(self) -> None:
+        """The unloaded platform's mass m_p0, asked once per session (kept in session.json): a floor run
+        sees only m_c + m_p0 (the regressor's two mass columns are the same), so either the operator
+        weighs the platform, or m_p0 stays the file's with a prior std (``UNWEIGHED_FRACTION``) that the
+        reported std of m_c and m_p carry (their sum and the load's mass are identified all the same)."""
+        if not {"chassis", "platform"} & set(self.s.steps):
+            return
+        meas = self.session.data.setdefault("measurements", {})
+        if "m_p0" in meas:
+            return
+        try:
+            got = self.operator.weigh_platform(int(self.metadata.get("seed", 0)))
+        except ValueError as exc:
+            raise BenchError(self.s.steps[0], str(exc)) from None
+        file_m = float(self.s.params_start.m_p)
+        if got is None:
+            got = {"value": file_m, "std": UNWEIGHED_FRACTION * file_m,
+                   "source": f"not weighed: the parameter file's value with a prior std of {UNWEIGHED_FRACTION:.0%}"}
+        meas["m_p0"] = got
+        self.session.save()
+
+    def start_params(self) -> OtbotParams:
+        """The robot before the session: the start parameters with the weighed unloaded platform's mass."""
+        m = self.session.data.get("measurements", {}).get("m_p0")
+        return self.s.params_start.replace(m_p=float(m["value"])) if m else self.s.params_start
+
+    def known_std(self) -> dict[str, float]:
+        m = self.session.data.get("measurements", {}).get("m_p0")
+        return {"m_p0": float(m["std"])} if m else {}
 
     # -- helpers -----------------------------------------------------------------------------------
     def best_params(self) -> OtbotParams:
         """The unloaded robot as known now: the start parameters with the passed steps' estimates."""
         if self.result is None:
-            return self.s.params_start
-        return robot_params(self.result.values, self.s.params_start, loaded=False)
+            return self.start_params()
+        return robot_params(self.result.values, self.start_params(), loaded=False)
 
     def spec(self, step: str) -> ExperimentSpec:
         if step not in self.specs:
@@ -337,7 +372,7 @@ class BenchProcedure:
         specs = {s: self.spec(s) for s in recs}
         t0 = time.perf_counter()
         try:
-            res = identify_session(recs, self.s.params_start, specs=specs)
+            res = identify_session(recs, self.start_params(), specs=specs, known_std=self.known_std())
         finally:
             self.timing.identification += time.perf_counter() - t0
         return res
@@ -413,6 +448,7 @@ class BenchProcedure:
     def run(self) -> dict:
         """Every step not passed yet, then identification, diagnosis; returns the JSON-ready result."""
         t0, c0 = time.perf_counter(), time.process_time()
+        self.weigh()
         for step in self.s.steps:
             if self.session.status(step) == "passed":
                 self.say(f"[bench] step {step}: passed in an earlier run of this session")
@@ -446,7 +482,7 @@ class BenchProcedure:
                 continue
             self.say(f"[bench] diagnose: the {label} robot's recordings ({', '.join(self.session.rel(p) for p in paths)})")
             data = [from_recording(read_recording(p), name=self.session.rel(p)) for p in paths]
-            params = robot_params(values, self.s.params_start, loaded=label == "loaded")
+            params = robot_params(values, self.start_params(), loaded=label == "loaded")
             out[label] = diagnose(data, params, progress=lambda m: self.say(m))
         self.timing.diagnosis += time.perf_counter() - t0
         effects = sorted({e["name"] for d in out.values() for e in d["effects"]})
@@ -457,6 +493,44 @@ class BenchProcedure:
                            "no missing physics found: no catalog effect improves the model by the evidence threshold"))
         (self.session.path / "diagnosis.json").write_text(json.dumps(out, indent=1, allow_nan=False))
         return out
+
+    def unloaded_platform(self, final) -> tuple[dict, list[str]]:
+        """The unloaded platform's m_p0, x_F0, y_F0 as the session used them ({value, std, file, source}) and
+        the notices: the file against this robot, what the recordings cannot separate."""
+        file_p = self.s.params_start
+        meas = self.session.data.get("measurements", {}).get("m_p0")
+        std = final.std
+        out = {}
+        for n, paper in (("m_p0", "m_p"), ("x_F0", "x_F"), ("y_F0", "y_F")):
+            if n == "m_p0" and meas is not None:
+                src = meas["source"]
+            elif n in final.estimated:
+                src = "estimated by the joint fit of the floor runs"
+            else:
+                src = "the parameter file's value, taken as exact"
+            out[n] = {"value": float(final.values[n]), "std": float(std.get(n, 0.0)),
+                      "file": float(getattr(file_p, paper)), "source": src}
+        notices = []
+        off = [m for n, u in (("m_p0", "kg"), ("x_F0", "m"), ("y_F0", "m"))
+               if out[n]["source"] != "the parameter file's value, taken as exact"
+               and not out[n]["source"].startswith("not weighed")
+               and (m := _platform_mismatch(n, u, out[n]["file"], out[n]))]
+        label = self.metadata.get("params_file", "the parameter file")
+        if off:
+            notices.append(f"the unloaded platform in {label} does not match this robot: {'; '.join(off)}; the "
+                           "bench used the measured and estimated values (params.yaml; update the file, or weigh the "
+                           "platform and let the bench estimate its centre)")
+        if meas is not None and meas["source"].startswith("not weighed"):
+            tot = final.combination({"m_c": 1.0, "m_p0": 1.0})
+            notices.append(f"the unloaded platform was not weighed: the recordings cannot separate the chassis' mass "
+                           f"m_c from the platform's m_p0 (a floor run sees only m_c + m_p0 = {tot['value']:.5g} +- "
+                           f"{tot['std']:.2g} kg)" + (", nor the loaded platform's m_p from m_p0 (the load's mass "
+                                                      "m_p - m_p0 is identified)" if "platform" in final.steps else "")
+                           + f"; m_c, x_B, I_c" + (", m_p, I_p, x_F, y_F" if "platform" in final.steps else "")
+                           + f" are reported for m_p0 = {meas['value']:.4g} +- {meas['std']:.2g} kg and their std "
+                           "include it; the robot's dynamics depend only on the identified combinations "
+                           "('combinations'); weigh the platform for the separate values")
+        return out, notices
 
     def summary(self, final, diagnosis, wall: float, cpu: float) -> dict:
         params = final.parameters()
@@ -481,6 +555,11 @@ class BenchProcedure:
                        "robot_time": self.timing.robot_time, "identification_wall_time": self.timing.identification,
                        "diagnosis_wall_time": self.timing.diagnosis},
         }
+        out["unloaded_platform"], notices = self.unloaded_platform(final)
+        out["combinations"] = {"m_c+m_p0": final.combination({"m_c": 1.0, "m_p0": 1.0})}
+        if "platform" in final.steps:
+            out["combinations"]["m_p-m_p0"] = final.combination({"m_p": 1.0, "m_p0": -1.0})
+        out["notices"] = self.notices + notices
         if self.sim is not None:
             truth = self.sim.truth()
             out["truth"] = {n: truth[n] for n in SESSION_PARAMS}
@@ -488,7 +567,19 @@ class BenchProcedure:
                                       if params[n]["std"] > 0 else None) for n in SESSION_PARAMS
                                   if n in final.estimated}
             out["load"] = dict(zip(("mass", "x", "y", "inertia"), self.sim.load)) if self.sim.load else None
+            for n, d in out["unloaded_platform"].items():
+                out["truth"][n] = truth[n]
+                if d["std"] > 0:
+                    out["error_sigma"][n] = (d["value"] - truth[n]) / d["std"]
         return json_safe(out)
+
+
+def _platform_mismatch(name: str, unit: str, file_value: float, d: dict) -> str | None:
+    """A sentence when the file's value of the unloaded platform's ``name`` is off by > 3 std of the bench's."""
+    if d["std"] > 0 and abs(d["value"] - file_value) > 3.0 * d["std"]:
+        how = "weighed" if d["source"].startswith("weighed") else "estimated"
+        return f"{name} {file_value:.4g} {unit} in the file, {how} {d['value']:.4g} +- {d['std']:.2g} {unit}"
+    return None
 
 
 def _communication(f) -> bool:
