@@ -150,8 +150,7 @@ class SimulatedRobot:
         return self.unloaded.with_load(*self.load) if self.load else self.unloaded
 
     def truth(self) -> dict[str, float]:
-        v = session_vector(self.unloaded, self.loaded)
-        return {n: v[n] for n in SESSION_PARAMS}
+        return session_vector(self.unloaded, self.loaded)  # with the unloaded platform's m_p0, x_F0, y_F0
 
 
 @dataclass
@@ -567,6 +566,11 @@ class BenchProcedure:
                                       if params[n]["std"] > 0 else None) for n in SESSION_PARAMS
                                   if n in final.estimated}
             out["load"] = dict(zip(("mass", "x", "y", "inertia"), self.sim.load)) if self.sim.load else None
+            combo_truth = {"m_c+m_p0": truth["m_c"] + truth["m_p0"], "m_p-m_p0": truth["m_p"] - truth["m_p0"]}
+            for n, d in out["combinations"].items():
+                out["truth"][n] = combo_truth[n]
+                if d["std"] > 0:
+                    out["error_sigma"][n] = (d["value"] - combo_truth[n]) / d["std"]
             for n, d in out["unloaded_platform"].items():
                 out["truth"][n] = truth[n]
                 if d["std"] > 0:
