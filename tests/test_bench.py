@@ -272,7 +272,7 @@ def test_drives_that_cap_the_torque_give_a_saturated_recording_that_is_named_and
     cfg = _config(tmp_path, cap=("- [0x6072, 0, 2500]", "- [0x6072, 0, 400]"))
     folder = tmp_path / "s"
     rc, out, err = _bench(otbot_cli, "--steps", "chassis", "--yes", "--no-diagnose", "--session", str(folder),
-                          "--config", str(cfg))
+                          "--config", str(cfg), "--excitation", "paper")
     assert rc == 2 and out == ""
     last = err.strip().splitlines()[-1]
     assert "step chassis: saturation: saturated: the drives applied -8.00 N m where -10.00 N m was commanded on left " \
