@@ -322,6 +322,8 @@ class BenchProcedure:
                                  f"{bs.setup}, then check again"))
         else:
             out.append(chk.fixture_check(bs.fixture, probe.recording, rest.recording, best, len(probe_u)))
+            if bs.loaded and not out[-1].passed and "did not move" in out[-1].message:
+                out[-1] = self._too_heavy(out[-1])
         # stop what the probe moved: with the step's brake where the fixture is verified, else gently
         settle_path = self.session.recording_path(step, n, "settle")
         gains = brake_gains(best, bs.fixture if out[-1].passed else None, self.period)
@@ -334,6 +336,17 @@ class BenchProcedure:
             c = chk.rest_check(settle.recording, self.s.noise, what="after the probe", start=k)
             out.append(dataclasses.replace(c, name="settled"))
         return out
+
+    def _too_heavy(self, found: chk.Check) -> chk.Check:
+        """The loaded robot did not move under the probe's torque: name the load as the cause (the floor
+        probe of the unloaded robot passed, or the load is the only thing the operator changed)."""
+        moved = self.session.status("chassis") == "passed" if "chassis" in self.s.steps else False
+        return chk.Check("load", False, "with the load on, " + found.message.replace("the robot", "the robot", 1)
+                         + (", where it moved without the load in step chassis" if moved else "")
+                         + f": the load is more than the motors can accelerate within the experiment limits "
+                           f"(torque {self.s.limits.torque:g} N m per motor)",
+                         "use a lighter load (or identify it in parts), or raise experiment_limits.torque within the "
+                         "motors' rating (config/robot.yaml)", found.value)
 
     def excite(self, step: str, attempt: dict) -> tuple[LoopResult, np.ndarray]:
         bs = BENCH_STEPS[step]
