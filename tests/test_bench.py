@@ -279,3 +279,57 @@ def test_drives_that_cap_the_torque_give_a_saturated_recording_that_is_named_and
            "wheel (300 of 300 samples)" in last and "0x6072" in last
     rec = read_recording(folder / "chassis-1.mcap")  # kept, and it says what the drives applied
     assert np.all(rec.torque[:300] == [6.0, -8.0, 6.0])
+
+
+def test_a_robot_whose_every_parameter_differs_from_the_file_completes_with_the_platform_weighed(tmp_path, otbot_cli):
+    """Issue 21's robot with a 40 kg load, default options: the simulated operator weighs the unloaded platform,
+    the joint fit estimates its centre, every estimate is within 3 reported sigma, and the mismatch with the
+    file is reported as that."""
+    p = nominal()
+    truth = p.replace(m_c=p.m_c * 0.87, I_c=p.I_c * 1.12, x_B=p.x_B * 0.85, y_B=p.y_B + 0.02, m_p=p.m_p * 1.15,
+                      I_p=p.I_p * 0.9, x_F=p.x_F + 0.03, y_F=p.y_F - 0.02, I_a=p.I_a * 1.1, b_w=p.b_w * 0.8,
+                      b_p=p.b_p * 1.25)
+    robot = tmp_path / "truth.yaml"
+    truth.save(robot)
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--yes", "--json", "--no-diagnose", "--session", str(folder),
+                          "--sim-params", str(robot), "--sim-load", "40@0.1,-0.05,0.5")
+    assert rc == 0, err
+    d = json.loads(out)
+    assert d["passed"] and d["excitation"] == "designed"
+    assert all(s["attempts"] == 1 for s in d["steps"].values())
+    z = d["error_sigma"]
+    assert set(SESSION_PARAMS) | {"m_p0", "x_F0", "y_F0", "m_c+m_p0", "m_p-m_p0"} <= set(z)
+    assert max(abs(v) for v in z.values()) < 3.0, z
+    up = d["unloaded_platform"]
+    assert up["m_p0"]["source"].startswith("weighed") and up["m_p0"]["std"] == pytest.approx(0.1)
+    assert up["x_F0"]["source"].startswith("estimated") and up["x_F0"]["file"] == 0.0
+    (notice,) = [n for n in d["notices"] if "does not match this robot" in n]
+    assert notice.startswith("the unloaded platform in config/otbot.yaml does not match this robot: m_p0 21.95 kg")
+    assert "x_F0 0 m in the file, estimated " in notice and up["x_F0"]["value"] == pytest.approx(0.03, abs=0.002)
+    assert json.loads((folder / "session.json").read_text())["measurements"]["m_p0"]["value"] == up["m_p0"]["value"]
+
+
+def test_a_load_the_motors_cannot_move_is_named(tmp_path, otbot_cli):
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--yes", "--no-diagnose", "--steps", "platform", "--session", str(folder),
+                          "--sim-load", "20000@0.1,0")
+    assert rc == 2 and out == "" and "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert "step platform: load: with the load on, the robot did not move under 2 N m" in last
+    assert "the load is more than the motors can accelerate within the experiment limits" in last
+    assert "use a lighter load" in last and str(folder) in last
+    assert (folder / "checks" / "platform-1-probe.mcap").is_file()  # the check's recordings are kept
+
+
+def test_the_operator_is_asked_to_weigh_the_platform():
+    from otbot_hw.runtime.bench.operator import AutomaticOperator, NoOperator, PromptOperator
+
+    said = []
+    op = PromptOperator(None, say=said.append, stream=io.StringIO("heavy\n-3\n25.3+-0.2\n"))
+    assert op.weigh_platform() == {"value": 25.3, "std": 0.2, "source": "weighed (typed by the operator)"}
+    assert sum("is not a mass in kg" in s for s in said) == 2
+    assert PromptOperator(None, say=said.append, stream=io.StringIO("\n")).weigh_platform() is None  # cannot weigh
+    with pytest.raises(NoOperator):
+        PromptOperator(None, say=said.append, stream=io.StringIO("")).weigh_platform()
+    assert AutomaticOperator(None, say=said.append).weigh_platform() is None  # a real robot with --yes
