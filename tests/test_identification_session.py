@@ -42,7 +42,7 @@ def test_earlier_steps_uncertainty_makes_the_sigma_honest(sessions):
         assert joint.passed, joint.reasons
         for res in (joint, prop):
             z = res.error_sigma()
-            assert set(z) == set(SESSION_PARAMS)
+            assert set(z) == set(SESSION_PARAMS) | {"x_F0", "y_F0"}  # the unloaded platform's centre too
             honest_worst = max(honest_worst, max(abs(v) for v in z.values()))
         # propagation keeps the chained estimates and only widens their sigma
         assert prop.values["m_c"] == pytest.approx(joint.chained["m_c"], rel=1e-12)

@@ -323,7 +323,7 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
                            + ("later steps not fitted" if step != order[-1] else "no session estimate"))
             break
     estimated = [n for n in SESSION_PARAMS if n in naive_std]
-    if "chassis" in steps and method == "joint" and joint is not None and joint.converged:
+    if "chassis" in steps:  # fitted in the chassis step (and in the joint fit)
         estimated += free_nuisance
     chained_std = cov.std()
     values = dict(chained)
