@@ -69,8 +69,9 @@ def register(sub) -> None:
                         "the default limits on about half of the robots that differ from the file")
     p.add_argument("--params", type=Path, default=None,
                    help="the robot's parameters before the session (unloaded platform; default config/otbot.yaml): "
-                        "geometry and the unloaded platform's mass and centre are taken as known, the rest are "
-                        "first guesses")
+                        "the geometry (l1, l2, r) is taken as known, the rest are first guesses; the unloaded "
+                        "platform's mass is weighed by the operator (or kept with a 20 %% prior std and reported "
+                        "as not separable from the chassis' mass), its centre estimated from the floor runs")
     p.add_argument("--sim-params", type=Path, default=None,
                    help="--bus sim: the robot to simulate, a parameter file or a diagnosed model with effects "
                         "(default config/otbot.yaml)")

@@ -138,7 +138,9 @@ class SessionResult:
     def save_params(self, path: str | Path) -> None:
         """Write ``params.yaml`` (layout of ``config/otbot.yaml``, each identified entry with its std)."""
         how = {"joint": "a joint fit of all recordings", "propagate": "the chained steps"}[self.method]
-        ip0 = f"I_p0 (unloaded platform) = {self.values['I_p0']:.6g} +- {self.std['I_p0']:.3g} kg m^2. "
+        ip0 = (f"I_p0 (unloaded platform) = {self.values['I_p0']:.6g} +- {self.std['I_p0']:.3g} kg m^2, "
+               + ", ".join(f"{n} = {self.values[n]:.6g} +- {self.std.get(n, 0.0):.3g} {SESSION_UNITS[n]}"
+                           for n in ("m_p0", "x_F0", "y_F0")) + ". ")
         self.params().save(path, header=(
             f"Identified by a bench session (steps {', '.join(self.steps)}; estimates from {how}).\n"
             "std = one standard deviation including the uncertainty of the earlier steps.\n"
