@@ -333,3 +333,16 @@ def test_the_operator_is_asked_to_weigh_the_platform():
     with pytest.raises(NoOperator):
         PromptOperator(None, say=said.append, stream=io.StringIO("")).weigh_platform()
     assert AutomaticOperator(None, say=said.append).weigh_platform() is None  # a real robot with --yes
+
+
+def test_a_geometry_off_the_file_is_named_not_blamed_on_missing_physics(tmp_path, otbot_cli):
+    robot = tmp_path / "r.yaml"
+    nominal().replace(r=0.097).save(robot)  # wheels 3 % smaller than the file says
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--yes", "--no-diagnose", "--steps", "chassis", "--attempts", "1",
+                          "--session", str(folder), "--sim-params", str(robot))
+    assert rc == 2 and out == "" and "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert "step chassis: the geometry in config/otbot.yaml does not match this robot: r 0.1 m in the file, " \
+           "estimated 0.09" in last and "measure l1, l2, r" in last
+    assert "l1 " not in last.split("the gates with")[0] and (folder / "chassis-1.mcap").is_file()

@@ -111,8 +111,9 @@ def session_bounds(radius: float) -> tuple[dict[str, tuple[float, float]], dict[
     b = {n: DEFAULT_BOUNDS[n] for n in SESSION_PARAMS if n in DEFAULT_BOUNDS}
     b["I_p0"] = DEFAULT_BOUNDS["I_p"]
     b["m_p0"] = DEFAULT_BOUNDS["m_p"]
+    b.update({n: DEFAULT_BOUNDS[n] for n in ("l1", "l2", "r")})
     b["x_F"] = b["y_F"] = b["x_F0"] = b["y_F0"] = (-radius, radius)
-    return b, {n: _SCALE[n] for n in SESSION_PARAMS + NUISANCE_PARAMS + ("m_p0",)}
+    return b, {n: _SCALE[n] for n in SESSION_PARAMS + KNOWN_PARAMS}
 
 
 @dataclass

@@ -337,6 +337,38 @@ class BenchProcedure:
             out.append(dataclasses.replace(c, name="settled"))
         return out
 
+    def geometry_mismatch(self, step: str, recording: Path) -> str | None:
+        """When a step's gates fail, the last parameters the bench takes from the file are the geometry (l1,
+        l2, r): the session refitted with them free too. If that explains every recording, the sentences
+        naming each one that moved by more than 3 std; else None (the diagnosis looks for missing physics)."""
+        from otbot_hw.identification.session import identify_session
+        from otbot_hw.identification.uncertainty import NUISANCE_PARAMS
+
+        if "chassis" not in self.s.steps or self.session.status("chassis") != "passed" and step != "chassis":
+            return None
+        recs: dict[str, list] = {}
+        for s in self.s.steps:
+            paths = [recording] if s == step else self.session.accepted_recordings(s)
+            if paths and (s == step or self.session.status(s) == "passed"):
+                recs[s] = [read_recording(p) for p in paths]
+        if "chassis" not in recs:
+            return None
+        t0 = time.perf_counter()
+        try:
+            res = identify_session(recs, self.start_params(), specs={s: self.spec(s) for s in recs},
+                                   known_std=self.known_std(), nuisance=NUISANCE_PARAMS + ("l1", "l2", "r"))
+        except IdentificationError:
+            return None
+        finally:
+            self.timing.identification += time.perf_counter() - t0
+        if not res.passed:
+            return None
+        std = res.std
+        off = [f"{n} {getattr(self.s.params_start, n):.4g} m in the file, estimated {res.values[n]:.4g} +- {std[n]:.2g} m"
+               for n in ("l1", "l2", "r") if std.get(n, 0) > 0
+               and abs(res.values[n] - getattr(self.s.params_start, n)) > 3 * std[n]]
+        return "; ".join(off) or None
+
     def _too_heavy(self, found: chk.Check) -> chk.Check:
         """The loaded robot did not move under the probe's torque: name the load as the cause (the floor
         probe of the unloaded robot passed, or the load is the only thing the operator changed)."""
@@ -450,6 +482,12 @@ class BenchProcedure:
             failed_result, failed_recording = result, self.session.path / attempt["recording"]
         self.session.set_status(step, "failed")
         why = "; ".join(reasons[:2]) + (f" (and {len(reasons) - 2} more in session.json)" if len(reasons) > 2 else "")
+        geometry = self.geometry_mismatch(step, failed_recording)
+        if geometry:
+            raise BenchError(step, f"the geometry in {self.metadata.get('params_file', 'the parameter file')} does not "
+                                   f"match this robot: {geometry}: with it estimated, every recording is explained "
+                                   "(measure l1, l2, r and correct the file, then start a new session); the gates "
+                                   f"with the file's geometry: {why}")
         found = ""
         if self.s.diagnose:  # where the model fails, the mismatch finder says what it misses
             d = self.diagnose(failed_result.values, {step: [failed_recording]})
