@@ -79,11 +79,12 @@ def input_errors() -> tuple[type[BaseException], ...]:
     """The exception types that mean bad input (exit 2, one line): the CLI's own and the library's
     errors documented as "bad input" (parameters/config, recordings, trajectories, identification)."""
     from otbot_hw.control.trajectories import TrajectoryError
+    from otbot_hw.extras import MissingExtraError
     from otbot_hw.identification.errors import IdentificationError
     from otbot_hw.params import ParameterError
     from otbot_hw.recording import RecordingError
 
-    return CliError, ParameterError, RecordingError, TrajectoryError, IdentificationError
+    return CliError, ParameterError, RecordingError, TrajectoryError, IdentificationError, MissingExtraError
 
 
 def one_line(text: str) -> str:

@@ -28,6 +28,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from otbot_hw.extras import require
 from otbot_hw.motors import MotorLimits
 from otbot_hw.params import OtbotParams
 
@@ -125,7 +126,7 @@ class PlanResult:
 
 def _symbolic_model(params: OtbotParams):
     """CasADi function f(z, u) -> z_dot for the reduced state, from the model's pure functions."""
-    import casadi as ca
+    ca = require("casadi")
 
     try:  # numpy ufuncs on CasADi symbols (np.sin in the model): keep the legacy, type-following result
         ca.GlobalOptions.setNumpyMode(-1)
@@ -221,7 +222,7 @@ def _first_contact(P: np.ndarray, prob: PlanningProblem) -> str:
 def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,
          max_iter: int = 500) -> PlanResult:
     """Solve the collocation problem with IPOPT; raises PlannerError when it does not converge."""
-    import casadi as ca
+    ca = require("casadi")
 
     for name, pt in (("start", prob.start), ("goal", prob.goal)):
         for j, ((cx, cy, _), k) in enumerate(zip(prob.obstacles, prob.keep_out())):

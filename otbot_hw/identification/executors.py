@@ -24,6 +24,8 @@ import os
 import signal
 from typing import Any, Callable, Iterable
 
+from otbot_hw.extras import require
+
 Progress = Callable[[int, int], None] | None
 
 
@@ -132,7 +134,7 @@ class DaskExecutor(Executor):
     kind = "dask"
 
     def __init__(self, scheduler: str | None = None, client=None, timeout: float = 10.0):
-        from distributed import Client
+        Client = require("distributed").Client
 
         if client is None and not scheduler:
             raise ValueError("DaskExecutor needs a scheduler address or a client")
@@ -148,7 +150,7 @@ class DaskExecutor(Executor):
         return f"{self.kind} ({self.scheduler}, {n} workers)"
 
     def map(self, fn, items, progress: Progress = None) -> list:
-        from distributed import as_completed
+        as_completed = require("distributed").as_completed
 
         items = list(items)
         futs = self.client.map(fn, items, pure=False)
