@@ -46,8 +46,8 @@ def test_floor_steps_identify_the_loaded_robot_through_the_bus(floor_session):
         assert step["status"] == "passed" and step["converged"] is True
         assert all(k.startswith(name) and v > 80 for k, v in step["fit"].items()) and len(step["fit"]) == 3
         checks = {c["name"]: c["passed"] for c in step["checks"]}
-        assert checks == dict.fromkeys(("drives", "imu", "at_rest", "limits", "fixture", "settled", "saturation",
-                                        "clipping"), True)
+        assert checks == dict.fromkeys(("drives", "imu", "at_rest", "limits", "fixture", "robot_limits", "settled",
+                                        "saturation", "clipping"), True)
         rec = read_recording(folder / step["accepted_recording"])  # project format, what the drivers reported
         assert rec.metadata["fixture"] == "floor" and rec.metadata["bench"]["step"] == name
         assert rec.estimate_pose is not None  # the EKF ran for the supervisor's speed and free-area checks

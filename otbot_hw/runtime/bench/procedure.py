@@ -59,6 +59,10 @@ REST_TIME = 0.5       # s of the zero-torque run (and of the end of the settling
 BRAKE_TIME = 1.5      # s of braking after an excitation
 PROBE_PAUSE = 0.1     # s of zero torque after the probe doublet
 SETTLE_TIME = 2.5     # s of braking after the probe
+UNKNOWN_COM = 0.05    # m: how far the chassis' centre of mass may lie from the file's (issue 21's prior)
+UNKNOWN_INERTIA = 0.3  # fraction: how far the chassis' inertia may lie from the mass-scaled one
+LIMIT_FILL = 0.95     # a designed excitation is scaled so that its peaks predicted on this robot stay below this
+                      # fraction of each limit (the probe's mass estimate leaves the centres of mass unknown)
 #: EMCY codes of the drives' communication watchdogs (CiA 301): SYNC timeout, life guard / heartbeat
 WATCHDOG_CODES = (0x8100, 0x8130)
 #: prior std of the unloaded platform's mass when nobody weighs it, as a fraction of the file's value (a CAD
@@ -181,6 +185,7 @@ class BenchProcedure:
         self.timing = _Timing()
         self.result = None  # the latest SessionResult
         self.specs: dict[str, ExperimentSpec] = {}
+        self.base_specs: dict[str, ExperimentSpec] = {}
         self.designs: dict[str, dict] = {}
         self.idle_resets: list = []
         self.notices: list[str] = []
@@ -224,6 +229,8 @@ class BenchProcedure:
         return robot_params(self.result.values, self.start_params(), loaded=False)
 
     def spec(self, step: str) -> ExperimentSpec:
+        """The step's excitation as run: the paper's or the designed one, the latter scaled to this robot
+        (``fit_to_robot``; the scale is kept in session.json for a resumed session)."""
         if step not in self.specs:
             sp, rec = step_spec(step, self.s.excitation, self.s.params_start, self.s.limits,
                                 [self.session.path / "designs"], progress=lambda m: self.say(f"[bench] {m}"))
@@ -234,7 +241,70 @@ class BenchProcedure:
                 d = self.session.path / "designs"
                 d.mkdir(exist_ok=True)
                 (d / f"{step}.json").write_text(json.dumps({k: v for k, v in rec.items() if k != "source"}))
+            self.base_specs[step] = sp
+            k = self.session.data.get("excitation_scale", {}).get(step)
+            if k is not None:
+                self.specs[step] = _scaled(sp, float(k))
         return self.specs[step]
+
+    def fit_to_robot(self, step: str, probe, probe_u: np.ndarray, best: OtbotParams) -> chk.Check | None:
+        """Floor steps, designed excitation: the design keeps the limits on the prior's corner robots (+-20 %),
+        this robot may lie beyond. The probe's measured pivot speed against the one predicted for the
+        best-known robot says how much heavier (or lighter) it is, rho = v_predicted / v_measured; the body
+        that is still unknown (the chassis in step chassis, the loaded platform in step platform) is scaled so
+        (mass and inertia), the excitation's peaks predicted on that robot (in step chassis also with its
+        centre of mass moved by UNKNOWN_COM and its inertia by UNKNOWN_INERTIA, which a forward probe cannot
+        tell), and the torques scaled down (speeds and travel go about linearly with them) until every peak
+        is within LIMIT_FILL of its limit. None for the paper's excitation and the held fixtures."""
+        from otbot_hw.runtime.bench.excitation import predicted_motion
+
+        base = self.spec(step) if step not in self.base_specs else self.base_specs[step]
+        scale = 1.0
+        if self.s.excitation != "designed" or BENCH_STEPS[step].fixture != "floor":
+            return None
+        pspec = dataclasses.replace(base, profile=probe_u, torque=tuple(float(v) for v in probe_u[0]),
+                                    duration=len(probe_u) * self.period)
+        from otbot_hw.model.kinematics import forward_kinematics_matrix
+
+        M = forward_kinematics_matrix(np.zeros(6), best)[:2]
+        _, qd = predicted_motion(pspec, best)
+        v_pred = float(np.max(np.linalg.norm(qd[:, 3:6] @ M.T, axis=1)))
+        n = min(len(probe_u), len(probe))
+        v_meas = float(np.max(np.linalg.norm(np.asarray(probe.joint_vel[:n], dtype=float) @ M.T, axis=1)))
+        rho = float(np.clip(v_pred / max(v_meas, 1e-9), 0.25, 20.0))
+        total = best.m_c + best.m_p
+        if BENCH_STEPS[step].loaded:
+            guess = best.replace(m_p=max(total * rho - best.m_c, 0.1 * best.m_p), I_p=best.I_p * rho)
+        else:
+            guess = best.replace(m_c=max(total * rho - best.m_p, 0.1 * best.m_c), I_c=best.I_c * rho)
+        safety = self.s.safety.within(self.s.limits, "floor")
+        robots = [guess]
+        if not BENCH_STEPS[step].loaded:  # what a forward probe cannot tell: the chassis' centre and inertia
+            c = UNKNOWN_COM
+            robots += [guess.replace(x_B=guess.x_B + dx, y_B=guess.y_B + dy, I_c=guess.I_c * f)
+                       for dx, dy in ((c, c), (c, -c), (-c, c), (-c, -c)) for f in (1 - UNKNOWN_INERTIA, 1 + UNKNOWN_INERTIA)]
+        spec = base
+        for _ in range(3):
+            every = [predicted_margins(spec, r, self.s.limits, safety.max_wheel_rate, safety.max_pivot_rate)
+                     for r in robots]
+            margins = {k: max((m[k] for m in every), key=lambda v: v[0] / v[1]) for k in every[0]}
+            worst = max((p / lim for k, (p, lim) in margins.items() if k != "torque"), default=0.0)
+            if worst <= LIMIT_FILL:
+                break
+            scale *= LIMIT_FILL / worst
+            spec = _scaled(base, scale)
+        self.specs[step] = spec
+        self.session.data.setdefault("excitation_scale", {})[step] = scale
+        self.session.save()
+        text = (f"the probe moved the robot at {v_meas:.3f} m/s, {v_pred:.3f} m/s predicted: about {rho:.2f} x the "
+                f"mass believed; largest predicted peaks on that robot"
+                + (f" with its centre of mass within {UNKNOWN_COM:g} m and inertia within {UNKNOWN_INERTIA:.0%}"
+                   if len(robots) > 1 else "") + ": "
+                + ", ".join(f"{k.replace('_', ' ')} {p:.3g} of {lim:.3g}" for k, (p, lim) in margins.items()))
+        text += (f"; the designed torques scaled by {scale:.3f} to stay within the limits" if scale < 1.0 else
+                 "; the designed torques as designed")
+        return chk.Check("robot_limits", True, text, value=scale)
+
 
     def _meta(self, step: str, kind: str, attempt: int, fixture: str, extra: dict | None = None) -> dict:
         meta = {**self.metadata, "sample_period": self.period, "fixture": fixture, "noise": self.s.noise.to_dict(),
@@ -324,6 +394,10 @@ class BenchProcedure:
             out.append(chk.fixture_check(bs.fixture, probe.recording, rest.recording, best, len(probe_u)))
             if bs.loaded and not out[-1].passed and "did not move" in out[-1].message:
                 out[-1] = self._too_heavy(out[-1])
+            elif out[-1].passed:
+                fitted = self.fit_to_robot(step, probe.recording, probe_u, best)
+                if fitted is not None:
+                    out.append(fitted)
         # stop what the probe moved: with the step's brake where the fixture is verified, else gently
         settle_path = self.session.recording_path(step, n, "settle")
         gains = brake_gains(best, bs.fixture if out[-1].passed else None, self.period)
@@ -635,6 +709,15 @@ def _platform_mismatch(name: str, unit: str, file_value: float, d: dict) -> str 
         how = "weighed" if d["source"].startswith("weighed") else "estimated"
         return f"{name} {file_value:.4g} {unit} in the file, {how} {d['value']:.4g} +- {d['std']:.2g} {unit}"
     return None
+
+
+def _scaled(spec: ExperimentSpec, k: float) -> ExperimentSpec:
+    """``spec`` with its torques multiplied by ``k``."""
+    if k == 1.0:
+        return spec
+    U = spec.torques() * k
+    return dataclasses.replace(spec, profile=U, torque=tuple(float(v) for v in U[0]),
+                               description=f"{spec.description}, scaled by {k:.3f} to this robot")
 
 
 def _communication(f) -> bool:
