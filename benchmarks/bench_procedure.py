@@ -209,9 +209,25 @@ def time_table(sets: dict[str, list[dict]]) -> str:
     return "\n".join(lines)
 
 
+def scale_table(sets: dict[str, list[dict]]) -> str:
+    """How often the designed torques were scaled to the robot (the ``robot_limits`` check's value)."""
+    lines = ["| variant | step | robots with the check | scaled down | smallest scale | mean scale |",
+             "|---|---|---|---|---|---|"]
+    for v, ts in sets.items():
+        for step in ("chassis", "platform"):
+            k = [c["value"] for t in ts for c in (((t.get("steps") or {}).get(step) or {}).get("checks") or [])
+                 if c["name"] == "robot_limits" and c.get("value") is not None]
+            if k:
+                k = np.array(k)
+                lines.append(f"| {v} | {step} | {len(k)} | {int(np.sum(k < 1.0))} | {k.min():.3f} | {k.mean():.3f} |")
+    return "\n".join(lines)
+
+
 def print_tables(sets: dict[str, list[dict]]) -> None:
     print("## Outcomes\n")
     print(outcome_table(sets))
+    print("\n## Designed torques fitted to the robot (robot_limits)\n")
+    print(scale_table(sets))
     for v, ts in sets.items():
         print(f"\n## Honest uncertainty through the bus: {v}\n")
         print(honesty_table(ts))

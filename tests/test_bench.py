@@ -346,3 +346,19 @@ def test_a_geometry_off_the_file_is_named_not_blamed_on_missing_physics(tmp_path
     assert "step chassis: the geometry in config/otbot.yaml does not match this robot: r 0.1 m in the file, " \
            "estimated 0.09" in last and "measure l1, l2, r" in last
     assert "l1 " not in last.split("the gates with")[0] and (folder / "chassis-1.mcap").is_file()
+
+
+def test_an_unweighed_platform_is_reported_with_what_the_recordings_cannot_separate(tmp_path, otbot_cli, monkeypatch):
+    folder = tmp_path / "s"
+    monkeypatch.setattr(sys, "stdin", io.StringIO("n\n\n"))  # cannot weigh it; Enter: the set-up as instructed
+    rc, out, err = _bench(otbot_cli, "--json", "--no-diagnose", "--steps", "chassis", "--session", str(folder))
+    assert rc == 0, err
+    d = json.loads(out)
+    up = d["unloaded_platform"]["m_p0"]
+    assert up["source"].startswith("not weighed") and up["std"] == pytest.approx(0.2 * nominal().m_p)
+    (notice,) = d["notices"]
+    assert notice.startswith("the unloaded platform was not weighed: the recordings cannot separate the chassis' "
+                             "mass m_c from the platform's m_p0 (a floor run sees only m_c + m_p0 = ")
+    tot = d["combinations"]["m_c+m_p0"]
+    assert tot["std"] < 0.5 < d["parameters"]["m_c"]["std"]  # the sum is identified, the split carries the prior
+    assert abs(tot["value"] - (nominal().m_c + nominal().m_p)) < 3 * tot["std"]

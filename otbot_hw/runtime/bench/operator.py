@@ -133,13 +133,13 @@ class PromptOperator(Operator):
         self._ask(self._prompt(), fixture, loaded)
 
     def weigh_platform(self, seed: int = 0) -> dict | None:
-        """Ask for the weight: ``KG`` or ``KG+-STD``; Enter: not weighed (the simulated operator weighs a
-        simulated robot); ``q`` stops. A bad answer is asked again."""
+        """Ask for the weight: ``KG`` or ``KG+-STD``; ``n``: it cannot be weighed; Enter: the simulated operator
+        weighs a simulated robot, a real one is not weighed; ``q`` stops. A bad answer is asked again."""
         self.say(f"[bench] {WEIGH_TEXT}")
         while True:
             sim = ", Enter to have the simulated operator weigh it" if self.plant is not None else \
                 ", Enter if it cannot be weighed (the bench then reports what the recordings can tell)"
-            self.say(f"[bench] platform mass in kg (KG or KG+-STD{sim}; q to stop): ")
+            self.say(f"[bench] platform mass in kg (KG or KG+-STD{sim}; n: cannot be weighed; q to stop): ")
             line = self.stream.readline()
             if not line:
                 raise NoOperator("no answer from the operator (input closed); run interactively, or with --yes "
@@ -149,6 +149,8 @@ class PromptOperator(Operator):
                 raise OperatorStopped("stopped by the operator")
             if not words:
                 return self._scale(seed) if self.plant is not None else None
+            if words.lower() in ("n", "no"):
+                return None
             try:
                 value, _, std = words.partition("+-")
                 v, sd = float(value), (float(std) if std.strip() else SCALE_STD)
