@@ -1,5 +1,5 @@
 """Mutation probe of the safety chain: plausible bugs put in one at a time, each must make the
-tests that pin it fail (issue 12, item 7).
+tests that pin it fail (issue 12, item 7; issue 18, item 8).
 
 Each mutation replaces one piece of source text in a copy of the tree (the checkout itself is
 never touched) and runs the named tests there; the table says which mutations the tests caught.
@@ -25,6 +25,7 @@ T_UNITS = "tests/test_bus_units.py"
 T_FAULTS = "tests/test_bus_faults.py"
 T_EDS = "tests/test_bus_eds.py"
 T_INJ = "tests/test_bus_injection.py"
+T_PINS = "tests/test_pins.py"
 
 #: name, file, text, replacement (or lists of them, all applied), tests that must fail
 MUTATIONS = [
@@ -82,6 +83,25 @@ MUTATIONS = [
     ("fault-bit without a statusword check", "drivers/cia402.py", "        if state in FAULT_STATES:\n"
      "            if not self._fault_reported:", "        if False:\n            if not self._fault_reported:",
      [T_REACT]),
+    # issue 18 item 8: places a planted bug survived the suite, pinned in tests/test_pins.py
+    ("supervisor joint rate without abs (backwards never latches)", "otbot_hw/runtime/supervisor.py",
+     "if lim is not None and not abs(w[i]) <= lim:", "if lim is not None and not w[i] <= lim:", [T_PINS]),
+    ("workspace y checked against the x bounds", "otbot_hw/runtime/supervisor.py",
+     "if not (x0 <= x <= x1 and y0 <= y <= y1):", "if not (x0 <= x <= x1 and x0 <= y <= x1):", [T_PINS]),
+    ("MCAP sample log_time truncated, not rounded", "otbot_hw/recording.py",
+     "        self._last_t = t\n        stamp = int(round(t * 1e9))", "        self._last_t = t\n        stamp = int(t * 1e9)",
+     [T_PINS]),
+    ("MCAP event log_time in microseconds", "otbot_hw/recording.py",
+     "        stamp = int(round(t * 1e9))\n        data = json.dumps({", "        stamp = int(round(t * 1e6)) * 1000\n"
+     "        data = json.dumps({", [T_PINS]),
+    ("gyro-bias walk per step, not per second (IMU prediction)", "otbot_hw/estimation/kernels.py",
+     "Q[BG, BG] = bg_walk2 * dt", "Q[BG, BG] = bg_walk2 * 0.01", [T_PINS]),
+    ("gyro-bias walk per step, not per second (model prediction)", "otbot_hw/estimation/ekf.py",
+     "Q[BG, BG] = self._var[2] * dt", "Q[BG, BG] = self._var[2] * 0.01", [T_PINS]),
+    ("excitation gate at 5 % instead of 50 %", "otbot_hw/identification/gates.py",
+     "min_fit_percent: float = 50.0", "min_fit_percent: float = 5.0", [T_PINS]),
+    ("excitation gate always passes", "otbot_hw/identification/gates.py",
+     "ok = bool(best >= lim.min_fit_percent)", "ok = True", [T_PINS]),
 ]
 
 

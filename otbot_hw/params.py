@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -56,17 +57,83 @@ class ParameterError(ValueError):
     """A parameter file or value breaks a rule; the message names the key and the rule."""
 
 
+#: largest configuration / parameter YAML read (bytes): these files are a few kB; anything this big is the
+#: wrong file, and parsing hundreds of MB would take minutes and gigabytes (recordings are not capped)
+MAX_YAML_BYTES = 4 * 1024 * 1024
+
+#: YAML 1.2 floats YAML 1.1 reads as text: an exponent without a dot or without a sign (1e2, 1.0914e2)
+_FLOAT_12 = r"""^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9][0-9_]*)[eE][-+]?[0-9]+$"""
+
+_LOADER = None
+
+
+def _loader():
+    """The project's YAML loader: safe, YAML 1.2 exponent floats, duplicate keys an error naming both lines."""
+    global _LOADER
+    if _LOADER is not None:
+        return _LOADER
+    import re
+
+    import yaml
+
+    base = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+    class DuplicateKeyError(yaml.YAMLError):
+        pass
+
+    class Loader(base):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen: dict = {}
+                for key_node, _ in node.value:
+                    if key_node.tag == "tag:yaml.org,2002:merge":
+                        continue  # a merge's keys may be overridden, that is what it is for
+                    key = self.construct_object(key_node, deep=True)
+                    try:
+                        first = seen.setdefault(key, key_node.start_mark.line + 1)
+                    except TypeError:
+                        continue  # unhashable: the base constructor says so
+                    if first != key_node.start_mark.line + 1:
+                        raise DuplicateKeyError(f"key {key!r} is written twice (line {first} and line "
+                                                f"{key_node.start_mark.line + 1}); keys must be unique")
+            return super().construct_mapping(node, deep)
+
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(_FLOAT_12), list("-+0123456789."))
+    Loader.DuplicateKeyError = DuplicateKeyError
+    _LOADER = Loader
+    return Loader
+
+
+def parse_yaml(text: str) -> Any:
+    """Parse YAML text with the project's loader (``read_yaml``'s rules); yaml.YAMLError on bad text."""
+    import yaml
+
+    return yaml.load(text, Loader=_loader())
+
+
 def read_yaml(path: str | Path, what: str = "configuration file") -> Any:
-    """Parse a YAML file; unreadable or malformed files raise ``ParameterError`` naming ``what``."""
+    """Parse a YAML file (at most ``MAX_YAML_BYTES``) with YAML 1.2 floats (1e2 is a number) and unique keys;
+    unreadable, oversized or malformed files raise ``ParameterError`` naming ``what``."""
     import yaml
 
     p = Path(path)
     try:
-        return yaml.safe_load(p.read_text())
+        with open(p, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            if size > MAX_YAML_BYTES:
+                raise ParameterError(f"{p}: a {what} is at most {MAX_YAML_BYTES // (1024 * 1024)} MiB, this file "
+                                     f"is {size / (1024 * 1024):.0f} MiB (wrong file?)")
+            raw = f.read(MAX_YAML_BYTES + 1)
+        if len(raw) > MAX_YAML_BYTES:
+            raise ParameterError(f"{p}: a {what} is at most {MAX_YAML_BYTES // (1024 * 1024)} MiB; this input "
+                                 "is longer (wrong file?)")
+        return yaml.load(raw.decode("utf-8"), Loader=_loader())
     except OSError as exc:
         raise ParameterError(f"{p}: cannot read {what}: {exc.strerror}") from None
     except UnicodeDecodeError:
         raise ParameterError(f"{p}: not a text file; a {what} is YAML text") from None
+    except _loader().DuplicateKeyError as exc:
+        raise ParameterError(f"{p}: {what}: {exc}") from None
     except yaml.YAMLError as exc:
         raise ParameterError(f"{p}: {what} is not valid YAML: {exc}") from None
 

@@ -50,8 +50,10 @@ TOPIC_TRUTH = "/otbot/truth"
 TOPIC_ESTIMATE = "/otbot/estimate"
 TOPIC_REFERENCE = "/otbot/reference"
 TOPIC_EVENTS = "/otbot/events"
+TOPIC_PAYLOAD = "/otbot/payload"
 #: Topics carried once per sample (every other topic of ``TOPICS`` is sparse).
-SAMPLE_TOPICS = ("/otbot/command", "/otbot/joints", "/otbot/imu", "/otbot/truth", "/otbot/estimate", "/otbot/reference")
+SAMPLE_TOPICS = ("/otbot/command", "/otbot/joints", "/otbot/imu", "/otbot/truth", "/otbot/estimate", "/otbot/reference",
+                 "/otbot/payload")
 
 _VEC3 = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
 _VEC6 = {"type": "array", "items": {"type": "number"}, "minItems": 6, "maxItems": 6}
@@ -92,6 +94,16 @@ TOPICS: dict[str, tuple[str, dict]] = {
                        "p": {**_VEC3, "description": "desired x, y (m), alpha (rad), frame B"},
                        "pd": {**_VEC3, "description": "desired velocity, m/s, m/s, rad/s"},
                        "pdd": {**_VEC3, "description": "desired acceleration, m/s^2, m/s^2, rad/s^2"}}}),
+    TOPIC_PAYLOAD: ("otbot.Payload", {
+        "type": "object", "required": ["t", "value", "std", "used"],
+        "properties": {"t": {"type": "number"},
+                       "value": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4,
+                                 "description": "online estimate of platform + load m_p (kg), I_p (kg m^2), x_F, y_F (m, B'')"},
+                       "std": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4,
+                               "description": "its standard deviations, same units"},
+                       "used": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4,
+                                "description": "m_p, I_p, x_F, y_F the control law uses"},
+                       "state": {"type": "string", "description": "file, adapting, reestimating, fault"}}}),
     TOPIC_EVENTS: ("otbot.Event", {
         "type": "object", "required": ["t", "kind", "text"],
         "properties": {"t": {"type": "number", "description": "s since start (the sample it belongs to)"},
@@ -125,7 +137,8 @@ class Recording:
     rad, rad/s; imu_accel/imu_gyro (N, 3) m/s^2, rad/s in B''; truth_q/truth_qd
     (N, 6) and truth_force (N, 2) N for simulated runs; estimate_pose/estimate_twist (N, 3),
     estimate_std (N, 6), estimate_gyro_bias (N,) from a loop's estimator; reference_p/pd/pdd
-    (N, 3) the desired motion; events: the sparse ``/otbot/events`` messages (dicts with t, kind,
+    (N, 3) the desired motion; payload_value/payload_std/payload_used (N, 4) the online payload
+    estimate m_p, I_p, x_F, y_F, its std and what the law used (``/otbot/payload``); events: the sparse ``/otbot/events`` messages (dicts with t, kind,
     text); metadata: see ``docs/recording-format.md``.
     """
 
@@ -145,6 +158,9 @@ class Recording:
     reference_p: np.ndarray | None = None
     reference_pd: np.ndarray | None = None
     reference_pdd: np.ndarray | None = None
+    payload_value: np.ndarray | None = None
+    payload_std: np.ndarray | None = None
+    payload_used: np.ndarray | None = None
     events: list[dict[str, Any]] = field(default_factory=list)
     metadata: dict[str, Any] = field(default_factory=dict)
     truncated: bool = False
@@ -294,10 +310,18 @@ class RecordingWriter:
         self._writer.flush()
 
     def close(self) -> None:
-        """Write the MCAP summary and footer and close the file."""
+        """Write the MCAP summary and footer and close the file (closed also when writing them fails,
+        e.g. on a full disk: the error is raised, the file descriptor is not leaked)."""
         if not self._closed:
             self._closed = True
-            self._writer.finish()
+            try:
+                self._writer.finish()
+            except BaseException:
+                try:
+                    self._file.close()
+                except OSError:
+                    pass  # its buffer cannot be written either: the first error is the one raised
+                raise
             self._file.close()
 
     def __enter__(self) -> "RecordingWriter":
@@ -498,6 +522,10 @@ def read_recording(path: str | Path) -> Recording:
         rec.reference_p = field_array(TOPIC_REFERENCE, "p", 3)
         rec.reference_pd = field_array(TOPIC_REFERENCE, "pd", 3)
         rec.reference_pdd = field_array(TOPIC_REFERENCE, "pdd", 3, required=False)
+    if TOPIC_PAYLOAD in present:
+        rec.payload_value = field_array(TOPIC_PAYLOAD, "value", 4)
+        rec.payload_std = field_array(TOPIC_PAYLOAD, "std", 4)
+        rec.payload_used = field_array(TOPIC_PAYLOAD, "used", 4)
     for k, m in enumerate(data.get(TOPIC_EVENTS, [])):
         if (not isinstance(m, dict) or isinstance(m.get("t"), bool) or not isinstance(m.get("t"), (int, float))
                 or not isinstance(m.get("kind"), str) or not isinstance(m.get("text"), str)):

@@ -583,8 +583,8 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
                 reply = plant.report()
             elif words[0] in OPERATOR_COMMANDS:
                 reply = plant.operator(line)
-            elif len(words) == 3 and words[0] == "flood":
-                reply = send_flood(bus, flood_frames(config, int(words[1]), int(words[2])))
+            elif words[0] == "flood":
+                reply = flood_reply(bus, config, words)
             elif words[:1] == ["restart"] and len(words) <= 2:
                 plant.detach()
                 try:
@@ -604,6 +604,25 @@ def serve(config: RobotConfig, transport: str = "slcan", channel: str | None = N
         network.disconnect()
         if imu is not None and hasattr(imu, "close"):
             imu.close()
+
+
+#: most frames one ``flood`` line sends
+MAX_FLOOD = 100_000
+
+
+def flood_reply(bus, config: RobotConfig, words: list[str]):
+    """The reply to a stdin line ``flood N SEED`` (split into ``words``): the frames sent, or an ``error``
+    naming what is wrong (a bad line never ends the plant)."""
+    usage = f"flood N SEED: N random frames (0..{MAX_FLOOD}) from the integer seed SEED >= 0"
+    if len(words) != 3:
+        return {"error": f"{' '.join(words)[:80]!r}: {usage}"}
+    try:
+        n, seed = int(words[1]), int(words[2])
+    except ValueError:
+        return {"error": f"{' '.join(words)[:80]!r}: N and SEED must be integers ({usage})"}
+    if not 0 <= n <= MAX_FLOOD or seed < 0:
+        return {"error": f"{' '.join(words)[:80]!r}: {usage}"}
+    return send_flood(bus, flood_frames(config, n, seed))
 
 
 def device_cob_ids(config: RobotConfig) -> list[int]:

@@ -184,9 +184,33 @@ BAD_INPUT = [
     ("bench", "--out {missing}/p.yaml", "does not exist"),
     ("bench", "--report {ok}", "exists and is not a folder"),
     ("bench", "--config {binary_yaml}", "not a text file"),
+    # --- issue 22: hangs and silent wrong answers
+    ("track", "corridor --sim --rate 1e9", "trajectory corridor lasts 30 s: at 1e+09 Hz that is 30000000000 samples; "
+                                           "at most 10000000"),
+    ("track", "{long_csv} --sim", "samples; at most 10000000 (lower --rate or shorten the trajectory)"),
+    ("track", "{long_csv} --sim --rate 50", "its torque-feasibility check would bound"),
+    ("simulate", "--params {dup_yaml}", "key 'm_c' is written twice (line 14 and line 15); keys must be unique"),
+    ("simulate", "--params {huge_yaml}", "a parameter file is at most 4 MiB, this file is 300 MiB"),
+    ("track", "corridor --sim --config {dup_robot}", "key 'channel' is written twice (line 11 and line 12)"),
+    ("identify", "chassis --recording {ok} {ok}", "--recording {ok}: is named twice; each recording counts once"),
+    ("identify", "chassis --recording {ok} {ok_copy}", "--recording {ok_copy}: has the same content as {ok}"),
+    ("run", "--bus sim --duration 1 --inject bus-off@1e9", "--inject bus-off@1e9: 1e+09 s is outside the run (1 s"),
+    ("estimate", "{ok} --out /dev/full", "cannot write /dev/full: No space left on device"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
-    (None, "", "the following arguments are required: COMMAND"),
+    (None, "", "the following arguments are required: COMMAND"),    # --- import (ROS 2 bag -> recording), export (recording -> ROS 2 bag)
+    ("import", "{missing}/bag --out {tmp}/imported.mcap", "bag: no such file or folder"),
+    ("import", "{folder} --out {tmp}/imported.mcap", "folder without metadata.yaml: not a rosbag2 bag"),
+    ("import", "{ok} --out {tmp}/imported.mcap", "is a project recording (JSON messages), not a ROS 2 bag"),
+    ("import", "{text} --out {tmp}/imported.mcap", "not an MCAP file"),
+    ("import", "{empty} --out {tmp}/imported.mcap", "not an MCAP file"),
+    ("import", "{ok} --out {missing}/imported.mcap", "does not exist (otbot creates no parent folders)"),
+    ("import", "{ok} --out {tmp}/imported.mcap --rate 0", "argument --rate: must be a finite number of Hz > 0"),
+    ("import", "{ok} --out {tmp}/imported.mcap --map {binary_yaml}", "not a text file"),
+    ("export", "{missing}/run.mcap --ros2 {tmp}/bag", "run.mcap: no such file"),
+    ("export", "{ok} --ros2 {ok}", "exists and is not a folder (a rosbag2 bag is a folder)"),
+    ("export", "{ok} --ros2 {missing}/bag", "does not exist (otbot creates no parent folders)"),
+    ("export", "{cut_before_samples} --ros2 {tmp}/bag", "truncated"),
 ]
 
 
@@ -203,13 +227,26 @@ def files(tmp_path_factory) -> dict[str, str]:
     (d / "binary.csv").write_bytes(data[:4000])
     (d / "binary.yaml").write_bytes(data[:4000])
     (d / "folder").mkdir()
+    (d / "ok_copy.mcap").write_bytes(data)
+    (d / "long.csv").write_text("t,x,y,alpha\n0,0,0,0\n100000,0,0,0\n")
+    params = (ROOT / "config" / "otbot.yaml").read_text().splitlines(keepends=True)
+    i = next(k for k, line in enumerate(params) if line.strip().startswith("m_c:"))
+    (d / "dup.yaml").write_text("".join(params[:i + 1] + [params[i].replace("109.14", "5")] + params[i + 1:]))
+    robot = (ROOT / "config" / "robot.yaml").read_text().splitlines(keepends=True)
+    i = next(k for k, line in enumerate(robot) if line.strip().startswith("channel:"))
+    (d / "dup_robot.yaml").write_text("".join(robot[:i + 1] + [robot[i]] + robot[i + 1:]))
+    with open(d / "huge.yaml", "wb") as f:  # sparse: 300 MB long, no disk used
+        f.write(b"geometry:\n")
+        f.truncate(300 * 1024 * 1024)
     unreadable = d / "unreadable.mcap"
     unreadable.write_bytes(data)
     unreadable.chmod(0)
     return {"tmp": str(d), "ok": str(ok), "missing": str(d / "missing"), "folder": str(d / "folder"),
             "empty": str(d / "empty.mcap"), "text": str(d / "text.mcap"), "binary_csv": str(d / "binary.csv"),
             "binary_yaml": str(d / "binary.yaml"), "unreadable": str(unreadable),
-            "cut_before_samples": str(d / "cut_before_samples.mcap")}
+            "cut_before_samples": str(d / "cut_before_samples.mcap"), "ok_copy": str(d / "ok_copy.mcap"),
+            "long_csv": str(d / "long.csv"), "dup_yaml": str(d / "dup.yaml"), "dup_robot": str(d / "dup_robot.yaml"),
+            "huge_yaml": str(d / "huge.yaml")}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:
@@ -226,6 +263,8 @@ def _skip_reason(command: str | None, argv: str) -> str | None:
         return f"otbot {command} is not on this branch"
     if "{unreadable}" in argv and os.geteuid() == 0:
         return "root reads files without read permission"
+    if "/dev/full" in argv and not os.path.exists("/dev/full"):
+        return "no /dev/full on this machine"
     return None
 
 
@@ -257,7 +296,8 @@ def _leaf_parsers():
 def test_unknown_option_names_the_subcommand_usage(name, otbot_cli):
     needs = {"identify": ["chassis", "--sim"], "imu parse": ["capture.bin"], "plan": ["--out", "p.csv"],
              "track": ["corridor", "--sim"], "ctl track": ["corridor-smooth"], "ctl velocity": ["0", "0", "0"],
-             "ctl excite": ["/tmp/x.csv"], "ctl record": ["start"], "estimate": ["x.mcap"]}
+             "ctl excite": ["/tmp/x.csv"], "ctl record": ["start"], "estimate": ["x.mcap"],
+             "import": ["bag", "--out", "x.mcap"], "export": ["x.mcap", "--ros2", "bag"]}
     rc, out, err = otbot_cli([*name.split(), *needs.get(name, []), "--no-such-option"])
     assert_one_line_error(rc, out, err, "unrecognized arguments: --no-such-option")
     assert f"; usage: otbot {name} [-h]" in err and "usage: otbot [-h] COMMAND" not in err

@@ -100,7 +100,7 @@ def test_demo_labels_numbers_announces_files_and_explains_saturation_once(tmp_pa
     assert not [line for line in err.splitlines() if "feasibility:" in line]
     walls = re.search(r"footprint to the walls >= (\d+) mm", out)
     assert walls and int(walls.group(1)) > 0
-    for stage in ("1/5", "2/5", "3/5", "4/5", "5/5"):
+    for stage in ("1/6", "2/6", "3/6", "4/6", "5/6", "6/6"):
         assert f"[demo] {stage}" in err
     # the bench stage identified the loaded robot the corridor then runs on, and says how well
     bench = next(line for line in out.splitlines() if "bench estimates" in line)

@@ -72,13 +72,14 @@ def wait_for(predicate, timeout: float, step: float = 0.01):
 class SimDaemon:
     """The in-process daemon (``--bus sim``) and what the tests look at behind it."""
 
-    def __init__(self, folder: Path):
+    def __init__(self, folder: Path, replace: dict | None = None):
         from otbot_hw.cli import build_parser
         from otbot_hw.cli.daemon import prepare
 
         self.folder = folder
         self.sock = folder / "control.sock"
-        cfg = local_config(folder / "cfg", replace=RELAXED)
+        cfg = local_config(folder / "cfg", replace=RELAXED if replace is None else replace)
+        (folder / "rec").mkdir()  # the daemon never creates it
         args = build_parser().parse_args(["daemon", "--bus", "sim", "--config", str(cfg), "--socket", str(self.sock),
                                           "--record-dir", str(folder / "rec"), "--telemetry", "127.0.0.1:0"])
         self.daemon, opener = prepare(args)
@@ -299,7 +300,9 @@ def test_a_fuzzed_socket_leaves_the_daemon_running_and_the_robot_held(sim):
     assert sim.daemon.server.counters["errors"] >= len(bad)
 
 
-def test_overruns_latch_a_fault_and_quick_stop_the_drives(sim, monkeypatch):
+def test_overruns_at_rest_are_counted_warnings_and_while_moving_a_fault_that_quick_stops(sim, monkeypatch):
+    """The overrun rule (docs/daemon.md): held at rest, a streak of overruns is a warning with a count
+    (the drives stay enabled, ``stop`` is not refused); in velocity mode the same streak latches."""
     sim.to_hold_at_rest()
     d = sim.daemon
     sup = d.runner.supervisor
@@ -307,12 +310,21 @@ def test_overruns_latch_a_fault_and_quick_stop_the_drives(sim, monkeypatch):
     slow = {"n": 0}
     after = d._after_cycle
 
-    def slow_cycle():  # the loop's own work takes 2.5 periods, cycle after cycle
+    def slow_cycle():  # the loop's own work takes 2.5 periods, 20 cycles in a row
         after()
         if slow["n"] < 20:
             slow["n"] += 1
             time.sleep(0.025)
+    warnings0 = sim.ctl("status")["overrun_warnings"]
     monkeypatch.setattr(d, "_after_cycle", slow_cycle)
+    assert wait_for(lambda: slow["n"] >= 20, 5)
+    st = sim.ctl("status")
+    assert d.runner.fault is None and st["faults"] == [] and st["mode"] == "hold", st
+    assert st["overrun_warnings"] >= warnings0 + 15                          # counted, not latched
+    assert sim.drive_states() == [ENABLED] * 3
+    assert sim.ctl("stop")["mode"] == "hold"                                 # not refused
+    sim.ctl("velocity", vx=0.05, vy=0.0, wz=0.0)                             # moving: the same streak
+    slow["n"] = 0
     assert wait_for(lambda: d.runner.fault is not None, 5)
     assert d.runner.fault.kind == "overrun"
     assert wait_for(lambda: sim.drive_states() == ["QUICK STOP ACTIVE"] * 3, 1)

@@ -40,3 +40,14 @@ def test_a_cluster_without_the_cluster_extra_is_one_line_exit_2(monkeypatch, cap
     rc = main(["sweep", "--scheduler", "tcp://127.0.0.1:1", "--points", "2", "--seeds", "1"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "otbot-hw[cluster]" in err[0], err
+
+
+def test_a_reader_that_closes_the_pipe_early_gets_no_traceback():
+    import subprocess
+
+    proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "simulate", "--torques", "1,1,1", "--duration", "0.1",
+                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()  # the reader is gone long before the command has imported anything
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 1
+    assert "Traceback" not in err and err.strip().endswith("output closed by the reader"), err

@@ -28,6 +28,7 @@ def messages(k: int, rate: float) -> dict:
 
 def test_rotation_by_time_gives_files_that_load_and_join(tmp_path):
     rate = 100.0
+    (tmp_path / "rec").mkdir()  # a session never creates its folder (the daemon's rule: docs/daemon.md)
     with SessionRecording(tmp_path / "rec", {"source": "test"}, TOPICS, rate=rate, rotate_time=2.0,
                           session_id="s1") as rec:
         rec.write_event(0.0, "mode", "idle")
@@ -100,8 +101,11 @@ def test_bad_settings_and_no_overwrite(tmp_path):
     with pytest.raises(RecordingError, match="already exists"):
         SessionRecording(tmp_path, {}, rate=100, session_id="dup")
     (tmp_path / "file").write_text("")
-    with pytest.raises(RecordingError, match="cannot create the recording folder"):
+    with pytest.raises(RecordingError, match="recording folder does not exist"):
         SessionRecording(tmp_path / "file" / "sub", {}, rate=100)
+    with pytest.raises(RecordingError, match="recording folder does not exist"):
+        SessionRecording(tmp_path / "missing", {}, rate=100)
+    assert not (tmp_path / "missing").exists()
 
 
 WRITER = """

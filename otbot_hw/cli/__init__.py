@@ -1,7 +1,7 @@
 """The ``otbot`` command line: one entry point, one module per subcommand.
 
-Each module in ``SUBCOMMANDS`` defines ``register(subparsers)``, which adds its
-parser and sets ``func(args) -> dict``. The returned dict is printed as one JSON
+Each module in ``SUBCOMMANDS`` (named as the command, or as ``MODULES`` says) defines
+``register(subparsers)``, which adds its parser and sets ``func(args) -> dict``. The returned dict is printed as one JSON
 object with ``--json``; otherwise the command prints its own human summary.
 Exit codes: 0 success, 2 bad input (arguments, config, recordings), 1 failure,
 130 interrupted.
@@ -24,7 +24,9 @@ from otbot_hw.cli.checks import CliError, parse_vector, positive_float  # noqa: 
 
 #: Subcommand modules under otbot_hw.cli, in --help order.
 SUBCOMMANDS = ("demo", "simulate", "identify", "sweep", "diagnose", "estimate", "imu", "track", "plan", "run", "plant",
-               "bench", "daemon", "ctl")
+               "bench", "daemon", "ctl", "import", "export")
+#: Subcommands whose module has another name (``import`` is a Python keyword).
+MODULES = {"import": "import_bag"}
 
 
 class UsageError(CliError):
@@ -62,7 +64,10 @@ class CliParser(argparse.ArgumentParser):
         return ns, extras
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``otbot`` parser; ``only``: register that subcommand alone (``main`` does so when the
+    command line names one, so a call imports only its own command's module: ``otbot ctl`` starts
+    fast)."""
     parser = CliParser(
         prog="otbot",
         description="Otbot control stack: model, simulation, identification, control and drivers. "
@@ -71,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in SUBCOMMANDS:
-        importlib.import_module(f"otbot_hw.cli.{name}").register(sub)
+        if only is None or name == only:
+            importlib.import_module(f"otbot_hw.cli.{MODULES.get(name, name)}").register(sub)
     return parser
 
 
@@ -94,19 +100,28 @@ def one_line(text: str) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``otbot argv``; returns the exit code (commands may also raise ``SystemExit(1)``)."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(argv[0] if argv and argv[0] in SUBCOMMANDS else None)
     try:
         args = parser.parse_args(argv)
     except UsageError as exc:
         print(one_line(exc.line()), file=sys.stderr)
         return 2
     prog = getattr(args, "_prog", f"otbot {args.command}")
-    errors = input_errors()
     try:
         result = args.func(args)
         if getattr(args, "json", False) and result is not None:
             print(json.dumps(result, allow_nan=False))
-    except errors as exc:
+        sys.stdout.flush()
+    except BrokenPipeError:  # the reader left (``otbot ... --json | head -c 100``): no traceback
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's own flush must not fail
+        print(f"{prog}: output closed by the reader", file=sys.stderr)
+        return 1
+    except Exception as exc:  # the input errors, imported only when something failed
+        if not isinstance(exc, CliError) and not isinstance(exc, input_errors()):
+            raise
         print(f"{prog}: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -159,6 +159,7 @@ def run(args: argparse.Namespace) -> dict:
                 raise CliError(f"--sim-load {sim_load_text}: the session's platform load is {stored}")
             sim_load_text = sim_load_text or stored
             invocation = len(session.data["invocations"]) + 1
+            _notice_truncated(session, settings.steps)
         else:
             settings = base
             invocation = 1
@@ -182,6 +183,24 @@ def run(args: argparse.Namespace) -> dict:
             raise CliError(f"--session {folder}: the folder holds {what}; continue a session with --resume {folder}, "
                            "or name a new folder")
     return _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_text, with_imu, say, quiet)
+
+
+def _notice_truncated(session, steps) -> None:
+    """A notice (as ``otbot identify`` gives) for every passed step whose recording was cut short since: the
+    session's fit uses what is left of it."""
+    from otbot_hw.cli.identify import truncation_notice
+    from otbot_hw.recording import read_recording
+
+    for step in steps:
+        if session.status(step) != "passed":
+            continue
+        for path in session.accepted_recordings(step):
+            rec = read_recording(path)
+            if rec.truncated:
+                if len(rec) < 2:
+                    raise CliError(f"step {step}: {truncation_notice(path, rec)}: nothing to fit; start a new "
+                                   "session or remove the step's attempt")
+                progress(f"[bench] notice: step {step}: {truncation_notice(path, rec)}; fitting those", True)
 
 
 def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_text, with_imu, say, quiet) -> dict:

@@ -22,7 +22,13 @@ import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
 
-from otbot_hw.params import finite_number
+
+
+def finite_number(*args, **kwargs):
+    """``otbot_hw.params.finite_number``, imported when first used (``otbot ctl`` starts without numpy)."""
+    from otbot_hw.params import finite_number as parse
+
+    return parse(*args, **kwargs)
 
 
 class CliError(Exception):
@@ -178,6 +184,13 @@ def output_folder(path: Path | str | None, option: str) -> Path | None:
     return path
 
 
+def write_failure(exc: OSError, target) -> CliError:
+    """The one-line error for an ``OSError`` while writing ``target`` (the file the error names, if any):
+    e.g. "cannot write est.mcap: No space left on device"."""
+    name = exc.filename if exc.filename is not None else target
+    return CliError(f"cannot write {name}: {exc.strerror or exc}")
+
+
 @contextlib.contextmanager
 def writing(what: str) -> Iterator[None]:
     """Turn an ``OSError`` while writing outputs into ``CliError`` naming ``what`` and the file."""
@@ -186,3 +199,27 @@ def writing(what: str) -> Iterator[None]:
     except OSError as exc:
         where = f": {exc.filename}" if exc.filename else ""
         raise CliError(f"{what}: cannot write{where}: {exc.strerror or exc}") from None
+
+
+# --- input files ------------------------------------------------------------------------------------
+
+def distinct_files(paths, option: str) -> None:
+    """CliError when two of ``paths`` hold the same bytes (a file named twice, a copy, a link): each
+    input must count once. Unreadable files are skipped (their reader says what is wrong)."""
+    import hashlib
+
+    seen: dict[tuple[int, str], Path] = {}
+    for p in paths:
+        p = Path(p)
+        try:
+            with open(p, "rb") as f:
+                size = os.fstat(f.fileno()).st_size
+                digest = hashlib.file_digest(f, "sha256").hexdigest()
+        except OSError:
+            continue
+        first = seen.setdefault((size, digest), p)
+        if first is not p:
+            same = "is named twice" if os.path.abspath(first) == os.path.abspath(p) else \
+                f"has the same content as {first}"
+            raise CliError(f"{option} {p}: {same}; each recording counts once (a duplicate would shrink the "
+                           "reported std as if it were new data)")

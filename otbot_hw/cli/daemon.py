@@ -3,13 +3,17 @@
 It owns the bus: boots the drives, runs the one loop in real time, takes commands on the control
 socket (``otbot ctl``), records every session, serves live telemetry and talks to systemd. It
 runs until SIGTERM, SIGINT or ``otbot ctl shutdown``: quick stop, disable, recording closed,
-exit 0. Exit 2 for bad input (arguments, configuration, a socket held by another daemon, a
-recording folder it cannot write); 1 when the drives cannot be booted.
+exit 0. Exit 2 for bad input, one line and nothing started: arguments, configuration, a socket
+folder that is missing or not writable, a socket path beyond AF_UNIX's 107 bytes, a socket held
+by another daemon, a recording folder that is missing or not writable (the daemon creates
+neither folder: systemd's RuntimeDirectory=/StateDirectory= do), a telemetry port that is taken
+or a host that is not this machine's; 1 when the drives cannot be booted.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 import os
 import signal
@@ -47,6 +51,10 @@ def register(sub) -> None:
     tel.add_argument("--telemetry", default=None, metavar="HOST:PORT",
                      help="Foxglove WebSocket address (default daemon.telemetry: 127.0.0.1:8765; port 0: any free)")
     tel.add_argument("--no-telemetry", action="store_true", help="no live telemetry server")
+    p.add_argument("--allow-user", action="append", default=[], metavar="NAME",
+                   help="also allow this user (name or numeric uid) to send every command, on top of "
+                        "daemon.socket.allowed_users/allowed_groups of --config (repeatable; no copy of the "
+                        "configuration needed). --bus sim allows the invoking user anyway (no robot can move)")
     p.add_argument("--start-pose", default="0,0,0", metavar="X,Y,ALPHA",
                    help="where the robot stands at start, m, m, rad (default 0,0,0: frame B is the start pose)")
     add_bus_options(p, "default bus.control_rate of --config", lockstep_help=(
@@ -60,14 +68,36 @@ def register(sub) -> None:
 
 
 def _writable_folder(path: Path, what: str) -> Path:
+    """``path``, an existing folder this user can write; the daemon never creates it (README: otbot
+    never creates the folders above an output; under systemd, StateDirectory= does)."""
     path = Path(path)
-    try:
-        path.mkdir(mode=0o750, parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CliError(f"{what} {path}: cannot create the folder: {exc.strerror}") from None
-    if not path.is_dir() or not os.access(path, os.W_OK | os.X_OK):
-        raise CliError(f"{what} {path}: not a folder this user can write")
+    if not path.exists():
+        raise CliError(f"{what} {path}: the folder does not exist (the daemon does not create it: create it, "
+                       f"or let systemd's StateDirectory= do it, or choose another with {what})")
+    if not path.is_dir():
+        raise CliError(f"{what} {path}: not a folder")
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise CliError(f"{what} {path}: not a folder this user (uid {os.geteuid()}) can write")
     return path
+
+
+def _allowed_users(args: argparse.Namespace, configured: tuple) -> tuple:
+    """daemon.socket.allowed_users plus every --allow-user (checked against the user database) and,
+    with --bus sim, the invoking user."""
+    import pwd
+
+    extra: list = []
+    for name in args.allow_user:
+        try:
+            uid = int(name) if name.isdigit() else pwd.getpwnam(name).pw_uid
+        except (KeyError, ValueError):
+            raise CliError(f"--allow-user {name!r}: no such user on this machine") from None
+        if uid > 2 ** 32 - 2:
+            raise CliError(f"--allow-user {name!r}: not a user id")
+        extra.append(uid)
+    if args.bus == "sim":
+        extra.append(os.getuid())
+    return tuple(dict.fromkeys([*configured, *extra]))
 
 
 def prepare(args: argparse.Namespace):
@@ -77,8 +107,9 @@ def prepare(args: argparse.Namespace):
     from otbot_hw.motors import load_motor_limits
     from otbot_hw.runtime.daemon import Daemon, DaemonSettings
     from otbot_hw.runtime.daemon_config import load_daemon_config
+    from otbot_hw.runtime.control_socket import ControlSocketError, check_socket_path
     from otbot_hw.runtime.supervisor import SafetyConfig
-    from otbot_hw.runtime.telemetry import parse_host_port
+    from otbot_hw.runtime.telemetry import TelemetryError, check_telemetry_address, parse_host_port
 
     if args.bus == "sim" and (any(v is not None for v in (args.interface, args.channel, args.imu_port))
                               or args.lockstep):
@@ -89,6 +120,8 @@ def prepare(args: argparse.Namespace):
                        "that is there")
     start = parse_vector(args.start_pose, 3, "--start-pose")
     dcfg = load_daemon_config(args.config)
+    dcfg = dataclasses.replace(dcfg, socket=dataclasses.replace(
+        dcfg.socket, allowed_users=_allowed_users(args, dcfg.socket.allowed_users)))
     telemetry = None
     if not args.no_telemetry:
         if args.telemetry is not None:
@@ -98,6 +131,12 @@ def prepare(args: argparse.Namespace):
                 raise CliError(f"--telemetry: {exc}") from None
         elif dcfg.telemetry.enabled:
             telemetry = (dcfg.telemetry.host, dcfg.telemetry.port)
+    try:
+        check_socket_path(args.socket if args.socket is not None else dcfg.socket.socket_path())
+        if telemetry is not None:
+            check_telemetry_address(*telemetry)
+    except (ControlSocketError, TelemetryError) as exc:
+        raise CliError(str(exc)) from None
     record_dir = _writable_folder(args.record_dir if args.record_dir is not None else dcfg.recording.dir,
                                   "--record-dir")
     model = ExtendedModel.load(args.params)
@@ -142,7 +181,8 @@ def _opener(args: argparse.Namespace, start):
 
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.robot import RobotError
-    from otbot_hw.runtime.control_socket import SocketInUse
+    from otbot_hw.runtime.control_socket import ControlSocketError
+    from otbot_hw.runtime.telemetry import TelemetryError
 
     if not logging.getLogger().handlers:  # the journal's lines: ours at INFO, libraries' warnings
         logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="otbot daemon: %(levelname)s %(message)s")
@@ -153,7 +193,7 @@ def run(args: argparse.Namespace) -> dict:
             signal.signal(sig, lambda signum, frame: daemon.request_stop(signal.Signals(signum).name))
     try:
         summary = daemon.serve(open_robot)
-    except SocketInUse as exc:
+    except (ControlSocketError, TelemetryError) as exc:  # SocketInUse: a second daemon on the socket
         raise CliError(str(exc)) from None
     except RobotError as exc:
         print(f"otbot daemon: cannot start the robot: {exc}", file=sys.stderr)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag
+from otbot_hw.cli.checks import write_failure
 
 
 def register(sub) -> None:
@@ -84,10 +85,13 @@ def run(args: argparse.Namespace) -> dict:
     }
     if rec.truth_q is not None:
         result["estimation_error"] = error_summary(rec, est)
-    try:
-        if args.out:
+    if args.out:
+        try:
             write_recording(args.out, with_estimate(rec, est, config))
-            result["out"] = str(args.out)
+        except OSError as exc:
+            raise write_failure(exc, args.out) from None
+        result["out"] = str(args.out)
+    try:
         if args.plot:
             from otbot_hw.estimation.dead_reckoning import wheel_odometry
             from otbot_hw.estimation.plots import plot_errors, plot_innovations, plot_path
@@ -100,7 +104,7 @@ def run(args: argparse.Namespace) -> dict:
                 files.append(plot_errors(args.plot / "errors.png", rec, est))
             result["plots"] = [str(f) for f in files]
     except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+        raise write_failure(exc, args.plot) from None
     if not args.json:
         print_summary(result)
     return result

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
-from otbot_hw.cli.checks import number, output_file, output_folder, seed, writing
+from otbot_hw.cli.checks import distinct_files, number, output_file, output_folder, seed, writing
 
 STEP_HELP = ("wheel: I_a, b_w (robot on a stand, right wheel driven); pivot: I_p0, b_p (wheels locked, "
              "platform driven); chassis: m_c, I_c, x_B, y_B (unloaded robot on the floor); platform: "
@@ -125,6 +125,7 @@ def run(args: argparse.Namespace) -> dict:
         progress(f"[identify] simulating the {args.step} experiment (seed {args.seed})", not quiet)
         recs = [simulate_experiment(args.step, truth, seed=args.seed)]
     else:
+        distinct_files(args.recording, "--recording")
         recs = [read_recording(p) for p in args.recording]
         check_fixtures(args.step, recs, [str(p) for p in args.recording])
         for path, rec in zip(args.recording, recs):

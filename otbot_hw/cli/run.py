@@ -16,7 +16,7 @@ import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import duration, output_file, output_folder, sample_count
+from otbot_hw.cli.checks import duration, output_file, output_folder, sample_count, write_failure
 
 
 def register(sub) -> None:
@@ -91,6 +91,9 @@ def run(args: argparse.Namespace) -> dict:
             inject = Injection.parse(args.inject)
         except ValueError as exc:
             raise CliError(str(exc)) from None
+        if inject.at >= n * cfg.bus.period:
+            raise CliError(f"--inject {args.inject}: {inject.at:g} s is outside the run ({n * cfg.bus.period:g} s "
+                           "of plant time from the enable): nothing would be injected; give a time within --duration")
         if inject.kind.startswith("imu") and (cfg.imu is None or args.no_imu):
             raise CliError(f"--inject {inject.kind}: the run has no IMU")
         if inject.kind == "plant-kill" and args.plant_params is not None:
@@ -140,7 +143,7 @@ def run(args: argparse.Namespace) -> dict:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
     except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+        raise write_failure(exc, args.out or "output") from None
     except Exception as exc:
         if type(exc).__name__ == "ImuFault":
             _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)
@@ -243,7 +246,7 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     from otbot_hw.sensors import NoiseModel
 
     cfg = load_robot_config()
-    progress("[demo] 3/5 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
+    progress("[demo] 3/6 the same experiment through the CANopen drivers (simulated robot on virtual CAN)", not quiet)
     path = out_dir / "chassis_bus.mcap"
     params = nominal()
     with BusSimBackend(cfg, NoiseModel.paper(), seed).open(params) as robot:

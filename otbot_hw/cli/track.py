@@ -11,7 +11,7 @@ from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, checks, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import output_file, output_folder
+from otbot_hw.cli.checks import output_file, output_folder, write_failure
 
 _TIMES = "Settle times: seconds until the position and velocity errors stay below 2 % of the event's peak"
 
@@ -63,6 +63,10 @@ def register(sub) -> None:
     p.add_argument("--slip-burst", action="append", default=None, metavar="T0:DURATION:K_SLIP",
                    help="a burst of wheel slip in the simulated robot: the extended model's k_slip (rad/(s N m)) for "
                         "DURATION s from T0 s of robot time (repeatable; --sim and --bus sim)")
+    p.add_argument("--adapt", choices=("payload",), default=None,
+                   help="payload: estimate the platform + load (m_p, I_p, x_F, y_F) online and let the law use it once "
+                        "confident (settings and bounds: daemon.adaptation in --config); --json adds payload_estimate "
+                        "and adaptation")
     p.add_argument("--out", type=Path, default=None, metavar="RUN.mcap", help="record the run (project MCAP format)")
     p.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write PNG plots into DIR")
     p.add_argument("--animate", type=Path, default=None, metavar="OUT.gif", help="write a GIF animation")
@@ -112,6 +116,20 @@ def parse_bursts(items) -> list[tuple[float, float, float]]:
     return out
 
 
+def check_sizes(name: str, duration: float, rate_hz: float) -> None:
+    """CliError before any work when a trajectory of ``duration`` s is too long to check or run at ``rate_hz``."""
+    from otbot_hw.control.feasibility import MAX_POINTS, feasibility_points
+
+    n = int(math.ceil(duration * rate_hz - 1e-9))
+    if not math.isfinite(duration) or n > checks.MAX_SAMPLES:
+        raise CliError(f"trajectory {name} lasts {duration:g} s: at {rate_hz:g} Hz that is {n} samples; at most "
+                       f"{checks.MAX_SAMPLES} (lower --rate or shorten the trajectory)")
+    pts = feasibility_points(duration)
+    if pts > MAX_POINTS:
+        raise CliError(f"trajectory {name} lasts {duration:g} s: its torque-feasibility check would bound {pts} "
+                       f"points (every 0.01 s); at most {MAX_POINTS} ({(MAX_POINTS - 1) * 0.01:g} s)")
+
+
 def make_backend(kind: str, args, quiet: bool):
     """The back end of ``kind`` configured from the command line."""
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend, DirectBackend
@@ -159,6 +177,11 @@ def run(args: argparse.Namespace) -> dict:
     output_folder(args.plot, "--plot")
     output_file(args.out, "--out")
     tstab = parse_tstab(args.tstab)
+    adapt = None
+    if args.adapt == "payload":
+        from otbot_hw.estimation.payload import AdaptationConfig
+
+        adapt = AdaptationConfig.load(args.config).with_(enabled=True)
     model = ExtendedModel.load(args.params)
     params = model.params
     effects = model.eff if model.active_effects() else None
@@ -174,6 +197,9 @@ def run(args: argparse.Namespace) -> dict:
     say = (lambda m: progress(f"[track] {m}", not args.json))
     try:
         spec = build_spec(args.scenario, params, limits, say)
+        # the in-process robot's rate is known without its configuration; a bus's comes with its configuration
+        backend = None if kind == "sim" else make_backend(kind, args, args.json)
+        check_sizes(spec.name, spec.reference.duration, args.rate or 1000.0 if backend is None else backend.rate)
         if args.strict:
             rep = check_feasibility(spec.reference, params, gains_from_tstab(tstab), limits, eb)
             if not rep.feasible:
@@ -182,7 +208,7 @@ def run(args: argparse.Namespace) -> dict:
                                f"the {v['limit_Nm']:g} N m limit from t = {v['t_start']:.2f} s to {v['t_end']:.2f} s "
                                f"({len(rep.violations)} violation(s))")
         safety = SafetyConfig.load(args.config)
-        backend = make_backend(kind, args, args.json)
+        backend = backend or make_backend(kind, args, args.json)
         fixes = None
         if args.fixes is not None:
             from sim.mocap import MotionCapture
@@ -210,7 +236,7 @@ def run(args: argparse.Namespace) -> dict:
         result = run_scenario(args.scenario, params, limits, t_stab=tstab, robustness=not args.no_robustness,
                               plot_dir=args.plot, animate=args.animate, progress=say, error_bounds=eb, spec=spec,
                               plant=plant, effects=effects, backend=backend, feedback=args.feedback, safety=safety,
-                              path=args.out, metadata=meta, config_path=args.config, fixes=fixes)
+                              path=args.out, metadata=meta, config_path=args.config, fixes=fixes, adapt=adapt)
         if effects is not None:
             result["compensated_effects"] = model.active_effects()
     except TrajectoryError as exc:
@@ -219,7 +245,7 @@ def run(args: argparse.Namespace) -> dict:
         _fail({"completed": False, "error": str(exc), "faults": [f.to_dict() for f in exc.faults]},
               f"error: {exc}", args.json)
     except OSError as exc:
-        raise CliError(f"cannot write output: {exc.strerror}: {exc.filename}") from None
+        raise write_failure(exc, args.out or args.plot or args.animate or "output") from None
     if not result["completed"]:
         where = f"; recording up to the fault: {args.out}" if args.out else ""
         if not args.json and "max_abs_error" in result:
@@ -233,7 +259,9 @@ def run(args: argparse.Namespace) -> dict:
 
 def _fail(result: dict, message: str, as_json: bool):
     if as_json:
-        print(json.dumps(result, allow_nan=False, default=str))
+        from otbot_hw.json_output import json_safe
+
+        print(json.dumps(json_safe(result), allow_nan=False, default=str))
     print(f"otbot track: {message}", file=sys.stderr)
     raise SystemExit(1)
 
@@ -261,6 +289,11 @@ def _print_human(r: dict) -> None:
         print(f"  event t = {ev['t']:g} s {ev['kind']}: settle " + ("not within window" if s is None else f"{s:.3f} s"))
     if r.get("saturation"):
         print(f"  saturation episodes: {len(r['saturation'])}")
+    if r.get("payload_estimate"):
+        pe, ad = r["payload_estimate"], r["adaptation"]
+        print("  payload estimate (platform + load): " + ", ".join(
+            f"{k} {v['value']:.3g} ± {v['std']:.2g}" for k, v in pe.items())
+              + f" (kg, kg m^2, m); converged {_s(ad['converged_s'])}, law switched {_s(ad['switched_s'])}, {ad['state']}")
     if "feasibility" in r:
         print(f"  feasibility: {'ok' if r['feasibility']['feasible'] else 'limits can be exceeded'}")
     if "open_loop" in r:
@@ -283,3 +316,7 @@ def _print_human(r: dict) -> None:
         print(f"  FAULT: {r['fault']['kind']} at t = {r['fault']['t']:.3f} s: {r['fault']['text']}")
     for p in r.get("plots", []):
         print(f"  plot: {p}")
+
+
+def _s(v) -> str:
+    return "never" if v is None else f"at {v:.2f} s"

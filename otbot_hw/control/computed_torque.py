@@ -70,6 +70,24 @@ class ComputedTorqueController:
         self._kp = np.ascontiguousarray(self.gains.kp)
         self._kv = np.ascontiguousarray(self.gains.kv)
         self._out = np.empty((3, 3))
+        self.compensation = np.zeros(3)  # N m: command - the paper model's torque, of the last evaluation
+        self.adapter = None  # an online payload adapter (otbot_hw.runtime.controllers.PayloadAdapter) or None
+
+    @property
+    def prm(self) -> np.ndarray:
+        """The parameter array the law evaluates (``OtbotParams.as_array()`` order); ``set_platform`` changes it
+        in place, so a predictor sharing it follows."""
+        return self._prm
+
+    def set_platform(self, m_p: float, I_p: float, x_F: float, y_F: float, sync: bool = True) -> None:
+        """Parameter-swap hook (online payload adaptation): the platform + load's mass (kg), inertia about its
+        centre (kg m^2) and centre (m, frame B'') the law uses from its next evaluation on. ``sync`` False
+        changes only the evaluated array (cheap, every cycle of a blend); ``params`` follows at the next
+        synced call."""
+        prm = self._prm
+        prm[7], prm[8], prm[9], prm[10] = float(m_p), float(I_p), float(x_F), float(y_F)  # PARAM_INDEX order
+        if sync:
+            self.params = self.params.replace(m_p=float(m_p), I_p=float(I_p), x_F=float(x_F), y_F=float(y_F))
 
     def update_fast(self, p: np.ndarray, p_dot: np.ndarray, phi_p: float,
                     p_d: np.ndarray, pd_d: np.ndarray, pdd_d: np.ndarray) -> np.ndarray:
@@ -81,7 +99,8 @@ class ComputedTorqueController:
         if self._eff is not None:
             cmd = compensated_command(reference_state(p_d, pd_d, phi_p, self._prm), self._out[0], self._eff,
                                       self._prm, FLOOR)
-            self._out[1] += cmd - self._out[0]
+            self.compensation = cmd - self._out[0]  # what the effects take (payload adaptation subtracts it)
+            self._out[1] += self.compensation
             self._out[0] = cmd
         return self._out
 

@@ -26,6 +26,7 @@ limits. Steps:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -174,16 +175,42 @@ def torque_enclosure(X: np.ndarray, PDD: np.ndarray, params: OtbotParams, gains:
     return lo, hi
 
 
+#: most points a check bounds (about a minute of compute and memory kept to a chunk): 10^4 s at 0.01 s
+MAX_POINTS = 1_000_000
+#: points bounded at once (the interval arithmetic holds a few kB per point)
+CHUNK = 20_000
+
+
+def feasibility_points(duration: float, dt: float = 0.01) -> int:
+    """Points ``check_feasibility`` bounds for a reference of ``duration`` s sampled every ``dt`` s."""
+    return int(np.ceil(duration / dt)) + 1
+
+
 def check_feasibility(reference: DesiredTrajectory, params: OtbotParams, gains: Gains, limits: MotorLimits,
                       error_bounds: ErrorBounds | None = None, dt: float = 0.01,
-                      heading0: float = 0.0) -> FeasibilityReport:
-    """Bound the law's torques along ``reference`` every ``dt`` s and compare with ``limits``."""
+                      heading0: float = 0.0, progress: Callable[[str], None] | None = None) -> FeasibilityReport:
+    """Bound the law's torques along ``reference`` every ``dt`` s and compare with ``limits``.
+
+    ValueError before any work when that is more than ``MAX_POINTS`` points; ``progress(text)`` gets a
+    line per quarter of a check longer than ``4 CHUNK`` points."""
     eb = error_bounds or ErrorBounds.default()
-    n = int(np.ceil(reference.duration / dt))
+    n = feasibility_points(reference.duration, dt) - 1
+    if n + 1 > MAX_POINTS:
+        raise ValueError(f"a reference of {reference.duration:g} s needs {n + 1} feasibility points every {dt:g} s; "
+                         f"at most {MAX_POINTS} ({(MAX_POINTS - 1) * dt:g} s)")
     t = np.arange(n + 1) * dt
     X = reference_states(reference, params, t, heading0)
     _, _, PDD = reference.sample(t)
-    lo, hi = torque_enclosure(X, PDD, params, gains, eb)
+    lo = np.empty((n + 1, 3))
+    hi = np.empty((n + 1, 3))
+    chunks = range(0, n + 1, CHUNK)
+    report_at = {chunks[min(len(chunks) - 1, (q * len(chunks)) // 4)] for q in (1, 2, 3)} if n + 1 > 4 * CHUNK \
+        else set()
+    for a in chunks:
+        if progress and a in report_at:
+            progress(f"feasibility check: {100 * a / (n + 1):.0f} % of {n + 1} points")
+        b = min(a + CHUNK, n + 1)
+        lo[a:b], hi[a:b] = torque_enclosure(X[a:b], PDD[a:b], params, gains, eb)
     # velocity steps of the reference (e.g. polyline corners, a start at full speed): the velocity
     # error jumps by the step. A step is a change of p_dot between samples that the trapezoid of
     # p_dd does not explain, beyond 1 cm/s (rad/s) plus what an acceleration jump could cause.

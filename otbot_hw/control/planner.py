@@ -20,7 +20,10 @@ loop does not. The initial guess is a collision-free weave around the obstacles,
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -219,6 +222,27 @@ def _first_contact(P: np.ndarray, prob: PlanningProblem) -> str:
     return min(hits)[1] if hits else "collides"
 
 
+@contextlib.contextmanager
+def _interrupt_flag():
+    """A list that gets an entry when SIGINT arrives inside the block (Python's handler still raises
+    KeyboardInterrupt, which CasADi catches and reports as a failed solve)."""
+    flag: list[int] = []
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield flag
+        return
+
+    def handler(signum, frame):
+        flag.append(signum)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,
          max_iter: int = 500) -> PlanResult:
     """Solve the collocation problem with IPOPT; raises PlannerError when it does not converge."""
@@ -271,8 +295,11 @@ def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,
         progress(f"IPOPT: {N} intervals, {7 * (N + 1) + 3 * (N + 1) + (prob.duration is None)} variables")
     start = time.perf_counter()
     try:
-        sol = opti.solve()
+        with _interrupt_flag() as interrupted:
+            sol = opti.solve()
     except RuntimeError as exc:
+        if interrupted:  # CasADi turns Ctrl-C inside IPOPT into a solver failure: it is an interrupt
+            raise KeyboardInterrupt from None
         stats = opti.stats()
         raise PlannerError(f"IPOPT did not converge ({stats.get('return_status', exc)}) after "
                            f"{stats.get('iter_count', '?')} iterations") from None

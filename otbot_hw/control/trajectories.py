@@ -398,7 +398,9 @@ def _check_samples(t, P, PD, source):
 
 def csv_table(path, text: str, required: Sequence[str], error: type[Exception] = TrajectoryError):
     """(header, data rows) of a CSV text with a header row; lines starting with ``#`` are comments.
-    ``error`` (naming ``path``) when it is empty or lacks a ``required`` column."""
+    ``error`` (naming ``path``) when it is empty or lacks a ``required`` column. A leading byte-order
+    mark (what spreadsheets write by default) is dropped."""
+    text = text.removeprefix("\ufeff")
     rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
     if not rows:
         raise error(f"{path}: empty file (expected a header with columns {', '.join(required)})")
@@ -433,6 +435,7 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
         raise TrajectoryError(f"{path}: cannot read: {exc.strerror}") from None
     except UnicodeDecodeError:
         raise TrajectoryError(f"{path}: not a text file; a trajectory is a CSV text file") from None
+    text = text.removeprefix("\ufeff")  # Excel's "CSV UTF-8" starts with a byte-order mark
     obstacles = []
     for n, line in enumerate(text.splitlines(), start=1):
         if line.startswith("# obstacle:"):

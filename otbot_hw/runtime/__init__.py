@@ -14,12 +14,25 @@
 With ``otbot_hw.cli`` the only library code that imports ``sim`` and ``drivers`` (it wires back
 ends together).
 """
-from otbot_hw.runtime.controllers import (ControlStep, Controller, Feedback, OpenLoopTorques, Reference,
-                                          TrackingController)
-from otbot_hw.runtime.feedback import EkfFeedback, FeedbackUnavailable, StateEstimate, TruthFeedback
-from otbot_hw.runtime.loop import LoopResult, LoopRunner, LoopStats
-from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor, Violation
+import importlib
 
-__all__ = ["ControlStep", "Controller", "Feedback", "OpenLoopTorques", "Reference", "TrackingController",
-           "EkfFeedback", "FeedbackUnavailable", "StateEstimate", "TruthFeedback", "LoopResult", "LoopRunner",
-           "LoopStats", "SafetyConfig", "Supervisor", "Violation"]
+#: name -> submodule; imported on first use (PEP 562) so that a light module of this package (the
+#: control protocol and client, for ``otbot ctl``) does not pull in the whole runtime
+_EXPORTS = {
+    **dict.fromkeys(["ControlStep", "Controller", "Feedback", "OpenLoopTorques", "Reference", "TrackingController"],
+                    "controllers"),
+    **dict.fromkeys(["EkfFeedback", "FeedbackUnavailable", "StateEstimate", "TruthFeedback"], "feedback"),
+    **dict.fromkeys(["LoopResult", "LoopRunner", "LoopStats"], "loop"),
+    **dict.fromkeys(["SafetyConfig", "Supervisor", "Violation"], "supervisor"),
+}
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f"otbot_hw.runtime.{_EXPORTS[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'otbot_hw.runtime' has no attribute {name!r}")
+
+
+__all__ = list(_EXPORTS)

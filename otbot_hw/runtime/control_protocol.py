@@ -61,6 +61,13 @@ ERROR_CODES = {
 }
 BAD_INPUT_CODES = frozenset({"not_json", "bad_request", "unknown_command", "too_large"})
 MAX_ID_LENGTH = 256
+#: Bounds the decoder applies before any number or path is used: digits of an integer literal
+#: (an id is below 2**53, 16 digits), characters of a float literal (a double needs 25), bytes of
+#: a path and of each of its names (Linux PATH_MAX, NAME_MAX).
+MAX_INT_DIGITS = 20
+MAX_FLOAT_CHARS = 40
+PATH_MAX = 4096
+NAME_MAX = 255
 
 #: Keys every ``status`` result carries: mode (str), faults (list, empty when none), drive_states
 #: (joint name -> CiA 402 state name as the drive reports it).
@@ -99,6 +106,31 @@ class Request:
     args: dict[str, Any] = field(default_factory=dict)
 
 
+def _bounded_int(text: str) -> int:
+    """json's integer hook: at most ``MAX_INT_DIGITS`` digits (Python's own limit is 4300, and
+    converting even that many costs time a request must not buy)."""
+    if len(text.lstrip("-")) > MAX_INT_DIGITS:
+        raise ProtocolError("bad_request", f"a number has {len(text.lstrip('-'))} digits "
+                                           f"(at most {MAX_INT_DIGITS})")
+    return int(text)
+
+
+def _bounded_float(text: str) -> float:
+    """json's float hook: at most ``MAX_FLOAT_CHARS`` characters. One beyond a double's range
+    becomes inf, which every numeric argument refuses (``_number``: "must be finite")."""
+    if len(text) > MAX_FLOAT_CHARS:
+        raise ProtocolError("bad_request", f"a number is written with {len(text)} characters "
+                                           f"(at most {MAX_FLOAT_CHARS})")
+    return float(text)
+
+
+def _loads(line: bytes) -> Any:
+    try:
+        return json.loads(line.decode("utf-8"), parse_int=_bounded_int, parse_float=_bounded_float)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ProtocolError("not_json", f"request is not UTF-8 JSON: {str(exc)[:80]}") from None
+
+
 def _request_id(obj: dict) -> str | int:
     if "id" not in obj:
         raise ProtocolError("bad_request", "request has no 'id'")
@@ -114,25 +146,56 @@ def _request_id(obj: dict) -> str | int:
 
 def _number(cmd: str, name: str, v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ProtocolError("bad_request", f"{cmd}: '{name}' must be a number, got {json.dumps(v)[:40]}")
+        raise ProtocolError("bad_request", f"{cmd}: '{name}' must be a number, got {_show(v)}")
+    if isinstance(v, int) and abs(v) >= 10 ** MAX_INT_DIGITS:
+        raise ProtocolError("bad_request", f"{cmd}: '{name}' has more than {MAX_INT_DIGITS} digits")
+    v = float(v)
     if not math.isfinite(v):
         raise ProtocolError("bad_request", f"{cmd}: '{name}' must be finite, got {v}")
-    return float(v)
+    return v
+
+
+def _show(v: Any, n: int = 40) -> str:
+    """A short JSON rendering of a client's value for an error message (never raises)."""
+    try:
+        text = json.dumps(v, allow_nan=True)
+    except (TypeError, ValueError, RecursionError):
+        text = type(v).__name__
+    return text if len(text) <= n else text[:n] + "..."
+
+
+def check_path_length(cmd: str, name: str, v: str) -> None:
+    """A path the kernel would refuse (ENAMETOOLONG) is refused here, before any system call:
+    at most ``PATH_MAX`` bytes, each name at most ``NAME_MAX``."""
+    try:
+        raw = os.fsencode(v)
+    except (UnicodeError, ValueError):
+        raise ProtocolError("bad_request", f"{cmd}: '{name}' is not a valid path") from None
+    if len(raw) >= PATH_MAX:
+        raise ProtocolError("bad_request", f"{cmd}: '{name}' is {len(raw)} bytes long (at most {PATH_MAX - 1})")
+    longest = max((len(part) for part in raw.split(b"/")), default=0)
+    if longest > NAME_MAX:
+        raise ProtocolError("bad_request", f"{cmd}: '{name}' has a name of {longest} bytes (at most {NAME_MAX})")
 
 
 def _file(cmd: str, name: str, v: Any, suffixes: tuple[str, ...], limits: ArgumentLimits) -> str:
     if not isinstance(v, str) or not v or "\0" in v:
         raise ProtocolError("bad_request", f"{cmd}: '{name}' must be a non-empty path string")
+    check_path_length(cmd, name, v)
     p = Path(v)
     if not p.is_absolute():
         raise ProtocolError("bad_request", f"{cmd}: '{name}' must be an absolute path (the daemon has its "
-                                           f"own working directory), got {v!r}")
+                                           f"own working directory), got {_show(v)}")
     if p.suffix.lower() not in suffixes:
-        raise ProtocolError("bad_request", f"{cmd}: {v!r} must end in {' or '.join(suffixes)}")
+        raise ProtocolError("bad_request", f"{cmd}: {_show(v)} must end in {' or '.join(suffixes)}")
     if limits.check_files:
-        if not p.is_file():
+        try:
+            is_file, readable = p.is_file(), os.access(p, os.R_OK)
+        except (OSError, ValueError) as exc:
+            raise ProtocolError("bad_request", f"{cmd}: {v}: {getattr(exc, 'strerror', None) or exc}") from None
+        if not is_file:
             raise ProtocolError("bad_request", f"{cmd}: {v} is not an existing file")
-        if not os.access(p, os.R_OK):
+        if not readable:
             raise ProtocolError("bad_request", f"{cmd}: {v} is not readable by the daemon")
     return str(p)
 
@@ -141,7 +204,7 @@ def validate_args(cmd: str, args: Any, limits: ArgumentLimits = ArgumentLimits()
     """Checked, normalized arguments of ``cmd`` (ProtocolError ``bad_request`` naming what is wrong).
     ``track`` gains ``kind``: "scenario" or "file"."""
     if cmd not in COMMANDS:
-        raise ProtocolError("unknown_command", f"unknown command {cmd!r} (known: {', '.join(COMMANDS)})")
+        raise ProtocolError("unknown_command", f"unknown command {_show(cmd)} (known: {', '.join(COMMANDS)})")
     if args is None:
         args = {}
     if not isinstance(args, dict):
@@ -149,7 +212,8 @@ def validate_args(cmd: str, args: Any, limits: ArgumentLimits = ArgumentLimits()
     names = COMMANDS[cmd][0]
     unknown = sorted(set(args) - set(names))
     if unknown:
-        raise ProtocolError("bad_request", f"{cmd}: unknown argument(s) {unknown}"
+        shown = [_show(u, 40) for u in unknown[:5]]
+        raise ProtocolError("bad_request", f"{cmd}: unknown argument(s) {', '.join(shown)}"
                                            + (f" (takes {', '.join(names)})" if names else " (takes none)"))
     missing = [n for n in names if n not in args]
     if missing:
@@ -168,7 +232,7 @@ def validate_args(cmd: str, args: Any, limits: ArgumentLimits = ArgumentLimits()
         if isinstance(target, str) and target in limits.scenarios:
             return {"target": target, "kind": "scenario"}
         if isinstance(target, str) and not target.startswith("/") and limits.scenarios:
-            raise ProtocolError("bad_request", f"track: {target!r} is neither a scenario "
+            raise ProtocolError("bad_request", f"track: {_show(target)} is neither a scenario "
                                                f"({', '.join(limits.scenarios)}) nor an absolute CSV path")
         return {"target": _file(cmd, "target", target, TRACK_SUFFIXES, limits), "kind": "file"}
     if cmd == "excite":
@@ -176,29 +240,45 @@ def validate_args(cmd: str, args: Any, limits: ArgumentLimits = ArgumentLimits()
     if cmd == "record":
         if args["action"] not in RECORD_ACTIONS:
             raise ProtocolError("bad_request", f"record: 'action' must be one of {', '.join(RECORD_ACTIONS)}, "
-                                               f"got {json.dumps(args['action'])[:40]}")
+                                               f"got {_show(args['action'])}")
         return {"action": args["action"]}
     return {}
 
 
-def parse_request(line: bytes, limits: ArgumentLimits = ArgumentLimits()) -> Request:
-    """Decode and validate one request line (without its newline). ProtocolError carries the
-    request id when it could be read, so the error reply can name it."""
-    try:
-        obj = json.loads(line.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise ProtocolError("not_json", f"request is not UTF-8 JSON: {str(exc)[:80]}") from None
+def decode_request(line: bytes) -> tuple[str | int, str | None, Any]:
+    """Step 1 of parsing one request line (without its newline): the JSON with bounded numbers,
+    the id and the command name — nothing else is looked at, so the server can check authorization
+    before any argument is. Returns (id, cmd, raw args); ``cmd`` is None when the line names no
+    command as a string (``check_command`` then refuses it). ProtocolError carries the id when read."""
+    obj = _loads(line)
     if not isinstance(obj, dict):
         raise ProtocolError("bad_request", f"request must be a JSON object, got {type(obj).__name__}")
     rid = _request_id(obj)
+    cmd = obj.get("cmd")
+    unknown = sorted(set(obj) - {"id", "cmd", "args"})
+    if unknown:
+        raise ProtocolError("bad_request", f"unknown request field(s) {', '.join(_show(u) for u in unknown[:5])} "
+                                           f"(known: id, cmd, args)", rid)
+    return rid, cmd if isinstance(cmd, str) else None, obj.get("args")
+
+
+def check_command(rid: str | int, cmd: str | None) -> str:
+    """The command name of a decoded request, or ProtocolError (``bad_request``/``unknown_command``)."""
+    if cmd is None:
+        raise ProtocolError("bad_request", "request needs 'cmd' as a string", rid)
+    if cmd not in COMMANDS:
+        raise ProtocolError("unknown_command", f"unknown command {_show(cmd)} (known: {', '.join(COMMANDS)})", rid)
+    return cmd
+
+
+def parse_request(line: bytes, limits: ArgumentLimits = ArgumentLimits()) -> Request:
+    """Decode and validate one request line (without its newline): ``decode_request``,
+    ``check_command``, ``validate_args``. ProtocolError carries the request id when it could be
+    read, so the error reply can name it."""
+    rid, cmd, args = decode_request(line)
+    cmd = check_command(rid, cmd)
     try:
-        unknown = sorted(set(obj) - {"id", "cmd", "args"})
-        if unknown:
-            raise ProtocolError("bad_request", f"unknown request field(s) {unknown} (known: id, cmd, args)")
-        cmd = obj.get("cmd")
-        if not isinstance(cmd, str):
-            raise ProtocolError("bad_request", "request needs 'cmd' as a string")
-        return Request(id=rid, cmd=cmd, args=validate_args(cmd, obj.get("args"), limits))
+        return Request(id=rid, cmd=cmd, args=validate_args(cmd, args, limits))
     except ProtocolError as exc:
         exc.request_id = rid
         raise

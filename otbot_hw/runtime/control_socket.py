@@ -30,6 +30,7 @@ import math
 import os
 import pwd
 import queue
+import select
 import selectors
 import socket
 import stat
@@ -41,9 +42,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
+from otbot_hw.runtime.control_client import ControlClient, ControlError, DaemonUnreachable
 from otbot_hw.runtime.control_protocol import (
-    COMMANDS, OPEN_COMMANDS, ArgumentLimits, CommandRefused, ProtocolError, Request, check_status,
-    encode_reply, encode_request, parse_request)
+    COMMANDS, OPEN_COMMANDS, ArgumentLimits, CommandRefused, ProtocolError, Request, check_command, check_status,
+    decode_request, encode_reply, validate_args)
 from otbot_hw.runtime.daemon_config import ControlSocketConfig
 
 log = logging.getLogger(__name__)
@@ -54,20 +56,13 @@ MAX_IN_FLIGHT = 8              # requests of one connection waiting for the hand
 MAX_OUTPUT = 1 << 20           # bytes of unread replies before a client is dropped
 
 
-class SocketInUse(RuntimeError):
+class ControlSocketError(RuntimeError):
+    """The control socket cannot be set up (its folder is missing or not writable, the path is too
+    long for AF_UNIX, ...); the message names the path and what to do. Bad input: exit 2."""
+
+
+class SocketInUse(ControlSocketError):
     """Another live daemon answers on the socket path, or the path is not a socket."""
-
-
-class DaemonUnreachable(ConnectionError):
-    """No daemon answers at the socket path (client side)."""
-
-
-class ControlError(RuntimeError):
-    """The daemon answered with an error reply: ``code`` (``ERROR_CODES``) and message."""
-
-    def __init__(self, code: str, message: str):
-        super().__init__(message)
-        self.code = code
 
 
 @dataclass(frozen=True)
@@ -85,10 +80,10 @@ class Peer:
 
 def peer_credentials(conn: socket.socket) -> Peer:
     pid, uid, gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))
-    try:
-        raw = conn.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, 4 * 1024)
+    try:  # Python caps getsockopt's buffer at 1024 bytes (a larger one raises OSError at once)
+        raw = conn.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, 1024)
         groups = struct.unpack(f"{len(raw) // 4}I", raw)
-    except OSError:  # older kernel or more than 1024 groups: the user database's list
+    except OSError:  # older kernel or more than 256 groups: the user database's list
         try:
             groups = tuple(os.getgrouplist(pwd.getpwuid(uid).pw_name, gid))
         except KeyError:
@@ -211,29 +206,71 @@ def probe_socket(path: Path, timeout: float = 0.5) -> bool:
         s.close()
 
 
+#: bytes of an AF_UNIX socket path, its terminating NUL included (``sun_path`` on Linux)
+SUN_PATH_MAX = 108
+
+
+def check_socket_path(path: Path) -> None:
+    """ControlSocketError unless a socket can be created at ``path``: its folder exists (the daemon
+    never creates it: systemd's ``RuntimeDirectory=`` does), is a folder this process may write, and
+    the path fits AF_UNIX's 107 bytes."""
+    path = Path(path)
+    n = len(os.fsencode(str(path)))
+    if n >= SUN_PATH_MAX:
+        raise ControlSocketError(f"control socket path {path} is {n} bytes; a Unix socket path has at most "
+                                 f"{SUN_PATH_MAX - 1} (choose a shorter --socket or daemon.socket.path)")
+    folder = path.parent
+    if not folder.exists():
+        raise ControlSocketError(f"control socket folder {folder} does not exist (the daemon does not create it: "
+                                 f"create it, or let systemd's RuntimeDirectory= do it, or choose --socket)")
+    if not folder.is_dir():
+        raise ControlSocketError(f"control socket folder {folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ControlSocketError(f"control socket folder {folder} is not writable by this user "
+                                 f"(uid {os.geteuid()}): choose --socket or fix its owner/mode")
+
+
+def _tmp_name(path: Path) -> Path:
+    """A name beside ``path`` no longer than it (so it fits AF_UNIX whenever ``path`` does), unique
+    to this process and call."""
+    tag = f"{os.getpid():x}{next(_TMP_COUNTER):x}{os.urandom(4).hex()}"
+    width = max(len(path.name), 8)
+    return path.with_name(("." + tag)[:width])
+
+
+_TMP_COUNTER = itertools.count()
+
+
 def bind_control_socket(path: Path, backlog: int = 64) -> tuple[socket.socket, os.stat_result]:
     """A listening socket at ``path``, mode 0660, created safely: refuse if a live daemon answers
     there or the path is not a socket; remove a stale socket. The socket is bound under a
     temporary name, given its mode, and linked into place (``link`` fails if the name has been
-    taken meanwhile), so clients never see a socket with the wrong mode or half set up."""
+    taken meanwhile), so clients never see a socket with the wrong mode or half set up. The folder
+    must exist (``check_socket_path``); every failure is a ``ControlSocketError`` naming the path."""
     path = Path(path)
-    if not path.parent.is_dir():
-        path.parent.mkdir(mode=0o750, parents=True, exist_ok=True)
+    check_socket_path(path)
     try:
         st = path.lstat()
     except FileNotFoundError:
         st = None
+    except OSError as exc:
+        raise ControlSocketError(f"control socket {path}: {exc.strerror}") from None
     if st is not None:
+        if stat.S_ISDIR(st.st_mode):
+            raise SocketInUse(f"{path} is a folder, not a socket: refusing to replace it")
         if not stat.S_ISSOCK(st.st_mode):
             raise SocketInUse(f"{path} exists and is not a socket: refusing to replace it")
         if probe_socket(path):
             raise SocketInUse(f"another daemon is running on {path}")
         log.warning("removing stale control socket %s", path)
-        path.unlink(missing_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
-    tmp.unlink(missing_ok=True)
+        try:
+            path.unlink(missing_ok=True)
+        except OSError as exc:
+            raise ControlSocketError(f"cannot remove the stale control socket {path}: {exc.strerror}") from None
+    tmp = _tmp_name(path)
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
+        tmp.unlink(missing_ok=True)
         sock.bind(str(tmp))
         os.chmod(tmp, SOCKET_MODE)
         sock.listen(backlog)
@@ -243,6 +280,9 @@ def bind_control_socket(path: Path, backlog: int = 64) -> tuple[socket.socket, o
             raise SocketInUse(f"another daemon created {path} while this one was starting") from None
         finally:
             tmp.unlink(missing_ok=True)
+    except OSError as exc:
+        sock.close()
+        raise ControlSocketError(f"cannot create the control socket {path}: {exc.strerror or exc}") from None
     except BaseException:
         sock.close()
         raise
@@ -251,15 +291,19 @@ def bind_control_socket(path: Path, backlog: int = 64) -> tuple[socket.socket, o
 
 
 class _Connection:
-    __slots__ = ("sock", "peer", "allowed", "inbuf", "outbuf", "started", "in_flight", "closing")
+    __slots__ = ("sock", "peer", "allowed", "inbuf", "outbuf", "started", "in_flight", "closing", "eof",
+                 "opened", "active")
 
-    def __init__(self, sock: socket.socket, peer: Peer, allowed: bool):
+    def __init__(self, sock: socket.socket, peer: Peer, allowed: bool, now: float):
         self.sock, self.peer, self.allowed = sock, peer, allowed
         self.inbuf = bytearray()
         self.outbuf = bytearray()
         self.started: float | None = None  # monotonic time the pending partial line began
         self.in_flight = 0
         self.closing = False               # close once outbuf is written
+        self.eof = False                   # the peer closed its write side: reply, then close
+        self.opened = now                  # monotonic time of accept (eviction: oldest first)
+        self.active = now                  # last byte received or reply sent (idle timeout)
 
 
 class ControlServer:
@@ -287,8 +331,16 @@ class ControlServer:
         self._threads: list[threading.Thread] = []
         self._listener: socket.socket | None = None
         self._inode: tuple[int, int] | None = None
+        reserved = min(config.reserved_clients, config.max_clients - 1)
+        #: connections a status-only peer may take; the rest are kept for allowed peers
+        self.status_only_limit = max(1, config.max_clients - max(reserved, 0))
+        #: called once (from the failing thread) with a sentence if a server thread dies of a bug
+        #: while serving: the daemon then quick-stops, latches a fault and stops its watchdog ping
+        self.on_failure: Callable[[str], None] | None = None
+        self.failure: str | None = None
         #: what the server has seen; ``polls`` counts wake-ups of the I/O thread (about 2/s when idle)
-        self.counters = {"connections": 0, "requests": 0, "errors": 0, "refused_clients": 0, "polls": 0}
+        self.counters = {"connections": 0, "requests": 0, "errors": 0, "refused_clients": 0, "polls": 0,
+                         "evicted": 0, "idle_closed": 0, "internal_errors": 0}
 
     # -- life cycle --------------------------------------------------------------------------
     def start(self) -> "ControlServer":
@@ -333,6 +385,24 @@ class ControlServer:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    @property
+    def alive(self) -> bool:
+        """Serving: started, not closing, and both threads running."""
+        return (bool(self._threads) and not self._stop.is_set()
+                and all(t.is_alive() for t in self._threads))
+
+    def _failed(self, what: str) -> None:
+        """A server thread is dying of a bug while serving: say so once, to the log and ``on_failure``."""
+        if self._stop.is_set() or self.failure is not None:
+            return
+        self.failure = f"control socket {what} thread failed"
+        log.critical("%s", self.failure)
+        if self.on_failure is not None:
+            try:
+                self.on_failure(self.failure)
+            except Exception:  # noqa: BLE001 - the callback must not hide the failure
+                log.exception("control socket failure callback failed")
+
     def _wake(self) -> None:
         try:
             self._wake_w.send(b"\0")
@@ -354,17 +424,12 @@ class ControlServer:
                         except BlockingIOError:
                             pass
                     else:
-                        conn = self._conns.get(key.data)
-                        if conn is None:
-                            continue
-                        if events & selectors.EVENT_READ:
-                            self._read(key.data, conn)
-                        if events & selectors.EVENT_WRITE and key.data in self._conns:
-                            self._flush(key.data, conn)
+                        self._serve(key.data, events)
                 self._deliver_replies()
                 self._expire(time.monotonic())
-        except Exception:  # pragma: no cover - a bug here must not take the daemon down silently
+        except BaseException:  # a bug here must not take the daemon down silently
             log.exception("control socket I/O thread failed")
+            self._failed("I/O")
         finally:
             for cid in list(self._conns):
                 self._drop(cid)
@@ -373,6 +438,28 @@ class ControlServer:
                 self._listener.close()
             self._remove_socket_file()
             self._wake_r.close()
+
+    def _serve(self, cid: int, events: int) -> None:
+        """One connection's events, inside its error boundary: whatever a request does, a bug it
+        triggers costs that connection an ``internal`` error reply and its close, never the server."""
+        conn = self._conns.get(cid)
+        if conn is None:
+            return
+        try:
+            if events & selectors.EVENT_READ:
+                self._read(cid, conn)
+            if events & selectors.EVENT_WRITE and cid in self._conns:
+                self._flush(cid, conn)
+        except Exception as exc:  # noqa: BLE001 - the per-connection error boundary
+            self.counters["internal_errors"] += 1
+            log.exception("control socket: request from %s failed", conn.peer)
+            if cid in self._conns:
+                try:
+                    conn.inbuf.clear()
+                    self._error(cid, conn, None, "internal", f"the server failed on this connection's "
+                                                             f"request ({type(exc).__name__}); closing it", close=True)
+                except Exception:  # noqa: BLE001
+                    self._drop(cid)
 
     def _accept(self) -> None:
         while True:
@@ -383,33 +470,77 @@ class ControlServer:
             except OSError as exc:  # EMFILE and friends: keep serving the others
                 log.warning("accept failed: %s", exc)
                 return
-            sock.setblocking(False)
             try:
+                sock.setblocking(False)
                 peer = peer_credentials(sock)
-            except OSError:
+                allowed = self.authorizer.allows(peer)
+            except Exception as exc:  # noqa: BLE001 - credentials unreadable or the user database failing
+                log.warning("dropping a connection whose credentials cannot be checked: %s", exc)
                 sock.close()
                 continue
+            now = time.monotonic()
             cid = next(self._ids)
-            conn = _Connection(sock, peer, self.authorizer.allows(peer))
+            conn = _Connection(sock, peer, allowed, now)
             self._conns[cid] = conn
             self._sel.register(sock, selectors.EVENT_READ, cid)
             self.counters["connections"] += 1
-            if len(self._conns) > self.config.max_clients:
-                self.counters["refused_clients"] += 1
-                self._send(cid, conn, encode_reply(None, error=(
-                    "busy", f"too many clients (limit {self.config.max_clients})")), close=True)
+            self._admit(cid, conn)
+
+    def _admit(self, cid: int, conn: _Connection) -> None:
+        """Keep the connection if there is room for its kind of peer. A status-only peer may hold
+        ``status_only_limit`` connections in all; an allowed peer that finds every slot taken evicts
+        the oldest status-only connection, so an emergency stop always finds a way in."""
+        live = [c for c in self._conns.values() if not c.closing]
+        if len(live) > self.config.max_clients or (not conn.allowed and len(live) > self.status_only_limit):
+            self._reap(cid)  # clients that have gone already (a burst accepted at once) hold no slot
+            live = [c for c in self._conns.values() if not c.closing]
+        busy = None
+        if len(live) > self.config.max_clients:
+            victims = sorted(((c.opened, k) for k, c in self._conns.items()
+                              if not c.allowed and not c.closing and k != cid))
+            if conn.allowed and victims:
+                k = victims[0][1]
+                victim = self._conns[k]
+                self.counters["evicted"] += 1
+                log.warning("evicting the oldest status-only connection (%s) for %s", victim.peer, conn.peer)
+                self._error(k, victim, None, "busy", f"closed to make room for an allowed user "
+                                                     f"(limit {self.config.max_clients} clients)", close=True)
+            else:
+                busy = f"too many clients (limit {self.config.max_clients})"
+        elif not conn.allowed and sum(1 for c in live if not c.allowed) > self.status_only_limit:
+            busy = (f"too many status-only clients (limit {self.status_only_limit}; "
+                    f"{self.config.max_clients - self.status_only_limit} kept for allowed users)")
+        if busy is not None:
+            self.counters["refused_clients"] += 1
+            self._send(cid, conn, encode_reply(None, error=("busy", busy)), close=True)
+
+    def _reap(self, keep: int) -> None:
+        """Read every other connection once now (not waiting for its turn in the selector), so those
+        whose peer has already closed are dropped before a newcomer is refused for want of room."""
+        for k, c in list(self._conns.items()):
+            if k != keep and k in self._conns and not (c.closing or c.eof):
+                self._serve(k, selectors.EVENT_READ)
+        poll = select.poll()
+        gone = {c.sock.fileno(): k for k, c in self._conns.items() if k != keep and c.eof}
+        for fd in gone:
+            poll.register(fd, select.POLLHUP)
+        for fd, ev in poll.poll(0):  # POLLHUP: closed for good, not just half-closed (SHUT_WR)
+            if ev & (select.POLLHUP | select.POLLERR):
+                self._drop(gone[fd])  # its pending replies would go nowhere
 
     def _read(self, cid: int, conn: _Connection) -> None:
-        if conn.closing:
+        if conn.closing or conn.eof:
             return
         try:
             data = conn.sock.recv(65536)
         except (BlockingIOError, InterruptedError):
             return
-        except OSError:
-            data = b""
-        if not data:  # peer closed (maybe mid-request): forget its partial line, nothing dispatched
+        except OSError:  # reset by the peer: nobody to answer
             self._drop(cid)
+            return
+        conn.active = time.monotonic()
+        if not data:
+            self._end_of_input(cid, conn)
             return
         conn.inbuf += data
         limit = self.config.max_request
@@ -432,18 +563,40 @@ class ControlServer:
         elif completed or conn.started is None:  # a new partial line starts its clock
             conn.started = time.monotonic()
 
+    def _end_of_input(self, cid: int, conn: _Connection) -> None:
+        """The peer closed its write side (``shutdown(SHUT_WR)``, as ``socat`` does after its
+        request, or a full close): a last line without its newline is still a request; the replies
+        of everything it sent go out, then the connection closes."""
+        conn.eof = True
+        line = bytes(conn.inbuf).rstrip(b"\r")
+        conn.inbuf.clear()
+        conn.started = None
+        if line.strip() and not conn.closing:
+            self._request(cid, conn, line)
+        if cid in self._conns:
+            self._flush(cid, conn)
+
     def _request(self, cid: int, conn: _Connection, line: bytes) -> None:
+        """Decode (bounded numbers), read the command name, check authorization, then validate the
+        arguments: a peer that may not send a command never has its arguments looked at."""
         self.counters["requests"] += 1
         try:
-            req = parse_request(line, self.limits)
+            rid, name, args = decode_request(line)
+            cmd = check_command(rid, name)
+            if cmd not in OPEN_COMMANDS and not conn.allowed:
+                log.warning("refused %s from %s: not an allowed user or group", cmd, conn.peer)
+                self._error(cid, conn, rid, "forbidden",
+                            f"{cmd}: {conn.peer} may not command the robot (allow it with daemon.socket.allowed_users "
+                            f"or allowed_groups in the daemon's configuration, or `otbot daemon --allow-user NAME`); "
+                            f"only {', '.join(sorted(OPEN_COMMANDS))} is open")
+                return
+            try:
+                req = Request(id=rid, cmd=cmd, args=validate_args(cmd, args, self.limits))
+            except ProtocolError as exc:
+                exc.request_id = rid
+                raise
         except ProtocolError as exc:
             self._error(cid, conn, exc.request_id, exc.code, str(exc))
-            return
-        if req.cmd not in OPEN_COMMANDS and not conn.allowed:
-            log.warning("refused %s from %s: not an allowed user or group", req.cmd, conn.peer)
-            self._error(cid, conn, req.id, "forbidden",
-                        f"{req.cmd}: {conn.peer} may not command the robot (daemon.socket.allowed_users/"
-                        f"allowed_groups); only {', '.join(sorted(OPEN_COMMANDS))} is open")
             return
         if req.cmd == "estop":  # now, on this thread: never queued behind a slow command
             self._send(cid, conn, self._call(req, conn.peer))
@@ -472,20 +625,22 @@ class ControlServer:
             while conn.outbuf:
                 n = conn.sock.send(conn.outbuf)
                 del conn.outbuf[:n]
+                conn.active = time.monotonic()
         except (BlockingIOError, InterruptedError):
             pass
         except OSError:  # peer gone: its replies go nowhere, nothing else changes
             self._drop(cid)
             return
-        if not conn.outbuf and conn.closing:
+        if not conn.outbuf and (conn.closing or (conn.eof and conn.in_flight == 0)):
             self._drop(cid)
             return
         self._interest(cid, conn)
 
     def _interest(self, cid: int, conn: _Connection) -> None:
         """Read while serving, write while replies are pending; no reading from a connection
-        being closed or once the server is closing (so it never spins on unread sockets)."""
-        reading = not (self._stop.is_set() or conn.closing)
+        being closed, half-closed by its peer, or once the server is closing (so it never spins on
+        unread sockets)."""
+        reading = not (self._stop.is_set() or conn.closing or conn.eof)
         want = (selectors.EVENT_READ if reading else 0) | (selectors.EVENT_WRITE if conn.outbuf else 0)
         registered = self._registered(conn)
         if want and registered:
@@ -512,12 +667,18 @@ class ControlServer:
             conn.sock.close()
 
     def _expire(self, now: float) -> None:
+        cfg = self.config
         for cid, conn in list(self._conns.items()):
-            if conn.started is not None and now - conn.started > self.config.request_timeout:
-                self._error(cid, conn, None, "timeout", f"request line not completed within "
-                                                        f"{self.config.request_timeout:g} s", close=True)
+            if cid not in self._conns or conn.closing:
+                continue
+            if conn.started is not None and now - conn.started > cfg.request_timeout:
                 conn.inbuf.clear()
                 conn.started = None
+                self._error(cid, conn, None, "timeout", f"request line not completed within "
+                                                        f"{cfg.request_timeout:g} s", close=True)
+            elif conn.in_flight == 0 and not conn.outbuf and now - conn.active > cfg.idle_timeout:
+                self.counters["idle_closed"] += 1
+                self._error(cid, conn, None, "timeout", f"idle for {cfg.idle_timeout:g} s: closed", close=True)
 
     def _finished(self) -> bool:
         """Closing, and every queued reply is written (or the close timeout has passed)."""
@@ -544,19 +705,30 @@ class ControlServer:
             conn = self._conns.get(cid)
             if conn is not None:  # a client that left before its reply: the reply is dropped
                 conn.in_flight -= 1
-                self._send(cid, conn, data)
+                try:
+                    self._send(cid, conn, data)
+                except Exception:  # noqa: BLE001 - that connection's problem only
+                    log.exception("control socket: reply to %s failed", conn.peer)
+                    self._drop(cid)
 
     # -- dispatch thread ---------------------------------------------------------------------
     def _dispatch_loop(self) -> None:
-        while True:
-            item = self._dispatch.get()
-            if item is None:
-                self._replies.put(None)
+        try:
+            while True:
+                item = self._dispatch.get()
+                if item is None:
+                    self._replies.put(None)
+                    self._wake()
+                    return
+                cid, req, peer = item
+                if cid not in self._conns and req.cmd == "status":
+                    continue  # its client has left: a flood of abandoned requests costs nothing
+                self._replies.put((cid, self._call(req, peer)))
                 self._wake()
-                return
-            cid, req, peer = item
-            self._replies.put((cid, self._call(req, peer)))
-            self._wake()
+        except BaseException:
+            log.exception("control socket dispatch thread failed")
+            self._failed("dispatch")
+            raise
 
     def _call(self, req: Request, peer: Peer) -> bytes:
         log.info("%s %s from %s", req.cmd, json.dumps(req.args), peer)
@@ -569,80 +741,11 @@ class ControlServer:
             return encode_reply(req.id, error=("refused", str(exc)))
         except ProtocolError as exc:  # an argument found bad on closer look (a file that does not parse)
             return encode_reply(req.id, error=(exc.code, str(exc)))
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - the handler's failure is this request's, not the server's
             log.exception("%s failed", req.cmd)
-            return encode_reply(req.id, error=("internal", f"{req.cmd} failed: {type(exc).__name__}: {exc}"))
-
-
-class ControlClient:
-    """A connection to the daemon (``otbot ctl``); ``request`` sends one command and returns its
-    result, raising ``ControlError`` for an error reply and ``DaemonUnreachable`` when no daemon
-    answers (within ``timeout`` s)."""
-
-    def __init__(self, path: Path, timeout: float = 5.0):
-        self.path = Path(path)
-        self.timeout = timeout
-        self._ids = itertools.count(1)
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self._sock.settimeout(timeout)
-        try:
-            self._sock.connect(str(self.path))
-        except FileNotFoundError:
-            self._sock.close()
-            raise DaemonUnreachable(f"no daemon at {self.path} (no such socket)") from None
-        except ConnectionRefusedError:
-            self._sock.close()
-            raise DaemonUnreachable(f"no daemon at {self.path} (connection refused: stale socket)") from None
-        except PermissionError:
-            self._sock.close()
-            raise DaemonUnreachable(f"no permission to connect to {self.path} (join the daemon's group)") from None
-        except OSError as exc:
-            self._sock.close()
-            raise DaemonUnreachable(f"cannot connect to {self.path}: {exc.strerror or exc}") from None
-        self._file = self._sock.makefile("rb")
-
-    def request(self, cmd: str, args: dict | None = None) -> Any:
-        rid = next(self._ids)
-        lost: OSError | None = None
-        try:
-            self._sock.sendall(encode_request(rid, cmd, args))
-        except socket.timeout:
-            raise DaemonUnreachable(f"the daemon at {self.path} did not answer within {self.timeout:g} s") from None
-        except OSError as exc:  # closed by the daemon: it may have said why before closing
-            lost = exc
-        try:
-            line = self._file.readline()
-        except socket.timeout:
-            raise DaemonUnreachable(f"the daemon at {self.path} did not answer within {self.timeout:g} s") from None
-        except OSError as exc:
-            line, lost = b"", lost or exc
-        if not line:
-            why = f": {lost.strerror or lost}" if lost else ""
-            raise DaemonUnreachable(f"the daemon at {self.path} closed the connection{why}")
-        try:
-            reply = json.loads(line)
-        except json.JSONDecodeError:
-            raise ControlError("internal", f"the daemon's reply is not JSON: {line[:80]!r}") from None
-        if isinstance(reply, dict) and reply.get("id") is None and not reply.get("ok", True):
-            pass  # an error about the connection itself (busy, too large): reported below
-        elif not isinstance(reply, dict) or reply.get("id") != rid:
-            raise ControlError("internal", f"unexpected reply {line[:80]!r} to request {rid}")
-        if not reply.get("ok"):
-            err = reply.get("error") or {}
-            raise ControlError(str(err.get("code", "internal")), str(err.get("message", "error")))
-        return reply.get("result")
-
-    def close(self) -> None:
-        self._file.close()
-        self._sock.close()
-
-    def __enter__(self) -> "ControlClient":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+            return encode_reply(req.id, error=("internal", f"{req.cmd} failed: {type(exc).__name__}: {str(exc)[:200]}"))
 
 
 __all__ = ["ControlServer", "ControlClient", "CommandHandler", "LoopMailbox", "Peer", "Authorizer",
-           "SocketInUse", "DaemonUnreachable", "ControlError", "bind_control_socket", "probe_socket",
+           "ControlSocketError", "SocketInUse", "DaemonUnreachable", "ControlError", "bind_control_socket", "probe_socket",
            "peer_credentials", "COMMANDS"]

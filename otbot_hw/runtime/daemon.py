@@ -24,9 +24,16 @@ excite     a torque sequence (recording or CSV) played open loop, from hold at r
 
 Every new controller continues the reference acting when it takes over (same pose and velocity
 at the same instant), so a change of mode is bumpless. Any fault — the supervisor's checks, the
-drives', encoder's and IMU's own, the estimator's, an ``estop`` — quick-stops the drives, latches
+drives', encoder's and IMU's own, the estimator's, an ``estop``, a recording that fails (disk full,
+file too large, I/O error), a control-socket thread that dies — quick-stops the drives, latches
 with its cause and leaves the daemon in idle; the loop keeps reading, estimating, recording and
-publishing; ``reset`` clears it (faults still present come back), then ``enable``.
+publishing; ``reset`` clears it (faults still present come back), then ``enable``. A dead control
+socket also stops the systemd watchdog ping (systemd restarts the daemon: nobody could estop it).
+
+Overruns (a period longer than ``safety.overrun_factor`` periods): while the robot moves (track,
+velocity, excite, or a hold still ramping to rest) more than ``safety.max_consecutive_overruns`` in
+a row are a fault; at rest (idle, or a hold that has reached its pose) they are a warning, counted
+in ``status`` (``overrun_warnings``) and logged once per streak.
 """
 from __future__ import annotations
 
@@ -48,6 +55,7 @@ from otbot_hw.control.gains import gains_from_tstab
 from otbot_hw.control.trajectories import PlacedTrajectory, StopTrajectory, TrajectoryError
 from otbot_hw.json_output import json_safe
 from otbot_hw.motors import MOTORS
+from otbot_hw.recording import RecordingError
 from otbot_hw.robot import Robot, RobotError
 from otbot_hw.runtime.control_protocol import ArgumentLimits, CommandRefused, ProtocolError
 from otbot_hw.runtime.control_socket import ControlServer, LoopMailbox, Peer
@@ -55,7 +63,7 @@ from otbot_hw.runtime.controllers import OpenLoopTorques, TrackingController, Tw
 from otbot_hw.runtime.daemon_config import DaemonConfig
 from otbot_hw.runtime.feedback import EkfFeedback
 from otbot_hw.runtime.loop import LoopRunner
-from otbot_hw.runtime.session_recording import SessionRecording
+from otbot_hw.runtime.session_recording import SessionRecording, os_error_text
 from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor, Violation
 from otbot_hw.runtime.systemd import Notifier, Watchdog
 
@@ -137,7 +145,12 @@ class Daemon:
         self.sessions: list[str] = []
         self.problems: list[str] = []
         self.faults_seen = 0
+        self.overrun_warnings = 0
+        self._overrun_streak = False
+        self._recording_error: str | None = None
         self._t_start = None
+        self._next_server_check = 0.0
+        self.server.on_failure = self._server_failed
 
     # -- life cycle ------------------------------------------------------------------------
     def request_stop(self, reason: str) -> None:
@@ -171,10 +184,13 @@ class Daemon:
                 self.robot = robot
                 self._run(robot)
         finally:
-            self.notifier.stopping(f"stopping: {self.stop_reason or 'error'}")
-            self.server.close()
-            if self.telemetry is not None:
-                self.telemetry.close()
+            for what, step in (("systemd", lambda: self.notifier.stopping(f"stopping: {self.stop_reason or 'error'}")),
+                               ("control socket", self.server.close),
+                               ("telemetry", lambda: self.telemetry is not None and self.telemetry.close())):
+                try:
+                    step()
+                except Exception as exc:  # noqa: BLE001 - a stop path says what failed, never raises
+                    self.problems.append(f"closing {what} failed: {type(exc).__name__}: {exc}")
             sys.setswitchinterval(switch)
         return self.summary()
 
@@ -184,9 +200,15 @@ class Daemon:
         rec_cfg = s.daemon.recording
 
         def recorder(meta: dict, topics: list):
-            sess = SessionRecording(s.record_dir, meta, topics, rate=1.0 / period,
-                                    rotate_size=rec_cfg.rotate_size, rotate_time=rec_cfg.rotate_time,
-                                    flush_interval=rec_cfg.flush_interval)
+            try:
+                sess = SessionRecording(s.record_dir, meta, topics, rate=1.0 / period,
+                                        rotate_size=rec_cfg.rotate_size, rotate_time=rec_cfg.rotate_time,
+                                        flush_interval=rec_cfg.flush_interval, format=rec_cfg.format,
+                                        on_error=self._recording_failed)
+            except (RecordingError, OSError) as exc:  # the folder gone, the disk full at the first file
+                self._recording_failed(str(exc) if isinstance(exc, RecordingError)
+                                       else f"recording in {s.record_dir}: cannot start: {os_error_text(exc)}")
+                return None
             self.sessions.append(sess.session_id)
             return sess
 
@@ -196,6 +218,10 @@ class Daemon:
             robot, None, sup, self._new_feedback(s.start_pose, period), metadata=meta, realtime=True,
             stop_at_end=False, record_reference=True, keep_samples=False, continue_after_fault=True,
             recorder=recorder if s.record_dir is not None else None)
+        adapter = self._new_adapter(period)
+        if adapter is not None:  # its estimate on /otbot/payload, its events and bounds fault through the loop
+            runner.payload = adapter
+            adapter.on_fault, adapter.on_event = runner.trip, runner.event
         runner.start(enable=False)
         runner.cycle()
         gc.freeze()  # what booting the drives created, too (no collection: that would stall the bus)
@@ -211,7 +237,10 @@ class Daemon:
         finally:
             self.problems += runner.power_down(f"idle: stopped ({self.stop_reason or 'error'})")
             self.mode = "idle"
-            runner.close()
+            try:
+                runner.close()
+            except Exception as exc:  # noqa: BLE001 - the recording's close: said, never raised
+                self.problems.append(f"closing the recording failed: {type(exc).__name__}: {exc}")
 
     def _warm_up(self, period: float) -> None:
         """Before the robot is opened: everything the first cycles run once — the EKF's compiled
@@ -231,8 +260,19 @@ class Daemon:
                             imu_accel=g, imu_gyro=z, imu_time=float(k))
             est = fb.start(snap, None) if k == 0 else fb.step(snap, None, z)
         TrackingController(self.law, StopTrajectory(est.pose), period).update(period, _probe_feedback(period), snap)
+        self._new_adapter(period)
         gc.collect()
         gc.freeze()
+
+    def _new_adapter(self, period: float):
+        """Online payload adaptation (``daemon.adaptation``; None when disabled), on the law from now on."""
+        cfg = self.settings.daemon.adaptation
+        if cfg is None or not cfg.enabled:
+            return None
+        from otbot_hw.runtime.controllers import PayloadAdapter
+
+        self.law.adapter = PayloadAdapter(self.law, cfg, period)
+        return self.law.adapter
 
     def _new_feedback(self, pose, period: float) -> EkfFeedback:
         """The pose EKF, starting at ``pose`` (x, y m, alpha rad)."""
@@ -256,10 +296,25 @@ class Daemon:
                 self._ramp_to_hold("excitation finished")
         period = r.last_period
         now = time.monotonic()
-        if period is None or period <= r.supervisor.config.overrun_factor * r.period:
+        sup = r.supervisor
+        # the overrun rule (module docstring): a fault only while moving
+        sup.realtime = self._moving(r)
+        if period is None or period <= sup.config.overrun_factor * r.period:
             self.watchdog.cycle_ok(now)
+            self._overrun_streak = False
         else:
             self.watchdog.cycle_missed(now)
+            if not sup.realtime:
+                self.overrun_warnings += 1
+                if not self._overrun_streak:
+                    log.warning("overrun at rest (%s): period %.2f ms (target %.2f ms); %d so far, a warning "
+                                "(a fault only while moving)", self.mode, period * 1e3, r.period * 1e3,
+                                self.overrun_warnings)
+                self._overrun_streak = True
+        if now >= self._next_server_check:  # a server thread that died without saying so
+            self._next_server_check = now + 0.25
+            if not self.server.alive and not self._stop.is_set() and self.server.failure is None:
+                self._server_failed("control socket server stopped")
         if self.telemetry is not None and r.last_snapshot is not None:
             from otbot_hw.runtime.telemetry import TelemetrySample
 
@@ -267,6 +322,44 @@ class Daemon:
             self.telemetry.publish(TelemetrySample.from_cycle(
                 r.last_snapshot, r.last_command if r.armed else None, r.last_estimate,
                 ref.p if ref is not None else None, self.mode, self._fault_texts), now)
+
+    def _moving(self, r: LoopRunner) -> bool:
+        """Whether the robot is meant to move: track, velocity, excite, or a hold still ramping."""
+        mode = self.mode
+        if mode in ("track", "velocity", "excite"):
+            return True
+        if mode == "hold":
+            h = self._holding
+            return h is None or not h.finished(r.t + r.period)
+        return False
+
+    def _recording_failed(self, text: str) -> None:
+        """The session recording failed (disk full, file too large, I/O error): a latched fault
+        naming the file and the error; the drives quick-stop at the next cycle, the loop and the
+        socket stay up. Any thread."""
+        self._recording_error = text
+        v = Violation("recording", self.runner.t if self.runner is not None else 0.0, text)
+        if self.runner is None:
+            self._pending_trip = self._pending_trip or v
+        else:
+            self.runner.trip(v)
+
+    def _server_failed(self, text: str) -> None:
+        """The control socket's server died: nobody can estop through it any more. Quick stop and
+        latch a fault, tell systemd, and stop the watchdog ping so systemd restarts the daemon.
+        Any thread."""
+        log.critical("%s: quick stop, fault latched, systemd watchdog ping stopped", text)
+        self.watchdog.stop(text)
+        v = Violation("control_socket", self.runner.t if self.runner is not None else 0.0,
+                      f"{text}: restart the daemon (systemd does, its watchdog no longer pinged)")
+        if self.runner is None:
+            self._pending_trip = self._pending_trip or v
+        else:
+            self.runner.trip(v)
+        try:
+            self.notifier.status(f"FAULT: {text}; watchdog ping stopped")
+        except Exception:  # noqa: BLE001
+            pass
 
     def _on_fault(self, fault: Violation | None) -> None:
         self._seen_fault = fault
@@ -450,6 +543,9 @@ class Daemon:
             pose = est.pose if est is not None and np.all(np.isfinite(est.pose)) else self.settings.start_pose
             feedback = self._new_feedback(pose, r.period)
         was = str(r.fault) if r.fault is not None else "robot faults"
+        adapter = getattr(self.law, "adapter", None)
+        if adapter is not None and r.fault is not None and r.fault.kind == "payload":
+            adapter.reset()  # the file's platform parameters (already restored), adaptation starts over
         r.reset(feedback)
         self._seen_fault = None
         self._fault_texts = ()
@@ -460,15 +556,21 @@ class Daemon:
         r = self.runner
         if r.recorder is None:
             raise CommandRefused("record: this daemon records nowhere (no recording folder)")
+        failed = r.recording is not None and getattr(r.recording, "error", None) is not None
         if action == "stop":
             w = r.stop_recording()
             if w is None:
                 raise CommandRefused("record stop: not recording")
             log.info("recording %s stopped by %s", w.session_id, peer)
             return {"recording": w.status()}
+        if failed:  # a session that failed (disk full): closed, a new one may start
+            r.stop_recording()
         if r.recording is not None:
             raise CommandRefused(f"record start: already recording ({r.recording.path})")
+        self._recording_error = None
         w = r.start_recording()
+        if w is None and self._recording_error is not None:
+            raise CommandRefused(f"record start: {self._recording_error}")
         r.event(r.t, "mode", self.mode_text)
         return {"recording": w.status() if w is not None else None}
 
@@ -502,6 +604,8 @@ class Daemon:
                "loop": r.timing() if r is not None else None,
                "pose": None, "tracking_error": None,
                "recording": r.recording.status() if r is not None and r.recording is not None else None,
+               "overrun_warnings": self.overrun_warnings,
+               "payload": self._payload_status(),
                "telemetry": self.telemetry.status() if self.telemetry is not None else None}
         if est is not None:
             out["pose"] = {"x": float(est.pose[0]), "y": float(est.pose[1]), "alpha": float(est.pose[2]),
@@ -513,6 +617,14 @@ class Daemon:
                 out["tracking_error"] = {"x": float(ref.p[0] - est.pose[0]), "y": float(ref.p[1] - est.pose[1]),
                                          "alpha": wrap_angle(float(ref.p[2] - est.pose[2]))}
         return json_safe(out)
+
+    def _payload_status(self) -> dict | None:
+        """Online payload adaptation: {estimate: {m_p, I_p, x_F, y_F: {value, std, confident}}, state,
+        converged_s, switched_s (robot time, s), changes, law, fault}; None when disabled."""
+        a = getattr(self.law, "adapter", None)
+        if a is None:
+            return None
+        return {"estimate": a.payload_estimate(), **a.summary()}
 
     def enable(self, *, peer: Peer) -> dict:
         return self._loop_call(lambda: self._do_enable(peer))

@@ -16,50 +16,28 @@ from typing import Any
 from otbot_hw.motors import DEFAULT_ROBOT_FILE
 from otbot_hw.params import ParameterError, read_entry, read_yaml
 
-SOCKET_NAME = "control.sock"
-
-
-def default_runtime_dir(environ: dict | None = None) -> Path:
-    """The daemon's runtime directory: ``$RUNTIME_DIRECTORY`` (systemd's ``RuntimeDirectory=``; the
-    first of a colon-separated list), else ``$XDG_RUNTIME_DIR/otbot``, else ``/run/otbot``."""
-    env = os.environ if environ is None else environ
-    if env.get("RUNTIME_DIRECTORY"):
-        return Path(env["RUNTIME_DIRECTORY"].split(":")[0])
-    if env.get("XDG_RUNTIME_DIR"):
-        return Path(env["XDG_RUNTIME_DIR"]) / "otbot"
-    return Path("/run/otbot")
-
-
-def default_socket_path(environ: dict | None = None) -> Path:
-    """Where the daemon creates its control socket when the configuration names none."""
-    return default_runtime_dir(environ) / SOCKET_NAME
-
-
-def socket_candidates(environ: dict | None = None) -> list[Path]:
-    """Where a client looks for the daemon's socket when told nowhere: the service's runtime
-    directory when the client runs inside it, the system daemon's ``/run/otbot``, then a user's
-    daemon under ``$XDG_RUNTIME_DIR`` (a client's environment is not the daemon's)."""
-    env = os.environ if environ is None else environ
-    out = [default_runtime_dir({"RUNTIME_DIRECTORY": env["RUNTIME_DIRECTORY"]})] if env.get("RUNTIME_DIRECTORY") else []
-    out.append(default_runtime_dir({}))
-    if env.get("XDG_RUNTIME_DIR"):
-        out.append(default_runtime_dir({"XDG_RUNTIME_DIR": env["XDG_RUNTIME_DIR"]}))
-    return [d / SOCKET_NAME for d in out]
+from otbot_hw.runtime.control_client import (  # noqa: F401 - re-exported
+    SOCKET_NAME, default_runtime_dir, default_socket_path, socket_candidates)
 
 
 @dataclass(frozen=True)
 class ControlSocketConfig:
     """path (None: ``default_socket_path()``); allowed_users / allowed_groups: names or numeric ids
     that may send every command (``status`` is open to anyone who can reach the socket);
-    max_request (bytes per request line); max_clients (connections at once); request_timeout (s a
-    started request line may take to arrive)."""
+    max_request (bytes per request line); max_clients (connections at once); reserved_clients (of
+    those, slots only allowed peers may take: a status-only peer gets at most max_clients -
+    reserved_clients, and an allowed peer that finds every slot taken evicts the oldest status-only
+    connection); request_timeout (s a started request line may take to arrive); idle_timeout (s a
+    connection may stay without sending a byte or awaiting a reply before it is closed)."""
 
     path: Path | None = None
     allowed_users: tuple[str | int, ...] = ()
     allowed_groups: tuple[str | int, ...] = ("otbot-operators",)
     max_request: int = 65536
     max_clients: int = 32
+    reserved_clients: int = 4
     request_timeout: float = 5.0
+    idle_timeout: float = 60.0
 
     def socket_path(self) -> Path:
         return self.path if self.path is not None else default_socket_path()
@@ -84,12 +62,14 @@ class VelocityConfig:
 @dataclass(frozen=True)
 class RecordingConfig:
     """dir (session files), rotate_size (bytes), rotate_time (s of loop time per file),
-    flush_interval (s: at most this much is lost when the process dies)."""
+    flush_interval (s: at most this much is lost when the process dies), format (``otbot``: the
+    project's MCAP recordings; ``ros2``: ROS 2 bag folders, ``otbot_hw.ros2.writer``)."""
 
     dir: Path = Path("/var/lib/otbot/recordings")
     rotate_size: int = 512 * 2 ** 20
     rotate_time: float = 3600.0
     flush_interval: float = 1.0
+    format: str = "otbot"
 
 
 @dataclass(frozen=True)
@@ -109,6 +89,13 @@ class DaemonConfig:
     velocity: VelocityConfig = field(default_factory=VelocityConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    adaptation: Any = field(default_factory=lambda: _adaptation_default())  # estimation.payload.AdaptationConfig
+
+
+def _adaptation_default():
+    from otbot_hw.estimation.payload import AdaptationConfig
+
+    return AdaptationConfig()
 
 
 _SIZE_UNITS = {"bytes": 1, "KiB": 2 ** 10, "MiB": 2 ** 20, "GiB": 2 ** 30}
@@ -183,9 +170,10 @@ class _Section:
 
 def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
     """Validate a ``daemon`` mapping (None: all defaults); relative paths are relative to the cwd."""
-    top = _Section(source, "daemon", data, ("socket", "velocity", "recording", "telemetry"))
+    top = _Section(source, "daemon", data, ("socket", "velocity", "recording", "telemetry", "adaptation"))
     s = _Section(source, "daemon.socket", top.data.get("socket"),
-                 ("path", "allowed_users", "allowed_groups", "max_request", "max_clients", "request_timeout"))
+                 ("path", "allowed_users", "allowed_groups", "max_request", "max_clients", "reserved_clients",
+                  "request_timeout", "idle_timeout"))
     d = ControlSocketConfig()
     path = s.text("path", None)
     sock = ControlSocketConfig(
@@ -194,7 +182,11 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
         allowed_groups=s.ids("allowed_groups", d.allowed_groups),
         max_request=s.size("max_request", d.max_request),
         max_clients=s.integer("max_clients", d.max_clients, 1, 1024),
-        request_timeout=s.quantity("request_timeout", "s", d.request_timeout))
+        reserved_clients=s.integer("reserved_clients", d.reserved_clients, 1, 1024),
+        request_timeout=s.quantity("request_timeout", "s", d.request_timeout),
+        idle_timeout=s.quantity("idle_timeout", "s", d.idle_timeout))
+    if sock.reserved_clients >= sock.max_clients:
+        raise s.err("reserved_clients", f"must be below max_clients ({sock.max_clients}), got {sock.reserved_clients}")
     if sock.max_request < 256:
         raise s.err("max_request", f"must be at least 256 bytes, got {sock.max_request}")
     v = _Section(source, "daemon.velocity", top.data.get("velocity"),
@@ -207,12 +199,22 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
                          max_angular_acceleration=v.quantity("max_angular_acceleration", "rad/s^2",
                                                              dv.max_angular_acceleration))
     r = _Section(source, "daemon.recording", top.data.get("recording"),
-                 ("dir", "rotate_size", "rotate_time", "flush_interval"))
+                 ("dir", "rotate_size", "rotate_time", "flush_interval", "format"))
     dr = RecordingConfig()
     rec = RecordingConfig(dir=Path(r.text("dir", str(dr.dir))),
                           rotate_size=r.size("rotate_size", dr.rotate_size),
                           rotate_time=r.quantity("rotate_time", "s", dr.rotate_time),
-                          flush_interval=r.quantity("flush_interval", "s", dr.flush_interval))
+                          flush_interval=r.quantity("flush_interval", "s", dr.flush_interval),
+                          format=r.text("format", dr.format))
+    if rec.format not in ("otbot", "ros2"):
+        raise r.err("format", f"must be otbot or ros2, got {rec.format!r}")
+    if rec.format == "ros2":
+        from otbot_hw.extras import MissingExtraError, require
+
+        try:
+            require("rosbags")
+        except MissingExtraError as exc:
+            raise r.err("format", f"ros2: {exc}") from None
     if rec.flush_interval > 1.0:
         raise r.err("flush_interval", f"must be <= 1 s (a crash may lose at most one second), "
                                       f"got {rec.flush_interval}")
@@ -223,7 +225,10 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
         raise t.err("enabled", f"must be true or false, got {enabled!r}")
     tel = TelemetryConfig(enabled=enabled, host=t.text("host", dt.host),
                           port=t.integer("port", dt.port, 0, 65535), rate=t.quantity("rate", "Hz", dt.rate))
-    return DaemonConfig(socket=sock, velocity=vel, recording=rec, telemetry=tel)
+    from otbot_hw.estimation.payload import AdaptationConfig
+
+    return DaemonConfig(socket=sock, velocity=vel, recording=rec, telemetry=tel,
+                        adaptation=AdaptationConfig.from_section(top.data.get("adaptation"), source))
 
 
 def load_daemon_config(path: str | Path | None = None) -> DaemonConfig:
@@ -240,4 +245,5 @@ def load_daemon_config(path: str | Path | None = None) -> DaemonConfig:
         sock = ControlSocketConfig(**{**sock.__dict__, "path": base / sock.path})
     if not rec.dir.is_absolute():
         rec = RecordingConfig(**{**rec.__dict__, "dir": base / rec.dir})
-    return DaemonConfig(socket=sock, velocity=cfg.velocity, recording=rec, telemetry=cfg.telemetry)
+    return DaemonConfig(socket=sock, velocity=cfg.velocity, recording=rec, telemetry=cfg.telemetry,
+                        adaptation=cfg.adaptation)

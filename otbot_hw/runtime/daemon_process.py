@@ -66,12 +66,15 @@ def realtime_priority(pid: int, priority: int = 50) -> int:
 
 class DaemonProcess:
     """``otbot daemon --json ARGS`` as a child process with its socket at ``socket`` and its log in
-    ``log`` (a file path). ``request(cmd, **args)`` sends one command; ``terminate()`` sends SIGTERM
+    ``log`` (a file path); the ``--record-dir`` folder in ARGS is created first (as systemd's
+    ``StateDirectory=`` would). ``request(cmd, **args)`` sends one command; ``terminate()`` sends SIGTERM
     and returns (exit code, the JSON summary it printed)."""
 
     def __init__(self, args: list[str], socket: Path, log: Path, env: dict | None = None, ready_timeout: float = 60.0):
         self.socket = Path(socket)
         self.log_path = Path(log)
+        if "--record-dir" in args:  # the daemon never creates it (systemd's StateDirectory= would): this helper does
+            Path(args[args.index("--record-dir") + 1]).mkdir(parents=True, exist_ok=True)
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen([*_cli(), "daemon", "--socket", str(self.socket), "--json", *args],
                                      stdout=subprocess.PIPE, stderr=self._log, text=True,

@@ -47,7 +47,7 @@ import numpy as np
 
 from otbot_hw.control.computed_torque import TaskState
 from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS,
-                                TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter)
+                                TOPIC_PAYLOAD, TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter)
 from otbot_hw.robot import Robot, RobotError, Snapshot
 from otbot_hw.runtime.controllers import ControlStep, Controller, Feedback, Reference
 from otbot_hw.runtime.feedback import FeedbackUnavailable, StateEstimate
@@ -240,6 +240,7 @@ class LoopRunner:
         self._topics: set = set()
         self._topic_list: list = []
         self._feedback_started = False
+        self.payload = None  # a payload adapter (``message(t)``): recorded on /otbot/payload when set before the first sample
         if not keep_samples:  # the recent events only (they are in the recording)
             self.events = deque(maxlen=1000)
 
@@ -548,6 +549,8 @@ class LoopRunner:
             topics.append(TOPIC_ESTIMATE)
         if self.record_reference or (self.record_reference is None and ref is not None):
             topics.append(TOPIC_REFERENCE)
+        if self.payload is not None:
+            topics.append(TOPIC_PAYLOAD)
         self._topics = set(topics)
         self._topic_list = topics
         meta = {"source": "loop", "sample_period": self.period, "realtime": self.realtime, **self.metadata}
@@ -636,6 +639,8 @@ class LoopRunner:
                                    "std": e.std.tolist(), "gyro_bias": float(e.gyro_bias)}
         if TOPIC_REFERENCE in self._topics:
             msg[TOPIC_REFERENCE] = {"t": t, "p": r.p.tolist(), "pd": r.pd.tolist(), "pdd": r.pdd.tolist()}
+        if TOPIC_PAYLOAD in self._topics:
+            msg[TOPIC_PAYLOAD] = self.payload.message(t)
         self.writer.write_sample(msg)
 
     def event(self, t: float, kind: str, text: str) -> None:

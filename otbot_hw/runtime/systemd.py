@@ -13,7 +13,9 @@ read ``$WATCHDOG_USEC``: wrapping it would be as long as this.
 not. A ping (``WATCHDOG=1``) is sent from ``cycle_ok`` at most every ``interval`` s (half of
 ``$WATCHDOG_USEC``); a missed cycle never pings, so a loop that is stuck, or that misses every
 deadline for longer than ``WatchdogSec``, is killed and restarted by systemd. Single overruns do
-not starve the watchdog (the supervisor latches them as a fault instead).
+not starve the watchdog (the supervisor latches them as a fault instead). ``stop(reason)`` ends the
+pings for good: the daemon calls it when a part nobody can do without (the control socket, through
+which estop comes) has died, so that systemd restarts it.
 """
 from __future__ import annotations
 
@@ -122,6 +124,14 @@ class Watchdog:
         self.interval = watchdog_interval(environ) if interval is ... else interval
         self.last_ping: float | None = None
         self.pings = self.ok = self.missed = 0
+        #: why the pings were stopped for good (``stop``), or None
+        self.stopped: str | None = None
+
+    def stop(self, reason: str) -> None:
+        """No more pings, whatever the loop reports (systemd kills and restarts the process after
+        ``WatchdogSec``)."""
+        if self.stopped is None:
+            self.stopped = reason
 
     @property
     def enabled(self) -> bool:
@@ -131,7 +141,7 @@ class Watchdog:
         """A cycle met its deadline; pings if ``interval`` has passed since the last ping.
         Returns whether it pinged. Costs one comparison when no ping is due."""
         self.ok += 1
-        if not self.enabled:
+        if not self.enabled or self.stopped is not None:
             return False
         now = time.monotonic() if now is None else now
         if self.last_ping is not None and now - self.last_ping < self.interval:

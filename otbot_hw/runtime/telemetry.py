@@ -143,6 +143,36 @@ def parse_host_port(text: str, default_port: int = 8765) -> tuple[str, int]:
     return host, int(port)
 
 
+def check_telemetry_address(host: str, port: int) -> None:
+    """TelemetryError (one sentence: what is wrong and what to do) unless a TCP server can listen
+    on ``host:port``: the host resolves, is an address of this machine, and the port is free. Port
+    0 (any free port) only has its host checked. Run before anything else starts."""
+    import errno
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise TelemetryError(f"telemetry host {host!r} is unknown ({getattr(exc, 'strerror', None) or exc}): "
+                             f"give --telemetry HOST:PORT with an address of this machine, or --no-telemetry") from None
+    family, kind, proto, _, addr = infos[0]
+    s = socket.socket(family, kind, proto)
+    try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server will: TIME_WAIT is no conflict
+        s.bind(addr)
+        s.listen(1)
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise TelemetryError(f"telemetry port {port} on {host} is taken (another daemon, or a leftover one?): "
+                                 f"stop it, or give --telemetry {host}:0 (any free port) or --no-telemetry") from None
+        if exc.errno == errno.EADDRNOTAVAIL:
+            raise TelemetryError(f"telemetry host {host} is not an address of this machine: give --telemetry "
+                                 f"127.0.0.1:{port} (or one of this machine's addresses) or --no-telemetry") from None
+        raise TelemetryError(f"cannot serve telemetry on {host}:{port}: {exc.strerror or exc}") from None
+    finally:
+        s.close()
+
+
 class _Listener:
     """Counts subscriptions; notes anything a client tries to send (must stay empty)."""
 

@@ -62,6 +62,7 @@ class TrackingRun:
     saturation: list = field(default_factory=list)
     f: np.ndarray | None = None
     gates: dict | None = None
+    adapter: object | None = None
 
     @property
     def e_p(self) -> np.ndarray:
@@ -149,7 +150,7 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
                     duration: float | None = None, safety: SafetyConfig | None = None,
                     progress: Callable[[str], None] | None = None, path: str | Path | None = None,
                     metadata: dict | None = None, predict: bool = True,
-                    rate_hz: float | None = None, config_path=None, fixes=None) -> TrackingRun:
+                    rate_hz: float | None = None, config_path=None, fixes=None, adapt=None) -> TrackingRun:
     """Track a ``DesiredTrajectory`` with the computed-torque ``law`` through the loop runner.
 
     ``plant``: the simulated robot (``OtbotParams`` or ``ExtendedModel``; default the law's
@@ -159,7 +160,8 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
     p_d(0), chassis heading 0); ``duration`` s (default the reference's); ``safety``: the supervisor's
     limits (default ``SafetyConfig()``); ``path``: MCAP recording; ``predict``: see ``TrackingController``;
     ``config_path``: the hardware YAML whose ``estimator:`` section configures the EKF; ``fixes``: an
-    absolute pose source for the EKF (``EkfFeedback``)."""
+    absolute pose source for the EKF (``EkfFeedback``); ``adapt``: an ``AdaptationConfig`` to adapt the
+    law's payload online (``PayloadAdapter``, attached to ``law`` for the run; ``TrackingRun.adapter``)."""
     backend = backend or DirectBackend(rate=rate_hz or 1000.0)
     plant = plant if plant is not None else law.model
     limits = limits if limits is not None else MotorLimits(np.full(3, 1e9))
@@ -169,6 +171,11 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
     meta = {"backend": backend.describe(), **(metadata or {})}
     if not isinstance(backend, DirectBackend):
         warm_up(reference, law, feedback if isinstance(feedback, str) else None, backend.period, x0, config_path)
+    adapter = None
+    if adapt is not None:
+        from otbot_hw.runtime.controllers import PayloadAdapter
+
+        law.adapter = adapter = PayloadAdapter(law, adapt, backend.period)
     with backend.open(plant if sim else None, x0=x0 if sim else None, forces=forces if sim else None) as robot:
         period = robot.period
         controller = TrackingController(law, reference, period, predict=predict)
@@ -181,9 +188,16 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
         runner = LoopRunner(robot, controller, sup, fb, path=path, metadata=meta, realtime=backend.realtime,
                             progress=progress if (progress is not None and T > LONG_RUN_S) else None,
                             progress_every=10.0)
+        if adapter is not None:
+            runner.payload = adapter
+            adapter.on_fault, adapter.on_event = runner.trip, runner.event
+            if progress is not None:
+                adapter.on_event = lambda t, k, m: (runner.event(t, k, m), progress(
+                    f"adaptation at t = {t - (controller.origin or 0.0):.2f} s: {m}"))
         res = runner.run(int(round(T / period)) + 2)
     run = TrackingRun.from_loop(res, controller.origin, period)
     run.gates = fb.gates() if hasattr(fb, "gates") else None
+    run.adapter = adapter
     return run
 
 
@@ -192,7 +206,7 @@ def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: G
           forces: ForceSchedule | None | str = "spec", progress: Callable[[str], None] | None = None,
           plant=None, effects: np.ndarray | None = None, safety: SafetyConfig | None = None,
           path: str | Path | None = None, metadata: dict | None = None, predict: bool = True,
-          rate_hz: float | None = None, config_path=None, fixes=None) -> TrackingRun:
+          rate_hz: float | None = None, config_path=None, fixes=None, adapt=None) -> TrackingRun:
     """Track ``spec`` once with the controller believing ``params`` (see ``controller_params``) and
     ``variant``'s plant; ``effects``: an effect vector the controller compensates; the rest as
     ``track_reference``."""
@@ -205,7 +219,15 @@ def track(spec: ScenarioSpec, params: OtbotParams, limits: MotorLimits, gains: G
     return track_reference(spec.reference, ComputedTorqueController(ctrl, gains), plant_v, limits, backend, feedback,
                            x0=spec.x0, forces=spec.forces if forces == "spec" else forces, safety=safety,
                            progress=progress, path=path, metadata=meta, predict=predict, rate_hz=rate_hz,
-                           config_path=config_path, fixes=fixes)
+                           config_path=config_path, fixes=fixes, adapt=adapt)
+
+
+def _origin(run: TrackingRun) -> float:
+    """Robot time (s) of the run's reference time 0."""
+    rec = run.loop.recording
+    if not len(run.t) or rec is None or not len(rec.t):
+        return 0.0
+    return float(rec.t[len(rec.t) - len(run.t)])
 
 
 def replay_torques(torques, times, plant, x0, rate_hz: float, duration: float):
@@ -237,12 +259,13 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
                  spec: ScenarioSpec | None = None, plant=None, effects: np.ndarray | None = None,
                  backend=None, feedback: str = "truth", safety: SafetyConfig | None = None,
                  path: str | Path | None = None, metadata: dict | None = None, config_path=None,
-                 fixes=None) -> dict:
+                 fixes=None, adapt=None) -> dict:
     """Run scenario ``name`` (or a CSV path, or a prebuilt ``spec``); returns the JSON summary
     (see ``otbot track --help``). ``backend`` default: ``DirectBackend(rate_hz)`` (exact sensors);
     robustness and isolated-force reruns use the same back end when it is a simulator, and are
     skipped on the configured bus (its robot cannot be changed). ``fixes``: an absolute pose source
-    for the EKF (e.g. ``sim.mocap.MotionCapture``)."""
+    for the EKF (e.g. ``sim.mocap.MotionCapture``); ``adapt``: an ``AdaptationConfig``: online payload
+    adaptation in the main run (not the reruns), reported as ``payload_estimate`` and ``adaptation``."""
     say = progress or (lambda m: None)
     backend = backend or DirectBackend(rate=rate_hz)
     gains = gains_from_tstab(t_stab)
@@ -253,7 +276,7 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
 
         say("torque-feasibility check (interval bound) ...")
         rep = feas(spec.reference, params, gains, limits, error_bounds or ErrorBounds.default(),
-                   heading0=0.0 if spec.x0 is None else float(spec.x0[2] - spec.x0[5]))
+                   heading0=0.0 if spec.x0 is None else float(spec.x0[2] - spec.x0[5]), progress=say)
         result["feasibility"] = rep.to_dict()
         for v in rep.violations[:10]:
             say(f"feasibility: {v['motor']} may exceed {v['limit_Nm']:g} N m on "
@@ -261,7 +284,11 @@ def run_scenario(name: str, params: OtbotParams, limits: MotorLimits, t_stab: fl
     say(f"closed loop on {backend.name} at {backend.rate:g} Hz, feedback {feedback}, {spec.reference.duration:.1f} s ...")
     kw = dict(backend=backend, feedback=feedback, plant=plant, effects=effects, safety=safety, config_path=config_path,
               fixes=fixes)
-    run = track(spec, params, limits, gains, "nominal", progress=progress, path=path, metadata=metadata, **kw)
+    run = track(spec, params, limits, gains, "nominal", progress=progress, path=path, metadata=metadata, adapt=adapt,
+                **kw)
+    if run.adapter is not None:
+        result["payload_estimate"] = run.adapter.payload_estimate()
+        result["adaptation"] = run.adapter.summary(_origin(run))
     if len(run.t) < 2:  # stopped before it tracked anything
         return {**result, "completed": False, "fault": run.loop.fault.to_dict() if run.loop.fault else None,
                 "feedback": result.get("feedback", feedback if isinstance(feedback, str) else None),
