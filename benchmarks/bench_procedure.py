@@ -90,13 +90,39 @@ def _cli(argv: list[str]) -> tuple[int, dict, str]:
     return rc or 0, res, err.getvalue()
 
 
-def _track_rms(params: Path, plant: Path, seed: int) -> float | None:
-    """RMS position error (m) of the corridor tracked on ``plant`` with the controller's ``params``."""
+def _track(params: Path, plant: Path, seed: int) -> dict:
+    """The corridor tracked on ``plant`` with the controller's ``params``: RMS position error (m, up to a
+    stop), whether it completed, the fault, whether the feasibility check found the corridor feasible."""
     rc, res, _ = _cli(["track", "corridor", "--sim", "--params", str(params), "--plant-params", str(plant),
                        "--seed", str(seed), "--json"])
-    if rc != 0 or "rms_error" not in res:
-        return None
-    return float(np.hypot(res["rms_error"]["x"], res["rms_error"]["y"]))
+    rms = res.get("rms_error")
+    return {"rms": float(np.hypot(rms["x"], rms["y"])) if rms else None, "completed": rc == 0,
+            "fault": (res.get("fault") or {}).get("kind"), "feasible": (res.get("feasibility") or {}).get("feasible")}
+
+
+def track_pair(session: Path, plant: Path, seed: int) -> dict:
+    return {"identified": _track(session / "params.yaml", plant, seed), "true": _track(plant, plant, seed)}
+
+
+def track_only(folder: Path, seeds: range, out: Path) -> list[dict]:
+    """Tracking for the sessions a ``--no-track`` study left in ``folder`` (``default-S/params.yaml``)."""
+    from otbot_hw.identification.study import every_parameter_robot
+
+    rows = []
+    for seed in seeds:
+        session = folder / f"default-{seed}"
+        if not (session / "params.yaml").is_file():
+            continue
+        unloaded, loaded, load = every_parameter_robot(seed)
+        plant = folder / f"robot-{seed}-loaded.yaml"
+        (loaded if load["mass"] >= 0.5 else unloaded).save(plant, header=f"every_parameter_robot({seed}), loaded")
+        row = {"seed": seed, "load": load, "track": track_pair(session, plant, seed)}
+        rows.append(row)
+        tr = row["track"]
+        print(f"[track] seed {seed}: load {load['mass']:.0f} kg, identified {tr['identified']}, true {tr['true']}",
+              flush=True)
+        out.write_text(json.dumps({"default": rows}, indent=1, default=float))
+    return rows
 
 
 def run_one(seed: int, variant: str, folder: Path, extra: list[str], track: bool = False) -> dict:
@@ -119,8 +145,7 @@ def run_one(seed: int, variant: str, folder: Path, extra: list[str], track: bool
     if track and rc == 0:
         plant = folder / f"robot-{seed}-loaded.yaml"
         (loaded if load["mass"] >= 0.5 else unloaded).save(plant, header=f"every_parameter_robot({seed}), loaded")
-        res["track"] = {"identified": _track_rms(session / "params.yaml", plant, seed),
-                        "true": _track_rms(plant, plant, seed)}
+        res["track"] = track_pair(session, plant, seed)
     return res
 
 
@@ -147,17 +172,24 @@ def _entry(t: dict, n: str) -> dict | None:
 
 
 def track_table(trials: list[dict]) -> str:
-    pairs = [(t["track"]["identified"], t["track"]["true"]) for t in trials
-             if t.get("track") and None not in (t["track"]["identified"], t["track"]["true"])]
-    if not pairs:
+    """Identified against true parameters on the corridor: the RMS ratio where both completed, and the
+    robots whose corridor the true parameters cannot track either (torque-limited)."""
+    tr = [t["track"] for t in trials if t.get("track")]
+    both = [x for x in tr if x["identified"]["completed"] and x["true"]["completed"]]
+    if not tr:
         return "(no tracking runs)"
-    r = np.array([a / b for a, b in pairs])
-    ident = np.array([a for a, _ in pairs])
-    true = np.array([b for _, b in pairs])
-    return ("| robots tracked | RMS position error, identified model: mean | true parameters: mean | ratio: median | "
-            "ratio: max | ratio <= 1.1 |\n|---|---|---|---|---|---|\n"
-            f"| {len(pairs)} | {1000 * ident.mean():.2f} mm | {1000 * true.mean():.2f} mm | {np.median(r):.3f} | "
-            f"{r.max():.3f} | {100 * np.mean(r <= 1.1):.0f} % |")
+    r = np.array([x["identified"]["rms"] / x["true"]["rms"] for x in both]) if both else np.array([np.nan])
+    ident = np.array([x["identified"]["rms"] for x in both] or [np.nan])
+    true = np.array([x["true"]["rms"] for x in both] or [np.nan])
+    only_true = sum(x["true"]["completed"] and not x["identified"]["completed"] for x in tr)
+    only_ident = sum(x["identified"]["completed"] and not x["true"]["completed"] for x in tr)
+    neither = sum(not x["true"]["completed"] and not x["identified"]["completed"] for x in tr)
+    return ("| robots | both completed | RMS position error, identified: mean | true: mean | ratio: median | "
+            "ratio: max | ratio <= 1.1 | neither completed | only the true one | only the identified one |\n"
+            "|---|---|---|---|---|---|---|---|---|---|\n"
+            f"| {len(tr)} | {len(both)} | {1000 * ident.mean():.2f} mm | {1000 * true.mean():.2f} mm | "
+            f"{np.median(r):.4f} | {r.max():.4f} | {100 * np.mean(r <= 1.1):.0f} % | {neither} | {only_true} | "
+            f"{only_ident} |")
 
 
 def outcome_table(sets: dict[str, list[dict]]) -> str:
@@ -248,6 +280,8 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default="default", help="comma-separated, of " + ", ".join(VARIANTS)
                     + " (default: default)")
     ap.add_argument("--no-track", action="store_true", help="skip the corridor tracking comparison")
+    ap.add_argument("--track-only", type=Path, default=None, metavar="DIR",
+                    help="only the tracking comparison, for the sessions a --no-track study kept in DIR (--out-dir)")
     ap.add_argument("--out-dir", type=Path, default=None, help="keep the sessions here (default a temporary folder)")
     ap.add_argument("--json", type=Path, default=None, help="write every trial to this JSON file")
     ap.add_argument("--tables", type=Path, nargs="+", default=None, metavar="JSON",
@@ -259,6 +293,11 @@ def main(argv=None) -> int:
             for v, ts in json.loads(f.read_text()).items():
                 sets.setdefault(v, []).extend(ts)
         print_tables(sets)
+        return 0
+    if args.track_only:
+        rows = track_only(args.track_only, range(args.first_seed, args.first_seed + args.seeds),
+                          args.json or args.track_only / "track.json")
+        print(track_table(rows))
         return 0
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     tmp = None
@@ -282,8 +321,7 @@ def main(argv=None) -> int:
             worst = max((abs(x) for x in es.values() if x is not None), default=float("nan"))
             tr = r.get("track") or {}
             print(f"[{v}] seed {s}: exit {r['rc']}, {r['wall']:.1f} s, {r['cpu']:.1f} s CPU, largest |error|/sigma "
-                  f"{worst:.2f}" + (f", tracking {tr['identified']:.4f} / {tr['true']:.4f} m" if tr.get('true') and
-                                    tr.get('identified') else "")
+                  f"{worst:.2f}" + (f", tracking {tr['identified']} / {tr['true']}" if tr else "")
                   + (f" ({r.get('reason') or ' '.join(r['stderr_tail'])})"[:200] if r["rc"] else ""), flush=True)
     print(f"\n{sum(len(t) for t in sets.values())} procedures in {time.perf_counter() - t0:.0f} s\n")
     print_tables(sets)
