@@ -56,7 +56,8 @@ def measure_inprocess(rate: float, cycles: int, with_imu: bool) -> dict:
 def measure_slcan(rate: float, cycles: int) -> dict:
     import subprocess
 
-    from drivers.robot import CanopenRobot, open_imu
+    from drivers.robot import open_imu
+    from sim.lockstep import LockstepCanopenRobot
 
     code = "import sys; from otbot_hw.cli import main; sys.exit(main())"
     proc = subprocess.Popen([sys.executable, "-c", code, "plant", "--transport", "slcan", "--rate", str(rate)],
@@ -65,7 +66,7 @@ def measure_slcan(rate: float, cycles: int) -> dict:
         info = json.loads(proc.stdout.readline())
         cfg = load_robot_config().replace_bus(control_rate=rate, interface="slcan", channel=info["can_channel"],
                                               options={"sleep_after_open": 0})
-        robot = CanopenRobot(cfg, imu=open_imu(cfg.imu, port=info["imu_port"]), imu_lockstep=True)
+        robot = LockstepCanopenRobot(cfg, imu=open_imu(cfg.imu, port=info["imu_port"]))
         wall = np.empty(cycles)
         cpu = np.empty(cycles)
         with robot:

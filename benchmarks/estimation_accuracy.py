@@ -4,7 +4,7 @@ The runs: the corridor and the figure-8 (``otbot_hw.control.scenarios``) tracked
 simulator's true state at the bus rate (100 Hz), then replayed under the same torques on the extended
 model (``simulate_extended``) with the effect under study -- constant wheel slip (k_slip), slip bursts
 (k_slip switched on for short spans), a gyro bias (b_gz) -- and read through the extended model's
-sensor outputs (``effects.sensor_outputs``) with the paper's noise (``NoiseModel.paper()``) and the
+sensor outputs (``sensor_model.sensor_outputs``) with the paper's noise (``NoiseModel.paper()``) and the
 configured encoders' quantization (wheels 4096 x 10 counts per revolution, pivot 16384; count boundaries at
 a random offset from the joints' zero, drawn per seed). Slip leaves the
 body's motion unchanged (the contact transmits the force), so one closed-loop run serves every variant.
@@ -38,6 +38,8 @@ from otbot_hw.estimation.consistency import average_bounds, nees, pose_twist_err
 from otbot_hw.estimation.dead_reckoning import imu_dead_reckoning, wheel_odometry  # noqa: E402
 from otbot_hw.estimation.ekf import INITIAL_POSE_STD  # noqa: E402
 from otbot_hw.model import effects as fx  # noqa: E402
+from otbot_hw.model import sensor_model  # noqa: E402
+from otbot_hw.model.angles import wrap_angle  # noqa: E402
 from otbot_hw.params import OtbotParams, nominal  # noqa: E402
 from otbot_hw.recording import Recording  # noqa: E402
 from otbot_hw.sensors import NoiseModel  # noqa: E402
@@ -98,7 +100,7 @@ def sensed_recording(params: OtbotParams, U: np.ndarray, F: np.ndarray, x0: np.n
             continue
         eff = fx.effect_vector(values)
         traj = simulate_extended(params, eff, U[a:b], dt, x0=x, tau0=tau, forces=F[a:b])
-        s = fx.sensor_outputs(traj, params, eff)
+        s = sensor_model.sensor_outputs(traj, params, eff)
         s["joint_pos"][:, :2] += slip
         X[a:b + 1] = traj.x
         for key in sens:
@@ -170,7 +172,7 @@ def run_once(scenario: str, variant: str, seed: int, params: OtbotParams, config
             pose = wheel_odometry(rec, params, tp[0])
         entry["seconds"] = time.perf_counter() - t0
         e = pose - tp
-        e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        e[:, 2] = wrap_angle(e[:, 2])
         entry["pos_err"] = np.hypot(e[:, 0], e[:, 1])
         entry["alpha_err"] = np.abs(e[:, 2])
         entry["pose"] = pose

@@ -7,13 +7,16 @@ SYNC monitoring and the RPDO deadline 0x1400:05 on a paced bus); the configured 
 interpolation period (0x60C2) = control period; 0x6076 rated torque checked against the
 configuration (the configuration's value used where the drive has no 0x6076), 0x608F encoder
 resolution; mode of operation: cyclic synchronous torque (10) or, where the drive lacks it,
-profile torque (4); PDO mapping (``drivers.mapping``: planned from the dictionary, fixed
-mappings used as they are, written, read back and verified), all synchronous (type 1). The
-preferred layout:
+profile torque (4); quick stop option 0x605A (written and read back); PDO mapping
+(``drivers.mapping``: planned from the dictionary, fixed mappings used as they are, written, read
+back and verified), all synchronous (type 1). The preferred layout:
 
 * RPDO1: controlword 0x6040, target torque 0x6071 (per-mille of rated torque);
 * TPDO1: statusword 0x6041, position actual 0x6064 (counts), torque actual 0x6077 (per-mille);
 * TPDO2: velocity actual 0x606C, error code 0x603F, mode display 0x6061.
+
+State handling: the master's command per drive (``commanded``) and the drive's reported state give
+each cycle's controlword (``cyclic_controlword``); the controlword values are written here only.
 
 SI units at the API: joint angle phi = polarity * (counts - counts at zero) / (counts_per_rev *
 gear_ratio) * 2 pi rad, zeroed at the first TPDO after ``configure`` (the 32-bit counter is
@@ -30,13 +33,52 @@ import canopen
 from canopen.profiles.p402 import BaseNode402, OperationMode, State402
 from canopen.sdo import SdoAbortedError
 
+from drivers import pdo_codec
 from drivers.config import DriveConfig
 from drivers.device import CanopenDevice, pdo_bytes, pdo_get, pdo_put
 from drivers.faults import DeviceConfigError, DriverError, error_meaning
 from drivers.mapping import Need, object_name
 from otbot_hw.robot import Fault
 
+# Controlwords (CiA 402 §6.3.1, bits 0-3 and 7): written nowhere else in the project.
+CW_DISABLE_VOLTAGE = 0x0000
+CW_QUICK_STOP = 0x0002
+CW_SHUTDOWN = 0x0006
+CW_SWITCH_ON = 0x0007
+CW_ENABLE_OPERATION = 0x000F
 CW_FAULT_RESET = 0x0080
+#: What the master commands a drive to be in (``CiA402Drive.commanded``).
+DISABLED, ENABLING, ENABLED, QUICK_STOP = "disabled", "enabling", "enabled", "quick stop"
+#: The master's way to OPERATION ENABLED, one controlword per SYNC: "enable operation" only from
+#: SWITCHED ON (transition 4), never from QUICK STOP ACTIVE (transition 16) or READY TO SWITCH ON.
+ENABLE_PATH = {"NOT READY TO SWITCH ON": CW_DISABLE_VOLTAGE, "SWITCH ON DISABLED": CW_SHUTDOWN,
+               "READY TO SWITCH ON": CW_SWITCH_ON, "SWITCHED ON": CW_ENABLE_OPERATION,
+               "OPERATION ENABLED": CW_ENABLE_OPERATION, "QUICK STOP ACTIVE": CW_DISABLE_VOLTAGE}
+#: 0x605A quick stop option codes (CiA 402): 1-4 end in SWITCH ON DISABLED after the stop, 5-8 stay
+#: in QUICK STOP ACTIVE (where "enable operation" would re-enable: transition 16), 0 disables at once.
+QUICK_STOP_OPTIONS = range(0, 9)
+
+
+def cyclic_controlword(commanded: str, state: str) -> int:
+    """The controlword of one control cycle for a drive the master commands ``commanded`` and that
+    last reported CiA 402 ``state``: "enable operation" only to keep a commanded drive in OPERATION
+    ENABLED; a drive found elsewhere (stopped by itself: its watchdog, a local fault) gets quick stop
+    (in QUICK STOP ACTIVE) or disable voltage, never "enable operation"."""
+    if commanded == ENABLED and state == "OPERATION ENABLED":
+        return CW_ENABLE_OPERATION
+    if commanded == QUICK_STOP or state == "QUICK STOP ACTIVE":
+        return CW_QUICK_STOP
+    return CW_DISABLE_VOLTAGE
+
+
+def expected_states(commanded: str) -> tuple[str, ...] | None:
+    """States a drive may report while the master commands ``commanded`` (None: any, e.g. on the
+    way to OPERATION ENABLED or while disabling, where the statusword lags one SYNC)."""
+    if commanded == ENABLED:
+        return ("OPERATION ENABLED",)
+    if commanded == QUICK_STOP:  # the SYNC before the quick stop applies still shows OPERATION ENABLED
+        return ("OPERATION ENABLED", *STOPPED_STATES)
+    return None
 RPDO_LAYOUT = {1: [0x6040, 0x6071]}
 TPDO_LAYOUT = {1: [0x6041, 0x6064, 0x6077], 2: [0x606C, 0x603F, 0x6061]}
 RX_NEEDS = [Need(0x6040), Need(0x6071)]
@@ -86,13 +128,39 @@ def no_torque_mode(bits: int) -> str:
 
 
 class Node402(BaseNode402):
-    """``BaseNode402`` that ignores TPDOs of the wrong length instead of decoding garbage."""
+    """``BaseNode402`` that ignores TPDOs of the wrong length instead of decoding garbage, and whose
+    ``state`` is worked out once per statusword value (it is asked several times a cycle)."""
+
+    _sw_seen: int | None = None
+    _state_seen = "UNKNOWN"
 
     def on_TPDOs_update_callback(self, mapobject):
         if len(mapobject.data) != pdo_bytes(mapobject):
             return
         for obj in mapobject:
             self.tpdo_values[obj.index] = pdo_get(obj)
+
+    @property
+    def state(self) -> str:
+        sw = self.tpdo_values.get(0x6041)
+        if sw is None:  # not in a TPDO: canopen's SDO fallback
+            return BaseNode402.state.fget(self)
+        if sw != self._sw_seen:
+            self._state_seen = _state_of(sw)
+            self._sw_seen = sw
+        return self._state_seen
+
+    @state.setter
+    def state(self, target: str) -> None:
+        BaseNode402.state.fset(self, target)
+
+
+def _state_of(statusword: int) -> str:
+    """CiA 402 state of a statusword (canopen's ``State402.SW_MASK`` table)."""
+    for state, (mask, bits) in State402.SW_MASK.items():
+        if statusword & mask == bits:
+            return state
+    return "UNKNOWN"
 
 
 def interpolation_period(period: float) -> tuple[int, int]:
@@ -130,7 +198,8 @@ class CiA402Drive(CanopenDevice):
         self.mode: int | None = None
         self.max_permille = 32767
         self.rated_torque = cfg.rated_torque  # N m, motor side
-        self.controlword = State402.CW_DISABLE_VOLTAGE
+        self.controlword = CW_DISABLE_VOLTAGE
+        self.commanded = DISABLED
         self.target_permille = 0
         self._last_raw_pos: int | None = None
         self._pos_counts = 0  # unwrapped counts since the first reading
@@ -153,6 +222,7 @@ class CiA402Drive(CanopenDevice):
         self.notes = []
         self.sdo_write(0x1017, 0, int(round(c.heartbeat_producer * 1000)))
         self.configure_protection()
+        self.configure_quick_stop_option()
         self.max_permille = 32767
         for index, sub, value in c.sdo_config:
             if self.has(index, sub):
@@ -201,8 +271,10 @@ class CiA402Drive(CanopenDevice):
         self.node.rpdo_pointers.clear()
         self.node.setup_pdos(upload=False)  # BaseNode402 caches TPDO values / RPDO pointers
         self.hook_tpdos()  # after BaseNode402's cache update, so tpdo_values are fresh here
+        self._rpdo_frames = None  # compiled at the first transmit
         self._last_raw_pos = None
-        self.controlword = State402.CW_DISABLE_VOLTAGE
+        self.controlword = CW_DISABLE_VOLTAGE
+        self.commanded = DISABLED
         self.target_permille = 0
 
     def configure_protection(self) -> None:
@@ -220,6 +292,17 @@ class CiA402Drive(CanopenDevice):
                                   "the drive's reaction to a lost master is its own default")
         cycle_us = int(round(self.period * 1e6)) if self.paced else 0
         self.sdo_write_if_present(0x1006, 0, cycle_us, "the drive does not watch the SYNC period")
+
+    def configure_quick_stop_option(self) -> None:
+        """0x605A quick stop option code = ``drives.quick_stop_option``, read back: with 1-4 a drive
+        that quick-stops (on the master's command or by itself) ends in SWITCH ON DISABLED, where no
+        controlword but the master's full enable sequence powers it again."""
+        want = self.cfg.quick_stop_option
+        if not self.sdo_write_if_present(0x605A, 0, want, "the drive's quick stop option is its own default"):
+            return
+        got = self.sdo_read(0x605A)
+        if got != want:
+            raise self.config_error(f"quick stop option 0x605A = {want} written, drive reads back {got}")
 
     def configure_rpdo_deadline(self, rpdo: int | None) -> None:
         """RPDO deadline monitoring (0x1400:05 event timer of the RPDO with the controlword), ms."""
@@ -267,14 +350,27 @@ class CiA402Drive(CanopenDevice):
     def permille_to_torque(self, pm: int) -> float:
         return self.cfg.polarity * pm * self.cfg.joint_torque_per_permille
 
+    def _carried(self) -> tuple:
+        """(TPDO with the statusword, with torque actual, with error code) of the current plan;
+        worked out once per plan (asked every cycle)."""
+        plan = self.plan
+        if self._carried_plan is not plan:
+            self._carried_for = ((None, None, None) if plan is None else
+                                 (plan.tx.carrying(0x6041), plan.tx.carrying(0x6077), plan.tx.carrying(0x603F)))
+            self._carried_plan = plan
+        return self._carried_for
+
+    _carried_plan = None
+    _carried_for = (None, None, None)
+
     @property
     def status_tpdo(self) -> int | None:
         """Number of the TPDO that carries the statusword."""
-        return self.plan.tx.carrying(0x6041) if self.plan is not None else None
+        return self._carried()[0]
 
     @property
     def reports_torque(self) -> bool:
-        return self.plan is not None and self.plan.tx.carrying(0x6077) is not None
+        return self._carried()[1] is not None
 
     # -- reception -------------------------------------------------------------------------------
     def on_valid_tpdo(self, number: int, pdo_map) -> None:
@@ -292,10 +388,12 @@ class CiA402Drive(CanopenDevice):
         v = self.node.tpdo_values
         c = self.cfg
         sw = v.get(0x6041, 0)
-        torque = self.permille_to_torque(v.get(0x6077, 0)) if self.reports_torque else math.nan
+        _, torque_tpdo, error_tpdo = self._carried()
+        torque = self.permille_to_torque(v.get(0x6077, 0)) if torque_tpdo is not None else math.nan
         return DriveReading(position=c.polarity * self._pos_counts * c.rad_per_count,
                             velocity=c.polarity * v.get(0x606C, 0) * c.rad_s_per_velocity_unit,
-                            torque=torque, statusword=sw, state=self.state, error_code=self.error_code(),
+                            torque=torque, statusword=sw, state=self.node.state,
+                            error_code=v.get(0x603F, 0) if error_tpdo is not None else self.last_emcy_code,
                             mode=v.get(0x6061, 0))
 
     @property
@@ -305,7 +403,7 @@ class CiA402Drive(CanopenDevice):
 
     def error_code(self) -> int | None:
         """0x603F from the last TPDO; where the drive does not send it, the last EMCY code (or None)."""
-        if self.plan is not None and self.plan.tx.carrying(0x603F) is not None:
+        if self._carried()[2] is not None:
             return self.node.tpdo_values.get(0x603F, 0)
         return self.last_emcy_code
 
@@ -326,31 +424,51 @@ class CiA402Drive(CanopenDevice):
 
     # -- commands (sent in RPDO1 before the next SYNC) ---------------------------------------------
     def step_towards_enabled(self) -> bool:
-        """Stage the controlword of the next transition towards OPERATION ENABLED; True once there."""
+        """Stage the controlword of the next transition towards OPERATION ENABLED (``ENABLE_PATH``);
+        True once there (the drive is then commanded ``ENABLED``)."""
         state = self.node.state
+        self.target_permille = 0
         if state == "OPERATION ENABLED":
-            self.controlword = State402.CW_OPERATION_ENABLED
+            self.commanded = ENABLED
+            self.controlword = CW_ENABLE_OPERATION
             return True
         if state in FAULT_STATES:
             f = self.fault("statusword", f"cannot enable: drive in {state} ({self.error_text()}); reset the fault")
             raise DriverError(str(f), (f,))
-        nxt = ("OPERATION ENABLED" if (state, "OPERATION ENABLED") in State402.TRANSITIONTABLE
-               else State402.next_state_indirect(state))
-        self.controlword = State402.TRANSITIONTABLE.get((state, nxt), State402.CW_DISABLE_VOLTAGE)
-        self.target_permille = 0
+        self.commanded = ENABLING
+        self.controlword = ENABLE_PATH.get(state, CW_DISABLE_VOLTAGE)
         return False
+
+    def unexpected_state(self) -> str | None:
+        """Why the last reported state does not fit the master's command (None: it fits)."""
+        allowed = expected_states(self.commanded)
+        state = self.node.state
+        if allowed is None or state in allowed:
+            return None
+        return f"drive left OPERATION ENABLED without a command: now {state}"
+
+    def stage_cyclic(self, tau: float) -> float:
+        """Stage this cycle's controlword (``cyclic_controlword`` of the command and the reported
+        state) and joint torque ``tau`` (N m; zero unless the word keeps the drive enabled); returns
+        the torque actually commanded."""
+        self.controlword = cyclic_controlword(self.commanded, self.node.state)
+        self.target_permille = self.torque_to_permille(tau) if self.controlword == CW_ENABLE_OPERATION else 0
+        return self.permille_to_torque(self.target_permille)
 
     def stage_fault_reset(self, edge: bool) -> None:
         """Fault reset is the rising edge of controlword bit 7: stage 0 (edge=False) then 0x80."""
-        self.controlword = CW_FAULT_RESET if edge else State402.CW_DISABLE_VOLTAGE
+        self.commanded = DISABLED
+        self.controlword = CW_FAULT_RESET if edge else CW_DISABLE_VOLTAGE
         self.target_permille = 0
 
     def stage_quick_stop(self) -> None:
-        self.controlword = State402.CW_QUICK_STOP
+        self.commanded = QUICK_STOP
+        self.controlword = CW_QUICK_STOP
         self.target_permille = 0
 
     def stage_disable(self) -> None:
-        self.controlword = State402.CW_DISABLE_VOLTAGE
+        self.commanded = DISABLED
+        self.controlword = CW_DISABLE_VOLTAGE
         self.target_permille = 0
 
     def stage_torque(self, tau: float) -> float:
@@ -359,7 +477,21 @@ class CiA402Drive(CanopenDevice):
         return self.permille_to_torque(self.target_permille)
 
     def transmit(self) -> None:
-        """Send the RPDO(s) with controlword and target torque; the drive applies them at the next SYNC."""
+        """Send the RPDO(s) with controlword and target torque; the drive applies them at the next SYNC.
+        Each RPDO is packed by its precompiled layout (``drivers.pdo_codec``) where one struct
+        expresses it, else by canopen's variables."""
+        frames = self._rpdo_frames
+        if frames is None:
+            frames = self._rpdo_frames = self._compile_rpdos()
+        if frames:
+            send = self.network.send_message
+            for m, layout in frames:
+                values = [self.controlword if i == 0x6040 else self.target_permille if i == 0x6071 else self._fill[i]
+                          for i in layout.indices]
+                data = layout.encode(values)
+                m.data[:] = data  # canopen's view of the map stays current
+                send(m.cob_id, data)
+            return
         p = self.node.rpdo_pointers
         pdo_put(p[0x6040], self.controlword)
         pdo_put(p[0x6071], self.target_permille)
@@ -368,3 +500,18 @@ class CiA402Drive(CanopenDevice):
         parents = {id(p[0x6040].pdo_parent): p[0x6040].pdo_parent, id(p[0x6071].pdo_parent): p[0x6071].pdo_parent}
         for m in parents.values():
             m.transmit()
+
+    _rpdo_frames: list | None = None
+
+    def _compile_rpdos(self) -> list:
+        """[(PdoMap, PdoLayout)] of the RPDOs carrying controlword and target torque, [] when one of
+        them cannot be packed by one struct or carries an object the driver does not fill."""
+        p = self.node.rpdo_pointers
+        maps = {id(p[i].pdo_parent): p[i].pdo_parent for i in (0x6040, 0x6071)}
+        frames = []
+        for m in maps.values():
+            layout = pdo_codec.compile_map(m)
+            if layout is None or any(i not in (0x6040, 0x6071) and i not in self._fill for i in layout.indices):
+                return []
+            frames.append((m, layout))
+        return frames

@@ -43,7 +43,9 @@ class BusConfig:
     reaction_timeout: on a fault, SYNC keeps running at most this many periods for every drive still
     on the bus to confirm its quick stop, then the ones that did not get NMT STOP (periods);
     master_node_id / master_heartbeat: the heartbeat the master produces (COB-ID 0x700 + ID, every s),
-    which the drives consume (0x1016).
+    which the drives consume (0x1016); loop_liveness: while the drives are enabled, the master's
+    heartbeat is withheld once the control loop has not run a cycle (``read``/``write``) for this many
+    periods, so every drive's heartbeat watchdog fires even if the process's other threads live on.
     """
 
     interface: str
@@ -56,6 +58,7 @@ class BusConfig:
     reaction_timeout: int = 2
     master_node_id: int = 127
     master_heartbeat: float = 0.02
+    loop_liveness: int = 3
 
     @property
     def period(self) -> float:
@@ -79,7 +82,8 @@ class DriveConfig:
 
     Drive-side protection, written by SDO at boot: master_heartbeat_consumer (s, 0x1016),
     rpdo_timeout (periods, RPDO deadline 0x1400:05 on a paced bus), abort_connection_option
-    (0x6007: what the drive does when the master's heartbeat, SYNC or RPDOs stop)."""
+    (0x6007: what the drive does when the master's heartbeat, SYNC or RPDOs stop), quick_stop_option
+    (0x605A, CiA 402 code 0-8; 2: quick stop ramp, then SWITCH ON DISABLED)."""
 
     name: str
     node_id: int
@@ -96,6 +100,7 @@ class DriveConfig:
     master_heartbeat_consumer: float = 0.1
     rpdo_timeout: int = 3
     abort_connection_option: int = 3
+    quick_stop_option: int = 2
 
     @property
     def rad_s_per_velocity_unit(self) -> float:
@@ -152,15 +157,18 @@ class RobotConfig:
 
     def relaxed(self, seconds: float) -> "RobotConfig":
         """A copy whose heartbeat consumer times (the master's of each node, each drive's of the
-        master) are at least ``seconds``: for lockstep runs against a simulated plant, where no
-        real-time deadline is at stake and a loaded machine must not trip them."""
+        master) and the loop's liveness (``bus.loop_liveness``) are at least ``seconds``: for lockstep
+        runs against a simulated plant, where no real-time deadline is at stake and a loaded machine
+        must not trip them."""
         from dataclasses import replace
 
         drives = tuple(replace(d, heartbeat_consumer=max(seconds, d.heartbeat_consumer),
                                master_heartbeat_consumer=max(seconds, d.master_heartbeat_consumer))
                        for d in self.drives)
         enc = replace(self.pivot_encoder, heartbeat_consumer=max(seconds, self.pivot_encoder.heartbeat_consumer))
-        return replace(self, drives=drives, pivot_encoder=enc)
+        # and the loop's liveness: a lockstep cycle held up that long by a loaded machine is no stall
+        liveness = max(self.bus.loop_liveness, int(np.ceil(seconds / self.bus.period - 1e-9)))
+        return replace(self, drives=drives, pivot_encoder=enc, bus=replace(self.bus, loop_liveness=liveness))
 
     def node_ids(self) -> list[int]:
         ids = [d.node_id for d in self.drives]
@@ -280,7 +288,8 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
                     options=dict(options),
                     reaction_timeout=r.periods(b, "reaction_timeout", "bus.reaction_timeout", rate, default=2),
                     master_node_id=master_id,
-                    master_heartbeat=r.number(b, "master_heartbeat", "bus.master_heartbeat", "ms", default=20.0) / 1000)
+                    master_heartbeat=r.number(b, "master_heartbeat", "bus.master_heartbeat", "ms", default=20.0) / 1000,
+                    loop_liveness=r.periods(b, "loop_liveness", "bus.loop_liveness", rate, default=3))
 
     d = r.section(data, "drives")
     eds = r.eds(d, "drives.eds")
@@ -305,6 +314,10 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     abort = r.raw(d, "abort_connection_option", "drives.abort_connection_option", "quick_stop")
     if abort not in ABORT_OPTIONS:
         raise r.err("drives.abort_connection_option", f"must be one of {', '.join(ABORT_OPTIONS)}, got {abort!r}")
+    qso = r.raw(d, "quick_stop_option", "drives.quick_stop_option", 2)
+    if isinstance(qso, bool) or not isinstance(qso, int) or not 0 <= qso <= 8:
+        raise r.err("drives.quick_stop_option", f"must be a CiA 402 quick stop option code 0..8 (0x605A; 2: quick "
+                                                f"stop ramp, then SWITCH ON DISABLED), got {qso!r}")
     drives = []
     for k, name in enumerate(JOINTS):
         j = r.section(d, f"drives.{name}")
@@ -314,7 +327,7 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
             polarity=r.sign(j, "polarity", f"drives.{name}.polarity"), rated_torque=rated,
             heartbeat_producer=hb_p, heartbeat_consumer=hb_c, sdo_config=sdo,
             max_torque=float(limits.max_torque[k]), velocity_unit=vunit, master_heartbeat_consumer=mhb_c,
-            rpdo_timeout=rpdo_timeout, abort_connection_option=ABORT_OPTIONS[abort]))
+            rpdo_timeout=rpdo_timeout, abort_connection_option=ABORT_OPTIONS[abort], quick_stop_option=qso))
 
     e = r.section(data, "pivot_encoder")
     source = r.raw(e, "source", "pivot_encoder.source")

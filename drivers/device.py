@@ -16,7 +16,7 @@ import canopen
 from canopen.emcy import EmcyError
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from drivers import mapping
+from drivers import mapping, pdo_codec
 from drivers.faults import DeviceConfigError, DriverError, error_meaning
 from otbot_hw.robot import Fault
 
@@ -140,6 +140,8 @@ class CanopenDevice:
         self.node.emcy.add_callback(self._on_emcy)
         self.tpdos: list[int] = []  # numbers of the TPDOs this driver mapped (expected on every SYNC)
         self._hooked: set[int] = set()
+        self._fast: dict[int, pdo_codec.FastTpdo] = {}  # TPDO number -> its fast decoder
+        self.tpdo_values: dict[int, object] = {}  # last TPDO values by object index (fast decoding)
         self.last_emcy_code: int | None = None
 
     @property
@@ -231,12 +233,36 @@ class CanopenDevice:
         self.tpdos = sorted(plan.tx.pdos)
 
     def hook_tpdos(self) -> None:
-        """Receive the mapped TPDOs (call after any other decoder, e.g. BaseNode402's cache, is hooked)."""
+        """Receive the mapped TPDOs (call after any other decoder, e.g. BaseNode402's cache, is hooked).
+
+        Each TPDO whose layout one struct expresses (``drivers.pdo_codec``) is decoded by a
+        ``FastTpdo`` instead of canopen's per-variable path: its values go to ``tpdo_cache`` (the
+        node's ``tpdo_values`` where it has them) and the frame to ``_on_tpdo``; the others keep
+        canopen's ``PdoMap`` callbacks."""
+        cache = self.tpdo_cache()
         for no in self.tpdos:
             m = self.node.tpdo[no]
-            if no not in self._hooked:
+            layout = pdo_codec.compile_map(m) if cache is not None else None
+            if layout is not None:
+                fast = self._fast.get(no)
+                if fast is None or fast.layout.keys != layout.keys or fast.cob_id != m.cob_id:
+                    fast = self._fast[no] = pdo_codec.FastTpdo(
+                        self.network, m, layout, cache, lambda vals, no=no, m=m: self._on_tpdo(no, m),
+                        lambda data: self._count_malformed(), skip=self._replaced_callbacks())
+                fast.attach()
+            elif no not in self._hooked:
                 m.add_callback(lambda pdo_map, no=no: self._on_tpdo(no, pdo_map))
                 self._hooked.add(no)
+
+    def _replaced_callbacks(self) -> tuple:
+        """``PdoMap`` callbacks a ``FastTpdo`` does the work of (BaseNode402's value cache)."""
+        cb = getattr(self.node, "on_TPDOs_update_callback", None)
+        return (cb,) if cb is not None else ()
+
+    def tpdo_cache(self) -> dict | None:
+        """Where fast-decoded TPDO values go, by object index: the node's ``tpdo_values`` (a
+        ``BaseNode402``), else this device's ``tpdo_values`` (None: canopen decodes)."""
+        return getattr(self.node, "tpdo_values", self.tpdo_values)
 
     def _on_tpdo(self, number: int, pdo_map) -> None:
         """Validate a received TPDO; valid ones go to ``on_valid_tpdo`` and the cycle tracker."""

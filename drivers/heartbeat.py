@@ -27,6 +27,7 @@ class _Watch:
     last: float | None = None
     state: int | None = None
     expected: int | None = None  # NMT state the node must report (None: any)
+    previous: int | None = None  # also accepted until the node first reports ``expected``
     faulted: bool = False
     rebooted: bool = False  # a boot-up message arrived while monitoring
     malformed: int = 0
@@ -59,6 +60,8 @@ class HeartbeatConsumer:
         with self._lock:
             w.last = time.monotonic()
             w.state = state & 0x7F
+            if w.state == w.expected:
+                w.previous = None
             if w.state == 0 and w.expected is not None:
                 w.rebooted = True
 
@@ -69,10 +72,21 @@ class HeartbeatConsumer:
             now = time.monotonic()
             for w in self._watch.values():
                 w.expected = code
+                w.previous = None
                 w.faulted = False
                 w.rebooted = False
                 if w.last is None:
                     w.last = now  # the timeout counts from the start of monitoring
+
+    def expect_node(self, node_id: int, state: str) -> None:
+        """Node ``node_id`` must report NMT ``state`` from now on (e.g. 'STOPPED' after the master's own
+        NMT STOP: expected, not a fault)."""
+        code = {v: k for k, v in NMT_STATES.items()}[state]
+        with self._lock:
+            w = self._watch[node_id]
+            w.previous = w.expected if w.state != code else None  # heartbeats sent before the command
+            w.expected = code
+            w.rebooted = False
 
     def check(self, now: float | None = None) -> list[Fault]:
         """Faults that appeared since the last check (each node is reported once until it recovers)."""
@@ -86,7 +100,8 @@ class HeartbeatConsumer:
                     w.faulted = True
                     out.append(Fault(w.device, w.node, "heartbeat", f"no heartbeat for {now - w.last:.3f} s "
                                      f"(consumer time {w.timeout:.3f} s)", code=0x8130))
-                elif w.rebooted or (w.expected is not None and w.state is not None and w.state != w.expected):
+                elif w.rebooted or (w.expected is not None and w.state is not None
+                                    and w.state not in (w.expected, w.previous)):
                     w.faulted = True
                     if w.rebooted:
                         meaning = "boot-up message: the node rebooted (power loss or reset) and lost its setup"
@@ -131,17 +146,22 @@ class HeartbeatConsumer:
 
 class HeartbeatProducer:
     """The master's own heartbeat (CiA 301 §7.2.8.3.2.1): NMT state OPERATIONAL (0x05) on COB-ID
-    0x700 + ``node_id`` every ``period`` s, from a thread of its own (so it keeps going while the
-    control loop is busy, and stops when the process dies). The drives consume it through 0x1016
-    and apply their abort connection option when it stops. A frame the bus cannot carry is
-    counted (``failures``, last error in ``error``) and the next one tried a period later."""
+    0x700 + ``node_id`` every ``period`` s, from a thread of its own. The drives consume it through
+    0x1016 and apply their abort connection option when it stops. ``alive()`` (optional) is asked
+    before every frame: while it says False (the control loop stalled) no heartbeat goes out
+    (``withheld`` counts them), so the master's liveness is the loop's, not this thread's. A frame
+    the bus cannot carry is counted (``failures``, last error in ``error``) and the next one tried a
+    period later."""
 
     OPERATIONAL = 0x05
 
-    def __init__(self, network, node_id: int, period: float):
+    def __init__(self, network, node_id: int, period: float, alive=None):
         self.network = network
         self.node_id = node_id
         self.period = period
+        self.alive = alive
+        self.withheld = 0  # times the heartbeat was withheld (loop stalls)
+        self.withholding = False
         self.sent = 0
         self.failures = 0
         self.error: str | None = None
@@ -162,6 +182,13 @@ class HeartbeatProducer:
     def _run(self) -> None:
         due = time.monotonic()
         while not self._stop.is_set():
+            if self.alive is not None and not self.alive():
+                if not self.withholding:
+                    self.withholding = True
+                    self.withheld += 1
+                self._stop.wait(self.period / 4)  # sends at once when the loop runs again
+                continue
+            self.withholding = False
             try:
                 self.network.send_message(0x700 + self.node_id, bytes([self.OPERATIONAL]))
                 self.sent += 1

@@ -6,7 +6,9 @@ where the dictionary has them). ``plan_pdos`` decides, from the EDS alone, which
 which object:
 
 1. a PDO whose mapping is fixed (its mapping entries are read-only in the dictionary) is used as
-   it is when it carries any needed object;
+   it is when it carries any needed object; a PDO whose entry count is read-only (``const``) but
+   whose entries are writable is configurable within that count: at most ``count`` objects, the
+   count itself never written, its unused entries written empty (0);
 2. the needed objects still missing go into configurable PDOs, in the preferred layout where the
    dictionary allows it, else into the first configurable PDO with room (64 bits, map entries);
 3. a required object that is absent from the dictionary or fits nowhere is refused by name
@@ -15,8 +17,9 @@ which object:
 ``configure_pdos`` writes the plan over SDO (canopen's ``PdoMap.save`` for configurable PDOs,
 the communication parameters only for fixed ones), disables every other PDO, and
 ``verify_pdos`` reads every planned PDO back (COB-ID, transmission type, mapping entries) and
-refuses, naming node, PDO and object, what does not carry the plan. Only then are the local
-``PdoMap`` objects set up for encoding and decoding.
+refuses, naming node, PDO and object, what does not carry the plan; only the ``count`` entries
+the PDO declares are compared, and empty entries (0, no bits) among them carry nothing. Only then
+are the local ``PdoMap`` objects set up for encoding and decoding.
 """
 from __future__ import annotations
 
@@ -116,6 +119,7 @@ def _slots(od, direction: str, node_id: int) -> dict[int, dict]:
         fixed = not subs or not mp[subs[0]].writable
         default = []
         count = mp[0].default if 0 in mp.subindices and mp[0].default is not None else 0
+        count_fixed = 0 in mp.subindices and not mp[0].writable
         for s in subs[:count]:
             v = mp[s].default or 0
             if (v >> 16) and (v & 0xFF):
@@ -124,7 +128,9 @@ def _slots(od, direction: str, node_id: int) -> dict[int, dict]:
         cob_default = cm[1].default if not isinstance(cm, ODVariable) and 1 in cm.subindices else None
         cob = (cob0 + 0x100 * k + node_id) if k < 4 else ((cob_default or 0) & 0x7FF)
         cob_fixed = isinstance(cm, ODVariable) or 1 not in cm.subindices or not cm[1].writable
-        out[k + 1] = {"fixed": fixed, "capacity": len(subs), "default": default, "cob_id": cob,
+        capacity = min(len(subs), count) if count_fixed and not fixed else len(subs)
+        out[k + 1] = {"fixed": fixed, "capacity": capacity, "count_fixed": count_fixed and not fixed,
+                      "count": count, "default": default, "cob_id": cob,
                       "cob_fixed": cob_fixed, "cob_default": cob_default}
     return out
 
@@ -231,6 +237,10 @@ def configure_pdos(device, plan: Plan, trans_type: int = 1) -> list[str]:
                 if not slot["cob_fixed"]:
                     device.sdo_write(comm0 + no - 1, 1, cob)
                 continue
+            if slot["count_fixed"]:  # the count is the device's: entries written within it, the rest empty
+                write_entries_within_count(device, direction, no, planned, slot["count"], trans_type, cob,
+                                           slot["cob_fixed"])
+                continue
             m = pdos.map[no]
             m.clear()
             for index, sub, _ in planned:
@@ -240,6 +250,26 @@ def configure_pdos(device, plan: Plan, trans_type: int = 1) -> list[str]:
             m.enabled = True
             device.sdo_call(m.save, f"{direction}{no} mapping")
     return notes
+
+
+def write_entries_within_count(device, direction: str, number: int, planned, count: int, trans_type: int,
+                               cob: int, cob_fixed: bool) -> None:
+    """CiA 301 mapping order for a PDO whose entry count is read-only: PDO invalid, transmission
+    type, entries 1..``count`` (the planned objects, then empty entries), PDO valid again."""
+    comm0, map0, _ = _BASE[direction]
+    comm = device.node.object_dictionary[comm0 + number - 1]
+    if not cob_fixed:
+        device.sdo_write(comm0 + number - 1, 1, cob | PDO_NOT_VALID)
+    if 2 in comm.subindices and comm[2].writable:
+        device.sdo_write(comm0 + number - 1, 2, trans_type)
+    for k in range(1, count + 1):
+        value = 0
+        if k <= len(planned):
+            index, sub, bits = planned[k - 1]
+            value = (index << 16) | (sub << 8) | bits
+        device.sdo_write(map0 + number - 1, k, value)
+    if not cob_fixed:
+        device.sdo_write(comm0 + number - 1, 1, cob)
 
 
 def read_back(device, direction: str, number: int) -> tuple[int, int | None, list[tuple[int, int, int]]]:
@@ -273,13 +303,14 @@ def verify_pdos(device, plan: Plan) -> None:
             if tt is not None and not 1 <= tt <= 240 and not (direction == RX and tt == 0):
                 raise PlanError(f"{where}: {direction}{no} transmission type {tt} read back: not cyclic "
                                 "synchronous (1..240)")
+            carried = [e for e in entries if e != (0, 0, 0)]  # empty entries (no bits) carry nothing
             for k, (i, s, bits) in enumerate(objs):
-                if k >= len(entries) or entries[k] != (i, s, bits):
+                if k >= len(carried) or carried[k] != (i, s, bits):
                     got = ", ".join(f"0x{e[0]:04X}:{e[1]:02X}/{e[2]}" for e in entries) or "nothing"
                     raise PlanError(f"{where}: {direction}{no} does not carry {object_name(i)} (entry {k + 1}); read "
                                     f"back: {got}")
-            if len(entries) != len(objs):
-                extra = ", ".join(f"0x{e[0]:04X}" for e in entries[len(objs):])
+            if len(carried) > len(objs):
+                extra = ", ".join(f"0x{e[0]:04X}" for e in carried[len(objs):])
                 raise PlanError(f"{where}: {direction}{no} read back with extra objects {extra}")
 
 

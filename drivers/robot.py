@@ -9,8 +9,14 @@ so the torque written before a ``read()`` is held from that SYNC to the next one
 snapshot returned by that ``read()`` holds the joints at the same SYNC (the convention of
 ``otbot_hw.robot``).
 
-With ``realtime=True`` each ``read()`` waits for the next period boundary (real robot); without,
-cycles run back to back (lockstep with a simulated plant, faster than real time).
+``read()`` never waits for a period boundary: the loop that calls it owns the clock. With
+``realtime=True`` (a paced bus: the real robot) the drives' SYNC and RPDO watchdogs are armed, each
+SYNC's TPDOs are awaited within the period, and the driver's own multi-SYNC sequences (enable, fault
+reaction, fault reset) keep one SYNC per period; without, against a simulated plant, cycles run
+back to back (lockstep). Each cycle's controlword comes from what the master commands and what the
+drive reports (``drivers.cia402.cyclic_controlword``): a drive found stopped is never re-enabled.
+While the drives are enabled the master's heartbeat is withheld once the loop has run no cycle for
+``bus.loop_liveness`` periods.
 
 Fault reaction (here, so it holds under any loop): a fault stages a quick stop with zero torque
 for every drive and sends it at once; the SYNC cycle is then kept alive, for at most
@@ -37,11 +43,11 @@ import numpy as np
 
 from drivers.cia402 import STOPPED_STATES, CiA402Drive
 from drivers.cia406 import CiA406Encoder
-from drivers.config import LOCKSTEP_IMU_TIMEOUT, RobotConfig
+from drivers.config import RobotConfig
 from drivers.device import NMT_ENTER_PRE_OPERATIONAL, NMT_STOP, CycleTracker, wait_until
 from drivers.faults import DriverError
 from drivers.heartbeat import HeartbeatConsumer, HeartbeatProducer
-from otbot_hw.robot import Command, Fault, Robot, RobotError, RobotFault, Snapshot
+from otbot_hw.robot import Fault, Robot, RobotError, RobotFault, Snapshot
 
 
 def imu_due(sync_index: int, period: float, imu_rate: float) -> bool:
@@ -109,16 +115,14 @@ class ReceiveErrors(can.Listener):
 class CanopenRobot(Robot):
     """The robot over CANopen: three ``CiA402Drive`` s, the ``CiA406Encoder`` (unless phi_p comes
     from the pivot drive), heartbeat consumer and producer, and an optional IMU object
-    (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``; in lockstep
-    also ``timeout`` and ``restart_watchdog(t)``).
+    (``read(timeout)`` -> sample with t, accel, gyro, as ``drivers.imu.VectorNavIMU``; the newest
+    sample is taken, never awaited: lockstep with a simulated IMU is ``sim.lockstep.ImuLockstep``).
 
-    ``bus``: a python-can bus to use instead of opening ``config.bus``; ``imu_lockstep``: wait,
-    after each SYNC, for an IMU sample received after it (simulated IMU published on SYNC; its
-    stream watchdog then counts from the SYNC and lasts at least ``LOCKSTEP_IMU_TIMEOUT``);
-    ``close_imu``: whether ``close()`` closes the IMU too; ``realtime``: pace SYNCs at the control
-    period (else lockstep: back to back, each SYNC's TPDOs awaited up to ``lockstep_timeout`` s,
-    and the drives get no period-based watchdogs since no period is kept); ``sdo_timeout``: s an
-    SDO answer is awaited (canopen's 0.3 s by default).
+    ``bus``: a python-can bus to use instead of opening ``config.bus``; ``close_imu``: whether
+    ``close()`` closes the IMU too; ``realtime``: a bus paced by its loop at the control period
+    (drives' SYNC/RPDO watchdogs armed, TPDOs awaited within the period; else lockstep: each SYNC's
+    TPDOs awaited up to ``lockstep_timeout`` s, and the drives get no period-based watchdogs since no
+    period is kept); ``sdo_timeout``: s an SDO answer is awaited (canopen's 0.3 s by default).
 
     The constructor reads the object dictionaries and refuses (``DeviceConfigError``) what cannot
     run, before any bus is opened. ``warnings``: what the devices cannot do that the loop would
@@ -131,7 +135,7 @@ class CanopenRobot(Robot):
     #: Lockstep: once one TPDO of a SYNC arrived, wait at most this long (s) for the others.
     LOCKSTEP_SETTLE = 0.05
 
-    def __init__(self, config: RobotConfig, bus=None, imu=None, imu_lockstep: bool = False,
+    def __init__(self, config: RobotConfig, bus=None, imu=None,
                  realtime: bool = False, close_imu: bool = True, lockstep_timeout: float = 1.0,
                  sdo_timeout: float | None = None):
         self.config = config
@@ -155,6 +159,9 @@ class CanopenRobot(Robot):
         self.encoder = (CiA406Encoder(self.network, enc, self.tracker, self._add_fault)
                         if enc.source == "encoder" else None)
         self.devices = [*self.drives, *([self.encoder] if self.encoder else [])]
+        self._by_id = {d.node_id: d for d in self.devices}
+        self.max_torque = tuple(float(v) for v in config.limits.max_torque)
+        self.torque_quantum = tuple(d.cfg.joint_torque_per_permille for d in self.drives)
         if sdo_timeout is not None:
             for dev in self.devices:
                 dev.node.sdo.RESPONSE_TIMEOUT = sdo_timeout
@@ -163,15 +170,14 @@ class CanopenRobot(Robot):
             self.heartbeats.add(d.node_id, d.name, dc.heartbeat_consumer)
         if self.encoder:
             self.heartbeats.add(self.encoder.node_id, self.encoder.name, enc.heartbeat_consumer)
-        self.master_heartbeat = HeartbeatProducer(self.network, config.bus.master_node_id, config.bus.master_heartbeat)
+        self.master_heartbeat = HeartbeatProducer(self.network, config.bus.master_node_id, config.bus.master_heartbeat,
+                                                  alive=self._loop_alive)
+        self._loop_t: float | None = None  # wall time of the loop's last read() / write()
+        self._stalled = False  # the heartbeat is being withheld
+        self._nmt_stopped: set[int] = set()  # nodes this master sent NMT STOP (a reaction's escalation)
         self.imu = imu
         self.close_imu = close_imu
-        self.imu_lockstep = imu_lockstep
         self.imu_timeout = config.imu.timeout if config.imu else 0.5
-        if imu_lockstep:  # no real-time deadline: the plant's sample of a SYNC may come late
-            self.imu_timeout = max(self.imu_timeout, LOCKSTEP_IMU_TIMEOUT)
-            if imu is not None:
-                imu.timeout = max(imu.timeout, LOCKSTEP_IMU_TIMEOUT)
         self.imu_rate = float(config.imu.rate_hz) if config.imu else 1.0 / self.period
         self._syncs = 0  # SYNCs sent since open()
         self._misses: dict[tuple[int, int], int] = {}  # consecutive SYNCs without this TPDO
@@ -182,7 +188,6 @@ class CanopenRobot(Robot):
         self._sync_t = 0.0
         self._sync_index = -1  # SYNCs sent since open(), minus one: the index of the last one
         self._sync_wall = time.monotonic()
-        self._next = None
         self._open = False
         self._reaction_pending = False
         self._wake = threading.Event()
@@ -257,7 +262,18 @@ class CanopenRobot(Robot):
         problems += self.problems
         self._open = False
         self._wake.set()
-        off = self._off_bus()
+        def attempt(what: str, fn) -> None:
+            try:
+                fn()
+            except Exception as exc:  # noqa: BLE001 - close() reports, never raises
+                problems.append(f"{what}: {exc}")
+
+        # PRE-OPERATIONAL first: it brings back a node the reaction stopped with NMT STOP (SDO works
+        # again there), and PDOs stop; then 0x1016 off while the master's heartbeat still runs
+        for dev in self.devices:
+            attempt(f"{dev.name} (node {dev.node_id}): NMT PRE-OPERATIONAL not sent",
+                    lambda dev=dev: dev.nmt_command(NMT_ENTER_PRE_OPERATIONAL))
+        off = self._off_bus() - self._nmt_stopped  # (a node we stopped is back in PRE-OPERATIONAL)
         if not any(f.kind == "bus" for f in self.faults):
             for d in self.drives:  # a master that leaves in order is not a lost master
                 if d.has(0x1016, 1) and d.node_id in self._configured and d.node_id not in off:
@@ -265,16 +281,6 @@ class CanopenRobot(Robot):
                         d.sdo_write(0x1016, 1, 0)
                     except RobotError as exc:
                         problems.append(f"{d.name} (node {d.node_id}): heartbeat consumer not switched off: {exc}")
-
-        def attempt(what: str, fn) -> None:
-            try:
-                fn()
-            except Exception as exc:  # noqa: BLE001 - close() reports, never raises
-                problems.append(f"{what}: {exc}")
-
-        for dev in self.devices:
-            attempt(f"{dev.name} (node {dev.node_id}): NMT PRE-OPERATIONAL not sent",
-                    lambda dev=dev: dev.nmt_command(NMT_ENTER_PRE_OPERATIONAL))
         attempt("master heartbeat not stopped", self.master_heartbeat.stop)
         if self._safety is not None:
             self._safety.join(timeout=2.0)
@@ -284,6 +290,18 @@ class CanopenRobot(Robot):
         attempt("CAN bus not released", self.network.disconnect)
         self.close_report = problems
         return list(problems)
+
+    def _loop_alive(self) -> bool:
+        """False while the drives are enabled and the control loop has run no cycle (``read`` or
+        ``write``) for ``bus.loop_liveness`` periods: the master's heartbeat is then withheld."""
+        t = self._loop_t
+        n = self.config.bus.loop_liveness
+        alive = not self.enabled or t is None or time.monotonic() - t <= n * self.period
+        if not alive and not self._stalled:
+            self.problems.append(f"the control loop ran no cycle for {n} periods (bus.loop_liveness) while the drives "
+                                 "were enabled: master heartbeat withheld, the drives' watchdogs stop them")
+        self._stalled = not alive
+        return alive
 
     # -- faults ------------------------------------------------------------------------------------
     def _bus_time(self, wall: float | None = None) -> float:
@@ -361,15 +379,20 @@ class CanopenRobot(Robot):
                 failed.append(f"{d.name} (node {d.node_id}): RPDO not sent: {exc}")
         return failed
 
-    def _sync_cycle(self) -> set[tuple[int, int]]:
-        """One SYNC: pace (realtime), send it, wait for the TPDOs, count misses (stale faults after
-        ``bus.tpdo_timeout`` consecutive ones), check statuswords. Returns the (node, TPDO) pairs
-        that arrived."""
+    def _space(self) -> None:
+        """Paced bus, in the driver's own multi-SYNC sequences (enable, fault reaction, fault reset),
+        which run while the loop waits: the next SYNC no sooner than one period after the last one.
+        ``read()`` itself never waits: the loop runner owns the clock."""
         if self.realtime:
-            now = time.monotonic()
-            self._next = now if self._next is None else max(self._next + self.period, now)
-            time.sleep(max(0.0, self._next - time.monotonic()))
-        off = {f.node for f in self.faults if f.kind in ("heartbeat", "nmt")}
+            time.sleep(max(0.0, self._sync_wall + self.period - time.monotonic()))
+
+    def _sync_cycle(self, spaced: bool = False) -> set[tuple[int, int]]:
+        """One SYNC (``spaced``: see ``_space``): send it, wait for the TPDOs, count misses (stale
+        faults after ``bus.tpdo_timeout`` consecutive ones), check each statusword against what the
+        master commands. Returns the (node, TPDO) pairs that arrived."""
+        if spaced:
+            self._space()
+        off = {f.node for f in self.faults if f.kind in ("heartbeat", "nmt")} | self._nmt_stopped
         expected = [k for d in self.devices if d.node_id not in off for k in d.expected_tpdos()]
         self.tracker.begin(expected)
         t_sync = time.monotonic()
@@ -388,7 +411,7 @@ class CanopenRobot(Robot):
             missing = self.tracker.wait(max(0.0, t_sync + self.TPDO_WINDOW * self.period - time.monotonic()))
         else:
             missing = self.tracker.wait(self.lockstep_timeout, settle=self.LOCKSTEP_SETTLE)
-        byid = {d.node_id: d for d in self.devices}
+        byid = self._by_id
         n_max = self.config.bus.tpdo_timeout
         for key in expected:
             if key in missing:
@@ -404,16 +427,18 @@ class CanopenRobot(Robot):
             f = d.check_statusword()
             if f:
                 self._add_fault(f, at_sync=True)
-            elif (self.enabled and (d.node_id, d.status_tpdo) in arrived and d.state != "OPERATION ENABLED"
-                  and d.node_id not in off):
-                self._add_fault(d.fault("statusword", f"drive left OPERATION ENABLED without a command: now "
-                                                      f"{d.state}"), at_sync=True)
+            elif (d.node_id, d.status_tpdo) in arrived and d.node_id not in off:
+                with self._lock:  # the command and the check as one: a fault staging a quick stop waits
+                    why = d.unexpected_state()
+                    if why:
+                        self._add_fault(d.fault("statusword", why), at_sync=True)
         return arrived
 
     def read(self) -> Snapshot:
         if not self._open:
             raise DriverError("robot is not open: call open() first")
         with self._cycle_lock:
+            self._loop_t = time.monotonic()
             cycle = self._cycle
             sync_index = self._syncs
             self._sync_cycle()
@@ -437,43 +462,43 @@ class CanopenRobot(Robot):
         return snap
 
     def _read_imu(self, t_sync: float, sync_index: int):
-        """Latest IMU sample; in lockstep, on SYNCs where the simulated IMU publishes, the one
-        published for this SYNC."""
-        wait_new = self.imu_lockstep and imu_due(sync_index, self.period, self.imu_rate)
+        """The newest IMU sample (never waited for: the IMU streams at its own rate; lockstep with a
+        simulated IMU is ``sim.lockstep``'s)."""
         try:
-            if self.imu_lockstep:  # the plant publishes per SYNC: the stream is due from this one
-                self.imu.restart_watchdog(t_sync)
-            sample = self.imu.read(timeout=self.imu_timeout if wait_new else 0)
+            sample = self.imu.read(timeout=0)
             if sample is not None:
                 self._imu_last = sample
-            elif wait_new:
-                self._add_fault(Fault("imu", None, "imu", f"no IMU sample within {self.imu_timeout:g} s of SYNC"),
-                                at_sync=True)
         except Exception as exc:  # drivers.imu.ImuFault: device error, timeout, disconnected port
             self._add_fault(Fault("imu", None, "imu", str(exc) or type(exc).__name__), at_sync=True)
         return self._imu_last
 
-    def write(self, torques) -> Command:
-        u = np.asarray(torques, dtype=float).reshape(-1)
-        if u.shape != (3,) or not np.all(np.isfinite(u)):
-            raise ValueError(f"torques must be 3 finite numbers (tau_r, tau_l, tau_p) N m, got {torques!r}")
-        clamped, sat = self.config.limits.clamp(u)
-        with self._lock:
-            faults = tuple(self._faults)
-            if faults:
-                raise RobotFault("robot is faulted: " + "; ".join(map(str, faults)), faults)
-            if not self.enabled:
-                raise DriverError("drives are not enabled: call enable() first")
-            commanded = np.array([d.stage_torque(c) for d, c in zip(self.drives, clamped)])
-            for d in self.drives:
-                d.controlword = 0x000F
+    def _apply(self, torques: list[float]) -> np.ndarray:
+        """``Robot.write``'s back end: stage each drive's torque (quantized to its per-mille unit) and
+        its controlword, send the RPDOs; the drives apply them at the next SYNC."""
+        with self._lock:  # the check and the staging as one: a fault staging a quick stop waits
+            self._refuse_unless_writable(self._faults, self.enabled, DriverError)
+            self._loop_t = time.monotonic()
+            # each drive's controlword from the master's command and the drive's reported state:
+            # a drive found stopped (by itself) is not re-enabled, and gets no torque
+            commanded = np.array([d.stage_cyclic(c) for d, c in zip(self.drives, torques)])
             failed = self._send_rpdos(self.drives)
         if failed:
             self._add_fault(Fault("bus", None, "bus", "; ".join(failed)))
             raise RobotFault("cannot command the drives: " + "; ".join(failed), self.faults)
-        quantum = np.array([d.cfg.joint_torque_per_permille for d in self.drives])
-        sat = sat | (np.abs(commanded - clamped) > 0.5 * quantum + 1e-12)
-        return Command(requested=u, commanded=commanded, saturated=sat)
+        return commanded
+
+    def node_identities(self) -> dict[str, dict]:
+        """Each node's CiA 301 identity object 0x1018 (vendor, product, revision, serial) over SDO."""
+        nodes = {}
+        for dev in self.devices:
+            entry: dict = {"node_id": dev.node_id}
+            for sub, key in ((1, "vendor"), (2, "product"), (3, "revision"), (4, "serial")):
+                try:
+                    entry[key] = int(dev.sdo_read(0x1018, sub))
+                except Exception:  # noqa: BLE001 - a node without (that part of) the identity object
+                    entry[key] = None
+            nodes[dev.name] = entry
+        return nodes
 
     def enable(self) -> None:
         faults = self.faults
@@ -490,6 +515,7 @@ class CanopenRobot(Robot):
                         failed = self._send_rpdos(self.drives)
                     if failed:
                         self._add_fault(Fault("bus", None, "bus", "; ".join(failed)))
+                    self._space()
                     self.read()
                     if self.faults:
                         raise RobotFault("fault while enabling: " + "; ".join(map(str, self.faults)), self.faults)
@@ -521,7 +547,7 @@ class CanopenRobot(Robot):
                     for d in self.drives:
                         d.stage_quick_stop()
                     rec["not_sent"] += self._send_rpdos(self.drives)
-                arrived = self._sync_cycle()
+                arrived = self._sync_cycle(spaced=True)
                 rec["cycles"] += 1
                 off = self._off_bus()
                 for d in self.drives:
@@ -534,6 +560,9 @@ class CanopenRobot(Robot):
                 why = ("off the bus" if d.node_id in self._off_bus()
                        else f"no quick stop confirmed within {n_max} periods")
                 try:
+                    if d.node_id not in self._off_bus():  # our own NMT STOP: expected, no second reaction
+                        self.heartbeats.expect_node(d.node_id, "STOPPED")
+                        self._nmt_stopped.add(d.node_id)
                     d.nmt_command(NMT_STOP)
                     rec["escalated"].append(d.name)
                     msg = f"{d.name} (node {d.node_id}): {why}: NMT STOP sent (the drive applies 0x6007)"
@@ -543,14 +572,14 @@ class CanopenRobot(Robot):
                 if d.node_id not in self._off_bus():
                     self._add_fault(d.fault("statusword", f"{why} ({reason})"))
         if disable:
-            reachable = [d for d in self.drives if d.node_id not in self._off_bus()]
+            reachable = [d for d in self.drives if d.node_id not in self._off_bus() | self._nmt_stopped]
             if reachable:
                 with self._lock:
                     for d in self.drives:
                         d.stage_disable()
                     rec["not_sent"] += self._send_rpdos(reachable)
                 for _ in range(n_max):
-                    arrived = self._sync_cycle()
+                    arrived = self._sync_cycle(spaced=True)
                     rec["cycles"] += 1
                     if all((d.node_id, d.status_tpdo) in arrived and d.state not in ("OPERATION ENABLED",
                                                                                   "QUICK STOP ACTIVE")
@@ -579,12 +608,19 @@ class CanopenRobot(Robot):
 
     def fault_reset(self) -> None:
         with self._cycle_lock:
+            for node in sorted(self._nmt_stopped):  # escalated nodes kept their setup: start their PDOs again
+                dev = next(d for d in self.devices if d.node_id == node)
+                try:
+                    dev.start()
+                except Exception as exc:  # noqa: BLE001 - reported; the heartbeat check says the rest
+                    self.problems.append(f"{dev.name} (node {node}): NMT START not sent: {exc}")
+            self._nmt_stopped.clear()
             for edge in (False, True):
                 with self._lock:
                     for d in self.drives:
                         d.stage_fault_reset(edge)
                     self._send_rpdos(self.drives)
-                self._sync_cycle()
+                self._sync_cycle(spaced=True)
             with self._lock:
                 self._faults.clear()
                 self._fault_t.clear()

@@ -40,6 +40,28 @@ FORMAT_NAME = "otbot-recording"
 FORMAT_VERSION = 1
 PROFILE = "otbot"
 
+#: Metadata ``source`` values for the robot a recording comes from (``source_metadata``).
+SOURCE_SIMULATION = "simulation"  # the model simulated in this process, no bus
+SOURCE_BUS_SIMULATION = "bus-simulation"  # the simulated robot behind the CANopen drivers
+SOURCE_ROBOT = "robot"  # the configured bus: the robot that is there
+
+
+def source_metadata(*, simulated: bool | None = None, bus: bool = False, program: str | None = None) -> dict:
+    """The ``source`` entry of a recording's metadata, built here only (docs/recording-format.md §2):
+    from what the robot was (``simulated``; ``bus``: behind the CANopen drivers) -- "simulation",
+    "bus-simulation" or "robot" -- or, when that is not what the producer knows, the producing
+    ``program``'s name ("loop", "otbot daemon", "ros2 bag"). ValueError for neither or both."""
+    if (simulated is None) == (program is None):
+        raise ValueError("a recording's source is either what the robot was (simulated, bus) or a program name")
+    if program is not None:
+        if not isinstance(program, str) or not program.strip():
+            raise ValueError(f"a recording's source program must be a non-empty name, got {program!r}")
+        return {"source": program}
+    if not simulated:
+        return {"source": SOURCE_ROBOT}
+    return {"source": SOURCE_BUS_SIMULATION if bus else SOURCE_SIMULATION}
+
+
 #: The 8 bytes every MCAP file starts (and ends) with.
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 

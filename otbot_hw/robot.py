@@ -4,6 +4,13 @@ Back ends: ``drivers.robot.CanopenRobot`` (the real robot, or the simulated plan
 CAN / slcan) and ``sim.direct.DirectSimRobot`` (the model stepped in-process with sensor noise, no
 bus). The loop runner (``otbot_hw.runtime``) knows only this module.
 
+The common work is done here once (python-can's ``BusABC``: public ``send`` checks, the interface's
+``_send`` does the rest): ``Robot.write`` checks the torques, clamps them to ``max_torque`` and builds
+the ``Command``; a back end implements ``_apply`` (take the clamped torques, return what the drives
+will produce). What only a simulated robot can do (the ground truth, its plant, an operator at the
+bench) is declared by the ``SimulatedRobot`` sub-interface: callers test ``isinstance``, never probe
+attributes.
+
 One control cycle::
 
     robot.write(u)        # torques (N m); applied from the next sample instant on
@@ -18,6 +25,7 @@ the real bus.
 from __future__ import annotations
 
 import abc
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -99,18 +107,59 @@ class Command:
 class Robot(abc.ABC):
     """A robot with three torque-controlled joints (right wheel, left wheel, pivot) and an IMU.
 
-    ``period`` is the sample (control) period in s: one ``read()`` per period.
+    ``period`` is the sample (control) period in s: one ``read()`` per period. Back ends set
+    ``max_torque`` ((3,) N m the commands are clamped to; None: no clamp), ``torque_quantum`` ((3,) N m,
+    the drives' torque resolution, a difference beyond half of it counts as saturation; None: exact),
+    ``imu`` / ``imu_rate`` (Hz) when they have an IMU, ``warnings`` (what the devices cannot do that the
+    loop would use) and ``close_report`` (what the last ``close()`` could not do).
     """
 
     period: float
+    max_torque: tuple[float, float, float] | None = None
+    torque_quantum: tuple[float, float, float] | None = None
+    imu = None
+    imu_rate: float | None = None
+    warnings: tuple[str, ...] | list[str] = ()
+    close_report: tuple[str, ...] | list[str] = ()
 
     @abc.abstractmethod
     def read(self) -> Snapshot:
         """One synchronous sample of all sensors (see the module docstring for timing)."""
 
-    @abc.abstractmethod
     def write(self, torques) -> Command:
-        """Command joint torques (tau_r, tau_l, tau_p) N m, clamped to the motor limits."""
+        """Command joint torques (tau_r, tau_l, tau_p) N m, clamped to ``max_torque``; applied from the
+        next sample on. ValueError for anything but 3 finite numbers; ``RobotFault`` while faulted,
+        ``RobotError`` while the drives are not enabled (raised by the back end's ``_apply``)."""
+        u = np.asarray(torques, dtype=float).reshape(-1)
+        ul = u.tolist()
+        if len(ul) != 3 or not all(map(math.isfinite, ul)):
+            raise ValueError(f"torques must be 3 finite numbers (tau_r, tau_l, tau_p) N m, got {torques!r}")
+        m = self.max_torque
+        if m is None:  # plain floats: this runs every cycle
+            clamped, sat = ul, [False, False, False]
+        else:
+            clamped = [min(max(v, -lim), lim) for v, lim in zip(ul, m)]
+            sat = [a != b for a, b in zip(clamped, ul)]
+        commanded = self._apply(clamped)
+        q = self.torque_quantum
+        if q is not None:
+            sat = [s or abs(c - a) > 0.5 * dq + 1e-12 for s, c, a, dq in zip(sat, commanded.tolist(), clamped, q)]
+        return Command(requested=u, commanded=commanded, saturated=np.array(sat, dtype=bool))
+
+    @abc.abstractmethod
+    def _apply(self, torques: list[float]) -> np.ndarray:
+        """Stage ``torques`` (3 floats, N m, already checked and clamped) for the next sample; return the
+        torques (3,) N m the drives will produce (after their quantization). Refuses with
+        ``_refuse_unless_writable`` (faulted or not enabled)."""
+
+    @staticmethod
+    def _refuse_unless_writable(faults: tuple[Fault, ...] | list[Fault], enabled: bool,
+                                not_enabled: type[RobotError] = RobotError) -> None:
+        """The state checks of ``write``, said the same way by every back end."""
+        if faults:
+            raise RobotFault("robot is faulted: " + "; ".join(map(str, faults)), tuple(faults))
+        if not enabled:
+            raise not_enabled("drives are not enabled: call enable() first")
 
     @abc.abstractmethod
     def enable(self) -> None:
@@ -140,12 +189,17 @@ class Robot(abc.ABC):
     @property
     def has_imu(self) -> bool:
         """Whether ``read()`` delivers IMU samples."""
-        return getattr(self, "imu", None) is not None
+        return self.imu is not None
 
     def truth(self) -> np.ndarray | None:
         """Ground-truth state x = (q, q_dot) (12,) at the last ``read()``'s sample instant, where
-        the back end knows it (a simulator); None on a real robot."""
+        the back end knows it (a ``SimulatedRobot``); None on a real robot."""
         return None
+
+    def node_identities(self) -> dict[str, dict]:
+        """Each bus node's identity by device name ({node_id, vendor, product, revision, serial}, None
+        for what a node does not say); empty for a robot without nodes."""
+        return {}
 
     def close(self) -> list[str]:
         """Release the buses. Never raises: returns what it could not do (empty when all went well)."""
@@ -156,3 +210,40 @@ class Robot(abc.ABC):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class SimulatedRobot(Robot):
+    """A robot whose hardware is simulated: what it can do beyond ``Robot`` is declared here.
+
+    ``plant``: the simulated hardware it drives (``sim.plant.Plant`` behind the bus; the direct robot
+    is its own plant); ``truth()`` is never None after a ``read()``; ``truth_force()`` the external
+    pivot force; ``simulated_params`` the robot simulated now (``OtbotParams``, a load an operator
+    fixed included); ``has_operator`` / ``operator(command)``: the operator channel (a person at the
+    bench: fixture, load), where the simulated plant has one.
+    """
+
+    plant: object
+    has_operator: bool = False
+
+    @abc.abstractmethod
+    def truth(self) -> np.ndarray | None:
+        """Ground-truth state (12,) at the last ``read()``'s sample (None before the first)."""
+
+    @abc.abstractmethod
+    def truth_force(self) -> np.ndarray:
+        """External pivot force (2,) N, ground frame, held from the last read's sample on."""
+
+    @property
+    @abc.abstractmethod
+    def simulated_params(self):
+        """``OtbotParams`` of the robot simulated now."""
+
+    def operator(self, command: str) -> dict:
+        """Do what an operator at the bench would (see ``sim.plant.Plant.operator``); JSON-ready reply,
+        ``error`` when this simulated robot has no operator channel."""
+        return {"error": "this simulated robot has no operator channel"}
+
+
+def operator_channel(robot: Robot) -> SimulatedRobot | None:
+    """``robot`` when it is a simulated robot with an operator channel, else None."""
+    return robot if isinstance(robot, SimulatedRobot) and robot.has_operator else None

@@ -10,7 +10,9 @@
 * Gaussian white noise, seeded; the IMU's sigma follows sigma = ND * sqrt(SR)
   (ND noise density in m s^-2 Hz^-1/2, SR sample rate in Hz).
 
-All functions are pure: the random generator is passed in.
+The noise-free readings come from the one sensor model, ``otbot_hw.model.sensor_model`` (the paper's
+model is the extended model with every effect at zero). All functions are pure: the random generator
+is passed in.
 """
 from __future__ import annotations
 
@@ -18,11 +20,14 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from otbot_hw.model import compiled
+from otbot_hw.model.constants import GRAVITY  # noqa: F401  (m/s^2; the IMU's z reading, re-exported)
+from otbot_hw.model.effect_catalog import effect_vector
+from otbot_hw.model.effect_physics import ext_sample_accelerations
 from otbot_hw.model.fixtures import fixture_code
+from otbot_hw.model.sensor_model import imu_from_motion, sensor_samples
 from otbot_hw.params import OtbotParams
 
-GRAVITY = 9.80665  # m/s^2
+_PAPER = effect_vector()
 
 #: Paper §4.3.2: noise density of the IMU and its sample rate.
 PAPER_NOISE_DENSITY = 1.37e-3  # m s^-2 Hz^-1/2
@@ -62,35 +67,26 @@ class NoiseModel:
 def accelerations(x: np.ndarray, u: np.ndarray, f: np.ndarray, params: OtbotParams,
                   fixture: str = "floor") -> np.ndarray:
     """q_ddot (N, 6) for each sample of states x (N, 12), torques u (N, 3), forces f (N, 2)."""
-    prm = params.as_array()
-    code = fixture_code(fixture)
-    gen = np.zeros(6)
-    out = np.empty((len(x), 6))
-    for k in range(len(x)):
-        out[k] = compiled.derivative(x[k], u[k], f[k], gen, prm, code)[6:]
-    return out
+    return ext_sample_accelerations(*(np.ascontiguousarray(a, dtype=float) for a in (x, u, f)), _PAPER,
+                                    params.as_array(), fixture_code(fixture))
 
 
 def imu_ideal(x: np.ndarray, qdd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Noiseless IMU: specific force (N, 3) m/s^2 and rate (N, 3) rad/s in B''."""
-    a = x[:, 2]
-    c, s = np.cos(a), np.sin(a)
-    acc = np.empty((len(x), 3))
-    acc[:, 0] = c * qdd[:, 0] + s * qdd[:, 1]
-    acc[:, 1] = -s * qdd[:, 0] + c * qdd[:, 1]
-    acc[:, 2] = GRAVITY
-    gyro = np.zeros((len(x), 3))
-    gyro[:, 2] = x[:, 8]
-    return acc, gyro
+    return imu_from_motion(x[:, 2], x[:, 8], qdd[:, 0], qdd[:, 1], qdd[:, 2], _PAPER)
+
+
+def quantize(phi: np.ndarray, counts_per_rev: int | None) -> np.ndarray:
+    """Angles (rad) floored to whole counts of an encoder with ``counts_per_rev`` counts per revolution."""
+    if not counts_per_rev:
+        return phi
+    step = 2 * np.pi / counts_per_rev
+    return np.floor(phi / step + 1e-9) * step
 
 
 def encoders_ideal(x: np.ndarray, counts_per_rev: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Joint angles (N, 3) rad and rates (N, 3) rad/s, angles floored to whole counts if given."""
-    phi = x[:, 3:6].copy()
-    if counts_per_rev:
-        step = 2 * np.pi / counts_per_rev
-        phi = np.floor(phi / step + 1e-9) * step
-    return phi, x[:, 9:12].copy()
+    return quantize(x[:, 3:6].copy(), counts_per_rev), x[:, 9:12].copy()
 
 
 @dataclass
@@ -107,10 +103,11 @@ def measure(x: np.ndarray, u: np.ndarray, f: np.ndarray, params: OtbotParams, no
             rng: np.random.Generator | None = None, fixture: str = "floor") -> SensorReadings:
     """Sensor readings at each sample of a simulated run (states x, held torques u and forces f)."""
     rng = rng if rng is not None else np.random.default_rng(0)
-    qdd = accelerations(x, u, f, params, fixture)
-    acc, gyro = imu_ideal(x, qdd)
-    phi, phid = encoders_ideal(x, noise.counts_per_rev)
     n = len(x)
+    x, u, f = (np.ascontiguousarray(a, dtype=float) for a in (x, u, f))
+    phi, phid, acc, _, gyro = sensor_samples(x, np.zeros((n, 2)), u, f, u, f, None, None, _PAPER, params.as_array(),
+                                             fixture_code(fixture))
+    phi = quantize(phi, noise.counts_per_rev)
     acc = acc + noise.accel * rng.standard_normal((n, 3))
     gyro = gyro + noise.gyro * rng.standard_normal((n, 3))
     phi = phi + noise.enc_angle * rng.standard_normal((n, 3))

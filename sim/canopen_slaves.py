@@ -378,6 +378,7 @@ class SimulatedDrive(SimulatedNode):
         self._last_sync: float | None = None
         self._last_rpdo: float | None = None
         self._tripped: set[str] = set()
+        self._qs_syncs = 0  # SYNCs spent in QUICK STOP ACTIVE
         self._update_statusword()
 
     def keep_on_reset(self) -> set[int]:
@@ -477,9 +478,10 @@ class SimulatedDrive(SimulatedNode):
             pass
         elif cw & 0x02 == 0:  # disable voltage
             self.state = "SWITCH ON DISABLED"
-        elif cw & 0x04 == 0:  # quick stop
+        elif cw & 0x04 == 0:  # quick stop (transition 11); 0x605A 0: disable at once, 1-4: stop, then
+            # SWITCH ON DISABLED at the next SYNC (transition 12, ``on_sync``), 5-8: stay
             self.state = "QUICK STOP ACTIVE" if s in ("OPERATION ENABLED", "QUICK STOP ACTIVE") else "SWITCH ON DISABLED"
-            if self.state == "QUICK STOP ACTIVE" and self.od_value(0x605A, 0, 2) not in (5, 6, 7, 8):
+            if self.state == "QUICK STOP ACTIVE" and self.quick_stop_option() == 0:
                 self.state = "SWITCH ON DISABLED"
         elif cw & 0x01 == 0:  # shutdown
             if s in ("SWITCH ON DISABLED", "SWITCHED ON", "OPERATION ENABLED"):
@@ -487,10 +489,15 @@ class SimulatedDrive(SimulatedNode):
         elif cw & 0x08 == 0:  # switch on / disable operation
             if s in ("READY TO SWITCH ON", "OPERATION ENABLED"):
                 self.state = "SWITCHED ON"
-        else:  # switch on + enable operation
-            if s in ("READY TO SWITCH ON", "SWITCHED ON", "QUICK STOP ACTIVE"):
+        else:  # switch on + enable operation; from QUICK STOP ACTIVE (transition 16) only with 0x605A 5-8
+            if s in ("READY TO SWITCH ON", "SWITCHED ON") or (s == "QUICK STOP ACTIVE"
+                                                               and self.quick_stop_option() in (5, 6, 7, 8)):
                 self.state = "OPERATION ENABLED"
         self._update_statusword()
+
+    def quick_stop_option(self) -> int:
+        """0x605A quick stop option code (2 where the dictionary has none)."""
+        return self.od_value(0x605A, 0, 2)
 
     def _update_statusword(self) -> None:
         sw = _SW[self.state] | SW_REMOTE
@@ -610,6 +617,10 @@ class SimulatedDrive(SimulatedNode):
         (CST), ramped at the torque slope 0x6087 per-mille/s in profile torque mode (slope 0: step);
         zero unless OPERATION ENABLED."""
         mode = self.values[(0x6061, 0)]
+        if self.state == "QUICK STOP ACTIVE" and self._qs_syncs >= 1 and self.quick_stop_option() in (1, 2, 3, 4):
+            self.state = "SWITCH ON DISABLED"  # stopped (the torque ramp is one SYNC): transition 12
+            self._update_statusword()
+        self._qs_syncs = self._qs_syncs + 1 if self.state == "QUICK STOP ACTIVE" else 0
         if self.state != "OPERATION ENABLED" or mode not in TORQUE_MODES:
             self._actual_pm = 0
             self._track()

@@ -28,7 +28,7 @@ import numpy as np
 from drivers.robot import imu_due
 from otbot_hw.motors import MotorLimits
 from otbot_hw.params import nominal
-from otbot_hw.robot import Command, Fault, Robot, RobotError, RobotFault, Snapshot
+from otbot_hw.robot import Fault, RobotFault, SimulatedRobot, Snapshot
 from otbot_hw.sensors import NoiseModel
 from otbot_hw.simulation.sensing import StepperSensors
 from otbot_hw.simulation.simulator import ForceSchedule, make_stepper
@@ -40,7 +40,7 @@ QUICK_STOP = "QUICK STOP ACTIVE"
 FAULT = "FAULT"
 
 
-class DirectSimRobot(Robot):
+class DirectSimRobot(SimulatedRobot):
     """The model stepped in-process behind the ``Robot`` interface.
 
     ``plant``: ``OtbotParams`` (the paper's model) or ``ExtendedModel`` (with effects; default: nominal
@@ -50,6 +50,7 @@ class DirectSimRobot(Robot):
     are floored to (None: exact); ``rate_step``: resolution (3,) rad/s the rates are rounded to (None:
     exact); ``limits``: motor torque limits (None: no clamp);
     ``torque_step`` N m: the drives' torque resolution (None: exact); ``forces``: pivot forces.
+    It is its own ``plant`` (``SimulatedRobot``); no operator channel.
     """
 
     def __init__(self, plant=None, period: float = 0.001, x0=None, fixture: str = "floor",
@@ -73,8 +74,9 @@ class DirectSimRobot(Robot):
         self.counts = None if encoder_counts is None else np.asarray(encoder_counts, dtype=float).reshape(3)
         self.rate_step = None if rate_step is None else np.asarray(rate_step, dtype=float).reshape(3)
         self.limits = limits
-        self._max = None if limits is None else np.asarray(limits.max_torque, dtype=float).tolist()
+        self.max_torque = None if limits is None else tuple(float(v) for v in limits.max_torque)
         self.torque_step = torque_step
+        self.torque_quantum = (torque_step,) * 3 if torque_step else None
         self.forces = forces
         self.states = [DISABLED] * 3
         self._faults: list[Fault] = []
@@ -151,26 +153,22 @@ class DirectSimRobot(Robot):
             self._cycle += 1
         return snap
 
-    def write(self, torques) -> Command:
-        u = np.asarray(torques, dtype=float).reshape(-1)
-        if u.shape != (3,) or not all(map(math.isfinite, u.tolist())):
-            raise ValueError(f"torques must be 3 finite numbers (tau_r, tau_l, tau_p) N m, got {torques!r}")
-        if self._faults:
-            raise RobotFault("robot is faulted: " + "; ".join(map(str, self._faults)), tuple(self._faults))
-        if not self._all_enabled:
-            raise RobotError("drives are not enabled: call enable() first")
-        if self._max is None:
-            cmd, sat = u.copy(), np.zeros(3, bool)
-        else:  # clamp on plain floats: this runs every cycle
-            ul, m = u.tolist(), self._max
-            c = [min(max(v, -lim), lim) for v, lim in zip(ul, m)]
-            cmd, sat = np.array(c), np.array([a != b for a, b in zip(c, ul)])
+    def _apply(self, torques: list[float]) -> np.ndarray:
+        self._refuse_unless_writable(self._faults, self._all_enabled)
+        cmd = np.array(torques, dtype=float)
         if self.torque_step:
-            q = np.round(cmd / self.torque_step) * self.torque_step
-            sat = sat | (np.abs(q - cmd) > 0.5 * self.torque_step + 1e-12)
-            cmd = q
+            cmd = np.round(cmd / self.torque_step) * self.torque_step
         self._u = cmd
-        return Command(requested=u, commanded=cmd.copy(), saturated=sat)
+        return cmd.copy()
+
+    @property
+    def plant(self) -> "DirectSimRobot":
+        """The simulated hardware: this robot steps the model itself."""
+        return self
+
+    @property
+    def simulated_params(self):
+        return self.params
 
     def truth(self) -> np.ndarray | None:
         return None if self._truth is None else self._truth.copy()

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from otbot_hw.model import effects as fx
-from otbot_hw.robot import Robot
+from otbot_hw.robot import SimulatedRobot
 
 
 class EffectSchedule:
@@ -52,17 +52,17 @@ class EffectSchedule:
         return self.values_at(t).get(name, 0.0) != 0.0
 
 
-def _stepper_and_clock(robot):
-    if hasattr(robot, "plant"):  # sim.plant.SimulatedBusRobot
-        plant = robot.plant
-        return plant.stepper, (lambda: plant.t)
-    return robot.stepper, (lambda: robot.t_plant)  # sim.direct.DirectSimRobot
+def _stepper_and_clock(robot: SimulatedRobot):
+    if robot.plant is robot:  # sim.direct.DirectSimRobot: its own plant
+        return robot.stepper, (lambda: robot.t_plant)
+    plant = robot.plant  # sim.plant.SimulatedBusRobot: the Plant behind the bus
+    return plant.stepper, (lambda: plant.t)
 
 
-class ScheduledEffects(Robot):
+class ScheduledEffects(SimulatedRobot):
     """A simulated robot whose extended-model effects follow ``schedule`` (everything else delegated)."""
 
-    def __init__(self, robot: Robot, schedule: EffectSchedule):
+    def __init__(self, robot: SimulatedRobot, schedule: EffectSchedule):
         self.robot = robot
         self.schedule = schedule
         self.stepper, self._clock = _stepper_and_clock(robot)
@@ -73,16 +73,19 @@ class ScheduledEffects(Robot):
         self._eff = eff
         self.period = robot.period
 
-    def _apply(self) -> None:
+    def _schedule(self) -> None:
         for name, v in self.schedule.values_at(self._clock()).items():
             self._eff[fx.EFFECT_INDEX[name]] = v
 
     def read(self):
-        self._apply()
+        self._schedule()
         return self.robot.read()
 
     def write(self, torques):
         return self.robot.write(torques)
+
+    def _apply(self, torques):  # pragma: no cover - write() is the inner robot's
+        return self.robot._apply(torques)
 
     def enable(self) -> None:
         self.robot.enable()
@@ -110,6 +113,43 @@ class ScheduledEffects(Robot):
 
     def truth(self):
         return self.robot.truth()
+
+    def truth_force(self):
+        return self.robot.truth_force()
+
+    @property
+    def plant(self):
+        return self.robot.plant
+
+    @property
+    def simulated_params(self):
+        return self.robot.simulated_params
+
+    @property
+    def has_operator(self) -> bool:
+        return self.robot.has_operator
+
+    def operator(self, command: str) -> dict:
+        return self.robot.operator(command)
+
+    @property
+    def imu(self):
+        return self.robot.imu
+
+    @property
+    def imu_rate(self):
+        return self.robot.imu_rate
+
+    @property
+    def warnings(self):
+        return self.robot.warnings
+
+    @property
+    def close_report(self):
+        return self.robot.close_report
+
+    def node_identities(self) -> dict:
+        return self.robot.node_identities()
 
     def close(self):
         return self.robot.close()

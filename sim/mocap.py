@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from drivers.robot import imu_due
+from otbot_hw.model.angles import wrap_angle
 
 
 class MotionCapture:
@@ -41,7 +42,7 @@ class MotionCapture:
         if x is None:
             raise RuntimeError("the simulated motion capture needs a back end that knows the true pose")
         pose = np.asarray(x[:3], dtype=float) + self.std * self.rng.standard_normal(3)
-        pose[2] = (pose[2] + math.pi) % (2 * math.pi) - math.pi
+        pose[2] = wrap_angle(pose[2])
         self.count += 1
         return pose, self.cov
 

@@ -53,10 +53,12 @@ import numpy as np
 from drivers.config import LOCKSTEP_HEARTBEAT, LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT, RobotConfig
 from drivers.robot import STANDARD_FRAMES_ONLY, CanopenRobot, imu_due
 from otbot_hw.params import OtbotParams, nominal, parse_load
+from otbot_hw.robot import SimulatedRobot
 from otbot_hw.sensors import NoiseModel
 from otbot_hw.simulation.sensing import StepperSensors
 from otbot_hw.simulation.simulator import ForceSchedule, make_stepper
 from sim.canopen_slaves import SimulatedDrive, SimulatedEncoder
+from sim.lockstep import ImuLockstep, LockstepCanopenRobot
 from sim.injection import Injection, Injector
 
 
@@ -432,13 +434,24 @@ def open_sim_imu(config: RobotConfig):
     return pub, drv
 
 
-class SimulatedBusRobot(CanopenRobot):
-    """``CanopenRobot`` talking to a ``Plant`` in this process: everything goes over the bus as with a
-    real robot; only ``truth()`` looks behind it, at the plant's state at the last read's SYNC."""
+class SimulatedBusRobot(ImuLockstep, CanopenRobot, SimulatedRobot):
+    """``CanopenRobot`` talking to a ``Plant`` in this process, in lockstep with its IMU unless
+    ``imu_lockstep=False`` (``sim.lockstep``): everything goes over the bus as with a real robot; only
+    the ``SimulatedRobot`` part looks behind it: ``truth()`` (the plant's state at the last read's
+    SYNC), the pivot force, the parameters simulated now and the plant's operator channel."""
+
+    has_operator = True
 
     def __init__(self, plant: Plant, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.plant = plant
+
+    @property
+    def simulated_params(self):
+        return self.plant.params
+
+    def operator(self, command: str) -> dict:
+        return self.plant.operator(command)
 
     def truth(self) -> np.ndarray | None:
         with self.plant.lock:  # the SYNC handler holds it until the state of that SYNC is logged
@@ -700,15 +713,15 @@ class PlantProcess:
     def robot(self, config: RobotConfig, with_imu: bool = True, realtime: bool = False,
               lockstep_timeout: float = LOCKSTEP_TIMEOUT):
         """A ``CanopenRobot`` (not yet opened) on this plant's slcan port and IMU pty, in lockstep
-        unless ``realtime``."""
-        from drivers.robot import CanopenRobot, open_imu
+        (``sim.lockstep``) unless ``realtime``."""
+        from drivers.robot import open_imu
 
         cfg = config.replace_bus(interface="slcan", channel=self.info["can_channel"],
                                  options={**config.bus.options, "sleep_after_open": 0})
         imu = None
         if with_imu and config.imu is not None and self.info.get("imu_port"):
             imu = open_imu(config.imu, port=self.info["imu_port"])
-        return CanopenRobot(cfg, imu=imu, imu_lockstep=not realtime, realtime=realtime,
+        return LockstepCanopenRobot(cfg, imu=imu, imu_lockstep=not realtime, realtime=realtime,
                             lockstep_timeout=lockstep_timeout, sdo_timeout=LOCKSTEP_SDO_TIMEOUT)
 
     def restart(self, inject: Injection | None = None) -> dict:

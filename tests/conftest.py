@@ -29,3 +29,16 @@ def otbot_cli(capsys):
         return rc, out.out, out.err
 
     return run
+
+
+@pytest.fixture
+def robot_yaml(tmp_path):
+    """The one set-up of a hardware configuration copy: ``make(replace=None, folder=None)`` writes
+    config/robot.yaml with each old -> new text of ``replace`` substituted (each must occur) and its EDS
+    files beside it, into ``folder`` (default ``tmp_path``); returns the robot.yaml path."""
+    from otbot_hw.runtime.daemon_process import config_copy
+
+    def make(replace: dict[str, str] | None = None, folder=None):
+        return config_copy(tmp_path if folder is None else folder, replace)
+
+    return make

@@ -72,20 +72,13 @@ class Eds:
 
 def robot_config_with(tmp: Path, eds: Path, extra: dict[str, str] | None = None) -> Path:
     """config/robot.yaml with the drives' EDS replaced by ``eds`` (copied next to it), other text
-    replacements from ``extra``; the pivot encoder's EDS copied along."""
-    from drivers.config import load_robot_config
+    replacements from ``extra``; the configuration's own EDS files copied along (the tests' one
+    set-up, ``otbot_hw.runtime.daemon_process.config_copy``)."""
+    from otbot_hw.runtime.daemon_process import config_copy
 
-    src = load_robot_config().path
-    text = src.read_text().replace("eds: cia402_torque_drive.eds", f"eds: {eds.name}")
-    for old, new in (extra or {}).items():
-        assert old in text, old
-        text = text.replace(old, new)
-    tmp.mkdir(parents=True, exist_ok=True)
+    out = config_copy(tmp, {"eds: cia402_torque_drive.eds": f"eds: {eds.name}", **(extra or {})})
     if eds.parent != tmp:
         (tmp / eds.name).write_text(eds.read_text())
-    (tmp / "cia406_absolute_encoder.eds").write_text((src.parent / "cia406_absolute_encoder.eds").read_text())
-    out = tmp / "robot.yaml"
-    out.write_text(text)
     return out
 
 

@@ -106,20 +106,7 @@ def test_wrong_fixture_is_caught_before_the_excitation_and_the_session_resumes(t
     assert len(d["bus_logs"]) == 2 and all((folder / b).stat().st_size > 0 for b in d["bus_logs"])
 
 
-def _config(folder: Path, **replace: str) -> Path:
-    """config/robot.yaml (and its EDS files) copied into ``folder`` with text replaced (old -> new)."""
-    src = ROOT / "config" / "robot.yaml"
-    text = src.read_text()
-    for old, new in replace.values():
-        assert old in text, old
-        text = text.replace(old, new)
-    for eds in src.parent.glob("*.eds"):
-        (folder / eds.name).write_text(eds.read_text())
-    (folder / "robot.yaml").write_text(text)
-    return folder / "robot.yaml"
-
-
-def test_abort_keeps_the_recording_and_resumes_on_the_same_robot_only(tmp_path, otbot_cli):
+def test_abort_keeps_the_recording_and_resumes_on_the_same_robot_only(tmp_path, otbot_cli, robot_yaml):
     light = nominal().replace(b_w=0.09)  # half the friction: 6 N m spins a free wheel past 60 rad/s in 0.3 s
     robot = tmp_path / "light.yaml"
     light.save(robot)
@@ -140,8 +127,8 @@ def test_abort_keeps_the_recording_and_resumes_on_the_same_robot_only(tmp_path, 
     assert rc == 2 and "was recorded on another robot" in err and "--sim-params" in err
     # the same robot with a wheel-rate limit that admits it: the session continues and identifies it
     rc, out, err = _bench(otbot_cli, "--resume", str(folder), "--yes", "--no-diagnose", "--json",
-                          "--sim-params", str(robot), "--config", str(_config(tmp_path, rate=(
-                              "max_wheel_rate: {value: 60.0", "max_wheel_rate: {value: 100.0"))))
+                          "--sim-params", str(robot), "--config", str(robot_yaml({
+                              "max_wheel_rate: {value: 60.0": "max_wheel_rate: {value: 100.0"})))
     assert rc == 0, err
     d = json.loads(out)
     assert d["steps"]["wheel"]["accepted_recording"] == "wheel-2.mcap"
@@ -150,15 +137,15 @@ def test_abort_keeps_the_recording_and_resumes_on_the_same_robot_only(tmp_path, 
         assert abs(p["value"] - getattr(light, n)) <= 4 * p["std"], (n, p)
 
 
-def test_plant_process_takes_operator_commands_and_the_bench_runs_on_it_over_slcan(tmp_path):
+def test_plant_process_takes_operator_commands_and_the_bench_runs_on_it_over_slcan(tmp_path, robot_yaml):
     """``otbot plant`` told by its operator channel (stdin) to put the robot on the stand; ``otbot bench
     --bus config`` then runs the wheel step on it over the emulated slcan adapter, as on a real bus."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     # lockstep with another process on a loaded machine: bus timeouts with room (as tests/test_bus_cli.py)
-    cfg = _config(tmp_path, slcan=("  options: {}", "  options: {sleep_after_open: 0}"),
-                  hb=("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}"),
-                  master=("master_heartbeat_consumer: {value: 100, unit: ms}",
-                          "master_heartbeat_consumer: {value: 1000, unit: ms}"))
+    cfg = robot_yaml({"  options: {}": "  options: {sleep_after_open: 0}",
+                      "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 1000, unit: ms}",
+                      "master_heartbeat_consumer: {value: 100, unit: ms}":
+                          "master_heartbeat_consumer: {value: 1000, unit: ms}"})
     proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "plant"], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
@@ -267,9 +254,10 @@ def test_a_step_that_cannot_be_identified_says_so_and_the_diagnosis_names_what_i
     assert read_recording(folder / "chassis-1.mcap").metadata["effects"] == {"c_r": 0.3, "c_l": 0.3}
 
 
-def test_drives_that_cap_the_torque_give_a_saturated_recording_that_is_named_and_kept(tmp_path, otbot_cli):
+def test_drives_that_cap_the_torque_give_a_saturated_recording_that_is_named_and_kept(tmp_path, otbot_cli,
+                                                                                      robot_yaml):
     # the drives' own limit 0x6072 at 400 per-mille of 2 N m, x10 gear: 8 N m at the joint, below the paper's 10 N m
-    cfg = _config(tmp_path, cap=("- [0x6072, 0, 2500]", "- [0x6072, 0, 400]"))
+    cfg = robot_yaml({"- [0x6072, 0, 2500]": "- [0x6072, 0, 400]"})
     folder = tmp_path / "s"
     rc, out, err = _bench(otbot_cli, "--steps", "chassis", "--yes", "--no-diagnose", "--session", str(folder),
                           "--config", str(cfg), "--excitation", "paper")

@@ -20,6 +20,7 @@ from otbot_hw.params import nominal
 from otbot_hw.recording import read_recording
 from otbot_hw.runtime.openloop import run_torques
 from otbot_hw.sensors import NoiseModel, encoders_ideal, imu_sigma
+from sim.lockstep import LockstepCanopenRobot
 from sim.plant import simulated_robot
 from otbot_hw.simulation.runs import simulated_recording
 from otbot_hw.simulation.simulator import ForceSchedule, PivotForce, simulate
@@ -265,7 +266,7 @@ def test_plant_in_another_process_over_slcan_on_a_pty():
         assert info["can_interface"] == "slcan" and info["can_channel"].startswith("/dev/")
         cfg = lenient(CFG).replace_bus(interface="slcan", channel=info["can_channel"],
                                        options={"sleep_after_open": 0})
-        robot = CanopenRobot(cfg, imu=open_imu(cfg.imu, port=info["imu_port"]), imu_lockstep=True)
+        robot = LockstepCanopenRobot(cfg, imu=open_imu(cfg.imu, port=info["imu_port"]))
         n = 60
         with robot:
             robot.open()
@@ -342,12 +343,14 @@ def test_slcan_adapter_protocol_and_bad_lines():
         adapter.shutdown()
 
 
-def test_realtime_pacing_sends_one_sync_per_period():
-    """On a real bus ``read()`` paces SYNCs at the control rate (here against the simulated plant)."""
+def test_the_loop_runner_paces_and_the_driver_never_sleeps_to_pace():
+    """One clock: ``read()`` on a paced bus sends its SYNC at once (the driver never waits for a
+    period boundary); the loop runner paces the cycles at the control rate."""
     import time
 
     import can
 
+    from otbot_hw.runtime.openloop import run_torques
     from sim.plant import VirtualPlant
 
     cfg = lenient(CFG).replace_bus(channel="otbot-realtime-test")
@@ -356,16 +359,23 @@ def test_realtime_pacing_sends_one_sync_per_period():
         with robot:
             robot.open()
             robot.enable()
+            k0 = plant.k
             t0 = time.monotonic()
-            stamps = []
             for _ in range(11):
                 robot.write([0.0, 0.0, 0.0])
-                stamps.append(robot.read().host_time)
+                robot.read()
             elapsed = time.monotonic() - t0
-        assert elapsed >= 10 * cfg.bus.period * 0.95
-        assert np.median(np.diff(stamps)) == pytest.approx(cfg.bus.period, abs=2e-3)
-        assert plant.k == 11 + 2  # the plant stepped once per SYNC (and on close once for the confirmed
-        # quick stop, once for disable)
+            with plant.lock:  # the plant steps its model after sending a SYNC's TPDOs: let it finish
+                assert plant.k == k0 + 11
+            # 11 cycles back to back: the plant answers each SYNC within a fraction of a period
+            assert elapsed < 11 * cfg.bus.period * 0.6, elapsed
+            robot.quick_stop()
+            t0 = time.monotonic()
+            res = run_torques(robot, np.zeros((11, 3)), realtime=True)
+            elapsed = time.monotonic() - t0
+    assert res.completed, res.fault
+    assert elapsed >= 10 * cfg.bus.period * 0.95
+    assert res.stats.period_p50 == pytest.approx(cfg.bus.period, abs=2e-3)
 
 
 def test_velocity_unit_of_the_drives_is_configurable():
@@ -388,7 +398,6 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
     IMU ticks of the second master line up with the plant's because the node resets restart the count."""
     import can
 
-    from drivers.robot import CanopenRobot
     from sim.plant import VirtualPlant, open_sim_imu
 
     cfg = lenient(CFG).replace_bus(channel="otbot-two-masters", control_rate=1000.0)
@@ -396,8 +405,8 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
     try:
         with VirtualPlant(cfg, imu=pub, noise=NoiseModel()) as plant:
             for master in range(2):
-                robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), imu=drv,
-                                     imu_lockstep=True, close_imu=False, sdo_timeout=1.0)
+                robot = LockstepCanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), imu=drv,
+                                             close_imu=False, sdo_timeout=1.0)
                 robot.open()
                 robot.enable()
                 for _ in range(23 + 10 * master):
@@ -409,3 +418,62 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
     finally:
         drv.close()
         pub.close()
+
+
+def test_controlword_values_live_in_the_cia402_module_only():
+    """Issue 19: CiA 402 words only in the profile module — no controlword literal or assignment in
+    the rest of the master's code."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    pattern = re.compile(r"0x000[0-9A-Fa-f]\b.*(controlword|cw)|controlword\s*=|\.controlword\s*=|0x000F", re.I)
+    offenders = []
+    for path in [*(root / "drivers").glob("*.py"), *(root / "otbot_hw").rglob("*.py")]:
+        if path.name == "cia402.py":
+            continue
+        for no, line in enumerate(path.read_text().splitlines(), start=1):
+            if pattern.search(line):
+                offenders.append(f"{path.relative_to(root)}:{no}: {line.strip()}")
+    assert not offenders, offenders
+
+
+def test_every_paced_run_arms_the_drives_sync_and_rpdo_watchdogs():
+    """``bus config`` without lockstep (otbot run/track/bench and the daemon alike) arms 0x1006 and
+    the RPDO deadline; whatever a caller passes as ``paced``; lockstep arms neither."""
+    from otbot_hw.runtime.backends import BusConfigBackend
+    from sim.plant import VirtualPlant
+
+    cfg = lenient(CFG).replace_bus(interface="virtual", channel="otbot-paced-arming")
+    period_us = int(round(cfg.bus.period * 1e6))
+    rpdo_ms = round(cfg.drives[0].rpdo_timeout * cfg.bus.period * 1000)
+    for lockstep, paced in ((False, False), (False, None), (True, False)):
+        with VirtualPlant(cfg) as plant:
+            kw = {} if paced is None else {"paced": paced}
+            backend = BusConfigBackend(cfg, with_imu=False, lockstep=lockstep, **kw)
+            assert backend.paced is (not lockstep) and backend.realtime is (not lockstep)
+            with backend.open():
+                armed = [(d.od_value(0x1006), d.od_value(0x1400, 5)) for d in plant.drives]
+        assert armed == ([(0, 0)] * 3 if lockstep else [(period_us, rpdo_ms)] * 3), (lockstep, armed)
+
+
+def test_enable_operation_only_to_keep_or_make_a_commanded_drive_enabled():
+    """CiA 402 words of ``drivers.cia402``: every (command, reported state) pair; "enable operation"
+    is sent only to keep a commanded drive in OPERATION ENABLED and, on the way there, from SWITCHED
+    ON; a drive found in QUICK STOP ACTIVE gets quick stop, any other unexpected state disable voltage."""
+    from drivers import cia402 as c
+
+    states = ("NOT READY TO SWITCH ON", "SWITCH ON DISABLED", "READY TO SWITCH ON", "SWITCHED ON",
+              "OPERATION ENABLED", "QUICK STOP ACTIVE", "FAULT REACTION ACTIVE", "FAULT")
+    for commanded in (c.DISABLED, c.ENABLING, c.ENABLED, c.QUICK_STOP):
+        for state in states:
+            cw = c.cyclic_controlword(commanded, state)
+            assert (cw == c.CW_ENABLE_OPERATION) == (commanded == c.ENABLED and state == "OPERATION ENABLED")
+            if state == "QUICK STOP ACTIVE" or commanded == c.QUICK_STOP:
+                assert cw == c.CW_QUICK_STOP
+            elif cw != c.CW_ENABLE_OPERATION:
+                assert cw == c.CW_DISABLE_VOLTAGE
+    assert {s for s, cw in c.ENABLE_PATH.items() if cw == c.CW_ENABLE_OPERATION} == {"SWITCHED ON",
+                                                                                     "OPERATION ENABLED"}
+    assert c.expected_states(c.ENABLED) == ("OPERATION ENABLED",)
+    assert set(c.expected_states(c.QUICK_STOP)) >= {"QUICK STOP ACTIVE", "SWITCH ON DISABLED", "OPERATION ENABLED"}

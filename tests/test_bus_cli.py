@@ -40,15 +40,9 @@ def test_otbot_run_locked_fixture_and_1khz(capsys):
     assert "exceeds" in captured.err and res["busload"]["max_rate"] < 1000  # bus-load warning
 
 
-def test_otbot_run_config_bus_without_a_robot_fails_cleanly(tmp_path, capsys):
+def test_otbot_run_config_bus_without_a_robot_fails_cleanly(capsys, robot_yaml):
     # The configured virtual bus has nobody on it: boot-up never comes, exit 1 with the reason.
-    cfg = tmp_path / "robot.yaml"
-    from drivers.config import load_robot_config
-
-    src = load_robot_config().path
-    cfg.write_text(src.read_text().replace("boot_timeout: {value: 2.0, unit: s}", "boot_timeout: {value: 0.2, unit: s}"))
-    for eds in src.parent.glob("*.eds"):
-        (tmp_path / eds.name).write_text(eds.read_text())
+    cfg = robot_yaml({"boot_timeout: {value: 2.0, unit: s}": "boot_timeout: {value: 0.2, unit: s}"})
     try:
         main(["run", "--bus", "config", "--config", str(cfg), "--interface", "virtual", "--channel", "nobody-here",
               "--no-imu", "--duration", "0.1", "--json"])
@@ -61,22 +55,15 @@ def test_otbot_run_config_bus_without_a_robot_fails_cleanly(tmp_path, capsys):
     assert json.loads(captured.out)["completed"] is False
 
 
-def test_otbot_run_against_an_otbot_plant_process(tmp_path, capsys):
+def test_otbot_run_against_an_otbot_plant_process(capsys, robot_yaml):
     """Daemon and plant as two processes: `otbot plant` (slcan on a pty) and `otbot run --bus config`."""
     import subprocess
     import sys
 
-    from drivers.config import load_robot_config
-
-    src = load_robot_config().path
-    cfg = tmp_path / "robot.yaml"
-    text = src.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}")
-    text = text.replace("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}")
-    text = text.replace("master_heartbeat_consumer: {value: 100, unit: ms}",
-                        "master_heartbeat_consumer: {value: 1000, unit: ms}")
-    cfg.write_text(text)
-    for eds in src.parent.glob("*.eds"):
-        (tmp_path / eds.name).write_text(eds.read_text())
+    cfg = robot_yaml({"  options: {}": "  options: {sleep_after_open: 0}",
+                      "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 1000, unit: ms}",
+                      "master_heartbeat_consumer: {value: 100, unit: ms}":
+                          "master_heartbeat_consumer: {value: 1000, unit: ms}"})
     code = "import sys; from otbot_hw.cli import main; sys.exit(main())"
     proc = subprocess.Popen([sys.executable, "-c", code, "plant", "--noise", "none"], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)

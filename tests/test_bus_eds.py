@@ -177,3 +177,51 @@ def test_the_simulated_drives_live_with_any_of_these_dictionaries(tmp_path):
                 assert node.sdo[0x6502].raw == int(ev.Eds(eds).get(0x6502), 0)
             finally:
                 net.disconnect()
+
+
+def _const_count(eds: "ev.Eds", map_index: int, count: int, entries: list[int]) -> "ev.Eds":
+    """A vendor layout: mapping ``map_index``'s entry count read-only (``const``) at ``count``, its
+    entries writable with ``entries`` as defaults (0: empty)."""
+    eds.set(map_index, 0, "AccessType", "const").set(map_index, 0, "DefaultValue", count)
+    for k, v in enumerate(entries, start=1):
+        eds.set(map_index, k, "AccessType", "rw").set(map_index, k, "DefaultValue", f"0x{v:08X}")
+    return eds
+
+
+def test_a_const_count_with_writable_entries_is_planned_within_that_count(tmp_path):
+    """RPDO1 with a read-only count of 2 (entries rw, the second one empty by default) and TPDO2 with
+    a read-only count of 4: the objects are mapped within each count, the count is never written, the
+    unused entry stays empty and the read-back compares the declared entries only."""
+    from dataclasses import replace
+
+    from drivers.mapping import import_dictionary, plan_pdos
+    from sim.plant import simulated_robot
+
+    src = CFG.drives[0].eds
+    e = ev.Eds(src)
+    _const_count(e, 0x1600, 2, [0x60400010, 0])
+    _const_count(e, 0x1A01, 4, [0x606C0020, 0, 0, 0])
+    eds = e.write(tmp_path / "const_count.eds")
+    cfg = replace(CFG, drives=tuple(replace(d, eds=eds) for d in CFG.drives))
+    with simulated_robot(cfg, with_imu=False) as (robot, plant):
+        d = robot.drives[0]
+        assert d.plan.rx.pdos[1] == [(0x6040, 0, 16), (0x6071, 0, 16)]
+        assert d.plan.tx.pdos[2] == [(0x606C, 0, 32), (0x603F, 0, 16), (0x6061, 0, 8)]
+        sd = plant.drives[0]
+        assert sd.od_value(0x1A01, 0) == 4 and sd.od_value(0x1A01, 4) == 0  # count kept, the rest empty
+        robot.enable()
+        robot.write([2.0, 2.0, 2.0])
+        s = robot.read()
+        np.testing.assert_allclose(s.joint_torque, [2.0, 2.0, 2.0])
+        assert s.drive_states == ("OPERATION ENABLED",) * 3
+    # a count of 2 cannot take the three objects TPDO2 should carry: the planner keeps within it
+    e2 = ev.Eds(src)
+    _const_count(e2, 0x1A01, 2, [0x606C0020, 0])
+    plan = plan_pdos(import_dictionary(e2.write(tmp_path / "c2.eds"), 1, "d"), 1, "d", *_drive_needs())
+    assert len(plan.tx.pdos[2]) <= 2
+
+
+def _drive_needs():
+    from drivers.cia402 import RPDO_LAYOUT, RX_NEEDS, TPDO_LAYOUT, TX_NEEDS
+
+    return RX_NEEDS, TX_NEEDS, RPDO_LAYOUT, TPDO_LAYOUT

@@ -3,7 +3,6 @@ malformed frames, and configuration errors named by key."""
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import can
 import numpy as np
@@ -128,16 +127,6 @@ def test_malformed_frames_are_ignored_without_crash():
         assert abs(res[-1].joint_pos[0] - truth[3]) < 2 * np.pi / 40960 + 1e-9
 
 
-def _write_config(tmp_path: Path, old: str, new: str) -> Path:
-    text = Path(CFG.path).read_text()
-    assert old in text, old
-    p = tmp_path / "robot.yaml"
-    p.write_text(text.replace(old, new))
-    for eds in Path(CFG.path).parent.glob("*.eds"):
-        (tmp_path / eds.name).write_text(eds.read_text())
-    return p
-
-
 @pytest.mark.parametrize("old,new,key", [
     ("right_wheel: {node_id: 1,", "right_wheel: {node_id: 200,", "drives.right_wheel.node_id"),
     ("left_wheel: {node_id: 2,", "left_wheel: {node_id: 1,", "node IDs must be distinct"),
@@ -151,16 +140,20 @@ def _write_config(tmp_path: Path, old: str, new: str) -> Path:
     ("source: encoder", "source: magic", "pivot_encoder.source"),
     ("interface: socketcan", "interface: carrier-pigeon", "bus.interface"),
     ("bus:\n", "bus_renamed:\n", "missing section 'bus'"),
+    ("quick_stop_option: 2", "quick_stop_option: 9", "drives.quick_stop_option"),
+    ("quick_stop_option: 2", "quick_stop_option: fast", "drives.quick_stop_option"),
+    ("loop_liveness: {value: 3, unit: periods}", "loop_liveness: {value: 0, unit: periods}", "bus.loop_liveness"),
+    ("loop_liveness: {value: 3, unit: periods}", "loop_liveness: {value: 2.5, unit: periods}", "bus.loop_liveness"),
 ])
-def test_bad_config_is_rejected_naming_the_key(tmp_path, old, new, key):
+def test_bad_config_is_rejected_naming_the_key(robot_yaml, old, new, key):
     with pytest.raises(ParameterError, match=key.replace("[", r"\[").replace("]", r"\]")):
-        load_robot_config(_write_config(tmp_path, old, new))
+        load_robot_config(robot_yaml({old: new}))
 
 
-def test_cli_exits_2_on_bad_config_and_arguments(tmp_path, capsys):
+def test_cli_exits_2_on_bad_config_and_arguments(capsys, robot_yaml):
     from otbot_hw.cli import main
 
-    bad = _write_config(tmp_path, "right_wheel: {node_id: 1,", "right_wheel: {node_id: 0,")
+    bad = robot_yaml({"right_wheel: {node_id: 1,": "right_wheel: {node_id: 0,"})
     assert main(["run", "--config", str(bad), "--duration", "0.1"]) == 2
     assert "drives.right_wheel.node_id" in capsys.readouterr().err
     assert main(["run", "--torques", "1,2", "--duration", "0.1"]) == 2

@@ -74,7 +74,7 @@ def test_inject_refuses_what_it_cannot_do(capsys):
                         (["--inject", "emcy"], "KIND@SECONDS"),
                         (["--inject", "emcy@-1"], ">= 0"),
                         (["--inject", "emcy@1:elbow"], "device must be one of"),
-                        (["--inject", "imu-loss@0.1", "--no-imu"], "has no IMU"),
+                        (["--inject", "imu-loss@0.05", "--no-imu"], "has no IMU"),
                         (["--bus", "config", "--inject", "emcy@0.1"], "needs --bus sim")):
         assert main(["run", *args, "--duration", "0.1"]) == 2
         err = capsys.readouterr().err
@@ -118,19 +118,15 @@ def test_fault_matrix_with_the_plant_as_its_own_process_over_slcan():
             assert pp.alive()
 
 
-def test_master_killed_mid_run_the_drives_stop_within_their_consumer_time(tmp_path):
+def test_master_killed_mid_run_the_drives_stop_within_their_consumer_time(robot_yaml):
     consumer = 0.15
-    src = CFG.path
-    text = src.read_text().replace("  options: {}", "  options: {sleep_after_open: 0}")
-    text = text.replace("heartbeat_consumer: {value: 200, unit: ms}", "heartbeat_consumer: {value: 1000, unit: ms}")
-    text = text.replace("master_heartbeat_consumer: {value: 100, unit: ms}",
-                        f"master_heartbeat_consumer: {{value: {consumer * 1000:g}, unit: ms}}")
-    (tmp_path / "robot.yaml").write_text(text)
-    for eds in src.parent.glob("*.eds"):
-        (tmp_path / eds.name).write_text(eds.read_text())
+    cfg = robot_yaml({"  options: {}": "  options: {sleep_after_open: 0}",
+                      "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 1000, unit: ms}",
+                      "master_heartbeat_consumer: {value: 100, unit: ms}":
+                          f"master_heartbeat_consumer: {{value: {consumer * 1000:g}, unit: ms}}"})
     with PlantProcess(CFG) as pp:
         master = subprocess.Popen([sys.executable, "-m", "otbot_hw", "run", "--bus", "config", "--config",
-                                   str(tmp_path / "robot.yaml"), "--interface", "slcan", "--channel",
+                                   str(cfg), "--interface", "slcan", "--channel",
                                    pp.info["can_channel"], "--imu-port", pp.info["imu_port"], "--lockstep",
                                    "--duration", "1000", "--json"], stdout=subprocess.DEVNULL,
                                   stderr=subprocess.DEVNULL)

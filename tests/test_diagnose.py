@@ -348,9 +348,10 @@ def test_fast_paths_give_the_plain_numbers():
     import dataclasses
 
     from otbot_hw.diagnose import residuals as R
-    from otbot_hw.model import effects as fx
+    from otbot_hw.model import effect_physics as phys
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.model.fixtures import fixture_code
+    from otbot_hw.simulation import integrators
 
     rng = np.random.default_rng(3)
     U, F = rng.normal(0, 1.5, (200, 3)), rng.normal(0, 2, (200, 2))
@@ -361,11 +362,11 @@ def test_fast_paths_give_the_plain_numbers():
         prm = m.params.as_array()
         for fixture in ("floor", "stand", "locked"):
             c = fixture_code(fixture)
-            X, TAU, S, QDD, SD = fx.ext_rk4_zoh_samples(np.zeros(12), np.full(3, 0.1), U, F, 0.01, 3, prm, m.eff, c)
-            for a, b in zip((X, TAU, S), fx.ext_rk4_zoh(np.zeros(12), np.full(3, 0.1), U, F, 0.01, 3, prm, m.eff, c)):
+            X, TAU, S, QDD, SD = integrators.ext_rk4_zoh_samples(np.zeros(12), np.full(3, 0.1), U, F, 0.01, 3, prm, m.eff, c)
+            for a, b in zip((X, TAU, S), integrators.ext_rk4_zoh(np.zeros(12), np.full(3, 0.1), U, F, 0.01, 3, prm, m.eff, c)):
                 assert np.array_equal(a, b)
-            assert np.array_equal(QDD, fx.ext_sample_accelerations(X, TAU, Ff, m.eff, prm, c))
-            assert np.array_equal(SD, fx.slip_rate_samples(X, TAU, m.eff, prm, c))
+            assert np.array_equal(QDD, phys.ext_sample_accelerations(X, TAU, Ff, m.eff, prm, c))
+            assert np.array_equal(SD, phys.slip_rate_samples(X, TAU, m.eff, prm, c))
             assert np.any(SD != 0) == ("k_slip" in vals and fixture == "floor")
     d = from_recording(concealed_recording(P, {"k_slip": 0.02}, "multisine", 2.0, seed=4), "slip")
     for vals in ({}, {"k_slip": 0.02, "t_trac": 3.0, "k_l": 0.1, "T_i": 0.01}, {"e_r": 0.05, "dr_l": -0.03}):

@@ -3,7 +3,9 @@ import numpy as np
 import pytest
 
 from otbot_hw.model import compiled
+from otbot_hw.model import effect_physics as phys
 from otbot_hw.model import effects as fx
+from otbot_hw.model import sensor_model
 from otbot_hw.model.dynamics import kinetic_energy
 from otbot_hw.simulation.simulator import simulate, simulate_extended
 
@@ -80,7 +82,7 @@ def test_unequal_wheel_radii_conserve_energy_and_scale_encoders(params, dr_r, dr
     eff = fx.effect_vector({"dr_r": dr_r, "dr_l": dr_l})
     U = _torques(300)
     tr = simulate_extended(p, eff, U, 0.01)
-    s = fx.sensor_outputs(tr, p, eff)
+    s = sensor_model.sensor_outputs(tr, p, eff)
     assert np.allclose(s["joint_pos"][:, 0], tr.x[:, 3] / (1 + dr_r), rtol=1e-12)
     assert np.allclose(s["joint_pos"][:, 1], tr.x[:, 4] / (1 + dr_l), rtol=1e-12)
     phi = s["joint_pos"]
@@ -102,7 +104,7 @@ def test_slip_makes_encoders_count_more_than_the_wheel_rolls(params):
     tr = simulate_extended(params, eff, U, 0.01)
     ref = simulate(params, U, 0.01)
     assert np.max(np.abs(tr.x - ref.x)) < 1e-12  # the body moves as without slip
-    s = fx.sensor_outputs(tr, params, eff)
+    s = sensor_model.sensor_outputs(tr, params, eff)
     assert np.all(s["joint_pos"][1:, :2] > tr.x[1:, 3:5])
     assert s["joint_vel"][-1, 0] - tr.x[-1, 9] == pytest.approx(0.05 * (3.0 - params.b_w * tr.x[-1, 9]), rel=1e-9)
 
@@ -112,11 +114,11 @@ def test_imu_sensor_effects(params):
     alpha, ad, add = np.full(n, 0.3), np.full(n, 2.0), np.full(n, 1.0)
     xdd, ydd = np.zeros(n), np.zeros(n)
     eff = fx.effect_vector({"d_x": 0.1, "b_ay": 0.05})
-    acc, gyro = fx.imu_from_motion(alpha, ad, xdd, ydd, add, eff)
+    acc, gyro = sensor_model.imu_from_motion(alpha, ad, xdd, ydd, add, eff)
     assert acc[0, 0] == pytest.approx(-4.0 * 0.1)  # centripetal
     assert acc[0, 1] == pytest.approx(1.0 * 0.1 + 0.05)  # tangential + bias
     eff = fx.effect_vector({"g_x": 0.2})
-    acc, _ = fx.imu_from_motion(np.zeros(n), np.zeros(n), xdd, ydd, np.zeros(n), eff)
+    acc, _ = sensor_model.imu_from_motion(np.zeros(n), np.zeros(n), xdd, ydd, np.zeros(n), eff)
     assert acc[0, 0] == pytest.approx(-0.2)  # specific force = a - g
 
 
@@ -137,7 +139,7 @@ def test_runs_test_flags_structured_residuals_only():
 
 def test_each_motor_saturates_at_its_own_limit():
     eff = fx.effect_vector({"u_max_r": 3.0, "u_max_p": 1.5})
-    assert np.allclose(fx.actuated_torque(np.array([5.0, -7.0, -2.0]), eff), [3.0, -7.0, -1.5])
+    assert np.allclose(phys.actuated_torque(np.array([5.0, -7.0, -2.0]), eff), [3.0, -7.0, -1.5])
     tied = fx.ExtendedModel.paper(nominal_params()).with_values({"u_max": 2.0})
     assert tied.get("u_max") == 2.0 and np.allclose(tied.eff[[fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P]], 2.0)
 
@@ -154,7 +156,7 @@ def test_traction_limited_slip_solves_the_wheel_balance(tau_tr):
     limit the wheel creeps k tau, above it spins up until viscous friction takes the excess."""
     k, T, b = 0.02, 3.0, 0.18
     eff = fx.effect_vector({"k_slip": k, "t_trac": T})
-    sigma, tg = fx.slip_state(tau_tr, b, eff)
+    sigma, tg = phys.slip_state(tau_tr, b, eff)
     assert tau_tr - b * sigma == pytest.approx(T * np.tanh(sigma / (k * T)), abs=1e-9)
     assert tg == pytest.approx(tau_tr - b * sigma, abs=1e-9) and abs(tg) <= T
     if abs(tg) < 0.999 * T:
@@ -164,7 +166,7 @@ def test_traction_limited_slip_solves_the_wheel_balance(tau_tr):
     if abs(tau_tr) > 2 * T:
         assert sigma == pytest.approx((tau_tr - np.sign(tau_tr) * T) / b, rel=0.01)
     # no traction limit: the linear creep law
-    assert fx.slip_state(tau_tr, b, fx.effect_vector({"k_slip": k})) == pytest.approx((k * tau_tr, tau_tr))
+    assert phys.slip_state(tau_tr, b, fx.effect_vector({"k_slip": k})) == pytest.approx((k * tau_tr, tau_tr))
 
 
 def test_saturated_traction_limits_the_body_and_races_the_encoders(params):
@@ -173,7 +175,7 @@ def test_saturated_traction_limits_the_body_and_races_the_encoders(params):
     tr = simulate_extended(params, lim, U, 0.01)
     free = simulate_extended(params, fx.effect_vector({"k_slip": 0.02}), U, 0.01)
     assert np.max(np.abs(tr.qdd[:, 0])) < 0.45 * np.max(np.abs(free.qdd[:, 0]))  # ~3 of 8 N m reach the ground
-    s = fx.sensor_outputs(tr, params, lim)
+    s = sensor_model.sensor_outputs(tr, params, lim)
     assert np.all(s["joint_vel"][10:, :2] > tr.x[10:, 9:11] + 5.0)  # the wheels spin far ahead of rolling
 
 
@@ -188,7 +190,7 @@ def test_caster_drag_dissipates_exactly_its_contact_power(params):
         x = np.zeros(12)
         x[:6] = rng.normal(size=6)
         x[6:] = fx_admissible_state(params, x[:6], rng.normal(size=3))
-        gen = fx.effect_force(x, np.zeros(3), eff, prm, compiled.FLOOR)
+        gen = phys.effect_force(x, np.zeros(3), eff, prm, compiled.FLOOR)
         th, thd = x[2] - x[5], x[8] - x[11]
         power = 0.0
         width = max(fx.WIDTH_MIN_CASTER, fx.WIDTH_PER_N_CASTER * 6.0)
@@ -200,7 +202,7 @@ def test_caster_drag_dissipates_exactly_its_contact_power(params):
     sym = fx.effect_vector({"n_cst": 2, "x_c1": 0.35, "y_c1": 0.12, "x_c2": 0.35, "y_c2": -0.12, "f_cst": 6.0})
     x = np.zeros(12)
     x[6:] = fx_admissible_state(params, np.zeros(6), np.array([2.0, 2.0, 0.0]))  # straight, no pivot motion
-    gen = fx.effect_force(x, np.zeros(3), sym, prm, compiled.FLOOR)
+    gen = phys.effect_force(x, np.zeros(3), sym, prm, compiled.FLOOR)
     assert abs(gen[2]) < 1e-12 and gen[0] == pytest.approx(-6.0, rel=1e-3)
 
 
@@ -215,13 +217,13 @@ def test_friction_sign_narrow_in_proportion_and_stable(params, c, fixture):
     step stays stable at every level: a wheel coasting down under Coulomb friction comes to rest and stays
     within one width of zero, without chatter."""
     eff = fx.effect_vector({"c_r": c, "c_l": c, "c_p": c})
-    assert fx.sign_width(0, eff, params.as_array()) == pytest.approx(max(0.002, 0.025 * c))
-    assert fx.sign_width(2, eff, params.as_array()) == pytest.approx(max(0.001, 0.005 * c))
+    assert phys.sign_width(0, eff, params.as_array()) == pytest.approx(max(0.002, 0.025 * c))
+    assert phys.sign_width(2, eff, params.as_array()) == pytest.approx(max(0.001, 0.005 * c))
     x0 = np.zeros(12)
     x0[6:] = fx_admissible_state(params, np.zeros(6), np.array([0.5, -0.4, 0.1])) if fixture == "floor" \
         else np.array([0, 0, 0.1, 0.5, -0.4, 0.1])
     tr = simulate_extended(params, eff, np.zeros((600, 3)), 0.01, x0=x0, fixture=fixture)
     w = tr.x[-100:, 9:12]
     assert np.all(np.isfinite(tr.x))
-    assert np.max(np.abs(w[:, :2])) <= fx.sign_width(0, eff, params.as_array())
-    assert np.max(np.abs(w[:, 2])) <= fx.sign_width(2, eff, params.as_array())
+    assert np.max(np.abs(w[:, :2])) <= phys.sign_width(0, eff, params.as_array())
+    assert np.max(np.abs(w[:, 2])) <= phys.sign_width(2, eff, params.as_array())

@@ -1,5 +1,5 @@
 """The extended model (paper dynamics + catalog effects) outside the diagnosis: model files written by
-``otbot diagnose --out``, simulation (``otbot simulate``, ``ExtendedStepper``) and control (feedforward
+``otbot diagnose --out``, simulation (``otbot simulate``, the one ``Stepper``) and control (feedforward
 compensation in ``ComputedTorqueController``, ``otbot track --params/--plant-params``)."""
 import json
 
@@ -12,10 +12,11 @@ from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.task_model import reference_state, task_space
 from otbot_hw.control.trajectories import corridor
 from otbot_hw.model import compiled
+from otbot_hw.model import effect_physics as phys
 from otbot_hw.model import effects as fx
 from otbot_hw.model.kinematics import inverse_kinematics_matrix
 from otbot_hw.params import DEFAULT_PARAMS_FILE, OtbotParams, ParameterError, nominal
-from otbot_hw.simulation.simulator import ExtendedStepper, Stepper, make_stepper, simulate_extended
+from otbot_hw.simulation.simulator import Stepper, make_stepper, simulate, simulate_extended
 
 P = nominal()
 PHYSICS = {"c_w": 0.3, "c_p": 0.2, "s_w": 0.1, "v_s": 0.4, "c_rr": 0.01, "f_cst": 3.0, "g_x": 0.05, "g_y": -0.03,
@@ -66,30 +67,34 @@ def test_effects_enter_the_task_space_model_as_delta_transpose_gen_and_are_compe
         assert np.allclose(x[9:], inverse_kinematics_matrix(q, P) @ pd, atol=1e-12)
         u = rng.uniform(-3, 3, 3)
         Mb, Cb = task_space(p[2], phi, pd, prm)
-        acc = fx.ext_accelerations(x, u, np.zeros(2), eff, prm, compiled.FLOOR)
-        gen_u = fx.effect_joint_torque(x, u, eff, prm, compiled.FLOOR)
+        acc = phys.ext_accelerations(x, u, np.zeros(2), eff, prm, compiled.FLOOR)
+        gen_u = phys.effect_joint_torque(x, u, eff, prm, compiled.FLOOR)
         assert np.allclose(acc[:3], np.linalg.solve(Mb, u + gen_u - Cb @ pd), atol=1e-10)
         want = np.linalg.solve(Mb, u - Cb @ pd)
-        cmd = fx.compensated_command(x, u, eff, prm, compiled.FLOOR)
-        got = fx.ext_accelerations(x, fx.actuated_torque(cmd, eff), np.zeros(2), eff, prm, compiled.FLOOR)
+        cmd = phys.compensated_command(x, u, eff, prm, compiled.FLOOR)
+        got = phys.ext_accelerations(x, phys.actuated_torque(cmd, eff), np.zeros(2), eff, prm, compiled.FLOOR)
         assert np.allclose(got[:3], want, atol=1e-10)
         # a radius asymmetry also changes the wheels' inertia, which is not compensated: small, not zero
-        cmd = fx.compensated_command(x, u, eff_dr, prm, compiled.FLOOR)
-        got = fx.ext_accelerations(x, fx.actuated_torque(cmd, eff_dr), np.zeros(2), eff_dr, prm, compiled.FLOOR)
+        cmd = phys.compensated_command(x, u, eff_dr, prm, compiled.FLOOR)
+        got = phys.ext_accelerations(x, phys.actuated_torque(cmd, eff_dr), np.zeros(2), eff_dr, prm, compiled.FLOOR)
         assert np.abs(got[:3] - want).max() < 0.05 * (np.abs(want).max() + 1.0)
 
 
-def test_extended_stepper_matches_the_batch_integrator_and_falls_back_to_the_paper_stepper():
+def test_the_one_stepper_matches_the_batch_integrators_of_both_models():
     m = fx.ExtendedModel.paper(P).with_values({"c_w": 0.3, "T_i": 0.02, "k_p": -0.1, "g_x": 0.05})
     U = np.random.default_rng(0).uniform(-4, 4, (200, 3))
     tr = simulate_extended(m.params, m.eff, U, 0.01)
     st = make_stepper(m, 0.01)
-    assert isinstance(st, ExtendedStepper)
     for u in U:
         st.step(u)
     assert np.abs(st.x - tr.x[-1]).max() < 1e-12
     assert np.allclose(st.tau, tr.tau[-1], atol=1e-12)
-    assert type(make_stepper(fx.ExtendedModel.paper(P), 0.01)) is Stepper
+    for plant in (P, fx.ExtendedModel.paper(P)):  # the paper's model: the same stepper with every effect at zero
+        st = make_stepper(plant, 0.01)
+        assert type(st) is Stepper
+        for u in U:
+            st.step(u)
+        assert np.abs(st.x - simulate(P, U, 0.01).x[-1]).max() < 1e-12
 
 
 def test_controller_with_the_extended_model_cancels_the_effects_in_closed_loop():

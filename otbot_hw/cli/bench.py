@@ -204,7 +204,8 @@ def _notice_truncated(session, steps) -> None:
 
 
 def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_text, with_imu, say, quiet) -> dict:
-    from otbot_hw.robot import RobotError
+    from otbot_hw.recording import source_metadata
+    from otbot_hw.robot import RobotError, operator_channel
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
     from otbot_hw.runtime.bench.buslog import BusLog
     from otbot_hw.runtime.bench.operator import AutomaticOperator, NoOperator, OperatorStopped, PromptOperator
@@ -216,7 +217,7 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
             "bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
             "nodes": {d.name: d.node_id for d in cfg.drives}, "pivot_source": cfg.pivot_encoder.source,
-            "source": "bus-simulation" if args.bus == "sim" else "robot",
+            **source_metadata(simulated=args.bus == "sim", bus=True),
             "params_file": str(args.params) if args.params else "config/otbot.yaml"}
     if args.bus == "sim":
         seed = args.seed + 1000 * (invocation - 1)  # a resumed simulated session draws new noise
@@ -255,7 +256,7 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
             log = BusLog(log_path).attach(robot.network)
             session.begin_invocation({"bus_log": session.rel(log_path), "bus": args.bus,
                                       **({"seed": meta["seed"]} if "seed" in meta else {})})
-            plant = getattr(robot, "plant", None)
+            plant = operator_channel(robot)  # a simulated robot's operator channel, or None
             operator = (AutomaticOperator(plant, sim_load_text, say=say) if args.yes else
                         PromptOperator(plant, sim_load_text, say=progress))
             say(f"[bench] session {session.path}: steps {', '.join(settings.steps)}, {settings.excitation} excitation, "

@@ -268,10 +268,9 @@ def _corridor(out: Path, params, quiet: bool, seed: int = 0, plant=None) -> dict
                  if "min_wall_clearance_m" in res else ""))
         ee = res.get("estimation_error")
         if ee is not None:
-            m, r = ee["max"], ee["rms"]
-            print(f"[demo] estimation error (estimate - truth): max |x| {m['x'] * 1e3:.2f} mm, max |y| "
-                  f"{m['y'] * 1e3:.2f} mm, max |alpha| {m['alpha']:.1e} rad; rms x {r['x'] * 1e3:.2f} mm, "
-                  f"y {r['y'] * 1e3:.2f} mm, alpha {r['alpha']:.1e} rad")
+            from otbot_hw.estimation.errors import describe_estimation_error
+
+            print("[demo] " + describe_estimation_error(ee))
         print("[demo] corridor settle times (until the errors stay below 2 % of the event's peak): "
               + ", ".join(f"{ev['kind']} at t = {ev['t']:g} s: "
                           + (f"{ev['settle_time_s']:.2f} s" if ev["settle_time_s"] is not None else "not settled")

@@ -38,11 +38,9 @@ def register(sub) -> None:
 
 def error_summary(rec, run) -> dict:
     """{'max': {x, y, alpha}, 'rms': {...}} of estimate - truth (m, m, rad; alpha wrapped)."""
-    e = run.pose - rec.truth_q[:, :3]
-    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    names = ("x", "y", "alpha")
-    return {"max": {n: float(np.abs(e[:, i]).max()) for i, n in enumerate(names)},
-            "rms": {n: float(np.sqrt(np.mean(e[:, i] ** 2))) for i, n in enumerate(names)}}
+    from otbot_hw.estimation.errors import estimation_error
+
+    return estimation_error(run.pose, rec.truth_q[:, :3])
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -123,10 +121,9 @@ def print_summary(r: dict) -> None:
     print("updates accepted / rejected by the gate: "
           + ", ".join(f"{k} {r['updates'][k]} / {r['rejected'][k]}" for k in used))
     if "estimation_error" in r:
-        e = r["estimation_error"]
-        print(f"estimate - truth, max (rms): x {1e3 * e['max']['x']:.2f} ({1e3 * e['rms']['x']:.2f}) mm, "
-              f"y {1e3 * e['max']['y']:.2f} ({1e3 * e['rms']['y']:.2f}) mm, "
-              f"alpha {1e3 * e['max']['alpha']:.3f} ({1e3 * e['rms']['alpha']:.3f}) mrad")
+        from otbot_hw.estimation.errors import describe_estimation_error
+
+        print(describe_estimation_error(r["estimation_error"]))
     for key in ("out", "plots"):
         if key in r:
             print(f"{key}: {r[key]}")

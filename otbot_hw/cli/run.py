@@ -64,9 +64,10 @@ def _fail(result: dict, message: str, as_json: bool):
 
 def run(args: argparse.Namespace) -> dict:
     from drivers.faults import DeviceConfigError
+    from drivers.imu import ImuFault
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.robot import RobotError
-    from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
+    from otbot_hw.runtime.backends import BackendOptions, make_backend, source
     from otbot_hw.runtime.openloop import run_torques, saturated_samples
     from otbot_hw.runtime.supervisor import SafetyConfig
 
@@ -102,11 +103,9 @@ def run(args: argparse.Namespace) -> dict:
     meta = {"bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
             "nodes": {d.name: d.node_id for d in cfg.drives}, "config": str(cfg.path),
-            "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture,
-            "source": "robot" if args.bus == "config" else "bus-simulation"}
+            "pivot_source": cfg.pivot_encoder.source, "fixture": args.fixture}
     with_imu = cfg.imu is not None and not args.no_imu
     if args.bus == "config" and with_imu:
-        from drivers.imu import ImuFault
         from drivers.robot import open_imu
 
         try:  # a port that cannot be opened is bad input (exit 2), as in `otbot imu read`; checked before the bus
@@ -116,24 +115,22 @@ def run(args: argparse.Namespace) -> dict:
     progress(f"[run] {args.bus} bus ({cfg.bus.interface}:{cfg.bus.channel}), tau = {tau} N m for "
              f"{args.duration:g} s at {cfg.bus.control_rate:g} Hz", not quiet)
     say = None if quiet else (lambda m: progress(f"[run] {m}"))
-    if args.bus == "sim":
-        noise = noise_model(args)
-        meta.update(noise=noise.to_dict(), seed=args.seed)
-        process = inject is not None and inject.kind == "plant-kill"
-        backend = BusSimBackend(cfg, noise, args.seed, with_imu, inject=inject, process=process)
+    process = inject is not None and inject.kind == "plant-kill"
+    backend = make_backend(f"bus {args.bus}", cfg, BackendOptions(
+        noise=noise_model(args), seed=args.seed, with_imu=with_imu, imu_port=args.imu_port, lockstep=args.lockstep,
+        inject=inject, process=process))
+    meta.update(source(backend))
+    model = None
+    if backend.simulated:  # what is simulated is recorded with the run
+        meta.update(noise=backend.noise.to_dict(), seed=args.seed)
         if inject is not None:
             meta["inject"] = str(inject)
         model = plant if plant is not None else ExtendedModel.load(None)
         meta["params"] = model.params.to_dict()
         if model.active_effects():
             meta["effects"] = model.active_effects()
-    else:
-        backend = BusConfigBackend(cfg, args.imu_port, args.lockstep, with_imu)
-        model = None
     try:
-        opened = (backend.open(None if backend.process else model, fixture=args.fixture) if args.bus == "sim"
-                  else backend.open())
-        with opened as robot:
+        with backend.open(None if process else model, fixture=args.fixture) as robot:
             _warn(robot, quiet)
             res = run_torques(robot, torques, cfg.limits, safety, args.out, meta, realtime=backend.realtime,
                               progress=say)
@@ -144,10 +141,8 @@ def run(args: argparse.Namespace) -> dict:
               f"error: {exc}", args.json)
     except OSError as exc:
         raise write_failure(exc, args.out or "output") from None
-    except Exception as exc:
-        if type(exc).__name__ == "ImuFault":
-            _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)
-        raise
+    except ImuFault as exc:
+        _fail({"completed": False, "error": str(exc), "faults": []}, f"IMU error: {exc}", args.json)
     rec = res.recording
     result = {
         "completed": res.completed, "bus": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
@@ -164,15 +159,15 @@ def run(args: argparse.Namespace) -> dict:
         "busload": {"bits_per_cycle": load.bits_per_cycle, "max_rate": load.max_rate, "load": load.load},
         "loop": res.stats.to_dict(),
         "wall_time": res.stats.wall_time,
-        "warnings": list(getattr(robot, "warnings", [])),
-        "close_problems": list(getattr(robot, "close_report", [])),
+        "warnings": list(robot.warnings),
+        "close_problems": list(robot.close_report),
     }
     if inject is not None:
         from sim.injection import reaction
 
         sim_plant = backend.plant
         result["reaction"] = reaction(inject, sim_plant.injected_t, robot, sim_plant.after, cfg.bus.period)
-    if args.bus == "sim" and rec.truth_q is not None and len(rec):
+    if backend.simulated and rec.truth_q is not None and len(rec):
         result["q_final"] = rec.truth_q[-1].tolist()
     if args.plot is not None and len(rec) > 1:
         result["plots"] = write_run_plots(args.plot, rec)
@@ -194,7 +189,7 @@ def run(args: argparse.Namespace) -> dict:
 
 def _warn(robot, quiet: bool) -> None:
     """What the devices cannot do that the loop would use, said once."""
-    for w in getattr(robot, "warnings", []):
+    for w in robot.warnings:
         progress(f"[run] warning: {w}", not quiet)
 
 
@@ -241,6 +236,7 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     from otbot_hw.cli.simulate import write_plots
     from otbot_hw.params import nominal
     from otbot_hw.plots import plot_series
+    from otbot_hw.recording import source_metadata
     from otbot_hw.runtime.backends import BusSimBackend
     from otbot_hw.runtime.openloop import run_torques
     from otbot_hw.sensors import NoiseModel
@@ -251,7 +247,8 @@ def bus_demo(out_dir: Path, seed: int = 0, quiet: bool = False, reference=None) 
     params = nominal()
     with BusSimBackend(cfg, NoiseModel.paper(), seed).open(params) as robot:
         res = run_torques(robot, np.tile([6.0, -10.0, 6.0], (300, 1)), cfg.limits, None, path,
-                          {"experiment": "chassis (paper §4.3.2) over CAN", "source": "bus-simulation",
+                          {"experiment": "chassis (paper §4.3.2) over CAN",
+                           **source_metadata(simulated=True, bus=True),
                            "noise": NoiseModel.paper().to_dict(), "seed": seed, "params": params.to_dict()})
     wall = res.stats.wall_time
     if not res.completed:

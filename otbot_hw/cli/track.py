@@ -131,18 +131,20 @@ def check_sizes(name: str, duration: float, rate_hz: float) -> None:
 
 
 def make_backend(kind: str, args, quiet: bool):
-    """The back end of ``kind`` configured from the command line."""
-    from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend, DirectBackend
+    """The back end ``kind`` (a name of ``runtime.backends.BACKENDS``) configured from the command line:
+    the in-process robot takes the configuration as written (its rate --rate, default 1 kHz), a bus
+    back end the bus configuration with the command line's overrides."""
+    from otbot_hw.runtime import backends
 
-    if kind == "sim":
+    if kind == "sim":  # no bus: the configuration's sensors and drives, not its bus
         from drivers.config import load_robot_config
 
         cfg = load_robot_config(args.config)
-        return DirectBackend.from_config(cfg, args.rate or 1000.0, noise_model(args), args.seed, not args.no_imu)
-    cfg, _ = bus_config(args, args.rate, quiet, "track")
-    if kind == "bus sim":
-        return BusSimBackend(cfg, noise_model(args), args.seed, not args.no_imu)
-    return BusConfigBackend(cfg, args.imu_port, args.lockstep, not args.no_imu)
+    else:
+        cfg, _ = bus_config(args, args.rate, quiet, "track")
+    return backends.make_backend(kind, cfg, backends.BackendOptions(
+        rate=args.rate, noise=noise_model(args), seed=args.seed, with_imu=not args.no_imu, imu_port=args.imu_port,
+        lockstep=args.lockstep))
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -231,7 +233,7 @@ def run(args: argparse.Namespace) -> dict:
         meta = {"params": params.to_dict(), "command": "otbot track"}
         if plant is not None:
             meta["plant"] = plant.to_dict() if hasattr(plant, "to_dict") else None
-        if kind != "bus config":
+        if backend.simulated:
             meta.update(noise=noise_model(args).to_dict(), seed=args.seed)
         result = run_scenario(args.scenario, params, limits, t_stab=tstab, robustness=not args.no_robustness,
                               plot_dir=args.plot, animate=args.animate, progress=say, error_bounds=eb, spec=spec,
@@ -278,10 +280,9 @@ def _print_human(r: dict) -> None:
               f"x_dot {e['x_dot'] * 1e3:.2f} mm/s, y_dot {e['y_dot'] * 1e3:.2f} mm/s")
     ee = r.get("estimation_error")
     if ee is not None:
-        for k in ("max", "rms"):
-            e = ee[k]
-            print(f"  estimation error (estimate - truth), {k}: x {e['x'] * 1e3:.3f} mm, y {e['y'] * 1e3:.3f} mm, "
-                  f"alpha {e['alpha']:.2e} rad")
+        from otbot_hw.estimation.errors import describe_estimation_error
+
+        print("  " + describe_estimation_error(ee))
     for m, v in r["peak_torque"].items():
         print(f"  peak torque {m}: {v['peak_Nm']:.2f} N m (limit {v['limit_Nm']:g})")
     for ev in r["events"]:

@@ -18,7 +18,7 @@ import numpy as np
 from otbot_hw.control.gains import Gains, gains_from_tstab
 from otbot_hw.control.task_model import computed_torque, reference_state
 from otbot_hw.model.compiled import FLOOR
-from otbot_hw.model.effects import compensated_command
+from otbot_hw.model.effect_physics import compensated_command
 from otbot_hw.params import OtbotParams
 
 
@@ -53,7 +53,7 @@ class ComputedTorqueController:
 
     ``params`` may be an ``ExtendedModel`` (e.g. a diagnosed model, ``otbot diagnose --out``): its
     physical and actuator effects are then compensated by feedforward. The law's torque u is what the
-    paper's model needs; the command sent is ``effects.compensated_command`` of it, evaluated on the
+    paper's model needs; the command sent is ``effect_physics.compensated_command`` of it, evaluated on the
     desired motion (p_d, p_dot_d) and the measured pivot angle, so friction signs follow the reference
     and do not chatter with noisy feedback. The compensation is part of u_traj (u_corr is unchanged).
     """

@@ -33,7 +33,7 @@ import numpy as np
 from otbot_hw.control.gains import Gains
 from otbot_hw.control.interval import Interval, as_box, bounds
 from otbot_hw.control.trajectories import DesiredTrajectory
-from otbot_hw.model.kinematics import inverse_kinematics_matrix
+from otbot_hw.model.kinematics import iik_entries, inverse_kinematics_matrix
 from otbot_hw.model.task_space import task_space_model
 from otbot_hw.motors import MOTORS, MotorLimits
 from otbot_hw.params import OtbotParams
@@ -115,12 +115,11 @@ def reference_states(reference: DesiredTrajectory, params: OtbotParams, t: np.nd
     X[:, :3] = P
     X[:, 5] = P[:, 2] - th
     X[:, 6:9] = PD
-    st, ct = np.sin(th), np.cos(th)
-    r = params.r
-    # joint rates phi_dot = M_IIK p_dot (rows of M_IIK in closed form)
-    X[:, 9] = ((l1 * ct - params.l2 * st) * PD[:, 0] + (params.l2 * ct + l1 * st) * PD[:, 1]) / (r * l1)
-    X[:, 10] = ((l1 * ct + params.l2 * st) * PD[:, 0] + (-params.l2 * ct + l1 * st) * PD[:, 1]) / (r * l1)
-    X[:, 11] = (st * PD[:, 0] - ct * PD[:, 1]) / l1 + PD[:, 2]
+    # joint rates phi_dot = M_IIK p_dot (M_IIK's entries, ``model.kinematics``)
+    a00, a01, a10, a11, a20, a21 = iik_entries(np.sin(th), np.cos(th), l1, params.l2, params.r)
+    X[:, 9] = a00 * PD[:, 0] + a01 * PD[:, 1]
+    X[:, 10] = a10 * PD[:, 0] + a11 * PD[:, 1]
+    X[:, 11] = a20 * PD[:, 0] + a21 * PD[:, 1] + PD[:, 2]
     return X
 
 

@@ -323,9 +323,10 @@ def _full_states(z: np.ndarray, params: OtbotParams) -> np.ndarray:
     X[:, 5] = z[:, 3]
     X[:, 6:9] = z[:, 4:7]
     th = z[:, 2] - z[:, 3]
-    st, ct = np.sin(th), np.cos(th)
-    l1, l2, r = params.l1, params.l2, params.r
-    X[:, 9] = ((l1 * ct - l2 * st) * z[:, 4] + (l2 * ct + l1 * st) * z[:, 5]) / (r * l1)
-    X[:, 10] = ((l1 * ct + l2 * st) * z[:, 4] + (-l2 * ct + l1 * st) * z[:, 5]) / (r * l1)
-    X[:, 11] = (st * z[:, 4] - ct * z[:, 5]) / l1 + z[:, 6]
+    from otbot_hw.model.kinematics import iik_entries
+
+    a00, a01, a10, a11, a20, a21 = iik_entries(np.sin(th), np.cos(th), params.l1, params.l2, params.r)
+    X[:, 9] = a00 * z[:, 4] + a01 * z[:, 5]
+    X[:, 10] = a10 * z[:, 4] + a11 * z[:, 5]
+    X[:, 11] = a20 * z[:, 4] + a21 * z[:, 5] + z[:, 6]
     return X

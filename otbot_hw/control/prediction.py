@@ -17,8 +17,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from otbot_hw.model import compiled
-from otbot_hw.model import effects as fx
+from otbot_hw.model.compiled import FLOOR
+from otbot_hw.model.effect_physics import actuated_torque
+from otbot_hw.model.kinematics import model_state_into
+from otbot_hw.simulation.integrators import ext_rk4_zoh, rk4_zoh
 from otbot_hw.simulation.simulator import default_substeps
 
 _L1, _L2, _R = 0, 1, 2
@@ -28,17 +30,8 @@ _L1, _L2, _R = 0, 1, 2
 def task_state_vector(p, pd, phi_p, prm):
     """State x (12,) with pivot pose p, twist pd, pivot angle phi_p, wheel angles 0 and the wheel and
     pivot rates the rolling constraints imply (phi_dot = M_IIK p_dot)."""
-    l1, l2, r = prm[_L1], prm[_L2], prm[_R]
-    x = np.zeros(12)
-    x[0], x[1], x[2] = p[0], p[1], p[2]
-    x[5] = phi_p
-    x[6], x[7], x[8] = pd[0], pd[1], pd[2]
-    th = p[2] - phi_p
-    st, ct = np.sin(th), np.cos(th)
-    k = 1.0 / (r * l1)
-    x[9] = (l1 * ct - l2 * st) * k * pd[0] + (l2 * ct + l1 * st) * k * pd[1]
-    x[10] = (l1 * ct + l2 * st) * k * pd[0] + (-l2 * ct + l1 * st) * k * pd[1]
-    x[11] = st / l1 * pd[0] - ct / l1 * pd[1] + pd[2]
+    x = np.empty(12)
+    model_state_into(p[0], p[1], p[2], pd[0], pd[1], pd[2], phi_p, prm[_L1], prm[_L2], prm[_R], x)
     return x
 
 
@@ -48,7 +41,7 @@ def predict_paper(p, pd, phi_p, u, dt, substeps, prm):
     x = task_state_vector(p, pd, phi_p, prm)
     U = np.empty((1, 3))
     U[0, 0], U[0, 1], U[0, 2] = u[0], u[1], u[2]
-    return compiled.rk4_zoh(x, U, np.zeros((1, 2)), dt, substeps, prm, compiled.FLOOR)[1]
+    return rk4_zoh(x, U, np.zeros((1, 2)), dt, substeps, prm, FLOOR)[1]
 
 
 class TaskStatePredictor:
@@ -79,6 +72,6 @@ class TaskStatePredictor:
         else:
             x = task_state_vector(p, p_dot, float(phi_p), self._prm)
             self._U[0] = u
-            tau0 = fx.actuated_torque(self._U[0], self.eff)
-            x1 = fx.ext_rk4_zoh(x, tau0, self._U, self._F, h, sub, self._prm, self.eff, compiled.FLOOR)[0][1]
+            tau0 = actuated_torque(self._U[0], self.eff)
+            x1 = ext_rk4_zoh(x, tau0, self._U, self._F, h, sub, self._prm, self.eff, FLOOR)[0][1]
         return x1[0:3], x1[6:9], float(x1[5])

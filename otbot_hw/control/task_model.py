@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from otbot_hw.model.kinematics import fik_entries, iik_dot_entries, iik_entries, model_state_into
+
 _L1, _L2, _R, _MC, _IC, _XB, _YB, _MP, _IP, _XF, _YF, _IA, _BW, _BP = range(14)
 
 
@@ -59,31 +61,17 @@ def task_space_matrices(alpha, phi_p, pd, prm, Mbar, Cbar):
     CF[4, 4] = bw
     CF[5, 5] = bp
     # Lambda = [I3; M_IIK], Lambda_dot = [0; M_IIK_dot], Delta = [M_FIK; I3]
-    k = 1.0 / (r * l1)
     L = np.zeros((6, 3))
     Ld = np.zeros((6, 3))
     D = np.zeros((6, 3))
     for i in range(3):
         L[i, i] = 1.0
         D[3 + i, i] = 1.0
-    L[3, 0] = (l1 * ct - l2 * st) * k
-    L[3, 1] = (l2 * ct + l1 * st) * k
-    L[4, 0] = (l1 * ct + l2 * st) * k
-    L[4, 1] = (-l2 * ct + l1 * st) * k
-    L[5, 0] = st / l1
-    L[5, 1] = -ct / l1
+    # M_IIK, dM_IIK/dt and M_FIK entries (``otbot_hw.model.kinematics``)
+    L[3, 0], L[3, 1], L[4, 0], L[4, 1], L[5, 0], L[5, 1] = iik_entries(st, ct, l1, l2, r)
     L[5, 2] = 1.0
-    Ld[3, 0] = (-l1 * st - l2 * ct) * k * thd
-    Ld[3, 1] = (-l2 * st + l1 * ct) * k * thd
-    Ld[4, 0] = (-l1 * st + l2 * ct) * k * thd
-    Ld[4, 1] = (l2 * st + l1 * ct) * k * thd
-    Ld[5, 0] = ct / l1 * thd
-    Ld[5, 1] = st / l1 * thd
-    kf = r / (2.0 * l2)
-    D[0, 0] = kf * (l2 * ct - l1 * st)
-    D[0, 1] = kf * (l2 * ct + l1 * st)
-    D[1, 0] = kf * (l1 * ct + l2 * st)
-    D[1, 1] = kf * (-l1 * ct + l2 * st)
+    Ld[3, 0], Ld[3, 1], Ld[4, 0], Ld[4, 1], Ld[5, 0], Ld[5, 1] = iik_dot_entries(st, ct, thd, l1, l2, r)
+    D[0, 0], D[0, 1], D[1, 0], D[1, 1], kf = fik_entries(st, ct, l1, l2, r)
     D[2, 0] = kf
     D[2, 1] = -kf
     D[2, 2] = 1.0
@@ -141,18 +129,8 @@ def task_space(alpha: float, phi_p: float, pd: np.ndarray, prm: np.ndarray) -> t
 @njit(cache=True)
 def reference_state(p, pd, phi_p, prm):
     """State x (12,) for task pose p = (x, y, alpha), task rates pd and pivot angle phi_p: wheel angles
-    0 (no physics depends on them), joint rates from the inverse kinematics (paper §2.3.2):
-    v = c x_dot + s y_dot, theta_dot = -(s x_dot - c y_dot) / l1 (theta = alpha - phi_p),
-    phi_r,l_dot = (v +- l2 theta_dot) / r, phi_p_dot = alpha_dot - theta_dot."""
-    l1, l2, r = prm[_L1], prm[_L2], prm[_R]
-    th = p[2] - phi_p
-    s, c = np.sin(th), np.cos(th)
-    v = c * pd[0] + s * pd[1]
-    thd = -(s * pd[0] - c * pd[1]) / l1
-    x = np.zeros(12)
-    x[0], x[1], x[2], x[5] = p[0], p[1], p[2], phi_p
-    x[6], x[7], x[8] = pd[0], pd[1], pd[2]
-    x[9] = (v + l2 * thd) / r
-    x[10] = (v - l2 * thd) / r
-    x[11] = pd[2] - thd
+    0 (no physics depends on them), joint rates from the inverse kinematics (paper §2.3.2;
+    ``otbot_hw.model.kinematics.model_state_into``)."""
+    x = np.empty(12)
+    model_state_into(p[0], p[1], p[2], pd[0], pd[1], pd[2], phi_p, prm[_L1], prm[_L2], prm[_R], x)
     return x

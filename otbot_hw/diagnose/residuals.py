@@ -29,10 +29,12 @@ from scipy.signal import savgol_filter
 
 from otbot_hw.diagnose.data import CHANNELS, DiagnosisData
 from otbot_hw.model import compiled
+from otbot_hw.model import effect_physics as phys
 from otbot_hw.model import effects as fx
+from otbot_hw.model import sensor_model
 from otbot_hw.model.effects import ExtendedModel
 from otbot_hw.model.fixtures import fixture_code
-from otbot_hw.simulation.simulator import ExtendedTrajectory, check_inputs, default_substeps
+from otbot_hw.simulation.simulator import default_substeps, simulate_extended
 
 
 @dataclass
@@ -175,7 +177,7 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
     if (eff[fx.K_SLIP] != 0.0 or eff[fx.T_TRAC] != 0.0) and data.fixture == "floor":
         # the slip law on the delivered torque (motor friction neglected here); its integral and derivative
         b = p.b_w + eff[fx.DB_W] * np.array([1.0, -1.0])
-        rate_i = np.column_stack([fx.slip_rate_series(np.ascontiguousarray(tau_i[:, i]), b[i], eff) for i in range(2)])
+        rate_i = np.column_stack([phys.slip_rate_series(np.ascontiguousarray(tau_i[:, i]), b[i], eff) for i in range(2)])
         slip_ang = np.vstack([np.zeros((1, 2)), np.cumsum(rate_i[:-1] * data.dt, axis=0)])
         rate = integral_rate(data, rate_i)
         rate_d = data.smooth(rate, deriv=1) if accelerations else np.zeros_like(rate)
@@ -236,13 +238,13 @@ def _torque_residual(Q, QD, A, TAU, eff, prm, fixture):
     for k in range(n):
         x[:6] = Q[k]
         x[6:] = QD[k]
-        acc0 = fx.ext_accelerations(x, TAU[k], f, eff, prm, fixture)
+        acc0 = phys.ext_accelerations(x, TAU[k], f, eff, prm, fixture)
         lo = 0 if fixture == compiled.FLOOR else 3
         a0 = acc0[lo:lo + 3]
         for i in range(3):
             t = TAU[k].copy()
             t[i] += 1.0
-            ai = fx.ext_accelerations(x, t, f, eff, prm, fixture)
+            ai = phys.ext_accelerations(x, t, f, eff, prm, fixture)
             for j in range(3):
                 B[j, i] = ai[lo + j] - a0[j]
         d = a0 - A[k]
@@ -269,10 +271,10 @@ def imu_residual(data: DiagnosisData, model: ExtendedModel, motion: Motion | Non
         return None
     m = motion or estimate_motion(data, model)
     eff = model.eff
-    acc, gyro = fx.imu_from_motion(m.q[:, 2], m.qd[:, 2], m.qdd[:, 0], m.qdd[:, 1], m.qdd[:, 2], eff,
+    acc, gyro = sensor_model.imu_from_motion(m.q[:, 2], m.qd[:, 2], m.qdd[:, 0], m.qdd[:, 1], m.qdd[:, 2], eff,
                                    floor=data.fixture == "floor")
     pred = np.column_stack([acc[:, 0], acc[:, 1], gyro[:, 2]])
-    pred = fx.delay(data.t, pred, eff[fx.D_IMU])
+    pred = sensor_model.delay(data.t, pred, eff[fx.D_IMU])
     out = data.memo("filtered_imu", lambda: _filtered_imu(data)) - pred
     for j, ch in enumerate(("a_x", "a_y", "g_z")):
         if ch in data.unusable:
@@ -340,9 +342,8 @@ def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray |
     """Simulated CHANNELS (each (N,)) for the recording's commands, from the encoder-estimated x0
     (``substeps`` RK4 steps per sample, default ``diagnosis_substeps``).
 
-    ``simulate_extended`` then ``effects.sensor_outputs``, with the accelerations and slip rates at
-    the samples taken from the integrator's first stage (``effects.ext_rk4_zoh_samples``: the same
-    numbers, one model evaluation per sample fewer)."""
+    The simulator's ``simulate_extended`` then the sensor model's ``sensor_outputs`` (the accelerations
+    and slip rates at the samples from the integrator's first stage)."""
     x0 = initial_state(data, model) if x0 is None else x0
     sub = substeps or diagnosis_substeps(data.dt, data.fixture, model.eff)
     key = (data.memo("command_digest", lambda: _digest(data)), model.params.as_array().tobytes(),
@@ -374,18 +375,11 @@ _SIM_LOCK = threading.Lock()
 
 
 def _simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray, sub: int) -> dict[str, np.ndarray]:
-    U, F, x0 = check_inputs(data.u[:-1], data.dt, None, x0)
-    eff = np.asarray(model.eff, dtype=float)
-    if eff.shape != (fx.N_EFFECT,) or not np.all(np.isfinite(eff)):
-        raise ValueError(f"effect vector must be {fx.N_EFFECT} finite numbers")
     tau_start = initial_tau(data)
-    tau0 = fx.actuated_torque(tau_start, eff) if np.any(tau_start) else np.zeros(3)
-    X, TAU, S, QDD, SD = fx.ext_rk4_zoh_samples(x0, tau0, U, F, data.dt, sub, model.params.as_array(), eff,
-                                                fixture_code(data.fixture))
-    Uf = np.vstack([U, U[-1:]]) if len(U) else np.zeros((1, 3))
-    traj = ExtendedTrajectory(t=np.arange(len(X)) * data.dt, x=X, tau=TAU, slip=S, qdd=QDD, u=Uf, dt=data.dt,
-                              fixture=data.fixture)
-    s = fx.sensor_outputs(traj, model.params, eff, slip_rate=SD)
+    tau0 = phys.actuated_torque(tau_start, np.asarray(model.eff, dtype=float)) if np.any(tau_start) else None
+    traj = simulate_extended(model.params, model.eff, data.u[:-1], data.dt, x0=x0, fixture=data.fixture, tau0=tau0,
+                             substeps=sub)
+    s = sensor_model.sensor_outputs(traj, model.params, np.asarray(model.eff, dtype=float))
     return {"w_r": s["joint_vel"][:, 0], "w_l": s["joint_vel"][:, 1], "w_p": s["joint_vel"][:, 2],
             "a_x": s["imu_accel"][:, 0], "a_y": s["imu_accel"][:, 1], "g_z": s["imu_gyro"][:, 2]}
 

@@ -6,11 +6,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
+from otbot_hw.model.angles import wrap_angle
+
 #: Angle components of pose/twist error vectors are wrapped before normalizing.
 def pose_twist_error(pose, twist, truth_pose, truth_twist) -> np.ndarray:
     """Estimate minus truth (N, 6): x, y (m), alpha wrapped to [-pi, pi) (rad), twist (m/s, rad/s)."""
     e = np.hstack([np.asarray(pose) - truth_pose, np.asarray(twist) - truth_twist])
-    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    e[:, 2] = wrap_angle(e[:, 2])
     return e
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from otbot_hw.model.kinematics import fik_entries
 from otbot_hw.params import OtbotParams
 from otbot_hw.recording import Recording
 
@@ -51,9 +52,9 @@ def wheel_odometry(rec: Recording, params: OtbotParams, pose0) -> np.ndarray:
     pose[:, 2] = heading - heading[0] + pose0[2]
     dphi = np.diff(phi, axis=0)
     th = 0.5 * (pose[1:, 2] + pose[:-1, 2]) - 0.5 * (phi[1:, 2] + phi[:-1, 2])  # theta at mid-step
-    c, s = np.cos(th), np.sin(th)
-    dx = k * ((l2 * c - l1 * s) * dphi[:, 0] + (l2 * c + l1 * s) * dphi[:, 1])
-    dy = k * ((l1 * c + l2 * s) * dphi[:, 0] + (-l1 * c + l2 * s) * dphi[:, 1])
+    b00, b01, b10, b11, _ = fik_entries(np.sin(th), np.cos(th), l1, l2, r)  # M_FIK (``model.kinematics``)
+    dx = b00 * dphi[:, 0] + b01 * dphi[:, 1]
+    dy = b10 * dphi[:, 0] + b11 * dphi[:, 1]
     pose[0, :2] = pose0[:2]
     pose[1:, 0] = pose0[0] + np.cumsum(dx)
     pose[1:, 1] = pose0[1] + np.cumsum(dy)

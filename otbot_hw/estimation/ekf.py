@@ -46,16 +46,11 @@ rejected one is counted and not applied:
   rejected (the wheels slip). Rejected for ``REANCHOR_AFTER`` (two samples at 100 Hz) with the rates
   accepted, the slip has moved the constant: kappa's variance grows by the innovation squared, and the
   wheel heading re-anchors on alpha.
-  The pivot's quantization error e_p is no white noise -- it stays while the pivot reading stays (on
-  every straight of the corridor), and a white model would let repeated readings of one quantized angle
-  shrink alpha's variance far below its error -- so it is a state: it moves by minus the pivot's motion
-  while the reading stays, jumps with the reading (``_pivot_motion``), and is kept inside the count
-  (``_pivot_count``). Floored readings are first moved to the centre of their count
-  (``encoder_quantization``), so the error is zero-mean. The wheels' share of the heading's
-  quantization error renews with every count they roll and is taken as white. e_p also enters the
-  chassis heading theta = alpha - phi_p of the joint-rate update.
-* ``zupt`` (3): twist = 0 when no joint moved more than ``standstill_angle`` for ``standstill_window``
-  and the gyro agrees; its sigma is the rate that window allows (standstill_angle r / window).
+  The pivot's quantization error e_p is a state, not white noise (``pivot_quantization``). Floored
+  readings are first moved to the centre of their count (``encoder_quantization``), so the error is
+  zero-mean. The wheels' share of the heading's quantization error renews with every count they roll
+  and is taken as white. e_p also enters the chassis heading theta = alpha - phi_p of the joint-rate update.
+* ``zupt`` (3): twist = 0 at a standstill (``standstill``: joints and gyro still).
 * ``gyro`` (1): alpha_dot + b_g, at every new IMU reading. ``accel`` (2): the accelerometer as a
   measurement (``model`` prediction only).
 * ``fix`` (3): an absolute pose with its covariance (``PoseEKF.fix``), alpha residual wrapped.
@@ -67,11 +62,16 @@ velocity -- which wheel slip corrupts in the same way -- so they are estimated a
 *considered* otherwise (Schmidt-Kalman: their uncertainty counts, their value is not moved by a moving
 robot's wheels). Not estimated: the gyro x, y and accelerometer z biases, which a planar estimator on
 flat ground never uses.
+
+Parts: ``ekf_state`` (state layout, ``Estimate``, ``EstimatorFault``), ``model_prediction`` (the
+dynamic-model prediction and the held-IMU correction), ``pivot_quantization`` (e_p), ``standstill``
+(the zero-velocity detector), ``kernels`` (the compiled hot path). This module is the filter: set-up,
+one cycle's prediction and gated updates, the gyro's walk adaptation and the health checks (a little
+over 400 lines: the cycle's steps read in order here, where splitting them would scatter one sequence).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
@@ -79,19 +79,15 @@ from scipy.stats import chi2
 
 from otbot_hw.estimation import kernels
 from otbot_hw.estimation.config import EstimatorConfig
-from otbot_hw.model import compiled
+from otbot_hw.estimation.ekf_state import (  # noqa: F401 (the state layout and records, importable from here)
+    A, BAX, BAY, BG, DA, EP, INITIAL_POSE_STD, INITIAL_TWIST_STD, KAPPA, N_STATE, NAX, NAY, STATE_NAMES, UPDATE_KINDS,
+    VA, VX, VY, X, Y, Estimate, EstimatorFault, check_vector)
+from otbot_hw.estimation.model_prediction import ModelPrediction
+from otbot_hw.estimation.pivot_quantization import PivotQuantization
+from otbot_hw.estimation.standstill import StandstillDetector
+from otbot_hw.model.angles import wrap_angle  # noqa: F401  (the one angle wrap; importable from here)
 from otbot_hw.params import OtbotParams
 
-N_STATE = 14
-X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA, NAX, NAY = range(N_STATE)
-STATE_NAMES = ("x", "y", "alpha", "x_dot", "y_dot", "alpha_dot", "gyro_bias", "accel_bias_x", "accel_bias_y",
-               "kappa", "pivot_quantization", "alpha_dd_unmodelled", "accel_noise_x", "accel_noise_y")
-#: Update kinds and their dimensions.
-UPDATE_KINDS = {"encoders": 3, "heading": 1, "zupt": 3, "gyro": 1, "accel": 2, "fix": 3}
-TWO_PI = 2 * math.pi
-#: Default std of the start pose (m, m, rad): the start defines the frame. Prior std of the twist.
-INITIAL_POSE_STD = (1e-6, 1e-6, 1e-6)
-INITIAL_TWIST_STD = (0.01, 0.01, 0.01)
 #: A wheel heading that disagrees this long (s) while the joint rates agree has moved: re-anchor it.
 REANCHOR_AFTER = 0.02
 #: Largest factor by which the adaptation may multiply the variance of d's walk (walk x 1000).
@@ -102,55 +98,9 @@ YAW_SUSPECT_SCALE = 2.0
 #: The yaw states whose covariance the adaptation inflates: alpha_dot, d (alpha too let a joint-rate update
 #: throw it by 0.1 rad on a 280 kg load; its error is re-anchored on the wheel heading instead).
 _YAW = [5, 11]
-#: Finite-difference step of the model Jacobians (rad, m/s, rad/s).
-_FD_STEP = 1e-6
 
 
-class EstimatorFault(RuntimeError):
-    """NaN or stale sensor data, non-monotonic time, a diverged filter. str() says which, in words."""
-
-
-def wrap_angle(a: float) -> float:
-    """a wrapped into [-pi, pi) (rad)."""
-    return (a + math.pi) % TWO_PI - math.pi
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """What the EKF believes at t (s), after using that sample's sensors.
-
-    pose (3,) x, y (m), alpha (rad) of the pivot P / platform in B; twist (3,) m/s, m/s, rad/s;
-    std (6,) their standard deviations; cov (14, 14) the full covariance (state order of the module
-    docstring); gyro_bias (rad/s); standstill: a zero-velocity update was applied; nis: normalized
-    innovation squared of each update kind this step (nan: none); rejected / updates: cumulative gate
-    rejections / accepted updates per kind; accel_bias (2,) m/s^2 in B''.
-    """
-
-    t: float
-    pose: np.ndarray
-    twist: np.ndarray
-    std: np.ndarray
-    cov: np.ndarray
-    gyro_bias: float
-    standstill: bool
-    nis: dict
-    rejected: dict
-    updates: dict
-    accel_bias: np.ndarray = field(default_factory=lambda: np.zeros(2))
-
-
-def _vector(v, n: int, name: str, t) -> np.ndarray:
-    a = np.asarray(v, dtype=np.float64)
-    if a.shape != (n,):
-        a = a.reshape(-1)
-        if a.shape != (n,):
-            raise ValueError(f"{name} must have {n} values, got shape {np.shape(v)}")
-    if not kernels.all_finite(a):
-        raise EstimatorFault(f"non-finite {name} at t = {t} s: {a.tolist()}")
-    return a
-
-
-class PoseEKF:
+class PoseEKF(ModelPrediction):
     """Pose EKF over one robot's encoders and IMU, stepped once per control period.
 
     ``params``: the robot's geometry (l1, l2, r) and, for the model prediction, its dynamics;
@@ -170,13 +120,11 @@ class PoseEKF:
         self._l1, self._l2, self._r = params.l1, params.l2, params.r
         self._k = params.r / (2 * params.l2)
         self._prm = params.as_array()
+        self._xs = np.empty(12)  # the model state the dynamic-model prediction evaluates at
         self.gate = {kind: float(chi2.ppf(cfg.gate_probability, dof)) for kind, dof in UPDATE_KINDS.items()}
-        self._var_q = cfg.pivot_angle_sigma ** 2  # the pivot angle's quantization variance (rad^2)
-        self._half_width_p = math.sqrt(3.0) * cfg.pivot_angle_sigma  # half a count: the reading's error bound
-        self._count_p = 2 * self._half_width_p
-        #: what an improbable pivot count constraint may still correct: the angles and the position
-        self._count_corrects = np.zeros(N_STATE, dtype=np.bool_)
-        self._count_corrects[[X, Y, A, KAPPA, EP]] = True
+        self.pivot = PivotQuantization(cfg.pivot_angle_sigma, params.l1)  # e_p: the pivot reading's error
+        self._var_q = self.pivot.var
+        self.standstill_detector = StandstillDetector(cfg)
         #: added to the angle readings: half a count for floored readings (the count's centre)
         half = 0.5 * math.sqrt(12) if cfg.encoder_quantization == "floor" else 0.0
         self._half_count = half * np.array([cfg.wheel_angle_sigma, cfg.wheel_angle_sigma, cfg.pivot_angle_sigma])
@@ -222,10 +170,10 @@ class PoseEKF:
         reading taken at t (it drives the first step)."""
         if not math.isfinite(t):
             raise EstimatorFault(f"non-finite start time {t}")
-        pose = _vector(pose, 3, "pose", t)
-        twist = _vector(twist, 3, "twist", t)
-        phi = _vector(joint_pos, 3, "joint_pos", t) + self._half_count
-        std = _vector(INITIAL_POSE_STD if pose_std is None else pose_std, 3, "pose_std", t)
+        pose = check_vector(pose, 3, "pose", t)
+        twist = check_vector(twist, 3, "twist", t)
+        phi = check_vector(joint_pos, 3, "joint_pos", t) + self._half_count
+        std = check_vector(INITIAL_POSE_STD if pose_std is None else pose_std, 3, "pose_std", t)
         if np.any(std < 0):
             raise ValueError(f"pose_std must be >= 0, got {std.tolist()}")
         cfg = self.config
@@ -247,8 +195,7 @@ class PoseEKF:
         self.kf.P = P
         self._t = float(t)
         self._phi_p = float(phi[2])
-        self._still_ref = phi.copy()
-        self._still_since = float(t)
+        self.standstill_detector.reset(t, phi)
         self._acc = self._gyro = None            # newest IMU reading (B'')
         self._acc_t = self._acc_u = None         # its time, and the torque it was taken under
         self._acc_held = self._gyro_held = None  # the reading that drives the current step
@@ -298,13 +245,13 @@ class PoseEKF:
             raise EstimatorFault("step before initialize")
         if not math.isfinite(t):
             raise EstimatorFault(f"non-finite sample time {t}")
-        phi = _vector(joint_pos, 3, "joint_pos", t) + self._half_count
-        phid = _vector(joint_vel, 3, "joint_vel", t)
+        phi = check_vector(joint_pos, 3, "joint_pos", t) + self._half_count
+        phid = check_vector(joint_vel, 3, "joint_vel", t)
         dt = t - self._t
         if not dt > 0:
             raise EstimatorFault(f"time does not increase: t = {t} s after {self._t} s")
         if torque is not None:
-            self._torque = _vector(torque, 3, "torque", t)
+            self._torque = check_vector(torque, 3, "torque", t)
         nis = self._nis
         for kind in nis:
             nis[kind] = math.nan
@@ -320,7 +267,7 @@ class PoseEKF:
         self._acc_held = acc_prev if acc_prev is not None else self._acc
         self._gyro_held = gyro_prev if gyro_prev is not None else self._gyro
         # the pivot's motion under its reading, trapezoid: half with the rates before the prediction ...
-        kernels.pivot_error_step(self.kf.x, self.kf.P, self._phi_p, self._l1, 0.5 * dt)
+        self.pivot.half_step(self.kf.x, self.kf.P, self._phi_p, dt)
         if self.prediction == "imu":
             kf = self.kf
             fx, fy = self._acc_held[0], self._acc_held[1]
@@ -350,16 +297,17 @@ class PoseEKF:
             self._predict_model(dt)
         if self.walk_scale > 1.0:  # the adapted walk relaxes back to the configured one
             self.walk_scale = 1.0 + (self.walk_scale - 1.0) * math.exp(-dt / self.config.walk_adaptation_decay)
-        jump = self._pivot_motion(float(phi[2]), dt)
+        jump = self.pivot.motion(self.kf.x, self.kf.P, self._phi_p, float(phi[2]), dt)
         self._t_prev, self._t = self._t, float(t)
         self._phi_p = float(phi[2])
         self._update_encoders(t, phi, phid)
-        self._standstill = self._detect_standstill(t, phi)
+        self._standstill = self.standstill_detector.still(
+            t, phi, None if self._gyro is None else self._gyro[2], self.kf.x[BG], self.kf.P[BG, BG])
         if self._standstill:
             self._update("zupt", t, -self.kf.x[3:6], self._H_zupt, self._R_zupt)
         if new_gyro:
             self._update_gyro(t)
-        self._pivot_count(jump)
+        self.pivot.constrain(self.kf.x, self.kf.P, jump, self.config.gate_probability)
         self._check_health(t)
         self._estimate = self._make_estimate()
         return self._estimate
@@ -373,7 +321,7 @@ class PoseEKF:
         if abs(t - self._t) > 1e-9 * max(1.0, abs(t)):
             raise EstimatorFault(f"fix at t = {t} s, but the estimate is at t = {self._t} s: "
                                  f"a fix applies at the current step's time")
-        z = _vector(pose, 3, "pose fix", t)
+        z = check_vector(pose, 3, "pose fix", t)
         Rf = np.asarray(cov, dtype=float).reshape(3, 3)
         if not kernels.all_finite(Rf):
             raise EstimatorFault(f"non-finite pose fix covariance at t = {t} s")
@@ -394,8 +342,8 @@ class PoseEKF:
     def _take_imu(self, t: float, acc, gyro) -> None:
         if acc is None or gyro is None:
             raise EstimatorFault(f"IMU sample at t = {t} s lacks {'accel' if acc is None else 'gyro'}")
-        a = _vector(acc, 3, "imu_accel", t)
-        g = _vector(gyro, 3, "imu_gyro", t)
+        a = check_vector(acc, 3, "imu_accel", t)
+        g = check_vector(gyro, 3, "imu_gyro", t)
         self._imu_t = t
         self._acc, self._gyro = a, g
         self._acc_t, self._acc_u = t, None  # the torque the reading was taken under is known one step later
@@ -480,148 +428,6 @@ class PoseEKF:
             P = self.kf.P
             P[_YAW, :] *= g
             P[:, _YAW] *= g
-
-    def _pivot_motion(self, phi_p: float, dt: float) -> float:
-        """e_p = reading - true pivot angle moves by minus the pivot's motion (the second half of the
-        trapezoid, with the rates after the prediction) and jumps by the reading's change (returned, rad).
-        A jump of more than one count in a sample -- the pivot turning fast: the new fraction of a count is
-        independent of the old -- re-draws e_p from the uniform's moments."""
-        x, P = self.kf.x, self.kf.P
-        kernels.pivot_error_step(x, P, self._phi_p, self._l1, 0.5 * dt)
-        jump = phi_p - self._phi_p
-        x[EP] += jump
-        if abs(jump) > 1.5 * self._count_p:
-            self._redraw_pivot_error()
-            return 0.0
-        return jump
-
-    def _pivot_count(self, jump: float) -> None:
-        """The count constraint |e_p| <= h = sqrt(3) pivot_angle_sigma (half a count), applied after the
-        sample's measurements, when it is new information: the reading changed (an edge crossed slowly pins
-        e_p near that edge) or the mean left the count. Then the Gaussian is truncated to [-h, h] and its
-        moments matched (``kernels.truncate``; the other states follow by their regression on e_p). While
-        the reading stays with the mean inside, the constraint is the one already used: applying it again
-        at every sample -- by truncation, or by capping e_p's variance at the uniform's -- counts it again
-        and shrinks every state correlated with e_p (kappa, alpha) without information (measured: pose
-        NEES 10-14 on some seeds where it is 3-7 without). A mean that left the count so far that the
-        interval holds no probability (model error) re-draws e_p."""
-        x, P = self.kf.x, self.kf.P
-        h = self._half_width_p
-        if jump == 0.0 and abs(x[EP]) <= h:
-            return
-        if not kernels.truncate(x, P, EP, -h, h, self._count_corrects, 1.0 - self.config.gate_probability):
-            self._redraw_pivot_error()
-
-    def _redraw_pivot_error(self) -> None:
-        P = self.kf.P
-        P[EP, :] = 0.0
-        P[:, EP] = 0.0
-        P[EP, EP] = self._var_q
-        self.kf.x[EP] = 0.0
-
-    def _detect_standstill(self, t: float, phi: np.ndarray) -> bool:
-        cfg = self.config
-        ref = self._still_ref
-        if max(abs(phi[0] - ref[0]), abs(phi[1] - ref[1]), abs(phi[2] - ref[2])) > cfg.standstill_angle:
-            self._still_ref = phi.copy()
-            self._still_since = t
-            return False
-        if t - self._still_since < cfg.standstill_window - 1e-9:
-            return False
-        if self._gyro is not None:
-            x, P = self.kf.x, self.kf.P
-            if abs(self._gyro[2] - x[BG]) > 5.0 * math.sqrt(cfg.gyro_sigma ** 2 + P[BG, BG]):
-                return False
-        return True
-
-    def _held_force_correction(self, fx: float, fy: float, u_reading: np.ndarray) -> tuple[float, float]:
-        """An IMU slower than the loop: the specific force (B'') of a reading held over several steps, plus
-        the change of the pivot acceleration the torque made since the reading, M_bar^-1 (u - u_reading)
-        from the paper's model (linear in u: only the torque difference enters, so unmodelled forces
-        acting on both cancel)."""
-        x = self.kf.x
-        du = self._torque - u_reading
-        if not du.any():
-            return fx, fy
-        dp = self._model_acceleration(x, du) - self._model_acceleration(x, self._zero3)
-        c, s = math.cos(x[A]), math.sin(x[A])
-        return fx + c * dp[0] + s * dp[1], fy - s * dp[0] + c * dp[1]
-
-    # ------------------------------------------------------------------ dynamic-model prediction
-    def _model_acceleration(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """p_dd (3,) of the paper's model at state s (pose, twist) and the pivot reading under u (N m)."""
-        phi_p = self._phi_p
-        xs = np.empty(12)
-        xs[0:3] = s[0:3]
-        xs[3] = xs[4] = 0.0
-        xs[5] = phi_p
-        xs[6:9] = s[3:6]
-        th = s[2] - phi_p
-        c, si = math.cos(th), math.sin(th)
-        l1, l2, r = self._l1, self._l2, self._r
-        vx, vy, va = s[3], s[4], s[5]
-        xs[9] = ((l1 * c - l2 * si) * vx + (l2 * c + l1 * si) * vy) / (r * l1)
-        xs[10] = ((l1 * c + l2 * si) * vx + (-l2 * c + l1 * si) * vy) / (r * l1)
-        xs[11] = (si * vx - c * vy) / l1 + va
-        return compiled.accelerations(xs, u, self._zero2, self._zero6, self._prm)[:3]
-
-    def _model_jacobian(self, s: np.ndarray, u: np.ndarray):
-        """(p_dd (3,), d p_dd / d (alpha, x_dot, y_dot, alpha_dot) (3, 4)) by forward differences."""
-        f0 = self._model_acceleration(s, u)
-        J = np.empty((3, 4))
-        for j, i in enumerate((A, VX, VY, VA)):
-            sp = s.copy()
-            sp[i] += _FD_STEP
-            J[:, j] = (self._model_acceleration(sp, u) - f0) / _FD_STEP
-        return f0, J
-
-    def _predict_model(self, dt: float) -> None:
-        """Dynamic-model step: p_dd from the multiplier-free dynamics under the held torque; first the
-        accelerometer reading of the previous sample, taken under that same torque, as a measurement."""
-        if self._torque is None:
-            raise EstimatorFault("the model prediction needs the commanded torque (none given yet)")
-        kf, cfg = self.kf, self.config
-        u = self._torque
-        if self._acc_held is not None:
-            self._update_accel(self._t, self._acc_held, u)
-        x = kf.x
-        f0, J = self._model_jacobian(x, u)
-        h2 = 0.5 * dt * dt
-        F = np.eye(N_STATE)
-        F[X, VX] = F[Y, VY] = F[A, VA] = dt
-        cols = [A, VX, VY, VA]
-        F[np.ix_([X, Y, A], cols)] += h2 * J
-        F[np.ix_([VX, VY, VA], cols)] += dt * J
-        F[A, DA], F[VA, DA] = h2, dt
-        x[0:3] += x[3:6] * dt + h2 * f0
-        x[3:6] += f0 * dt
-        x[A] += h2 * x[DA]
-        x[VA] += dt * x[DA]
-        Q = np.zeros((N_STATE, N_STATE))
-        Q[DA, DA] = self._var_da * self.walk_scale * dt
-        for (p, v), q in (((X, VX), cfg.model_accel_density), ((Y, VY), cfg.model_accel_density),
-                          ((A, VA), cfg.model_angular_density)):
-            q2 = q * q
-            Q[p, p] = q2 * dt ** 3 / 3
-            Q[p, v] = Q[v, p] = q2 * dt * dt / 2
-            Q[v, v] = q2 * dt
-        Q[BG, BG] = self._var[2] * dt
-        Q[BAX, BAX] = Q[BAY, BAY] = self._var[3] * dt
-        kf.F, kf.Q = F, Q
-        kf.P = F @ kf.P @ F.T + Q
-
-    def _update_accel(self, t: float, acc: np.ndarray, u: np.ndarray) -> None:
-        """The accelerometer reading at t (under u) as a measurement of R(alpha)^T p_dd + b_a."""
-        x = self.kf.x
-        f0, J = self._model_jacobian(x, u)
-        c, s = math.cos(x[A]), math.sin(x[A])
-        RT = np.array([[c, s], [-s, c]])
-        dRT = np.array([[-s, c], [-c, -s]])
-        H = np.zeros((2, N_STATE))
-        H[:, [A, VX, VY, VA]] = RT @ J[:2]
-        H[:, A] += dRT @ f0[:2]
-        H[0, BAX] = H[1, BAY] = 1.0
-        self._update("accel", t, acc[:2] - (RT @ f0[:2] + x[[BAX, BAY]]), H, self._R_accel)
 
     # ------------------------------------------------------------------ health and output
     def _check_health(self, t: float) -> None:

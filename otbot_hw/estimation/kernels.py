@@ -13,8 +13,18 @@ import numpy as np
 from numba import njit
 
 from otbot_hw.model import compiled
+from otbot_hw.model.kinematics import iik_dot_entries, iik_entries, model_state_into
 
 X, Y, A, VX, VY, VA, BG, BAX, BAY, KAPPA, EP, DA, NAX, NAY = range(14)
+
+
+@njit(cache=True)
+def model_state(x, phi_p, prm, out):
+    """Write the model state (q, q_dot) (12,) of the filter state ``x`` into ``out``: its pose and twist,
+    the pivot at the reading ``phi_p`` less its quantization error e_p = reading - true angle (a state),
+    joint rates by the inverse kinematics (``otbot_hw.model.kinematics.model_state_into``). The one
+    place the filter turns its state into the model's."""
+    model_state_into(x[X], x[Y], x[A], x[VX], x[VY], x[VA], phi_p - x[EP], prm[0], prm[1], prm[2], out)
 
 
 @njit(cache=True)
@@ -111,17 +121,8 @@ def yaw_acceleration(x, phi_p, u, ax, ay, prm):
     model is linear in that force, so the force that makes its x_dd, y_dd equal the measured ones is
     solved for and its share of alpha_dd added. Returns the model's alpha_dd without a force when the
     2x2 system is singular."""
-    l1, l2, r = prm[0], prm[1], prm[2]
-    q = np.zeros(12)
-    q[0], q[1], q[2] = x[X], x[Y], x[A]
-    q[5] = phi_p - x[EP]
-    vx, vy, va = x[VX], x[VY], x[VA]
-    th = x[A] - q[5]
-    c, si = math.cos(th), math.sin(th)
-    q[6], q[7], q[8] = vx, vy, va
-    q[9] = ((l1 * c - l2 * si) * vx + (l2 * c + l1 * si) * vy) / (r * l1)
-    q[10] = ((l1 * c + l2 * si) * vx + (-l2 * c + l1 * si) * vy) / (r * l1)
-    q[11] = (si * vx - c * vy) / l1 + va
+    q = np.empty(12)
+    model_state(x, phi_p, prm, q)
     gen = np.zeros(6)
     f = np.zeros(2)
     a0 = np.empty(6)
@@ -230,18 +231,16 @@ def joint_rates(x, phi_p, l1, l2, r, H, nu, phid):
     its quantization error e_p (a state)."""
     th = x[A] - phi_p + x[EP]
     c, s = math.cos(th), math.sin(th)
-    n = 1.0 / (r * l1)
-    m00, m01 = n * (l1 * c - l2 * s), n * (l2 * c + l1 * s)
-    m10, m11 = n * (l1 * c + l2 * s), n * (-l2 * c + l1 * s)
-    m20, m21 = s / l1, -c / l1
+    m00, m01, m10, m11, m20, m21 = iik_entries(s, c, l1, l2, r)
+    d00, d01, d10, d11, d20, d21 = iik_dot_entries(s, c, 1.0, l1, l2, r)  # d M_IIK / d theta
     vx, vy, va = x[VX], x[VY], x[VA]
     H[:, :] = 0.0
     H[0, VX], H[0, VY] = m00, m01
     H[1, VX], H[1, VY] = m10, m11
     H[2, VX], H[2, VY], H[2, VA] = m20, m21, 1.0
-    H[0, A] = n * ((-l1 * s - l2 * c) * vx + (-l2 * s + l1 * c) * vy)
-    H[1, A] = n * ((-l1 * s + l2 * c) * vx + (l2 * s + l1 * c) * vy)
-    H[2, A] = (c * vx + s * vy) / l1
+    H[0, A] = d00 * vx + d01 * vy
+    H[1, A] = d10 * vx + d11 * vy
+    H[2, A] = d20 * vx + d21 * vy
     H[0, EP], H[1, EP], H[2, EP] = H[0, A], H[1, A], H[2, A]
     nu[0] = phid[0] - (m00 * vx + m01 * vy)
     nu[1] = phid[1] - (m10 * vx + m11 * vy)
@@ -257,15 +256,17 @@ def pivot_error_step(x, P, phi_p, l1, dt):
     th = x[A] - phi_p + x[EP]
     c, s = math.cos(th), math.sin(th)
     vx, vy = x[VX], x[VY]
-    x[EP] -= ((s * vx - c * vy) / l1 + x[VA]) * dt
+    _, _, _, _, a20, a21 = iik_entries(s, c, l1, 1.0, 1.0)  # M_IIK's last row (l2, r do not enter it)
+    _, _, _, _, d20, d21 = iik_dot_entries(s, c, 1.0, l1, 1.0, 1.0)  # its derivative by theta
+    x[EP] -= (a20 * vx + a21 * vy + x[VA]) * dt
     n = P.shape[0]
     g = np.zeros(n)
     g[EP] = 1.0
-    dth = -dt * (c * vx + s * vy) / l1
+    dth = -dt * (d20 * vx + d21 * vy)
     g[A] += dth
     g[EP] += dth
-    g[VX] = -dt * s / l1
-    g[VY] = dt * c / l1
+    g[VX] = -dt * a20
+    g[VY] = -dt * a21
     g[VA] = -dt
     row = np.zeros(n)
     for j in range(n):

@@ -54,6 +54,7 @@ import numpy as np
 from numba import njit
 
 from otbot_hw.control.task_model import task_space_matrices
+from otbot_hw.model.kinematics import fik_entries
 from otbot_hw.params import ParameterError, read_entry
 
 PAYLOAD_NAMES = ("m_p", "I_p", "x_F", "y_F")
@@ -107,16 +108,10 @@ def regressor_sample(alpha, phi_p, pd, pdd, u, prm, out):
     W[2, 1] = -sa * pdd[0] + ca * pdd[1]
     W[2, 2] = -ca * pdd[0] - sa * pdd[1]
     W[2, 3] = add
-    l1, l2, r = prm[_L1], prm[_L2], prm[_R]
     th = alpha - phi_p
-    st, ct = np.sin(th), np.cos(th)
-    k = r / (2.0 * l2)
-    F = np.empty((3, 3))  # M_FIK
-    F[0, 0] = k * (l2 * ct - l1 * st)
-    F[0, 1] = k * (l2 * ct + l1 * st)
+    F = np.empty((3, 3))  # M_FIK (``otbot_hw.model.kinematics``)
+    F[0, 0], F[0, 1], F[1, 0], F[1, 1], k = fik_entries(np.sin(th), np.cos(th), prm[_L1], prm[_L2], prm[_R])
     F[0, 2] = 0.0
-    F[1, 0] = k * (l1 * ct + l2 * st)
-    F[1, 1] = k * (-l1 * ct + l2 * st)
     F[1, 2] = 0.0
     F[2, 0] = k
     F[2, 1] = -k

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.estimation.replay import EstimationRun
+from otbot_hw.model.angles import wrap_angle
 from otbot_hw.recording import Recording
 
 
@@ -71,7 +72,7 @@ def plot_errors(path: Path, rec: Recording, run: EstimationRun) -> Path:
     """Estimate minus truth of x, y (mm) and alpha (mrad) with the filter's own 2-sigma band."""
     plt = _plt()
     e = run.pose - rec.truth_q[:, :3]
-    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    e[:, 2] = wrap_angle(e[:, 2])
     fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
     for i, (ax, name, unit) in enumerate(zip(axes, ("x", "y", "alpha"), ("mm", "mm", "mrad"))):
         ax.fill_between(run.t, -2e3 * run.std[:, i], 2e3 * run.std[:, i], color="C0", alpha=0.2, label="2 sigma")

@@ -43,10 +43,10 @@ from otbot_hw.identification.experiment import Experiment
 from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, ExperimentSpec, paper_noise
 from otbot_hw.identification.model import OtbotModel
 from otbot_hw.identification.prediction_error import TYPICAL_SCALE, ResidualProblem
-from otbot_hw.model import compiled
 from otbot_hw.model.fixtures import fixture_code
 from otbot_hw.params import OtbotParams
 from otbot_hw.sensors import NoiseModel
+from otbot_hw.simulation.integrators import rk4_zoh
 
 DESIGNABLE = ("chassis", "platform")
 WINDOW = 5  # samples per constraint window (the peak within each window is constrained)
@@ -148,7 +148,7 @@ def _held(torques: np.ndarray) -> np.ndarray:
 def predicted_motion(spec: ExperimentSpec, torques: np.ndarray, params: OtbotParams) -> tuple[np.ndarray, np.ndarray]:
     """States q, qd (samples + 1, 6) of the step's fixture under the torques, from rest."""
     n = len(torques)
-    X = compiled.rk4_zoh(np.zeros(12), np.ascontiguousarray(torques), np.zeros((n, 2)), 1.0 / spec.rate, 4,
+    X = rk4_zoh(np.zeros(12), np.ascontiguousarray(torques), np.zeros((n, 2)), 1.0 / spec.rate, 4,
                          params.as_array(), fixture_code(spec.fixture))
     return X[:, :6], X[:, 6:]
 

@@ -35,6 +35,7 @@ import numpy as np
 from numba import njit
 
 from otbot_hw.model import compiled
+from otbot_hw.simulation.integrators import rk4_zoh
 from otbot_hw.params import PARAM_NAMES
 
 #: Output channels predicted by ``OtbotModel``, in column order.
@@ -73,7 +74,7 @@ def predict_batch(x0, U, F, dt, substeps, P, fixture):
     n = U.shape[0]
     out = np.empty((m, n, 9))
     for i in range(m):
-        X = compiled.rk4_zoh(x0, U[:n - 1], F[:n - 1], dt, substeps, P[i], fixture)
+        X = rk4_zoh(x0, U[:n - 1], F[:n - 1], dt, substeps, P[i], fixture)
         out[i] = outputs_from_states(X, U, F, P[i], fixture)
     return out
 

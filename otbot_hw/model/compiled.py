@@ -1,4 +1,5 @@
-"""Compiled (numba) forward dynamics and zero-order-hold integration: the fast path.
+"""Compiled (numba) forward dynamics of the paper's model: the fast path (the integrators that advance
+it are ``otbot_hw.simulation.integrators``).
 
 Same physics as ``otbot_hw.model.dynamics`` (multiplier-free forward dynamics,
 paper Eq. forward_dyn2), written on flat arrays so numba can compile it:
@@ -8,13 +9,15 @@ u = (tau_r, tau_l, tau_p) N m, f = (f_x, f_y) N at the pivot in the ground frame
 model extensions; zeros for the paper's model).
 
 The inner functions (``_accel_into``, ``_derivative_into``) write into caller-owned
-arrays and work on scalars, so the integrator allocates nothing per step: about
+arrays and work on scalars, so an integrator allocates nothing per step: about
 0.13 us per model evaluation (``benchmarks/model.py``, ``docs/performance.md``).
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from otbot_hw.model.kinematics import fik_entries, iik_dot_entries, iik_entries
 
 _L1, _L2, _R, _MC, _IC, _XB, _YB, _MP, _IP, _XF, _YF, _IA, _BW, _BP = range(14)
 
@@ -47,27 +50,10 @@ def _accel_into(x, u, f, gen, prm, out):
     ic = mc * (xb * xb + yb * yb) + ic0
     m33 = ic + mp * (xf * xf + yf * yf) + ip
     mt = mc + mp
-    # M_IIK (a_ij) and its time derivative (d_ij); third column (0, 0, 1) and (0, 0, 0)
-    k = 1.0 / (r * l1)
-    a00 = (l1 * ct - l2 * st) * k
-    a01 = (l2 * ct + l1 * st) * k
-    a10 = (l1 * ct + l2 * st) * k
-    a11 = (-l2 * ct + l1 * st) * k
-    a20 = st / l1
-    a21 = -ct / l1
-    kd = k * thd
-    d00 = (-l1 * st - l2 * ct) * kd
-    d01 = (-l2 * st + l1 * ct) * kd
-    d10 = (-l1 * st + l2 * ct) * kd
-    d11 = (l2 * st + l1 * ct) * kd
-    d20 = ct / l1 * thd
-    d21 = st / l1 * thd
-    # M_FIK (b_ij); third row (kf, -kf, 1)
-    kf = r / (2.0 * l2)
-    b00 = kf * (l2 * ct - l1 * st)
-    b01 = kf * (l2 * ct + l1 * st)
-    b10 = kf * (l1 * ct + l2 * st)
-    b11 = kf * (-l1 * ct + l2 * st)
+    # M_IIK (a_ij), its time derivative (d_ij) and M_FIK (b_ij) (``otbot_hw.model.kinematics``)
+    a00, a01, a10, a11, a20, a21 = iik_entries(st, ct, l1, l2, r)
+    d00, d01, d10, d11, d20, d21 = iik_dot_entries(st, ct, thd, l1, l2, r)
+    b00, b01, b10, b11, kf = fik_entries(st, ct, l1, l2, r)
     # G = M Lambda (6x3), column by column: M[:, j] + M[:, 3:6] M_IIK[:, j]
     # (column 2 has G[3:6, 2] = 0)
     g00 = mt + m16 * a20
@@ -190,46 +176,3 @@ def derivative(x, u, f, gen, prm, fixture=FLOOR):
     xd = np.empty(12)
     _derivative_into(x, u, f, gen, prm, fixture, xd, np.empty(6))
     return xd
-
-
-@njit(cache=True)
-def rk4_zoh(x0, U, F, dt, substeps, prm, fixture=FLOOR):
-    """Integrate N zero-order-hold intervals of length dt with classical RK4.
-
-    U (N, 3) torques and F (N, 2) pivot forces held on [t_k, t_k+1); each interval
-    is split into ``substeps`` RK4 steps. Returns X (N+1, 12) at the interval ends.
-    All work arrays are allocated once.
-    """
-    n = U.shape[0]
-    X = np.empty((n + 1, 12))
-    h = dt / substeps
-    gen = np.zeros(6)
-    x = np.empty(12)
-    for i in range(12):
-        x[i] = x0[i]
-        X[0, i] = x0[i]
-    k1 = np.empty(12)
-    k2 = np.empty(12)
-    k3 = np.empty(12)
-    k4 = np.empty(12)
-    xs = np.empty(12)
-    acc = np.empty(6)
-    for k in range(n):
-        u = U[k]
-        f = F[k]
-        for _ in range(substeps):
-            _derivative_into(x, u, f, gen, prm, fixture, k1, acc)
-            for i in range(12):
-                xs[i] = x[i] + 0.5 * h * k1[i]
-            _derivative_into(xs, u, f, gen, prm, fixture, k2, acc)
-            for i in range(12):
-                xs[i] = x[i] + 0.5 * h * k2[i]
-            _derivative_into(xs, u, f, gen, prm, fixture, k3, acc)
-            for i in range(12):
-                xs[i] = x[i] + h * k3[i]
-            _derivative_into(xs, u, f, gen, prm, fixture, k4, acc)
-            for i in range(12):
-                x[i] += (h / 6.0) * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-        for i in range(12):
-            X[k + 1, i] = x[i]
-    return X

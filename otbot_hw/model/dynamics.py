@@ -14,10 +14,12 @@ import numpy as np
 from otbot_hw.model.kinematics import (
     constraint_jacobian,
     constraint_jacobian_dot,
+    delta_matrix,
     inverse_kinematics_matrix,
     inverse_kinematics_matrix_dot,
+    lambda_matrix,
+    lambda_matrix_dot,
 )
-from otbot_hw.model.task_space import delta_matrix, task_space_model
 from otbot_hw.params import OtbotParams
 
 #: Actuation matrix E (6x3): Q_a = E u.
@@ -103,6 +105,16 @@ def kinetic_energy(q: np.ndarray, qd: np.ndarray, p: OtbotParams) -> float:
     return float(0.5 * p.m_c * vb @ vb + 0.5 * p.I_c * thd ** 2
                  + 0.5 * p.m_p * vf @ vf + 0.5 * p.I_p * ad ** 2
                  + 0.5 * p.I_a * (qd[3] ** 2 + qd[4] ** 2))
+
+
+def task_space_model(q: np.ndarray, qd: np.ndarray, p: OtbotParams) -> tuple[np.ndarray, np.ndarray]:
+    """(M_bar (3x3), C_bar (3x3)) so that M_bar p_dd + C_bar p_d = u (N m) (paper §3.3)."""
+    D = delta_matrix(q, p)
+    L = lambda_matrix(q, p)
+    M = mass_matrix(q, p)
+    Mbar = D.T @ M @ L
+    Cbar = D.T @ (M @ lambda_matrix_dot(q, qd, p) + (coriolis_matrix(q, qd, p) - friction_matrix(p)) @ L)
+    return Mbar, Cbar
 
 
 # --- conventional solutions (with multipliers) -------------------------------

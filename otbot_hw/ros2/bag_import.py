@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from otbot_hw.recording import FORMAT_NAME, MCAP_MAGIC, Recording
+from otbot_hw.recording import FORMAT_NAME, MCAP_MAGIC, Recording, source_metadata
 from otbot_hw.ros2 import BagError, rosbags
 from otbot_hw.ros2 import messages as M
 from otbot_hw.ros2.mapping import BagMap
@@ -687,7 +687,7 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
     meta = {k: v for k, v in bag.custom.items() if k not in ("format", "format_version")}
     if not (shared and "sample_period" in meta):  # an exported recording keeps its own
         meta["sample_period"] = period_ns * 1e-9
-    meta.setdefault("source", "ros2 bag")
+    meta.setdefault("source", source_metadata(program="ros2 bag")["source"])
     meta.setdefault("fixture", bm.fixture)
     meta["import"] = {"bag": str(Path(path).resolve()), "storage": bag.storage, "truncated": bag.truncated,
                       "topics": topics, "mapping": bm.to_dict(), "conversion": conversion, "resampling": resampling,

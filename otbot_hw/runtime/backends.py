@@ -7,8 +7,13 @@ name           robot
 ``bus sim``    ``sim.plant.SimulatedBusRobot``: the CANopen drivers over python-can's virtual bus to
                the simulated drives/encoder/IMU (``sim.plant.Plant``) in this process, lockstep
 ``bus config`` ``drivers.robot.CanopenRobot`` on the configured bus (the real robot, or an
-               ``otbot plant`` process), paced in real time unless ``lockstep``
+               ``otbot plant`` process), paced in real time with the drives' watchdogs armed
+               unless ``lockstep``
 =============  ======================================================================================
+
+``make_backend(name, config, options)`` builds one from the registry ``BACKENDS`` (the command line
+picks by name, never by branching on it); each says what its recordings come from (``source()``,
+built by ``otbot_hw.recording.source_metadata``).
 
 The two simulated back ends take the robot to simulate (``OtbotParams`` or an ``ExtendedModel``
 with effects), its start state and pivot forces per run, and know the ground truth. Only this
@@ -20,9 +25,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 from otbot_hw.motors import MotorLimits
+from otbot_hw.recording import source_metadata
 from otbot_hw.sensors import NoiseModel
-
-BACKENDS = ("sim", "bus sim", "bus config")
 
 
 def encoder_resolution(config) -> tuple[float, float, float]:
@@ -59,6 +63,8 @@ class DirectBackend:
     name: str = "sim"
     realtime: bool = False
     has_truth: bool = True
+    simulated = True  # the robot is simulated (class constants, not fields)
+    bus = False  # behind the CANopen drivers
 
     @classmethod
     def from_config(cls, config, rate: float, noise: NoiseModel | None = None, seed: int | None = 0,
@@ -94,6 +100,11 @@ class DirectBackend:
                 "torque_step": self.torque_step}
 
 
+def source(backend) -> dict:
+    """The metadata ``source`` of a back end's recordings (``otbot_hw.recording.source_metadata``)."""
+    return source_metadata(simulated=backend.simulated, bus=backend.bus)
+
+
 class _ConfiguredRate:
     """The control rate (Hz) and period (s) of the hardware configuration's bus."""
 
@@ -120,6 +131,8 @@ class BusSimBackend(_ConfiguredRate):
     name: str = "bus sim"
     realtime: bool = False
     has_truth: bool = True
+    simulated = True
+    bus = True
     plant: object = field(default=None, init=False, repr=False)  # the last opened plant (its report after close)
 
     def __post_init__(self):
@@ -151,10 +164,10 @@ class BusSimBackend(_ConfiguredRate):
 class BusConfigBackend(_ConfiguredRate):
     """``bus config``: ``CanopenRobot`` on the configured bus and IMU port (``imu_port`` overrides
     it); ``lockstep``: the other end is a simulated plant (SYNCs back to back, IMU sample awaited per
-    SYNC) instead of a real robot paced in real time. ``paced``: the robot keeps the period itself
-    (``CanopenRobot(realtime=True)``: each SYNC's TPDOs awaited within the period, the drives' SYNC
-    and RPDO watchdogs armed, a fault reaction's SYNCs one period apart) — the daemon, which runs
-    for hours on the real bus; otherwise only the loop runner paces the reads."""
+    SYNC) instead of a real robot paced in real time. Every run that is not lockstep is paced by the
+    loop runner (the one clock) and arms the drives' SYNC and RPDO watchdogs (0x1006, 0x1400:05):
+    ``CanopenRobot(realtime=True)``, each SYNC's TPDOs awaited within the period. ``paced`` is that
+    fact (``not lockstep``), kept for callers that still pass it: a value passed is ignored."""
 
     config: object  # drivers.config.RobotConfig
     imu_port: str | None = None
@@ -163,6 +176,11 @@ class BusConfigBackend(_ConfiguredRate):
     paced: bool = False
     name: str = "bus config"
     has_truth: bool = False
+    simulated = False  # the robot that is there (a plant process in lockstep included)
+    bus = True
+
+    def __post_init__(self):
+        self.paced = not self.lockstep  # watchdog arming is configuration, not a caller's choice
 
     @property
     def realtime(self) -> bool:
@@ -172,6 +190,7 @@ class BusConfigBackend(_ConfiguredRate):
     def open(self, plant=None, x0=None, forces=None, fixture: str = "floor"):
         from drivers.config import LOCKSTEP_SDO_TIMEOUT, LOCKSTEP_TIMEOUT
         from drivers.robot import CanopenRobot, open_imu
+        from sim.lockstep import LockstepCanopenRobot
 
         if plant is not None or forces is not None:
             raise ValueError("the configured bus runs the robot that is there: no plant parameters or forces")
@@ -180,8 +199,9 @@ class BusConfigBackend(_ConfiguredRate):
         if self.lockstep:  # a simulated plant answers in its own time: wait for it longer than for a drive
             kw = {"lockstep_timeout": LOCKSTEP_TIMEOUT, "sdo_timeout": LOCKSTEP_SDO_TIMEOUT}
         imu = open_imu(config.imu, port=self.imu_port) if (self.with_imu and config.imu is not None) else None
-        robot = CanopenRobot(config, imu=imu, realtime=self.paced and not self.lockstep, imu_lockstep=self.lockstep,
-                             **kw)
+        # lockstep is the simulated plant's property (sim.lockstep): the real driver never waits for its IMU
+        robot = (LockstepCanopenRobot if self.lockstep else CanopenRobot)(
+            config, imu=imu, realtime=not self.lockstep, **kw)
         with robot:
             robot.open()
             yield robot
@@ -190,3 +210,46 @@ class BusConfigBackend(_ConfiguredRate):
         b = self.config.bus
         return {"mode": self.name, "interface": b.interface, "channel": b.channel, "rate": b.control_rate,
                 "bitrate": b.bitrate, "lockstep": self.lockstep, "paced": self.paced}
+
+
+@dataclass(frozen=True)
+class BackendOptions:
+    """What a command line chooses for any back end; each takes the part it uses. ``rate`` Hz (None:
+    the configuration's control rate; the direct robot's default 1 kHz), ``noise``/``seed`` and
+    ``with_imu`` (simulated sensors), ``imu_port`` and ``lockstep`` (the configured bus), ``inject``
+    and ``process`` (the simulated bus: a fault to inject, the plant as its own process)."""
+
+    rate: float | None = None
+    noise: NoiseModel | None = None
+    seed: int | None = 0
+    with_imu: bool = True
+    imu_port: str | None = None
+    lockstep: bool = False
+    inject: object = None
+    process: bool = False
+
+
+def _direct(config, o: BackendOptions) -> DirectBackend:
+    return DirectBackend.from_config(config, o.rate or 1000.0, o.noise, o.seed, o.with_imu)
+
+
+def _bus_sim(config, o: BackendOptions) -> BusSimBackend:
+    return BusSimBackend(config, o.noise, o.seed, o.with_imu, inject=o.inject, process=o.process)
+
+
+def _bus_config(config, o: BackendOptions) -> BusConfigBackend:
+    return BusConfigBackend(config, o.imu_port, o.lockstep, o.with_imu)
+
+
+#: The back ends by name: name -> factory(config, BackendOptions).
+BACKENDS = {"sim": _direct, "bus sim": _bus_sim, "bus config": _bus_config}
+
+
+def make_backend(name: str, config, options: BackendOptions | None = None):
+    """The back end ``name`` (a key of ``BACKENDS``) for the hardware configuration ``config``
+    (``drivers.config.RobotConfig``); ValueError for an unknown name."""
+    try:
+        factory = BACKENDS[name]
+    except KeyError:
+        raise ValueError(f"unknown back end {name!r} (known: {', '.join(BACKENDS)})") from None
+    return factory(config, options or BackendOptions())

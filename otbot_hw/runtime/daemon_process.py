@@ -1,11 +1,13 @@
 """``otbot daemon`` (and the ``otbot plant`` it drives) as child processes: for the end-to-end tests,
 ``benchmarks/daemon.py`` and bench scripts that need a daemon they can signal or kill.
 
-``local_config(folder)`` writes a copy of a hardware configuration that this user may command
-(``daemon.socket.allowed_users``), with the object dictionaries beside it and no slcan settle delay;
-``DaemonProcess`` starts ``otbot daemon``, waits until it answers ``status`` and talks to it like
-``otbot ctl``; ``plant_bus_args`` puts it on a ``sim.plant.PlantProcess``; ``realtime_priority``
-gives a process SCHED_FIFO, as the unit's CPUSchedulingPolicy=fifo would.
+``config_copy(folder)`` copies a hardware configuration with its object dictionaries and text
+replaced (the tests' one set-up, ``tests/conftest.py``); ``local_config(folder)`` writes a copy of a
+hardware configuration that this user may command (``daemon.socket.allowed_users``), with the object
+dictionaries beside it and no slcan settle delay; ``DaemonProcess`` starts ``otbot daemon``, waits
+until it answers ``status`` and talks to it like ``otbot ctl``; ``plant_bus_args`` puts it on a
+``sim.plant.PlantProcess``; ``realtime_priority`` gives a process SCHED_FIFO, as the unit's
+CPUSchedulingPolicy=fifo would.
 """
 from __future__ import annotations
 
@@ -23,16 +25,14 @@ from otbot_hw.motors import DEFAULT_ROBOT_FILE
 from otbot_hw.runtime.control_socket import ControlClient, ControlError, DaemonUnreachable
 
 
-def local_config(folder: Path, source: Path | None = None, replace: dict[str, str] | None = None) -> Path:
-    """``folder/robot.yaml``: ``source`` (default config/robot.yaml) with this user allowed to command,
-    the slcan adapter's settle delay off, and each ``replace`` old -> new text substituted (each must
-    occur); the EDS files are copied beside it. Returns the path."""
+def config_copy(folder: Path, replace: dict[str, str] | None = None, source: Path | None = None) -> Path:
+    """``folder/robot.yaml``: ``source`` (default config/robot.yaml) with each ``replace`` old -> new
+    text substituted (each must occur: ValueError naming it), the EDS files beside ``source`` copied
+    beside it (``folder`` is created). Returns the path."""
     source = Path(source) if source is not None else DEFAULT_ROBOT_FILE
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     text = source.read_text()
-    text = re.sub(r"allowed_users: \[[^\]]*\]", f"allowed_users: [{os.getuid()}]", text)
-    text = text.replace("  options: {}", "  options: {sleep_after_open: 0}")
     for old, new in (replace or {}).items():
         if old not in text:
             raise ValueError(f"{source}: no {old!r} to replace")
@@ -41,6 +41,26 @@ def local_config(folder: Path, source: Path | None = None, replace: dict[str, st
         shutil.copy(eds, folder / eds.name)
     out = folder / "robot.yaml"
     out.write_text(text)
+    return out
+
+
+def local_config(folder: Path, source: Path | None = None, replace: dict[str, str] | None = None) -> Path:
+    """``folder/robot.yaml``: ``source`` (default config/robot.yaml) with this user allowed to command,
+    the slcan adapter's settle delay off, and each ``replace`` old -> new text substituted (each must
+    occur); the EDS files are copied beside it (``config_copy``). Returns the path."""
+    source = Path(source) if source is not None else DEFAULT_ROBOT_FILE
+    text = source.read_text()
+    own = {m: f"allowed_users: [{os.getuid()}]" for m in re.findall(r"allowed_users: \[[^\]]*\]", text)}
+    if "  options: {}" in text:
+        own["  options: {}"] = "  options: {sleep_after_open: 0}"
+    out = config_copy(folder, own, source)
+    if replace:
+        text = out.read_text()
+        for old, new in replace.items():
+            if old not in text:
+                raise ValueError(f"{source}: no {old!r} to replace")
+            text = text.replace(old, new)
+        out.write_text(text)
     return out
 
 

@@ -30,7 +30,12 @@ between cycles (only armed cycles write commands); ``continue_after_fault=True``
 estimating and recording after a fault (no commands) until ``reset()``; ``trip(violation)`` is a
 fault raised from another thread (an operator's estop), acted on at once — it also wakes the
 real-time wait; ``recorder(metadata, topics)`` makes the writer (a ``SessionRecording``) and
-``start_recording``/``stop_recording`` open and close it between cycles. A robot whose clock
+``start_recording``/``stop_recording`` open and close it between cycles. In a real-time loop each
+sample is written once the cycle's command is out (``record_after_write``: the JSON and MCAP
+encoding and the file I/O no longer sit between the read and the write; the file order is
+unchanged, a pending sample goes out before any event, flush or close); ``record_in_background``
+writes in a thread of its own instead (``BackgroundWriter``; measured in docs/performance.md: it
+costs the process more CPU than it takes off the loop). A robot whose clock
 restarts (``CanopenRobot`` counts from ``enable()``) is continued: the loop's time never goes back.
 """
 from __future__ import annotations
@@ -47,8 +52,9 @@ import numpy as np
 
 from otbot_hw.control.computed_torque import TaskState
 from otbot_hw.recording import (TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS,
-                                TOPIC_PAYLOAD, TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter)
-from otbot_hw.robot import Robot, RobotError, Snapshot
+                                TOPIC_PAYLOAD, TOPIC_REFERENCE, TOPIC_TRUTH, Recording, RecordingWriter,
+                                source_metadata)
+from otbot_hw.robot import Robot, RobotError, SimulatedRobot, Snapshot
 from otbot_hw.runtime.controllers import ControlStep, Controller, Feedback, Reference
 from otbot_hw.runtime.feedback import FeedbackUnavailable, StateEstimate
 from otbot_hw.runtime.supervisor import Supervisor, Violation
@@ -153,6 +159,112 @@ class _Columns:
             setattr(self, n, [])
 
 
+class BackgroundWriter:
+    """A recording writer (``RecordingWriter``, ``SessionRecording``) fed from the loop thread and
+    written by a thread of its own: ``write_sample``/``write_event`` only queue (in order, O(1));
+    the JSON encoding, MCAP framing, file writes and flushes run in the ``recording-writer`` thread,
+    which drains the queue when ``wake()`` is called — the loop calls it once its cycle has written
+    its command, so the writer holds the interpreter while the loop waits for the next period, not
+    in the middle of its compute — at the latest every ``interval`` s, and at once when
+    ``flush()``/``close()`` ask.
+    ``flush()`` and ``close()`` return once everything queued before them is written (and flushed);
+    more than ``max_queue`` waiting samples (a stalled disk) make ``write_sample`` wait for the
+    writer, as writing in the loop did. An exception the writer raises is re-raised by the next call
+    from the loop. Other attributes (``path``, ``error``, ``status()``, ...) are the writer's."""
+
+    def __init__(self, writer, interval: float = 0.1, max_queue: int = 10000):
+        self.writer = writer
+        self.interval = float(interval)
+        self.max_queue = int(max_queue)
+        self._q: deque = deque()
+        self._cv = threading.Condition()
+        self._go = threading.Event()
+        self._done = 0  # items written so far
+        self._queued = 0  # items queued so far
+        self._failure: BaseException | None = None
+        self._closing = False
+        self._thread = threading.Thread(target=self._run, name="recording-writer", daemon=True)
+        self._thread.start()
+
+    def wake(self) -> None:
+        """Let the writer write what is queued (the loop's cycle is done)."""
+        self._go.set()
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["writer"], name)
+
+    def write_sample(self, messages: dict) -> None:
+        self._check()
+        self._q.append((0, messages))
+        self._queued += 1
+        if len(self._q) > self.max_queue:
+            self._wait(self._queued - self.max_queue // 2)
+
+    def write_event(self, t: float, kind: str, text: str, **extra) -> None:
+        self._check()
+        self._q.append((1, (t, kind, text, extra)))
+        self._queued += 1
+
+    def flush(self) -> None:
+        """Everything queued so far written and flushed to the file (waits for the writer)."""
+        self._check()
+        self._q.append((2, None))
+        self._queued += 1
+        self._wait(self._queued)
+        self._check()
+
+    def close(self) -> None:
+        """Write what is queued, close the writer and end the thread."""
+        self._q.append((3, None))
+        self._queued += 1
+        self._closing = True
+        self._go.set()
+        self._thread.join()
+        self._check()
+
+    def _check(self) -> None:
+        if self._failure is not None:
+            exc, self._failure = self._failure, None
+            raise exc
+
+    def _wait(self, n: int) -> None:
+        self._go.set()
+        with self._cv:
+            while self._done < n and self._thread.is_alive():
+                self._cv.wait(0.1)
+
+    def _run(self) -> None:
+        w, q = self.writer, self._q
+        while True:
+            if not self._closing:
+                self._go.wait(self.interval)
+                self._go.clear()
+            while q:
+                what, item = q.popleft()
+                try:
+                    if what == 0:
+                        w.write_sample(item)
+                    elif what == 1:
+                        t, kind, text, extra = item
+                        w.write_event(t, kind, text, **extra)
+                    elif what == 2:
+                        w.flush()
+                    else:
+                        w.close()
+                except BaseException as exc:  # noqa: BLE001 - handed to the loop thread
+                    if self._failure is None:
+                        self._failure = exc
+                self._done += 1
+                if what >= 2:
+                    with self._cv:
+                        self._cv.notify_all()
+                    if what == 3:
+                        return
+            if self._done >= self._queued - self.max_queue // 2:
+                with self._cv:
+                    self._cv.notify_all()
+
+
 _NAN3 = np.full(3, np.nan)
 _ZERO3 = np.zeros(3)
 _ZERO2 = np.zeros(2)
@@ -178,7 +290,8 @@ class LoopRunner:
                  path: str | Path | None = None, metadata: dict | None = None, realtime: bool = False,
                  progress: Callable[[str], None] | None = None, progress_every: float = 1.0,
                  stop_at_end: bool = True, record_reference: bool | None = None, keep_samples: bool = True,
-                 continue_after_fault: bool = False, recorder: Callable[[dict, list], Any] | None = None):
+                 continue_after_fault: bool = False, recorder: Callable[[dict, list], Any] | None = None,
+                 record_in_background: bool = False, record_after_write: bool | None = None):
         self.robot = robot
         self.controller = controller
         self.supervisor = supervisor
@@ -204,7 +317,7 @@ class LoopRunner:
         self._last_est: StateEstimate | None = None
         self._has_truth = None
         self._has_imu = robot.has_imu
-        self._truth_force = getattr(robot, "truth_force", None)  # simulated robots: the pivot force
+        self._truth_force = robot.truth_force if isinstance(robot, SimulatedRobot) else None  # the pivot force
         self._periods: list[float] = []
         self._compute: list[float] = []
         self._t_last_read = None
@@ -217,6 +330,11 @@ class LoopRunner:
         self.keep_samples = keep_samples
         self.continue_after_fault = continue_after_fault
         self.recorder = recorder
+        self.record_in_background = bool(record_in_background)
+        # a sample written after the cycle's command (default: a real-time loop with a recorder)
+        self.record_after_write = (recorder is not None and realtime) if record_after_write is None \
+            else bool(record_after_write)
+        self._pending_sample: dict | None = None
         self.armed = False  # the drives are powered and commands are written
         self.period_hist = TimingHistogram()
         self.jitter_hist = TimingHistogram()
@@ -399,6 +517,20 @@ class LoopRunner:
         """One cycle (see the module docstring); ``last``: record the sample but write no new command.
         Returns False once a fault has stopped the loop (with ``continue_after_fault`` the cycles go on
         reading and recording; commands wait for ``reset()`` and ``enable()``)."""
+        ok = self._cycle(last)
+        if self._pending_sample is not None:  # the command is out: the sample's turn
+            self._write_pending()
+        w = self.writer
+        if w is not None and w.__class__ is BackgroundWriter:  # the command is out: the writer's turn
+            w.wake()
+        return ok
+
+    def _write_pending(self) -> None:
+        msg, self._pending_sample = self._pending_sample, None
+        if msg is not None and self.writer is not None:
+            self.writer.write_sample(msg)
+
+    def _cycle(self, last: bool) -> bool:
         if self.fault is not None and not self.continue_after_fault:
             return False
         self._take_trip()
@@ -553,8 +685,9 @@ class LoopRunner:
             topics.append(TOPIC_PAYLOAD)
         self._topics = set(topics)
         self._topic_list = topics
-        meta = {"source": "loop", "sample_period": self.period, "realtime": self.realtime, **self.metadata}
-        if self._has_imu and getattr(self.robot, "imu_rate", None):
+        meta = {**source_metadata(program="loop"), "sample_period": self.period, "realtime": self.realtime,
+                **self.metadata}
+        if self._has_imu and self.robot.imu_rate:
             meta.setdefault("imu_rate", float(self.robot.imu_rate))
         if self.feedback is not None:
             meta.setdefault("feedback", self.feedback.name)
@@ -562,10 +695,16 @@ class LoopRunner:
         if self.path is not None:
             self.writer = RecordingWriter(self.path, meta, topics=topics)
         elif self.recorder is not None:
-            self.writer = self.recorder(meta, topics)
+            self.writer = self._background(self.recorder(meta, topics))
         if self.writer is not None:
             for ev in self.events:
                 self.writer.write_event(ev["t"], ev["kind"], ev["text"])
+
+    def _background(self, writer):
+        """The recorder's writer, written from its own thread when ``record_in_background``."""
+        if writer is None or not self.record_in_background:
+            return writer
+        return BackgroundWriter(writer)
 
     @property
     def recording(self):
@@ -581,11 +720,12 @@ class LoopRunner:
             raise RuntimeError("already recording")
         if not self._topics:
             return None
-        self.writer = self.recorder(self.metadata, self._topic_list)
+        self.writer = self._background(self.recorder(self.metadata, self._topic_list))
         return self.writer
 
     def stop_recording(self):
         """Between cycles: close the current recording (complete, with its summary); returns it."""
+        self._write_pending()
         w, self.writer = self.writer, None
         if w is not None:
             w.close()
@@ -641,12 +781,17 @@ class LoopRunner:
             msg[TOPIC_REFERENCE] = {"t": t, "p": r.p.tolist(), "pd": r.pd.tolist(), "pdd": r.pdd.tolist()}
         if TOPIC_PAYLOAD in self._topics:
             msg[TOPIC_PAYLOAD] = self.payload.message(t)
-        self.writer.write_sample(msg)
+        if self.record_after_write:
+            self._pending_sample = msg
+        else:
+            self.writer.write_sample(msg)
 
     def event(self, t: float, kind: str, text: str) -> None:
         """Record a sparse ``/otbot/events`` message (mode, fault, saturation, note)."""
         self.events.append({"t": float(t), "kind": kind, "text": text})
         if self.writer is not None:
+            if self._pending_sample is not None:  # the sample of this cycle first, as it happened
+                self._write_pending()
             self.writer.write_event(t, kind, text)
 
     def _on_saturation(self, ep) -> None:
@@ -673,10 +818,12 @@ class LoopRunner:
         t = max(v.t, self.t)
         self.event(t, "fault", str(self.fault) + (f" ({note})" if note else ""))
         if self.writer is not None:
+            self._write_pending()
             self.writer.flush()
 
     def close(self) -> None:
         if self.writer is not None:
+            self._write_pending()
             self.writer.close()
             self.writer = None
 

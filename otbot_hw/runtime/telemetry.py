@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from otbot_hw.model.angles import wrap_angle  # noqa: F401  (the one angle wrap, [-pi, pi))
 from otbot_hw.motors import MOTORS
 
 JOINT_NAMES = list(MOTORS)  # right_wheel, left_wheel, pivot
@@ -106,11 +107,6 @@ class TelemetrySample:
                    reference=reference, mode=mode,
                    faults=tuple(snapshot.faults if faults is None else faults),
                    drive_states=tuple(snapshot.drive_states))
-
-
-def wrap_angle(a: float) -> float:
-    """a in (-pi, pi]."""
-    return -((math.pi - a) % (2 * math.pi) - math.pi)
 
 
 def chassis_in_platform(phi_p: float, l1: float) -> tuple[tuple[float, float], float]:

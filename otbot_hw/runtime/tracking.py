@@ -21,7 +21,7 @@ import numpy as np
 
 from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.gains import Gains, gains_from_tstab
-from otbot_hw.control.metrics import Event, ERROR_NAMES, error_summary, event_summary
+from otbot_hw.control.metrics import Event, error_summary, event_summary
 from otbot_hw.control.scenarios import (FIGURE8_FORCES, LONG_RUN_S, ScenarioSpec, build_spec, collisions,
                                         controller_params, summarize)
 from otbot_hw.motors import MotorLimits
@@ -83,12 +83,12 @@ class TrackingRun:
         return self.loop.completed
 
     def estimation_error(self) -> dict | None:
-        """{max, rms} of estimate - truth for x, y (m), alpha (rad); None without truth or estimate."""
+        """{max, rms} of estimate - truth for x, y (m), alpha (rad, wrapped); None without truth or estimate."""
         if not self.has_truth or self.est_pose is None:
             return None
-        e = self.est_pose - self.x[:, :3]
-        return {"max": {n: float(np.max(np.abs(e[:, i]))) for i, n in enumerate(ERROR_NAMES)},
-                "rms": {n: float(np.sqrt(np.mean(e[:, i] ** 2))) for i, n in enumerate(ERROR_NAMES)}}
+        from otbot_hw.estimation.errors import estimation_error
+
+        return estimation_error(self.est_pose, self.x[:, :3])
 
     @classmethod
     def from_loop(cls, res: LoopResult, origin: float | None, period: float) -> "TrackingRun":

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from otbot_hw.params import OtbotParams
-from otbot_hw.recording import Recording
+from otbot_hw.recording import Recording, source_metadata
 from otbot_hw.sensors import NoiseModel, measure
 from otbot_hw.simulation.simulator import ForceSchedule, simulate, simulate_extended
 
@@ -22,7 +22,7 @@ def simulated_recording(params: OtbotParams, torques: np.ndarray, dt: float, noi
     rng = np.random.default_rng(seed)
     s = measure(traj.x, traj.u, traj.f, params, noise, rng, fixture)
     meta = {
-        "source": "simulation",
+        **source_metadata(simulated=True),
         "sample_period": dt,
         "fixture": fixture,
         "params": params.to_dict(),
@@ -46,18 +46,18 @@ def extended_recording(model, torques: np.ndarray, dt: float, noise: NoiseModel 
     Ground truth q holds the rolling angles of the wheels (equal to the wheel angles without a radius
     asymmetry); the effects are written to the ``effects`` metadata entry.
     """
-    from otbot_hw.model import effects as fx
+    from otbot_hw.model.sensor_model import sensor_outputs
 
     noise = noise or NoiseModel()
     traj = simulate_extended(model.params, model.eff, torques, dt, fixture=fixture)
-    s = fx.sensor_outputs(traj, model.params, model.eff)
+    s = sensor_outputs(traj, model.params, model.eff)
     rng = np.random.default_rng(seed)
     n = len(traj.t)
     acc = s["imu_accel"] + noise.accel * rng.standard_normal((n, 3))
     gyro = s["imu_gyro"] + noise.gyro * rng.standard_normal((n, 3))
     pos = s["joint_pos"] + noise.enc_angle * rng.standard_normal((n, 3))
     vel = s["joint_vel"] + noise.enc_rate * rng.standard_normal((n, 3))
-    meta = {"source": "simulation", "sample_period": dt, "fixture": fixture, "params": model.params.to_dict(),
+    meta = {**source_metadata(simulated=True), "sample_period": dt, "fixture": fixture, "params": model.params.to_dict(),
             "effects": model.active_effects(), "noise": noise.to_dict(), "seed": seed,
             "initial_state": traj.x[0].tolist()}
     meta.update(extra_metadata or {})

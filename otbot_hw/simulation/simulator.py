@@ -1,7 +1,10 @@
-"""Zero-order-hold simulation of Otbot (the integrator; the physics is in ``otbot_hw.model``).
+"""Zero-order-hold simulation of Otbot (the physics is in ``otbot_hw.model``, the compiled integrators
+in ``otbot_hw.simulation.integrators``).
 
 Torques u_k (N m) and pivot forces f_k (N, ground frame) are held constant on
-[t_k, t_k + dt). Two integrators:
+[t_k, t_k + dt). The paper's model is the extended model with every effect at zero: one
+trajectory type (``Trajectory``), one stepper (``Stepper``, for closed loops), one sensor model
+(``otbot_hw.model.sensor_model``). Two integrators for the paper's model:
 
 * ``method="fast"`` (default): compiled classical RK4 with ``substeps`` steps per
   interval (default: steps of at most 2.5 ms), the path every tool uses;
@@ -21,11 +24,14 @@ from typing import Sequence
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from otbot_hw.model import compiled
-from otbot_hw.model import effects as fx
 from otbot_hw.model.dynamics import forward_dynamics
+from otbot_hw.model.effect_catalog import EFFECT_INDEX, N_EFFECT, effect_vector
+from otbot_hw.model.effect_physics import actuated_torque
 from otbot_hw.model.fixtures import fixture_code, held_chassis_accelerations
 from otbot_hw.params import OtbotParams
+from otbot_hw.simulation.integrators import ext_rk4_into, ext_rk4_zoh_samples, rk4_zoh
+
+T_I_INDEX = EFFECT_INDEX["T_i"]
 
 MAX_STEP = 2.5e-3  # s, largest RK4 step of the fast path
 
@@ -61,9 +67,13 @@ class ForceSchedule:
 
 @dataclass
 class Trajectory:
-    """A simulated run: t (N+1,) s, x (N+1, 12) states (q, q_dot), u (N+1, 3) N m, f (N+1, 2) N.
+    """A simulated run: t (N+1,) s, x (N+1, 12) states (q, q_dot), u (N+1, 3) commanded torques N m,
+    f (N+1, 2) pivot forces N; for the extended model x holds the wheels' rolling angles.
 
-    u[k] and f[k] are held on [t_k, t_k+1); the last row repeats the last command.
+    u[k] and f[k] are held on [t_k, t_k+1); the last row repeats the last command. ``tau`` (N+1, 3) the
+    torque the drives deliver just after each sample (N m; u for the paper's model), ``slip`` (N+1, 2)
+    the wheel slip angles (rad), ``qdd`` (N+1, 6) and ``slip_rate`` (N+1, 2) the accelerations and slip
+    rates just after each sample when the integrator gave them (None: evaluated where needed).
     """
 
     t: np.ndarray
@@ -72,6 +82,16 @@ class Trajectory:
     f: np.ndarray
     dt: float
     fixture: str = "floor"
+    tau: np.ndarray | None = None
+    slip: np.ndarray | None = None
+    qdd: np.ndarray | None = None
+    slip_rate: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.tau is None:
+            self.tau = self.u
+        if self.slip is None:
+            self.slip = np.zeros((len(self.x), 2))
 
     @property
     def q(self) -> np.ndarray:
@@ -87,7 +107,7 @@ def default_substeps(dt: float, fixture: str = "floor") -> int:
 
     On the stand a free wheel has the short time constant I_a / b_w (about 58 ms
     nominally), so the step there is five times smaller. The extended model's stiffest
-    terms, the smoothed Coulomb signs (rate c / width / I_eff, ``effects.sign_width``), stay
+    terms, the smoothed Coulomb signs (rate c / width / I_eff, ``effect_physics.sign_width``), stay
     inside RK4's stability limit (h * rate < 2.78) with these steps for c up to its 2 N m
     bound: h * rate = 2.1 for a wheel on the floor (I_eff >= 0.048 kg m^2), 1.9 on the stand
     (I_a = 0.0104 kg m^2), 1.6 at the pivot (>= 0.31 kg m^2).
@@ -128,13 +148,12 @@ def simulate(params: OtbotParams, torques: np.ndarray, dt: float, x0: np.ndarray
     U, F, x0 = check_inputs(torques, dt, F, x0)
     code = fixture_code(fixture)
     if method == "fast":
-        X = compiled.rk4_zoh(x0, U, F, dt, substeps or default_substeps(dt, fixture), params.as_array(), code)
+        X = rk4_zoh(x0, U, F, dt, substeps or default_substeps(dt, fixture), params.as_array(), code)
     elif method == "reference":
         X = _reference(params, U, F, dt, x0, fixture)
     else:
         raise ValueError(f"unknown method '{method}' (fast, reference)")
-    Uf = np.vstack([U, U[-1:]]) if n else np.zeros((1, 3))
-    Ff = np.vstack([F, F[-1:]]) if n else np.zeros((1, 2))
+    Uf, Ff = _held(U, F)
     return Trajectory(t=t, x=X, u=Uf, f=Ff, dt=dt, fixture=fixture)
 
 
@@ -159,28 +178,91 @@ def _reference(params: OtbotParams, U, F, dt, x0, fixture: str) -> np.ndarray:
     return X
 
 
+def _held(U: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Commands and forces per sample (N+1 rows): the last interval's repeated at t_N."""
+    if len(U):
+        return np.vstack([U, U[-1:]]), np.vstack([F, F[-1:]])
+    return np.zeros((1, 3)), np.zeros((1, 2))
+
+
+def check_effects(eff) -> np.ndarray:
+    """The effect vector as N_EFFECT finite floats (ValueError otherwise)."""
+    eff = np.asarray(eff, dtype=float)
+    if eff.shape != (N_EFFECT,) or not np.all(np.isfinite(eff)):
+        raise ValueError(f"effect vector must be {N_EFFECT} finite numbers")
+    return eff
+
+
+def simulate_extended(params: OtbotParams, eff: np.ndarray, torques: np.ndarray, dt: float,
+                      x0: np.ndarray | None = None, fixture: str = "floor", tau0: np.ndarray | None = None,
+                      forces: np.ndarray | None = None, substeps: int | None = None) -> Trajectory:
+    """Simulate the extended model under commanded ``torques`` (N, 3) N m held for ``dt`` s.
+
+    ``tau0``: delivered torque before t_0 (default 0: the drives start from rest), only
+    matters with a current-loop lag. ``x0`` (12,) in rolling-angle coordinates (default rest).
+    The accelerations and slip rates at the samples come from the integrator's first stage
+    (``ext_rk4_zoh_samples``: one model evaluation per sample fewer than evaluating them again).
+    """
+    U, F, x0 = check_inputs(torques, dt, forces, x0)
+    eff = check_effects(eff)
+    sub = substeps or default_substeps(dt, fixture)
+    t0 = np.zeros(3) if tau0 is None else np.asarray(tau0, dtype=float)
+    X, TAU, S, QDD, SD = ext_rk4_zoh_samples(x0, t0, U, F, dt, sub, params.as_array(), eff, fixture_code(fixture))
+    Uf, Ff = _held(U, F)
+    return Trajectory(t=np.arange(len(X)) * dt, x=X, u=Uf, f=Ff, dt=dt, fixture=fixture, tau=TAU, slip=S, qdd=QDD,
+                      slip_rate=SD)
+
+
 class Stepper:
     """Step-by-step simulation for closed loops: ``step(u, f)`` advances one ZOH interval.
 
-    Holds the state x (12,) and time t (s); uses the compiled RK4 path.
+    ``plant``: ``OtbotParams`` (the paper's model) or an ``otbot_hw.model.effects.ExtendedModel`` (the
+    paper's dynamics plus missing-physics effects, e.g. a diagnosed model as a closed loop's plant): one
+    stepper for both, the paper's model being the extended one with every effect at zero.
+    ``step(u, f)`` takes the *commanded* torques; the drives' gain, saturation and current lag act on
+    them. Holds the state x (12,) (rolling angles for the wheels, equal to the wheel angles without a
+    radius asymmetry), the time t (s), ``tau`` the torque the drives deliver at the end of the last step
+    (N m), ``slip`` (2,) rad the wheel slip accumulated since the start (what the wheel encoders read on
+    top of the rolling angles, ``otbot_hw.model.sensor_model``), and the last step's command and force
+    (``u_last``, ``f_last``; None before the first step). ``eff`` may be changed in place between steps
+    (``sim.effect_schedule``).
     """
 
-    def __init__(self, params: OtbotParams, dt: float, x0: np.ndarray | None = None,
-                 fixture: str = "floor", substeps: int | None = None):
+    def __init__(self, plant, dt: float, x0: np.ndarray | None = None, fixture: str = "floor",
+                 substeps: int | None = None):
         _, _, x0 = check_inputs(np.zeros((1, 3)), dt, None, x0)
+        if isinstance(plant, OtbotParams):
+            params, eff = plant, effect_vector()
+        else:
+            params, eff = plant.params, check_effects(plant.eff)  # shared: sim.effect_schedule writes into it
         self.params = params
+        self.eff = eff
         self.dt = dt
         self.x = x0.copy()
         self.t = 0.0
         self.fixture = fixture
+        self.tau = np.zeros(3)
+        self.slip = np.zeros(2)
+        self.u_last: np.ndarray | None = None
+        self.f_last: np.ndarray | None = None
         self._code = fixture_code(fixture)
         self._prm = params.as_array()
         self._substeps = substeps or default_substeps(dt, fixture)
+        # one interval's outputs, allocated once
+        self._X, self._TAU, self._S = np.empty((2, 12)), np.empty((2, 3)), np.empty((2, 2))
+        self._none6, self._none2 = np.empty((0, 6)), np.empty((0, 2))
 
     def set_params(self, params: OtbotParams) -> None:
         """Change the plant parameters (e.g. a load placed on the platform)."""
         self.params = params
         self._prm = params.as_array()
+
+    def delivered_torque(self, u: np.ndarray) -> np.ndarray:
+        """Torque (3,) N m the drives deliver at the current sample with command u acting: with a
+        current-loop lag the torque reached at the end of the last interval, else the actuated u."""
+        if self.eff[T_I_INDEX] > 0:
+            return self.tau
+        return actuated_torque(np.asarray(u, dtype=float), self.eff)
 
     def step(self, u: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
         """Apply torques u (3,) N m and pivot force f (2,) N for one interval; return the new state."""
@@ -188,77 +270,11 @@ class Stepper:
         if not all(map(math.isfinite, U[0].tolist())):
             raise ValueError(f"torques must be finite, got {u}")
         F = np.zeros((1, 2)) if f is None else np.asarray(f, dtype=float).reshape(1, 2)
-        self.x = compiled.rk4_zoh(self.x, U, F, self.dt, self._substeps, self._prm, self._code)[1]
-        self.t += self.dt
-        return self.x
-
-
-@dataclass
-class ExtendedTrajectory:
-    """A run of the extended model: t (N+1,) s; x (N+1, 12) in rolling-angle coordinates;
-    tau (N+1, 3) delivered torque N m; slip (N+1, 2) rad; qdd (N+1, 6); u (N+1, 3) commands."""
-
-    t: np.ndarray
-    x: np.ndarray
-    tau: np.ndarray
-    slip: np.ndarray
-    qdd: np.ndarray
-    u: np.ndarray
-    dt: float
-    fixture: str
-
-
-def simulate_extended(params: OtbotParams, eff: np.ndarray, torques: np.ndarray, dt: float,
-                      x0: np.ndarray | None = None, fixture: str = "floor", tau0: np.ndarray | None = None,
-                      forces: np.ndarray | None = None, substeps: int | None = None) -> ExtendedTrajectory:
-    """Simulate the extended model under commanded ``torques`` (N, 3) N m held for ``dt`` s.
-
-    ``tau0``: delivered torque before t_0 (default 0: the drives start from rest), only
-    matters with a current-loop lag. ``x0`` (12,) in rolling-angle coordinates (default rest).
-    """
-    U, F, x0 = check_inputs(torques, dt, forces, x0)
-    eff = np.asarray(eff, dtype=float)
-    if eff.shape != (fx.N_EFFECT,) or not np.all(np.isfinite(eff)):
-        raise ValueError(f"effect vector must be {fx.N_EFFECT} finite numbers")
-    code = fixture_code(fixture)
-    prm = params.as_array()
-    sub = substeps or default_substeps(dt, fixture)
-    t0 = np.zeros(3) if tau0 is None else np.asarray(tau0, dtype=float)
-    X, TAU, S = fx.ext_rk4_zoh(x0, t0, U, F, dt, sub, prm, eff, code)
-    Uf = np.vstack([U, U[-1:]]) if len(U) else np.zeros((1, 3))
-    Ff = np.vstack([F, F[-1:]]) if len(U) else np.zeros((1, 2))
-    qdd = fx.ext_sample_accelerations(X, TAU, Ff, eff, prm, code)
-    return ExtendedTrajectory(t=np.arange(len(X)) * dt, x=X, tau=TAU, slip=S, qdd=qdd, u=Uf, dt=dt,
-                              fixture=fixture)
-
-
-
-class ExtendedStepper(Stepper):
-    """``Stepper`` for the extended model (``otbot_hw.model.effects.ExtendedModel``: the paper's
-    dynamics plus missing-physics effects, e.g. a diagnosed model as a closed loop's plant).
-
-    ``step(u, f)`` takes the *commanded* torques; the drives' gain, saturation and current lag act on
-    them. x (12,) holds rolling angles for the wheels (equal to the wheel angles without a radius
-    asymmetry); ``tau`` is the torque the drives deliver at the end of the last step (N m);
-    ``slip`` (2,) rad the wheel slip accumulated since the start (what the wheel encoders read on
-    top of the rolling angles, ``effects.sensor_outputs``).
-    """
-
-    def __init__(self, model, dt: float, x0: np.ndarray | None = None, fixture: str = "floor",
-                 substeps: int | None = None):
-        super().__init__(model.params, dt, x0, fixture, substeps)
-        self.eff = np.asarray(model.eff, dtype=float)
-        self.tau = np.zeros(3)
-        self.slip = np.zeros(2)
-
-    def step(self, u: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
-        U = np.asarray(u, dtype=float).reshape(1, 3)
-        if not all(map(math.isfinite, U[0].tolist())):
-            raise ValueError(f"torques must be finite, got {u}")
-        F = np.zeros((1, 2)) if f is None else np.asarray(f, dtype=float).reshape(1, 2)
-        X, TAU, S = fx.ext_rk4_zoh(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code)
-        self.x, self.tau = X[1], TAU[1]
-        self.slip = self.slip + S[1]  # the slip rate does not depend on the slip: the steps add up
+        ext_rk4_into(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code, self._X,
+                     self._TAU, self._S, self._none6, self._none2)
+        self.x, self.tau = self._X[1].copy(), self._TAU[1].copy()
+        self.slip = self.slip + self._S[1]  # the slip rate does not depend on the slip: the steps add up
+        self.u_last, self.f_last = U[0], F[0]
         self.t += self.dt
         return self.x
 
@@ -272,10 +288,5 @@ def rest_state(p, heading: float = 0.0) -> np.ndarray:
 
 
 def make_stepper(plant, dt: float, x0: np.ndarray | None = None, fixture: str = "floor") -> Stepper:
-    """A ``Stepper`` for ``OtbotParams`` (the paper's model) or an ``ExtendedStepper`` for an
-    ``ExtendedModel`` with active effects."""
-    if hasattr(plant, "eff"):
-        if plant.active_effects():
-            return ExtendedStepper(plant, dt, x0, fixture)
-        plant = plant.params
+    """A ``Stepper`` for ``OtbotParams`` (the paper's model) or an ``ExtendedModel``."""
     return Stepper(plant, dt, x0, fixture)

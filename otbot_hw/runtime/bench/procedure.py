@@ -46,6 +46,7 @@ from otbot_hw.motors import MotorLimits
 from otbot_hw.params import OtbotParams
 from otbot_hw.recording import read_recording
 from otbot_hw.robot import Robot, RobotError
+from otbot_hw.robot import SimulatedRobot as SimulatedBackEnd
 from otbot_hw.runtime.bench import checks as chk
 from otbot_hw.runtime.bench.operator import NoOperator
 from otbot_hw.runtime.bench.excitation import (PROBE, ExcitationController, brake_gains, predicted_margins,
@@ -311,9 +312,8 @@ class BenchProcedure:
                 "bench": {"session": str(self.session.path), "step": step, "attempt": attempt, "run": kind,
                           "excitation": self.s.excitation}}
         if self.sim is not None:
-            plant = getattr(self.robot, "plant", None)
-            params = getattr(plant, "params", None) or (self.sim.loaded if BENCH_STEPS[step].loaded
-                                                        else self.sim.unloaded)
+            params = (self.robot.simulated_params if isinstance(self.robot, SimulatedBackEnd)
+                      else (self.sim.loaded if BENCH_STEPS[step].loaded else self.sim.unloaded))
             meta["params"] = params.to_dict()
             if self.sim.effects:
                 meta["effects"] = self.sim.effects
@@ -332,7 +332,7 @@ class BenchProcedure:
             self.robot.read()  # one SYNC: what went wrong while idle shows now (e.g. the IMU stream's watchdog)
         except RobotError:
             pass  # the bus is gone: the run's enable says so
-        faults = tuple(getattr(self.robot, "faults", ()))
+        faults = self.robot.faults
         if faults and all(_communication(f) for f in faults):
             self.say("[bench] communication watchdogs tripped while the bench was idle ("
                      + "; ".join(sorted({f"{f.device}: {f.kind}" + (f" 0x{f.code:04X}" if f.code else "")
@@ -735,16 +735,7 @@ def identity(robot, bus: str, sim: SimulatedRobot | None = None, sim_label: str 
     read over SDO, and for a simulated robot a fingerprint of its parameters, effects and load."""
     import hashlib
 
-    nodes = {}
-    for dev in getattr(robot, "devices", []):
-        entry: dict[str, Any] = {"node_id": dev.node_id}
-        for sub, key in ((1, "vendor"), (2, "product"), (3, "revision"), (4, "serial")):
-            try:
-                entry[key] = int(dev.sdo_read(0x1018, sub))
-            except Exception:  # a node without (that part of) the identity object
-                entry[key] = None
-        nodes[dev.name] = entry
-    out: dict[str, Any] = {"bus": bus, "nodes": nodes, "simulated": None}
+    out: dict[str, Any] = {"bus": bus, "nodes": robot.node_identities(), "simulated": None}
     if sim is not None:
         blob = json.dumps({"params": sim.unloaded.values(), "effects": sim.effects, "load": sim.load}, sort_keys=True)
         out["simulated"] = {"sha": hashlib.sha256(blob.encode()).hexdigest()[:16], "label": sim_label or "simulated"}
