@@ -386,14 +386,21 @@ def write_recording(path: str | Path, rec: Recording) -> None:
     for key in ("format", "format_version", "units", "frames"):
         meta.pop(key, None)
     with RecordingWriter(path, meta, topics=rec.channels(), flush_every=1000) as w:
-        events = sorted(rec.events, key=lambda e: e["t"])
-        j = 0
-        for k in range(len(rec)):
-            w.write_sample(rec.sample(k))
-            while j < len(events) and (k + 1 == len(rec) or events[j]["t"] < rec.t[k + 1]):
-                e = events[j]
-                w.write_event(e["t"], e["kind"], e["text"], **{a: b for a, b in e.items() if a not in ("t", "kind", "text")})
-                j += 1
+        write_samples_and_events(w, rec)
+
+
+def write_samples_and_events(writer, rec: "Recording") -> None:
+    """Write ``rec``'s samples and events, in time order, through a streaming writer (``RecordingWriter``
+    or any writer with the same ``write_sample``/``write_event``): each event after the sample it follows."""
+    events = sorted(rec.events, key=lambda e: e["t"])
+    j = 0
+    for k in range(len(rec)):
+        writer.write_sample(rec.sample(k))
+        while j < len(events) and (k + 1 == len(rec) or events[j]["t"] < rec.t[k + 1]):
+            e = events[j]
+            writer.write_event(e["t"], e["kind"], e["text"],
+                               **{a: b for a, b in e.items() if a not in ("t", "kind", "text")})
+            j += 1
 
 
 def _records(path: Path) -> tuple[list, bool]:

@@ -46,8 +46,8 @@ def test_floor_steps_identify_the_loaded_robot_through_the_bus(floor_session):
         assert step["status"] == "passed" and step["converged"] is True
         assert all(k.startswith(name) and v > 80 for k, v in step["fit"].items()) and len(step["fit"]) == 3
         checks = {c["name"]: c["passed"] for c in step["checks"]}
-        assert checks == dict.fromkeys(("drives", "imu", "at_rest", "limits", "fixture", "settled", "saturation",
-                                        "clipping"), True)
+        assert checks == dict.fromkeys(("drives", "imu", "at_rest", "limits", "fixture", "robot_limits", "settled",
+                                        "saturation", "clipping"), True)
         rec = read_recording(folder / step["accepted_recording"])  # project format, what the drivers reported
         assert rec.metadata["fixture"] == "floor" and rec.metadata["bench"]["step"] == name
         assert rec.estimate_pose is not None  # the EKF ran for the supervisor's speed and free-area checks
@@ -260,10 +260,113 @@ def test_drives_that_cap_the_torque_give_a_saturated_recording_that_is_named_and
     cfg = robot_yaml({"- [0x6072, 0, 2500]": "- [0x6072, 0, 400]"})
     folder = tmp_path / "s"
     rc, out, err = _bench(otbot_cli, "--steps", "chassis", "--yes", "--no-diagnose", "--session", str(folder),
-                          "--config", str(cfg))
+                          "--config", str(cfg), "--excitation", "paper")
     assert rc == 2 and out == ""
     last = err.strip().splitlines()[-1]
     assert "step chassis: saturation: saturated: the drives applied -8.00 N m where -10.00 N m was commanded on left " \
            "wheel (300 of 300 samples)" in last and "0x6072" in last
     rec = read_recording(folder / "chassis-1.mcap")  # kept, and it says what the drives applied
     assert np.all(rec.torque[:300] == [6.0, -8.0, 6.0])
+
+
+def test_a_robot_whose_every_parameter_differs_from_the_file_completes_with_the_platform_weighed(tmp_path, otbot_cli):
+    """Issue 21's robot with a 40 kg load, default options: the simulated operator weighs the unloaded platform,
+    the joint fit estimates its centre, every estimate is within 3 reported sigma, and the mismatch with the
+    file is reported as that."""
+    p = nominal()
+    truth = p.replace(m_c=p.m_c * 0.87, I_c=p.I_c * 1.12, x_B=p.x_B * 0.85, y_B=p.y_B + 0.02, m_p=p.m_p * 1.15,
+                      I_p=p.I_p * 0.9, x_F=p.x_F + 0.03, y_F=p.y_F - 0.02, I_a=p.I_a * 1.1, b_w=p.b_w * 0.8,
+                      b_p=p.b_p * 1.25)
+    robot = tmp_path / "truth.yaml"
+    truth.save(robot)
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--yes", "--json", "--no-diagnose", "--session", str(folder),
+                          "--sim-params", str(robot), "--sim-load", "40@0.1,-0.05,0.5")
+    assert rc == 0, err
+    d = json.loads(out)
+    assert d["passed"] and d["excitation"] == "designed"
+    assert all(s["attempts"] == 1 for s in d["steps"].values())
+    z = d["error_sigma"]
+    assert set(SESSION_PARAMS) | {"m_p0", "x_F0", "y_F0", "m_c+m_p0", "m_p-m_p0"} <= set(z)
+    assert max(abs(v) for v in z.values()) < 3.0, z
+    up = d["unloaded_platform"]
+    assert up["m_p0"]["source"].startswith("weighed") and up["m_p0"]["std"] == pytest.approx(0.1)
+    assert up["x_F0"]["source"].startswith("estimated") and up["x_F0"]["file"] == 0.0
+    (notice,) = [n for n in d["notices"] if "does not match this robot" in n]
+    assert notice.startswith("the unloaded platform in config/otbot.yaml does not match this robot: m_p0 21.95 kg")
+    assert "x_F0 0 m in the file, estimated " in notice and up["x_F0"]["value"] == pytest.approx(0.03, abs=0.002)
+    assert json.loads((folder / "session.json").read_text())["measurements"]["m_p0"]["value"] == up["m_p0"]["value"]
+
+
+def test_a_load_the_motors_cannot_move_is_named(tmp_path, otbot_cli):
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--yes", "--no-diagnose", "--steps", "platform", "--session", str(folder),
+                          "--sim-load", "20000@0.1,0")
+    assert rc == 2 and out == "" and "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert "step platform: load: with the load on, the robot did not move under 2 N m" in last
+    assert "the load is more than the motors can accelerate within the experiment limits" in last
+    assert "use a lighter load" in last and str(folder) in last
+    assert (folder / "checks" / "platform-1-probe.mcap").is_file()  # the check's recordings are kept
+
+
+def test_the_operator_is_asked_to_weigh_the_platform():
+    from otbot_hw.runtime.bench.operator import AutomaticOperator, NoOperator, PromptOperator
+
+    said = []
+    op = PromptOperator(None, say=said.append, stream=io.StringIO("heavy\n-3\n25.3+-0.2\n"))
+    assert op.weigh_platform() == {"value": 25.3, "std": 0.2, "source": "weighed (typed by the operator)"}
+    assert sum("is not a mass in kg" in s for s in said) == 2
+    assert PromptOperator(None, say=said.append, stream=io.StringIO("\n")).weigh_platform() is None  # cannot weigh
+    with pytest.raises(NoOperator):
+        PromptOperator(None, say=said.append, stream=io.StringIO("")).weigh_platform()
+    assert AutomaticOperator(None, say=said.append).weigh_platform() is None  # a real robot with --yes
+
+
+def test_a_geometry_off_the_file_is_named_not_blamed_on_missing_physics(tmp_path, otbot_cli):
+    robot = tmp_path / "r.yaml"
+    nominal().replace(r=0.097).save(robot)  # wheels 3 % smaller than the file says
+    folder = tmp_path / "s"
+    rc, out, err = _bench(otbot_cli, "--yes", "--no-diagnose", "--steps", "chassis", "--attempts", "1",
+                          "--session", str(folder), "--sim-params", str(robot))
+    assert rc == 2 and out == "" and "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert "step chassis: the geometry in config/otbot.yaml does not match this robot: r 0.1 m in the file, " \
+           "estimated 0.09" in last and "measure l1, l2, r" in last
+    assert "l1 " not in last.split("the gates with")[0] and (folder / "chassis-1.mcap").is_file()
+
+
+def test_an_unweighed_platform_is_reported_with_what_the_recordings_cannot_separate(tmp_path, otbot_cli, monkeypatch):
+    folder = tmp_path / "s"
+    monkeypatch.setattr(sys, "stdin", io.StringIO("n\n\n"))  # cannot weigh it; Enter: the set-up as instructed
+    rc, out, err = _bench(otbot_cli, "--json", "--no-diagnose", "--steps", "chassis", "--session", str(folder))
+    assert rc == 0, err
+    d = json.loads(out)
+    up = d["unloaded_platform"]["m_p0"]
+    assert up["source"].startswith("not weighed") and up["std"] == pytest.approx(0.2 * nominal().m_p)
+    (notice,) = d["notices"]
+    assert notice.startswith("the unloaded platform was not weighed: the recordings cannot separate the chassis' "
+                             "mass m_c from the platform's m_p0 (a floor run sees only m_c + m_p0 = ")
+    tot = d["combinations"]["m_c+m_p0"]
+    assert tot["std"] < 0.5 < d["parameters"]["m_c"]["std"]  # the sum is identified, the split carries the prior
+    assert abs(tot["value"] - (nominal().m_c + nominal().m_p)) < 3 * tot["std"]
+
+
+def test_a_robot_beyond_the_designs_prior_gets_the_excitation_fitted_to_it(tmp_path, otbot_cli):
+    """benchmarks/bench_procedure.py's robot 28 (every parameter perturbed; a chassis 17 % lighter with its centre
+    of mass 4.3 cm back and 4.4 cm aside): the shipped design drove a wheel past its limit in the chassis step and
+    the supervisor stopped it; the probe tells the bench the robot is lighter, the chassis torques are scaled down
+    and the steps complete within 3 sigma (the platform step: the study)."""
+    from otbot_hw.identification.study import every_parameter_robot
+
+    unloaded, _, _ = every_parameter_robot(28)
+    robot = tmp_path / "robot.yaml"
+    unloaded.save(robot)
+    rc, out, err = _bench(otbot_cli, "--yes", "--json", "--no-diagnose", "--session", str(tmp_path / "s"),
+                          "--sim-params", str(robot), "--seed", "28", "--steps", "wheel,pivot,chassis")
+    assert rc == 0, err
+    d = json.loads(out)
+    (fitted,) = [c for c in d["steps"]["chassis"]["checks"] if c["name"] == "robot_limits"]
+    assert 0.7 < fitted["value"] < 0.9 and "the designed torques scaled by" in fitted["message"]
+    assert max(abs(v) for v in d["error_sigma"].values()) < 3.0, d["error_sigma"]
+    assert json.loads((tmp_path / "s" / "session.json").read_text())["excitation_scale"]["chassis"] == fitted["value"]

@@ -62,13 +62,16 @@ def register(sub) -> None:
     p.add_argument("--report", type=Path, default=None, metavar="DIR",
                    help="Markdown report with PNG plots (default SESSION/report)")
     p.add_argument("--excitation", choices=("paper", "designed"), default=None,
-                   help="paper: the paper's constant torques (default); designed: for the chassis and platform steps "
-                        "torques that minimise the Cramer-Rao bound within the limits (identification.design; "
-                        "designed once per robot and limits, minutes, then kept)")
+                   help="designed (default): for the chassis and platform steps torques that minimise the "
+                        "Cramer-Rao bound within the limits on the prior's corner robots (identification.design; "
+                        "designed once per parameter file and limits, minutes, then kept; shipped for the nominal "
+                        "file and default limits); paper: the paper's constant torques (6, -10, 6) N m, which leave "
+                        "the default limits on about half of the robots that differ from the file")
     p.add_argument("--params", type=Path, default=None,
                    help="the robot's parameters before the session (unloaded platform; default config/otbot.yaml): "
-                        "geometry and the unloaded platform's mass and centre are taken as known, the rest are "
-                        "first guesses")
+                        "the geometry (l1, l2, r) is taken as known, the rest are first guesses; the unloaded "
+                        "platform's mass is weighed by the operator (or kept with a 20 %% prior std and reported "
+                        "as not separable from the chassis' mass), its centre estimated from the floor runs")
     p.add_argument("--sim-params", type=Path, default=None,
                    help="--bus sim: the robot to simulate, a parameter file or a diagnosed model with effects "
                         "(default config/otbot.yaml)")
@@ -134,7 +137,7 @@ def run(args: argparse.Namespace) -> dict:
         limits = limits.replace(travel_radius=float(args.free_area))
     est = EstimatorConfig.load(args.config)
     with_imu = cfg.imu is not None and not args.no_imu
-    base = BenchSettings(steps=parse_steps(args.steps), excitation=args.excitation or "paper",
+    base = BenchSettings(steps=parse_steps(args.steps), excitation=args.excitation or "designed",
                          attempts=args.attempts or 2, limits=limits, safety=SafetyConfig.load(args.config),
                          motor_limits=cfg.limits, params_start=OtbotParams.load(args.params),
                          noise=NoiseModel(accel=est.accel_sigma, gyro=est.gyro_sigma, enc_rate=est.encoder_rate_sigma),
@@ -214,7 +217,8 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
             "bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,
                     "bitrate": cfg.bus.bitrate, "control_rate": cfg.bus.control_rate},
             "nodes": {d.name: d.node_id for d in cfg.drives}, "pivot_source": cfg.pivot_encoder.source,
-            **source_metadata(simulated=args.bus == "sim", bus=True)}
+            **source_metadata(simulated=args.bus == "sim", bus=True),
+            "params_file": str(args.params) if args.params else "config/otbot.yaml"}
     if args.bus == "sim":
         seed = args.seed + 1000 * (invocation - 1)  # a resumed simulated session draws new noise
         meta.update(seed=seed, simulated_noise=noise_model(args).to_dict())
@@ -304,6 +308,13 @@ def _print_summary(s: dict) -> None:
         if truth:
             line += f" (truth {truth[n]:.6g}" + (f", error {es[n]:+.2f} sigma)" if es.get(n) is not None else ")")
         print(line)
+    for n, d in (s.get("unloaded_platform") or {}).items():
+        print(f"[bench] {n} = {d['value']:.6g} +- {d['std']:.3g} {'kg' if n == 'm_p0' else 'm'} (unloaded platform; "
+              f"file {d['file']:.6g}; {d['source']}" + (f"; truth {truth[n]:.6g}" if truth and n in truth else "") + ")")
+    for n, d in (s.get("combinations") or {}).items():
+        print(f"[bench] {n} = {d['value']:.6g} +- {d['std']:.3g} kg")
+    for m in s.get("notices") or []:
+        print(f"[bench] notice: {m}")
     if s.get("diagnosis"):
         print(f"[bench] diagnosis: {s['diagnosis']['verdict']}")
     print(f"[bench] parameters: {s['params_file']}")

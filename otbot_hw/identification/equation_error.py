@@ -170,12 +170,16 @@ def motion_from_sensors(rec, l1: float, l2: float, r: float, window: float = 0.5
     return MeasuredMotion(q=q, qd=qd, qdd=qdd, torque=U, usable=usable)
 
 
-def estimate_body(rec, known, body: str, t_max: float | None = None) -> dict[str, float]:
+def estimate_body(rec, known, body: str, t_max: float | None = None,
+                  platform_moments: bool = False) -> dict[str, float]:
     """Linear least-squares estimate of one body's (mass, inertia, centre of mass) from a floor run.
 
     ``known``: the other parameters (``OtbotParams``); ``body``: "chassis" or "platform".
-    Returns physical parameters, e.g. {m_p, I_p, x_F, y_F}. Raises ``IdentificationError``
-    when the sensors are missing or the result is not physical (mass <= 0).
+    Returns physical parameters, e.g. {m_p, I_p, x_F, y_F}. ``platform_moments`` (chassis only):
+    solve the platform's first moments m_p (x_F, y_F) and its inertia about the pivot J_p too, its
+    mass m_p held (the regressor's m_c and m_p columns are the same: only m_c + m_p enters a
+    floor run); adds x_F, y_F, I_p. Raises ``IdentificationError`` when the sensors are missing
+    or the result is not physical (mass <= 0).
     """
     if body not in BODY_SLICES:
         raise IdentificationError(f"body must be 'chassis' or 'platform', got {body!r}")
@@ -186,13 +190,20 @@ def estimate_body(rec, known, body: str, t_max: float | None = None) -> dict[str
     Y = regressor(mot.q[use], mot.qd[use], mot.qdd[use], known.l1, known.l2, known.r)
     pi = base_parameters(known)
     sl = BODY_SLICES[body]
+    cols = list(range(11))[sl] + ([5, 6, 7] if platform_moments and body == "chassis" else [])
     mask = np.ones(11, dtype=bool)
-    mask[sl] = False
+    mask[cols] = False
     lhs = mot.torque[use] - Y[:, :, mask] @ pi[mask]
-    A = Y[:, :, sl].reshape(-1, 4)
+    A = Y[:, :, cols].reshape(-1, len(cols))
     b = lhs.reshape(-1)
     scale = np.linalg.norm(A, axis=0)
     if np.any(scale == 0):
         raise IdentificationError(f"equation-error start: the {body} parameters do not enter this motion")
     sol, *_ = np.linalg.lstsq(A / scale, b, rcond=None)
-    return body_parameters(body, sol / scale)
+    sol = sol / scale
+    out = body_parameters(body, sol[:4])
+    if len(cols) > 4:
+        mp = float(known.m_p)
+        xf, yf = sol[4] / mp, sol[5] / mp
+        out.update(x_F=float(xf), y_F=float(yf), I_p=float(sol[6] - mp * (xf * xf + yf * yf)))
+    return out

@@ -37,7 +37,8 @@ from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, STEPS, Experi
 from otbot_hw.identification.gates import GateLimits, StepGates, check_fit, check_step
 from otbot_hw.identification.prediction_error import FitResult
 from otbot_hw.identification.steps import StepResult, identify_step
-from otbot_hw.identification.uncertainty import (KNOWN_PARAMS, LOADED_STEPS, SESSION_PARAMS, STEP_PARAMS,
+from otbot_hw.identification.uncertainty import (KNOWN_PARAMS, LOADED_STEPS, NUISANCE_PARAMS, SESSION_PARAMS,
+                                                 STEP_PARAMS,
                                                  UNLOADED_PLATFORM, JointCovariance, SessionModel, add_known_uncertainty, joint_fit,
                                                  propagate_step, robot_params, session_vector)
 from otbot_hw.params import UNITS, OtbotParams, ParameterError
@@ -137,11 +138,22 @@ class SessionResult:
     def save_params(self, path: str | Path) -> None:
         """Write ``params.yaml`` (layout of ``config/otbot.yaml``, each identified entry with its std)."""
         how = {"joint": "a joint fit of all recordings", "propagate": "the chained steps"}[self.method]
-        ip0 = f"I_p0 (unloaded platform) = {self.values['I_p0']:.6g} +- {self.std['I_p0']:.3g} kg m^2. "
+        ip0 = (f"I_p0 (unloaded platform) = {self.values['I_p0']:.6g} +- {self.std['I_p0']:.3g} kg m^2, "
+               + ", ".join(f"{n} = {self.values[n]:.6g} +- {self.std.get(n, 0.0):.3g} {SESSION_UNITS[n]}"
+                           for n in ("m_p0", "x_F0", "y_F0")) + ". ")
         self.params().save(path, header=(
             f"Identified by a bench session (steps {', '.join(self.steps)}; estimates from {how}).\n"
             "std = one standard deviation including the uncertainty of the earlier steps.\n"
             + ip0 + ("The platform entries are the loaded working platform." if self.loaded else "")))
+
+    def combination(self, weights: Mapping[str, float]) -> dict[str, float]:
+        """``{value, std}`` of sum_n w_n theta_n (session symbols), std from the full covariance: e.g. the
+        floor runs' total mass {"m_c": 1, "m_p0": 1}, which the data identify even when neither term is."""
+        value = float(sum(w * self.values[n] for n, w in weights.items()))
+        names = list(weights)
+        C = self.covariance.sub(names)
+        w = np.array([weights[n] for n in names], dtype=float)
+        return {"value": value, "std": float(np.sqrt(max(w @ C @ w, 0.0)))}
 
     def error_sigma(self) -> dict[str, float] | None:
         """(estimate - truth) / std per estimated symbol (simulated recordings only)."""
@@ -222,7 +234,8 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
                      known_std: Mapping[str, float] | None = None,
                      guesses: Mapping[str, Mapping[str, float]] | None = None,
                      specs: Mapping[str, ExperimentSpec] | None = None, gate_limits: GateLimits | None = None,
-                     global_start: bool = True) -> SessionResult:
+                     global_start: bool = True,
+                     nuisance: Sequence[str] = NUISANCE_PARAMS) -> SessionResult:
     """Identify the session's parameters from the recordings of its steps.
 
     recordings_by_step: {step: [Recording, ...]} for some of wheel, pivot, chassis, platform
@@ -232,7 +245,10 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
     method: "joint" or "propagate" (module docstring); known_std: std of the parameters taken
         for granted (``KNOWN_PARAMS``), default exact; guesses: per step, initial guesses by the
         paper's model names (as ``identify_step``); specs: per step, the experiment that was run
-        (default the paper's; a designed excitation passes its own); gate_limits: the gates' thresholds.
+        (default the paper's; a designed excitation passes its own); gate_limits: the gates' thresholds;
+        nuisance: parameters taken for granted that the joint fit estimates too once the chassis step's
+        floor run is in (default the unloaded platform's centre of mass x_F0, y_F0: a file whose values
+        are off would otherwise leave every floor run unexplained); their std then comes from the data.
     A step that does not converge stops the chain (later steps are not fitted); its gates and
     the session's ``reasons`` say why. Raises ``IdentificationError`` for bad input.
     """
@@ -245,8 +261,14 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
     order = [s for s in STEPS if recordings_by_step.get(s)]
     if not order:
         raise IdentificationError("no recording given for any step")
-    estimated_all = [n for s in order for n in STEP_PARAMS[s]]
-    carried = _carried_std(params_start, estimated_all, known_std or {})
+    bad = [n for n in nuisance if n not in KNOWN_PARAMS]
+    if bad:
+        raise IdentificationError(f"nuisance: {', '.join(bad)} not parameters taken for granted "
+                                  f"(known: {', '.join(KNOWN_PARAMS)})")
+    free_nuisance = list(nuisance) if "chassis" in order else []
+    estimated_all = [n for s in order for n in STEP_PARAMS[s]] + free_nuisance
+    carried = _carried_std(params_start, estimated_all, {n: v for n, v in (known_std or {}).items()
+                                                          if n not in free_nuisance})
     values = session_vector(params_start)
     cov = JointCovariance(list(carried), np.diag([carried[n] ** 2 for n in carried]))
     steps: dict[str, SessionStep] = {}
@@ -259,8 +281,11 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
     for step in order:
         spec = (specs or {}).get(step) or PAPER_EXPERIMENTS[step]
         base = robot_params(chained, params_start, loaded=step in LOADED_STEPS)
+        extra = ()
+        if step == "chassis" and free_nuisance:  # the unloaded platform's inertia moves with its centre (J_p0)
+            extra = tuple(n[:-1] for n in free_nuisance if n.endswith("0")) + ("I_p",)
         res = identify_step(step, recordings_by_step[step], base, guess=(guesses or {}).get(step),
-                            global_start=global_start, spec=spec)
+                            global_start=global_start, spec=spec, extra_free=extra)
         if not res.converged and method == "propagate":
             # (the joint method goes on: a step fitted with the earlier steps' estimates held exact may miss
             # the noise floor by a little because of their errors; the joint fit below judges it)
@@ -286,6 +311,8 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
             continue
         # the session so far in one fit: the step's gates judge its recordings with every parameter free
         estimated = [n for n in SESSION_PARAMS if n in naive_std]
+        if "chassis" in steps:
+            estimated += free_nuisance
         start = {**chained, **(joint.estimate if joint is not None else {}), **st.estimate}
         joint = joint_fit(model, experiments_all, estimated, start, params_start.radius)
         st.joint = joint
@@ -298,6 +325,8 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
                            + ("later steps not fitted" if step != order[-1] else "no session estimate"))
             break
     estimated = [n for n in SESSION_PARAMS if n in naive_std]
+    if "chassis" in steps:  # fitted in the chassis step (and in the joint fit)
+        estimated += free_nuisance
     chained_std = cov.std()
     values = dict(chained)
     used = method

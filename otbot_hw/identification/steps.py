@@ -52,7 +52,10 @@ class StepResult:
     wall_time: float = 0.0
 
     def symbol(self, name: str) -> str:
-        return self.spec.symbol(name)
+        s = self.spec.symbol(name)
+        if self.step != "platform" and s in ("m_p", "I_p", "x_F", "y_F"):
+            return s + "0"  # the unloaded platform of the wheel, pivot and chassis runs
+        return s
 
 
 def platform_bounds(base: OtbotParams) -> dict[str, tuple[float, float]]:
@@ -117,7 +120,8 @@ def _spread_starts(step: str, base: OtbotParams) -> list[dict[str, float]]:
             out.append({"m_p": m, "I_p": max(base.I_p, 0.05 * m), "x_F": 0.0, "y_F": 0.0})
         return out
     if step == "chassis":
-        return [{"m_c": m, "I_c": 0.02 * m, "x_B": 0.0, "y_B": 0.0} for m in (30.0, 100.0, 300.0)]
+        return [{"m_c": m, "I_c": 0.02 * m, "x_B": 0.0, "y_B": 0.0, "x_F": 0.0, "y_F": 0.0, "I_p": base.I_p}
+                for m in (30.0, 100.0, 300.0)]
     spec = PAPER_EXPERIMENTS[step]
     return [{n: getattr(base, n) * f for n in spec.free} for f in (0.1, 10.0)]
 
@@ -153,7 +157,8 @@ def experiments_from_recordings(step: str, recordings: Sequence, base: OtbotPara
 def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Mapping[str, float] | None = None,
                   global_start: bool = True, spec: ExperimentSpec | None = None, t_max: float | None = -1.0,
                   sigma: Mapping[str, float] | None = None, residual_tolerance: float | None = 1.5,
-                  max_nfev: int = 200, truth: OtbotParams | None = None, guess_first: bool = False) -> StepResult:
+                  max_nfev: int = 200, truth: OtbotParams | None = None, guess_first: bool = False,
+                  extra_free: Sequence[str] = ()) -> StepResult:
     """Identify the parameters of ``step`` from ``recordings`` (project format).
 
     base: all other parameters (known from the earlier steps); guess: initial guess of
@@ -162,7 +167,9 @@ def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Map
     the guess, like the paper); guess_first: with global_start, fit from the guess before
     the equation-error start (a guess the user gave is tried, not only kept as a fallback);
     truth: the simulated robot's parameters, for the report (default: read from a
-    simulated recording's metadata).
+    simulated recording's metadata); extra_free: parameters (paper's names) fitted with the
+    step's own, e.g. the unloaded platform's x_F, y_F, I_p in the chassis step when the file's
+    values may be off (``session.identify_session``'s nuisance parameters).
     Raises ``IdentificationError`` / ``NotIdentifiableError`` for bad input.
     """
     t0 = time.perf_counter()
@@ -170,8 +177,9 @@ def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Map
         raise IdentificationError(f"unknown step '{step}' (known: {', '.join(STEPS)})")
     spec = spec or PAPER_EXPERIMENTS[step]
     exps = experiments_from_recordings(step, recordings, base, spec, t_max, sigma)
-    free = list(spec.free)
+    free = list(spec.free) + [n for n in extra_free if n not in spec.free]
     g = paper_guess(step, base)
+    g.update({n: float(getattr(base, n)) for n in free if n not in g})
     unknown = [n for n in (guess or {}) if n not in free]
     if unknown:
         raise IdentificationError(f"--guess {', '.join(unknown)}: step {step} estimates "
@@ -185,7 +193,9 @@ def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Map
         try:
             from otbot_hw.identification.equation_error import estimate_body
 
-            est = estimate_body(recordings[0], base, step, t_max=spec.duration if t_max == -1.0 else t_max)
+            est = estimate_body(recordings[0], base, step, t_max=spec.duration if t_max == -1.0 else t_max,
+                                platform_moments=step == "chassis" and bool({"x_F", "y_F"} & set(free)))
+            est = {n: v for n, v in est.items() if n in free}
             for n, v in est.items():
                 lo, hi = bounds[n]
                 est[n] = float(np.clip(v, lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo)))
@@ -210,6 +220,7 @@ def identify_step(step: str, recordings: Sequence, base: OtbotParams, guess: Map
             break
     if accepted is None and global_start:
         for i, start in enumerate(_spread_starts(step, base)):
+            start = {n: start.get(n, float(getattr(base, n))) for n in free}
             f = run(f"spread start {i + 1}", start)
             if f.converged:
                 accepted = f

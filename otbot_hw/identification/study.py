@@ -50,6 +50,39 @@ def perturbed_robot(seed: int, base: OtbotParams | None = None,
     return unloaded, unloaded.with_load(**load), load
 
 
+#: The prior of ``every_parameter_robot`` (issue 21): every mass, inertia and friction +-30 % (the unloaded
+#: platform's too), every centre of mass moved up to 5 cm, a 0-300 kg load within 0.2 m of the pivot.
+EVERY_PARAMETER = RobotSpread(scale=0.3, com_shift=0.05, load_mass=(0.0, 300.0), load_radius=0.2,
+                              load_inertia=(0.0, 5.0))
+
+
+def every_parameter_robot(seed: int, base: OtbotParams | None = None,
+                          spread: RobotSpread = EVERY_PARAMETER) -> tuple[OtbotParams, OtbotParams, dict[str, float]]:
+    """(unloaded robot, robot with its load, the load) with *every* dynamic parameter off the file's: the
+    chassis' and the unloaded platform's masses, inertias and centres of mass, the wheels' inertia and both
+    frictions (uniform within +-``spread.scale``, centres +-``spread.com_shift`` m in x and y), and a load of
+    ``spread.load_mass`` kg (uniform) within ``spread.load_radius`` m of the pivot with its own inertia
+    (uniform in ``spread.load_inertia``). Geometry (l1, l2, r) stays the file's."""
+    base = base or nominal()
+    sp = spread
+    rng = np.random.default_rng([21, seed])
+
+    def f() -> float:
+        return float(rng.uniform(1.0 - sp.scale, 1.0 + sp.scale))
+
+    def d() -> float:
+        return float(rng.uniform(-sp.com_shift, sp.com_shift))
+
+    unloaded = base.replace(m_c=base.m_c * f(), I_c=base.I_c * f(), x_B=base.x_B + d(), y_B=base.y_B + d(),
+                            m_p=base.m_p * f(), I_p=base.I_p * f(), x_F=base.x_F + d(), y_F=base.y_F + d(),
+                            I_a=base.I_a * f(), b_w=base.b_w * f(), b_p=base.b_p * f())
+    ang = float(rng.uniform(0.0, 2.0 * math.pi))
+    rad = sp.load_radius * math.sqrt(float(rng.uniform()))
+    load = {"mass": float(rng.uniform(*sp.load_mass)), "x": rad * math.cos(ang), "y": rad * math.sin(ang),
+            "inertia": float(rng.uniform(*sp.load_inertia))}
+    return unloaded, unloaded.with_load(**load), load
+
+
 def simulate_session(unloaded: OtbotParams, loaded: OtbotParams, seed: int,
                      specs: Mapping[str, ExperimentSpec] | None = None, steps=STEPS) -> dict[str, list]:
     """{step: [Recording]} of a session on this robot: each step's experiment on its fixture (noise seeded)."""

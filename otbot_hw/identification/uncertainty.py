@@ -42,6 +42,10 @@ SESSION_PARAMS: tuple[str, ...] = ("I_a", "b_w", "I_p0", "b_p", "m_c", "I_c", "x
                                    "m_p", "I_p", "x_F", "y_F")
 #: Parameters taken for granted (measured), with the unloaded platform's mass and centre of mass.
 KNOWN_PARAMS: tuple[str, ...] = ("l1", "l2", "r", "m_p0", "x_F0", "y_F0")
+#: The unloaded platform's centre of mass: estimated by the joint fit as nuisance parameters once an unloaded
+#: floor run (chassis) is in the session (the platform's first moment m_p0 (x_F0, y_F0) turns with the pivot
+#: relative to the chassis, so the floor runs tell it apart from the chassis' m_c (x_B, y_B)).
+NUISANCE_PARAMS: tuple[str, ...] = ("x_F0", "y_F0")
 #: Which session parameters each step estimates.
 STEP_PARAMS: dict[str, tuple[str, ...]] = {
     "wheel": ("I_a", "b_w"), "pivot": ("I_p0", "b_p"),
@@ -106,8 +110,10 @@ def session_bounds(radius: float) -> tuple[dict[str, tuple[float, float]], dict[
     """Box bounds and typical scales of the session parameters (the step fits' defaults)."""
     b = {n: DEFAULT_BOUNDS[n] for n in SESSION_PARAMS if n in DEFAULT_BOUNDS}
     b["I_p0"] = DEFAULT_BOUNDS["I_p"]
-    b["x_F"] = b["y_F"] = (-radius, radius)
-    return b, {n: _SCALE[n] for n in SESSION_PARAMS}
+    b["m_p0"] = DEFAULT_BOUNDS["m_p"]
+    b.update({n: DEFAULT_BOUNDS[n] for n in ("l1", "l2", "r")})
+    b["x_F"] = b["y_F"] = b["x_F0"] = b["y_F0"] = (-radius, radius)
+    return b, {n: _SCALE[n] for n in SESSION_PARAMS + KNOWN_PARAMS}
 
 
 @dataclass

@@ -9,7 +9,7 @@ import os
 import shutil
 from pathlib import Path
 
-from otbot_hw.recording import Recording
+from otbot_hw.recording import Recording, write_samples_and_events
 from otbot_hw.ros2 import BagError
 from otbot_hw.ros2.writer import BagWriter
 
@@ -43,15 +43,7 @@ def export_recording(rec: Recording, out: str | Path) -> dict:
     try:
         with BagWriter(tmp, rec.metadata, topics, flush_every=1000, has_force=rec.truth_force is not None,
                        has_gyro_bias=rec.estimate_gyro_bias is not None, name=out.name) as w:
-            events = sorted(rec.events, key=lambda e: e["t"])
-            j = 0
-            for k in range(len(rec)):
-                w.write_sample(rec.sample(k))
-                while j < len(events) and (k + 1 == len(rec) or events[j]["t"] < rec.t[k + 1]):
-                    e = events[j]
-                    w.write_event(e["t"], e["kind"], e["text"],
-                                  **{a: b for a, b in e.items() if a not in ("t", "kind", "text")})
-                    j += 1
+            write_samples_and_events(w, rec)
         # the new bag is complete: put it in place (renamed, the old one removed after)
         old = None
         if out.exists():

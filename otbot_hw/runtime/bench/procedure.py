@@ -60,8 +60,15 @@ REST_TIME = 0.5       # s of the zero-torque run (and of the end of the settling
 BRAKE_TIME = 1.5      # s of braking after an excitation
 PROBE_PAUSE = 0.1     # s of zero torque after the probe doublet
 SETTLE_TIME = 2.5     # s of braking after the probe
+UNKNOWN_COM = 0.05    # m: how far the chassis' centre of mass may lie from the file's (issue 21's prior)
+UNKNOWN_INERTIA = 0.3  # fraction: how far the chassis' inertia may lie from the mass-scaled one
+LIMIT_FILL = 0.95     # a designed excitation is scaled so that its peaks predicted on this robot stay below this
+                      # fraction of each limit (the probe's mass estimate leaves the centres of mass unknown)
 #: EMCY codes of the drives' communication watchdogs (CiA 301): SYNC timeout, life guard / heartbeat
 WATCHDOG_CODES = (0x8100, 0x8130)
+#: prior std of the unloaded platform's mass when nobody weighs it, as a fraction of the file's value (a CAD
+#: mass may be off by tens of per cent)
+UNWEIGHED_FRACTION = 0.2
 
 
 @dataclass(frozen=True)
@@ -148,8 +155,7 @@ class SimulatedRobot:
         return self.unloaded.with_load(*self.load) if self.load else self.unloaded
 
     def truth(self) -> dict[str, float]:
-        v = session_vector(self.unloaded, self.loaded)
-        return {n: v[n] for n in SESSION_PARAMS}
+        return session_vector(self.unloaded, self.loaded)  # with the unloaded platform's m_p0, x_F0, y_F0
 
 
 @dataclass
@@ -180,17 +186,52 @@ class BenchProcedure:
         self.timing = _Timing()
         self.result = None  # the latest SessionResult
         self.specs: dict[str, ExperimentSpec] = {}
+        self.base_specs: dict[str, ExperimentSpec] = {}
         self.designs: dict[str, dict] = {}
         self.idle_resets: list = []
+        self.notices: list[str] = []
+
+    # -- the unloaded platform: what a floor run cannot tell -----------------------------------------
+    def weigh(self) -> None:
+        """The unloaded platform's mass m_p0, asked once per session (kept in session.json): a floor run
+        sees only m_c + m_p0 (the regressor's two mass columns are the same), so either the operator
+        weighs the platform, or m_p0 stays the file's with a prior std (``UNWEIGHED_FRACTION``) that the
+        reported std of m_c and m_p carry (their sum and the load's mass are identified all the same)."""
+        if not {"chassis", "platform"} & set(self.s.steps):
+            return
+        meas = self.session.data.setdefault("measurements", {})
+        if "m_p0" in meas:
+            return
+        try:
+            got = self.operator.weigh_platform(int(self.metadata.get("seed", 0)))
+        except ValueError as exc:
+            raise BenchError(self.s.steps[0], str(exc)) from None
+        file_m = float(self.s.params_start.m_p)
+        if got is None:
+            got = {"value": file_m, "std": UNWEIGHED_FRACTION * file_m,
+                   "source": f"not weighed: the parameter file's value with a prior std of {UNWEIGHED_FRACTION:.0%}"}
+        meas["m_p0"] = got
+        self.session.save()
+
+    def start_params(self) -> OtbotParams:
+        """The robot before the session: the start parameters with the weighed unloaded platform's mass."""
+        m = self.session.data.get("measurements", {}).get("m_p0")
+        return self.s.params_start.replace(m_p=float(m["value"])) if m else self.s.params_start
+
+    def known_std(self) -> dict[str, float]:
+        m = self.session.data.get("measurements", {}).get("m_p0")
+        return {"m_p0": float(m["std"])} if m else {}
 
     # -- helpers -----------------------------------------------------------------------------------
     def best_params(self) -> OtbotParams:
         """The unloaded robot as known now: the start parameters with the passed steps' estimates."""
         if self.result is None:
-            return self.s.params_start
-        return robot_params(self.result.values, self.s.params_start, loaded=False)
+            return self.start_params()
+        return robot_params(self.result.values, self.start_params(), loaded=False)
 
     def spec(self, step: str) -> ExperimentSpec:
+        """The step's excitation as run: the paper's or the designed one, the latter scaled to this robot
+        (``fit_to_robot``; the scale is kept in session.json for a resumed session)."""
         if step not in self.specs:
             sp, rec = step_spec(step, self.s.excitation, self.s.params_start, self.s.limits,
                                 [self.session.path / "designs"], progress=lambda m: self.say(f"[bench] {m}"))
@@ -201,7 +242,70 @@ class BenchProcedure:
                 d = self.session.path / "designs"
                 d.mkdir(exist_ok=True)
                 (d / f"{step}.json").write_text(json.dumps({k: v for k, v in rec.items() if k != "source"}))
+            self.base_specs[step] = sp
+            k = self.session.data.get("excitation_scale", {}).get(step)
+            if k is not None:
+                self.specs[step] = _scaled(sp, float(k))
         return self.specs[step]
+
+    def fit_to_robot(self, step: str, probe, probe_u: np.ndarray, best: OtbotParams) -> chk.Check | None:
+        """Floor steps, designed excitation: the design keeps the limits on the prior's corner robots (+-20 %),
+        this robot may lie beyond. The probe's measured pivot speed against the one predicted for the
+        best-known robot says how much heavier (or lighter) it is, rho = v_predicted / v_measured; the body
+        that is still unknown (the chassis in step chassis, the loaded platform in step platform) is scaled so
+        (mass and inertia), the excitation's peaks predicted on that robot (in step chassis also with its
+        centre of mass moved by UNKNOWN_COM and its inertia by UNKNOWN_INERTIA, which a forward probe cannot
+        tell), and the torques scaled down (speeds and travel go about linearly with them) until every peak
+        is within LIMIT_FILL of its limit. None for the paper's excitation and the held fixtures."""
+        from otbot_hw.runtime.bench.excitation import predicted_motion
+
+        base = self.spec(step) if step not in self.base_specs else self.base_specs[step]
+        scale = 1.0
+        if self.s.excitation != "designed" or BENCH_STEPS[step].fixture != "floor":
+            return None
+        pspec = dataclasses.replace(base, profile=probe_u, torque=tuple(float(v) for v in probe_u[0]),
+                                    duration=len(probe_u) * self.period)
+        from otbot_hw.model.kinematics import forward_kinematics_matrix
+
+        M = forward_kinematics_matrix(np.zeros(6), best)[:2]
+        _, qd = predicted_motion(pspec, best)
+        v_pred = float(np.max(np.linalg.norm(qd[:, 3:6] @ M.T, axis=1)))
+        n = min(len(probe_u), len(probe))
+        v_meas = float(np.max(np.linalg.norm(np.asarray(probe.joint_vel[:n], dtype=float) @ M.T, axis=1)))
+        rho = float(np.clip(v_pred / max(v_meas, 1e-9), 0.25, 20.0))
+        total = best.m_c + best.m_p
+        if BENCH_STEPS[step].loaded:
+            guess = best.replace(m_p=max(total * rho - best.m_c, 0.1 * best.m_p), I_p=best.I_p * rho)
+        else:
+            guess = best.replace(m_c=max(total * rho - best.m_p, 0.1 * best.m_c), I_c=best.I_c * rho)
+        safety = self.s.safety.within(self.s.limits, "floor")
+        robots = [guess]
+        if not BENCH_STEPS[step].loaded:  # what a forward probe cannot tell: the chassis' centre and inertia
+            c = UNKNOWN_COM
+            robots += [guess.replace(x_B=guess.x_B + dx, y_B=guess.y_B + dy, I_c=guess.I_c * f)
+                       for dx, dy in ((c, c), (c, -c), (-c, c), (-c, -c)) for f in (1 - UNKNOWN_INERTIA, 1 + UNKNOWN_INERTIA)]
+        spec = base
+        for _ in range(3):
+            every = [predicted_margins(spec, r, self.s.limits, safety.max_wheel_rate, safety.max_pivot_rate)
+                     for r in robots]
+            margins = {k: max((m[k] for m in every), key=lambda v: v[0] / v[1]) for k in every[0]}
+            worst = max((p / lim for k, (p, lim) in margins.items() if k != "torque"), default=0.0)
+            if worst <= LIMIT_FILL:
+                break
+            scale *= LIMIT_FILL / worst
+            spec = _scaled(base, scale)
+        self.specs[step] = spec
+        self.session.data.setdefault("excitation_scale", {})[step] = scale
+        self.session.save()
+        text = (f"the probe moved the robot at {v_meas:.3f} m/s, {v_pred:.3f} m/s predicted: about {rho:.2f} x the "
+                f"mass believed; largest predicted peaks on that robot"
+                + (f" with its centre of mass within {UNKNOWN_COM:g} m and inertia within {UNKNOWN_INERTIA:.0%}"
+                   if len(robots) > 1 else "") + ": "
+                + ", ".join(f"{k.replace('_', ' ')} {p:.3g} of {lim:.3g}" for k, (p, lim) in margins.items()))
+        text += (f"; the designed torques scaled by {scale:.3f} to stay within the limits" if scale < 1.0 else
+                 "; the designed torques as designed")
+        return chk.Check("robot_limits", True, text, value=scale)
+
 
     def _meta(self, step: str, kind: str, attempt: int, fixture: str, extra: dict | None = None) -> dict:
         meta = {**self.metadata, "sample_period": self.period, "fixture": fixture, "noise": self.s.noise.to_dict(),
@@ -288,6 +392,12 @@ class BenchProcedure:
                                  f"{bs.setup}, then check again"))
         else:
             out.append(chk.fixture_check(bs.fixture, probe.recording, rest.recording, best, len(probe_u)))
+            if bs.loaded and not out[-1].passed and "did not move" in out[-1].message:
+                out[-1] = self._too_heavy(out[-1])
+            elif out[-1].passed:
+                fitted = self.fit_to_robot(step, probe.recording, probe_u, best)
+                if fitted is not None:
+                    out.append(fitted)
         # stop what the probe moved: with the step's brake where the fixture is verified, else gently
         settle_path = self.session.recording_path(step, n, "settle")
         gains = brake_gains(best, bs.fixture if out[-1].passed else None, self.period)
@@ -300,6 +410,49 @@ class BenchProcedure:
             c = chk.rest_check(settle.recording, self.s.noise, what="after the probe", start=k)
             out.append(dataclasses.replace(c, name="settled"))
         return out
+
+    def geometry_mismatch(self, step: str, recording: Path) -> str | None:
+        """When a step's gates fail, the last parameters the bench takes from the file are the geometry (l1,
+        l2, r): the session refitted with them free too. If that explains every recording, the sentences
+        naming each one that moved by more than 3 std; else None (the diagnosis looks for missing physics)."""
+        from otbot_hw.identification.session import identify_session
+        from otbot_hw.identification.uncertainty import NUISANCE_PARAMS
+
+        if "chassis" not in self.s.steps or self.session.status("chassis") != "passed" and step != "chassis":
+            return None
+        recs: dict[str, list] = {}
+        for s in self.s.steps:
+            paths = [recording] if s == step else self.session.accepted_recordings(s)
+            if paths and (s == step or self.session.status(s) == "passed"):
+                recs[s] = [read_recording(p) for p in paths]
+        if "chassis" not in recs:
+            return None
+        t0 = time.perf_counter()
+        try:
+            res = identify_session(recs, self.start_params(), specs={s: self.spec(s) for s in recs},
+                                   known_std=self.known_std(), nuisance=NUISANCE_PARAMS + ("l1", "l2", "r"))
+        except IdentificationError:
+            return None
+        finally:
+            self.timing.identification += time.perf_counter() - t0
+        if not res.passed:
+            return None
+        std = res.std
+        off = [f"{n} {getattr(self.s.params_start, n):.4g} m in the file, estimated {res.values[n]:.4g} +- {std[n]:.2g} m"
+               for n in ("l1", "l2", "r") if std.get(n, 0) > 0
+               and abs(res.values[n] - getattr(self.s.params_start, n)) > 3 * std[n]]
+        return "; ".join(off) or None
+
+    def _too_heavy(self, found: chk.Check) -> chk.Check:
+        """The loaded robot did not move under the probe's torque: name the load as the cause (the floor
+        probe of the unloaded robot passed, or the load is the only thing the operator changed)."""
+        moved = self.session.status("chassis") == "passed" if "chassis" in self.s.steps else False
+        return chk.Check("load", False, "with the load on, " + found.message.replace("the robot", "the robot", 1)
+                         + (", where it moved without the load in step chassis" if moved else "")
+                         + f": the load is more than the motors can accelerate within the experiment limits "
+                           f"(torque {self.s.limits.torque:g} N m per motor)",
+                         "use a lighter load (or identify it in parts), or raise experiment_limits.torque within the "
+                         "motors' rating (config/robot.yaml)", found.value)
 
     def excite(self, step: str, attempt: dict) -> tuple[LoopResult, np.ndarray]:
         bs = BENCH_STEPS[step]
@@ -337,7 +490,7 @@ class BenchProcedure:
         specs = {s: self.spec(s) for s in recs}
         t0 = time.perf_counter()
         try:
-            res = identify_session(recs, self.s.params_start, specs=specs)
+            res = identify_session(recs, self.start_params(), specs=specs, known_std=self.known_std())
         finally:
             self.timing.identification += time.perf_counter() - t0
         return res
@@ -403,6 +556,12 @@ class BenchProcedure:
             failed_result, failed_recording = result, self.session.path / attempt["recording"]
         self.session.set_status(step, "failed")
         why = "; ".join(reasons[:2]) + (f" (and {len(reasons) - 2} more in session.json)" if len(reasons) > 2 else "")
+        geometry = self.geometry_mismatch(step, failed_recording)
+        if geometry:
+            raise BenchError(step, f"the geometry in {self.metadata.get('params_file', 'the parameter file')} does not "
+                                   f"match this robot: {geometry}: with it estimated, every recording is explained "
+                                   "(measure l1, l2, r and correct the file, then start a new session); the gates "
+                                   f"with the file's geometry: {why}")
         found = ""
         if self.s.diagnose:  # where the model fails, the mismatch finder says what it misses
             d = self.diagnose(failed_result.values, {step: [failed_recording]})
@@ -413,6 +572,7 @@ class BenchProcedure:
     def run(self) -> dict:
         """Every step not passed yet, then identification, diagnosis; returns the JSON-ready result."""
         t0, c0 = time.perf_counter(), time.process_time()
+        self.weigh()
         for step in self.s.steps:
             if self.session.status(step) == "passed":
                 self.say(f"[bench] step {step}: passed in an earlier run of this session")
@@ -446,7 +606,7 @@ class BenchProcedure:
                 continue
             self.say(f"[bench] diagnose: the {label} robot's recordings ({', '.join(self.session.rel(p) for p in paths)})")
             data = [from_recording(read_recording(p), name=self.session.rel(p)) for p in paths]
-            params = robot_params(values, self.s.params_start, loaded=label == "loaded")
+            params = robot_params(values, self.start_params(), loaded=label == "loaded")
             out[label] = diagnose(data, params, progress=lambda m: self.say(m))
         self.timing.diagnosis += time.perf_counter() - t0
         effects = sorted({e["name"] for d in out.values() for e in d["effects"]})
@@ -457,6 +617,44 @@ class BenchProcedure:
                            "no missing physics found: no catalog effect improves the model by the evidence threshold"))
         (self.session.path / "diagnosis.json").write_text(json.dumps(out, indent=1, allow_nan=False))
         return out
+
+    def unloaded_platform(self, final) -> tuple[dict, list[str]]:
+        """The unloaded platform's m_p0, x_F0, y_F0 as the session used them ({value, std, file, source}) and
+        the notices: the file against this robot, what the recordings cannot separate."""
+        file_p = self.s.params_start
+        meas = self.session.data.get("measurements", {}).get("m_p0")
+        std = final.std
+        out = {}
+        for n, paper in (("m_p0", "m_p"), ("x_F0", "x_F"), ("y_F0", "y_F")):
+            if n == "m_p0" and meas is not None:
+                src = meas["source"]
+            elif n in final.estimated:
+                src = "estimated by the joint fit of the floor runs"
+            else:
+                src = "the parameter file's value, taken as exact"
+            out[n] = {"value": float(final.values[n]), "std": float(std.get(n, 0.0)),
+                      "file": float(getattr(file_p, paper)), "source": src}
+        notices = []
+        off = [m for n, u in (("m_p0", "kg"), ("x_F0", "m"), ("y_F0", "m"))
+               if out[n]["source"] != "the parameter file's value, taken as exact"
+               and not out[n]["source"].startswith("not weighed")
+               and (m := _platform_mismatch(n, u, out[n]["file"], out[n]))]
+        label = self.metadata.get("params_file", "the parameter file")
+        if off:
+            notices.append(f"the unloaded platform in {label} does not match this robot: {'; '.join(off)}; the "
+                           "bench used the measured and estimated values (params.yaml; update the file, or weigh the "
+                           "platform and let the bench estimate its centre)")
+        if meas is not None and meas["source"].startswith("not weighed"):
+            tot = final.combination({"m_c": 1.0, "m_p0": 1.0})
+            notices.append(f"the unloaded platform was not weighed: the recordings cannot separate the chassis' mass "
+                           f"m_c from the platform's m_p0 (a floor run sees only m_c + m_p0 = {tot['value']:.5g} +- "
+                           f"{tot['std']:.2g} kg)" + (", nor the loaded platform's m_p from m_p0 (the load's mass "
+                                                      "m_p - m_p0 is identified)" if "platform" in final.steps else "")
+                           + f"; m_c, x_B, I_c" + (", m_p, I_p, x_F, y_F" if "platform" in final.steps else "")
+                           + f" are reported for m_p0 = {meas['value']:.4g} +- {meas['std']:.2g} kg and their std "
+                           "include it; the robot's dynamics depend only on the identified combinations "
+                           "('combinations'); weigh the platform for the separate values")
+        return out, notices
 
     def summary(self, final, diagnosis, wall: float, cpu: float) -> dict:
         params = final.parameters()
@@ -481,6 +679,11 @@ class BenchProcedure:
                        "robot_time": self.timing.robot_time, "identification_wall_time": self.timing.identification,
                        "diagnosis_wall_time": self.timing.diagnosis},
         }
+        out["unloaded_platform"], notices = self.unloaded_platform(final)
+        out["combinations"] = {"m_c+m_p0": final.combination({"m_c": 1.0, "m_p0": 1.0})}
+        if "platform" in final.steps:
+            out["combinations"]["m_p-m_p0"] = final.combination({"m_p": 1.0, "m_p0": -1.0})
+        out["notices"] = self.notices + notices
         if self.sim is not None:
             truth = self.sim.truth()
             out["truth"] = {n: truth[n] for n in SESSION_PARAMS}
@@ -488,7 +691,33 @@ class BenchProcedure:
                                       if params[n]["std"] > 0 else None) for n in SESSION_PARAMS
                                   if n in final.estimated}
             out["load"] = dict(zip(("mass", "x", "y", "inertia"), self.sim.load)) if self.sim.load else None
+            combo_truth = {"m_c+m_p0": truth["m_c"] + truth["m_p0"], "m_p-m_p0": truth["m_p"] - truth["m_p0"]}
+            for n, d in out["combinations"].items():
+                out["truth"][n] = combo_truth[n]
+                if d["std"] > 0:
+                    out["error_sigma"][n] = (d["value"] - combo_truth[n]) / d["std"]
+            for n, d in out["unloaded_platform"].items():
+                out["truth"][n] = truth[n]
+                if d["std"] > 0:
+                    out["error_sigma"][n] = (d["value"] - truth[n]) / d["std"]
         return json_safe(out)
+
+
+def _platform_mismatch(name: str, unit: str, file_value: float, d: dict) -> str | None:
+    """A sentence when the file's value of the unloaded platform's ``name`` is off by > 3 std of the bench's."""
+    if d["std"] > 0 and abs(d["value"] - file_value) > 3.0 * d["std"]:
+        how = "weighed" if d["source"].startswith("weighed") else "estimated"
+        return f"{name} {file_value:.4g} {unit} in the file, {how} {d['value']:.4g} +- {d['std']:.2g} {unit}"
+    return None
+
+
+def _scaled(spec: ExperimentSpec, k: float) -> ExperimentSpec:
+    """``spec`` with its torques multiplied by ``k``."""
+    if k == 1.0:
+        return spec
+    U = spec.torques() * k
+    return dataclasses.replace(spec, profile=U, torque=tuple(float(v) for v in U[0]),
+                               description=f"{spec.description}, scaled by {k:.3f} to this robot")
 
 
 def _communication(f) -> bool:

@@ -86,6 +86,22 @@ def write_report(folder: Path, summary: dict, final) -> list[str]:
         if truth:
             row += f" {_fmt(truth.get(n), 6)} | {_fmt(es.get(n), 3)} |"
         L.append(row)
+    up = summary.get("unloaded_platform") or {}
+    if up:
+        L += ["", "The unloaded platform (a floor run sees the chassis' and the platform's masses only together):", "",
+              "| parameter | value | std | in the parameter file | source |" + (" truth | error / std |" if truth else ""),
+              "|---|---|---|---|---|" + ("---|---|" if truth else "")]
+        for n, d in up.items():
+            row = f"| {n} | {_fmt(d['value'], 6)} | {_fmt(d['std'], 3)} | {_fmt(d['file'], 6)} | {d['source']} |"
+            if truth:
+                row += f" {_fmt(truth.get(n), 6)} | {_fmt(es.get(n), 3)} |"
+            L.append(row)
+    combos = summary.get("combinations") or {}
+    if combos:
+        L += ["", "Identified combinations (kg): " + "; ".join(
+            f"{n} = {_fmt(d['value'], 6)} +- {_fmt(d['std'], 3)}" for n, d in combos.items())]
+    for m in summary.get("notices") or []:
+        L += ["", f"**Notice:** {m}"]
     L += ["", "![estimates](estimates.png)", ""]
     if summary.get("designs"):
         L += ["## Designed excitation", "", "| step | parameter | Cramer-Rao bound, designed / paper (design point) |",
