@@ -430,15 +430,20 @@ def test_ten_thousand_connections_leave_the_daemons_loop_and_estop_unaffected(si
     _enabled_and_held(sim)
     d = sim.daemon
     cycles0 = d.runner.cycles
-    for i in range(10_000):
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        s.connect(str(sim.sock))
-        if i % 2:
-            with contextlib.suppress(OSError):  # refused as busy: the server's right
-                s.sendall(b'{"id": 1, "cmd": "status"}\n')
-        s.close()
+    # the flood comes from another process, as a hostile client would (in this process, its thread would
+    # also compete with the daemon's threads for the interpreter lock: not what happens on the robot)
+    flood = ("import contextlib, socket, sys\n"
+             "for i in range(10_000):\n"
+             "    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)\n"
+             "    s.connect(sys.argv[1])\n"
+             "    if i % 2:\n"
+             "        with contextlib.suppress(OSError):  # refused as busy: the server's right\n"
+             "            s.sendall(b'{\"id\": 1, \"cmd\": \"status\"}\\n')\n"
+             "    s.close()\n")
+    subprocess.run([sys.executable, "-c", flood, str(sim.sock)], check=True, timeout=120)
     assert d.runner.fault is None and sim.drive_states() == [ENABLED] * 3 and d.runner.cycles > cycles0
     dt, reply = estop_time(sim.sock)
+    print(f"estop after 10^4 connections: answered in {dt * 1e3:.1f} ms")
     assert reply["latched"] is True and dt <= 0.1, dt
     assert _wait(lambda: ENABLED not in sim.drive_states(), 1)
     assert d.server.alive and d.server.counters["internal_errors"] == 0
