@@ -44,6 +44,7 @@ from otbot_hw.control.computed_torque import ComputedTorqueController
 from otbot_hw.control.gains import gains_from_tstab
 from otbot_hw.control.trajectories import StopTrajectory
 from otbot_hw.json_output import json_safe
+from otbot_hw.model.constants import GRAVITY
 from otbot_hw.recording import source_metadata
 from otbot_hw.robot import Robot
 from otbot_hw.runtime.control_protocol import ArgumentLimits
@@ -234,7 +235,7 @@ class Daemon:
         from otbot_hw.robot import Snapshot
 
         fb = self._new_feedback(self.settings.start_pose, period)
-        z, g = np.zeros(3), np.array([0.0, 0.0, 9.81])
+        z, g = np.zeros(3), np.array([0.0, 0.0, GRAVITY])
         for k in range(3):
             snap = Snapshot(t=k * period, cycle=k, host_time=0.0, joint_pos=z, joint_vel=z, joint_torque=z,
                             imu_accel=g, imu_gyro=z, imu_time=float(k))
