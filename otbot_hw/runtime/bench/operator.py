@@ -101,17 +101,22 @@ class PromptOperator(Operator):
         super().__init__(plant, load, say)
         self.stream = stream if stream is not None else sys.stdin
 
+    def _answer(self) -> str:
+        """The operator's next line, stripped ('' for Enter); input closed: ``NoOperator``; q: ``OperatorStopped``."""
+        line = self.stream.readline()
+        if not line:
+            raise NoOperator("no answer from the operator (input closed); run interactively, or with --yes "
+                             "for automation")
+        words = line.strip()
+        if words.lower() in ("q", "quit"):
+            raise OperatorStopped("stopped by the operator")
+        return words
+
     def _ask(self, prompt: str, fixture: str, loaded: bool) -> None:
         typed = False
         while True:
             self.say(prompt)
-            line = self.stream.readline()
-            if not line:
-                raise NoOperator("no answer from the operator (input closed); run interactively, or with --yes "
-                                 "for automation")
-            words = line.strip()
-            if words.lower() in ("q", "quit"):
-                raise OperatorStopped("stopped by the operator")
+            words = self._answer()
             if not words:
                 if self.plant is not None and not typed:
                     self._do(self.setup_commands(fixture, loaded))
@@ -140,13 +145,7 @@ class PromptOperator(Operator):
             sim = ", Enter to have the simulated operator weigh it" if self.plant is not None else \
                 ", Enter if it cannot be weighed (the bench then reports what the recordings can tell)"
             self.say(f"[bench] platform mass in kg (KG or KG+-STD{sim}; n: cannot be weighed; q to stop): ")
-            line = self.stream.readline()
-            if not line:
-                raise NoOperator("no answer from the operator (input closed); run interactively, or with --yes "
-                                 "for automation")
-            words = line.strip()
-            if words.lower() in ("q", "quit"):
-                raise OperatorStopped("stopped by the operator")
+            words = self._answer()
             if not words:
                 return self._scale(seed) if self.plant is not None else None
             if words.lower() in ("n", "no"):
