@@ -3,7 +3,7 @@
 Setup (``configure``), every step skipped or refused by name where the object dictionary lacks
 the object: heartbeat producer time (0x1017); drive-side protection (the master's heartbeat
 consumed through 0x1016, abort connection option 0x6007, communication cycle period 0x1006 for
-SYNC monitoring and the RPDO deadline 0x1400:05 on a paced bus); the configured SDO writes;
+SYNC monitoring and the RPDO deadline 0x1400:05, as configured); the configured SDO writes;
 interpolation period (0x60C2) = control period; 0x6076 rated torque checked against the
 configuration (the configuration's value used where the drive has no 0x6076), 0x608F encoder
 resolution; mode of operation: cyclic synchronous torque (10) or, where the drive lacks it,
@@ -194,7 +194,6 @@ class CiA402Drive(CanopenDevice):
         super().__init__(network, cfg.name, cfg.node_id, cfg.eds, tracker, on_fault)
         self.cfg = cfg
         self.period = period
-        self.paced = True  # SYNC every period (real time): drive-side SYNC and RPDO watchdogs are armed
         self.mode: int | None = None
         self.max_permille = 32767
         self.rated_torque = cfg.rated_torque  # N m, motor side
@@ -279,7 +278,7 @@ class CiA402Drive(CanopenDevice):
 
     def configure_protection(self) -> None:
         """Drive-side watchdogs: the drive consumes the master's heartbeat (0x1016), and on its loss,
-        on SYNC loss (0x1006 cycle period, paced bus only) or an RPDO deadline miss, applies the abort
+        on SYNC loss (0x1006 cycle period, where ``drives.sync_watchdog``) or an RPDO deadline miss, applies the abort
         connection option 0x6007."""
         c = self.cfg
         master = getattr(self, "master", None)
@@ -290,7 +289,7 @@ class CiA402Drive(CanopenDevice):
                                                         "not stop by itself if the master dies")
         self.sdo_write_if_present(0x6007, 0, c.abort_connection_option,
                                   "the drive's reaction to a lost master is its own default")
-        cycle_us = int(round(self.period * 1e6)) if self.paced else 0
+        cycle_us = int(round(self.period * 1e6)) if c.sync_watchdog else 0
         self.sdo_write_if_present(0x1006, 0, cycle_us, "the drive does not watch the SYNC period")
 
     def configure_quick_stop_option(self) -> None:
@@ -305,10 +304,11 @@ class CiA402Drive(CanopenDevice):
             raise self.config_error(f"quick stop option 0x605A = {want} written, drive reads back {got}")
 
     def configure_rpdo_deadline(self, rpdo: int | None) -> None:
-        """RPDO deadline monitoring (0x1400:05 event timer of the RPDO with the controlword), ms."""
+        """RPDO deadline monitoring (0x1400:05 event timer of the RPDO with the controlword), ms
+        (``drives.rpdo_timeout`` periods; 0: off)."""
         if rpdo is None:
             return
-        ms = int(math.ceil(self.cfg.rpdo_timeout * self.period * 1000 - 1e-9)) if self.paced else 0
+        ms = int(math.ceil(self.cfg.rpdo_timeout * self.period * 1000 - 1e-9))
         self.sdo_write_if_present(0x1400 + rpdo - 1, 5, ms, "the drive does not watch its RPDO deadline (event "
                                                             "timer)")
 

@@ -134,8 +134,9 @@ def _enabled(robot) -> bool:
 
 
 def pace(robot, period: float) -> None:
-    """The test is the loop's clock (the driver never paces): the next SYNC one period after the last."""
-    time.sleep(max(0.0, robot._sync_wall + period - time.monotonic()))
+    """The test is the loop: it ticks the robot's clock (the driver never paces; one SYNC per period)."""
+    assert robot.clock.realtime and robot.clock.period == period
+    robot.clock.wait()
 
 
 def _attempts(n: int = 3):

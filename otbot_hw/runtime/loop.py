@@ -18,8 +18,10 @@ through ``robot.quick_stop()``, a ``fault`` event is recorded and the run ends w
 fault) holds every sample up to and including the one that showed the fault. At the end of a run
 the robot is quick-stopped too (zero torque, drives in QUICK STOP ACTIVE).
 
-Timing: ``realtime=True`` paces the reads at the period against the wall clock (a real bus);
-otherwise cycles run back to back (lockstep simulation, faster than real time). Either way the
+Timing: the loop owns the clock (``otbot_hw.clock``) and hands it to the robot, whose own
+multi-cycle sequences (a driver's enable, fault reaction) tick it too: ``realtime=True`` paces the
+reads at the period against the wall clock (``Pacer``: a real bus); otherwise cycles run back to
+back (``Unpaced``: lockstep simulation, faster than real time). Either way the
 loop measures each cycle's wall-clock period (between the snapshots' host times, i.e. the SYNCs)
 and compute time, jitter and overruns (``LoopStats``), and reports robot time next to wall time.
 
@@ -47,6 +49,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from otbot_hw.clock import clock_for
 from otbot_hw.control.computed_torque import TaskState
 from otbot_hw.recording import Recording
 from otbot_hw.robot import Robot, RobotError, SimulatedRobot, Snapshot
@@ -128,7 +131,9 @@ class LoopRunner(LoopTiming, LoopRecording, LoopPower):
         self._has_imu = robot.has_imu
         self._truth_force = robot.truth_force if isinstance(robot, SimulatedRobot) else None  # the pivot force
         self._t_last_read = None  # host time of the last read (s; None: the next period is not a loop period)
-        self._t_next = None  # when the next read is due (real time, s of perf_counter)
+        # the one clock: this loop's cycles and the robot's own multi-cycle sequences tick it
+        self.clock = clock_for(self.period, realtime)
+        robot.use_clock(self.clock)
         self._next_progress = progress_every
         self._total = None
         self._user_saturation = supervisor.limiter.on_saturation
@@ -191,12 +196,7 @@ class LoopRunner(LoopTiming, LoopRecording, LoopPower):
             return False
         self._take_trip()
         if self.realtime:
-            now = time.perf_counter()
-            self._t_next = now if self._t_next is None else max(self._t_next + self.period, now)
-            delay = self._t_next - time.perf_counter()
-            if delay > 0:
-                self.wake.wait(delay)
-                self.wake.clear()
+            self.clock.wait(self.wake)  # a trip wakes it
             if self._take_trip() and not self.continue_after_fault:
                 return False
         t_ask = time.perf_counter()

@@ -144,9 +144,9 @@ class LoopPower:
         self._u_held = self._u_prev = np.zeros(3)
 
     def _interrupted(self) -> None:
-        """A drive operation ran bus cycles of its own: the next period is not a loop period."""
+        """A drive operation ran bus cycles of its own: the next period is not a loop period (the
+        clock they ticked is the loop's: the next read still comes a period after their last)."""
         self._t_last_read = None
-        self._t_next = None
 
     # -- faults and stopping -----------------------------------------------------------------------
     def _quick_stop(self) -> str | None:
