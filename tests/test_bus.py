@@ -355,7 +355,7 @@ def test_the_loop_runner_paces_and_the_driver_never_sleeps_to_pace():
 
     cfg = lenient(CFG).replace_bus(channel="otbot-realtime-test")
     with VirtualPlant(cfg) as plant:
-        robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), realtime=True)
+        robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel))  # the real driver
         with robot:
             robot.open()
             robot.enable()
