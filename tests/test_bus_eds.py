@@ -222,6 +222,6 @@ def test_a_const_count_with_writable_entries_is_planned_within_that_count(tmp_pa
 
 
 def _drive_needs():
-    from drivers.cia402 import RPDO_LAYOUT, RX_NEEDS, TPDO_LAYOUT, TX_NEEDS
+    from drivers.cia402_setup import RPDO_LAYOUT, RX_NEEDS, TPDO_LAYOUT, TX_NEEDS
 
     return RX_NEEDS, TX_NEEDS, RPDO_LAYOUT, TPDO_LAYOUT
