@@ -34,7 +34,7 @@ import numpy as np
 import pytest
 
 from otbot_hw.recording import read_recording
-from otbot_hw.runtime.control_socket import ControlClient, ControlError
+from otbot_hw.runtime.control_client import ControlClient, ControlError
 from otbot_hw.runtime.daemon_process import DaemonProcess, local_config, plant_bus_args
 from otbot_hw.sensors import NoiseModel
 

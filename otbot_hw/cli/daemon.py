@@ -107,7 +107,7 @@ def prepare(args: argparse.Namespace):
     from otbot_hw.motors import load_motor_limits
     from otbot_hw.runtime.daemon import Daemon, DaemonSettings
     from otbot_hw.runtime.daemon_config import load_daemon_config
-    from otbot_hw.runtime.control_socket import ControlSocketError, check_socket_path
+    from otbot_hw.runtime.control_socket_file import ControlSocketError, check_socket_path
     from otbot_hw.runtime.supervisor import SafetyConfig
     from otbot_hw.runtime.telemetry import TelemetryError, check_telemetry_address, parse_host_port
 
@@ -181,7 +181,7 @@ def _opener(args: argparse.Namespace, start):
 
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.robot import RobotError
-    from otbot_hw.runtime.control_socket import ControlSocketError
+    from otbot_hw.runtime.control_socket_file import ControlSocketError
     from otbot_hw.runtime.telemetry import TelemetryError
 
     if not logging.getLogger().handlers:  # the journal's lines: ours at INFO, libraries' warnings

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from otbot_hw.motors import DEFAULT_ROBOT_FILE
-from otbot_hw.runtime.control_socket import ControlClient, ControlError, DaemonUnreachable
+from otbot_hw.runtime.control_client import ControlClient, ControlError, DaemonUnreachable
 
 
 def config_copy(folder: Path, replace: dict[str, str] | None = None, source: Path | None = None) -> Path:
