@@ -2,7 +2,7 @@
 
 ``EffectSchedule`` [(t_start s, {effect: value})] sets entries of the extended model's effect vector
 (``otbot_hw.model.effects``) at plant time; ``ScheduledEffects`` wraps a simulated ``Robot``
-(``sim.direct.DirectSimRobot`` or ``sim.plant.SimulatedBusRobot``) so that before every read --
+(``sim.direct.DirectSimRobot`` or ``sim.bus_robot.SimulatedBusRobot``) so that before every read --
 before the sample at t_k is taken and the model steps on from it -- the effects of t_k are in force;
 ``with_schedule(backend, schedule)`` wraps a simulated back end's robots. The robot must step the
 extended model: its plant an ``ExtendedModel`` whose effects include every scheduled one (give them
@@ -55,7 +55,7 @@ class EffectSchedule:
 def _stepper_and_clock(robot: SimulatedRobot):
     if robot.plant is robot:  # sim.direct.DirectSimRobot: its own plant
         return robot.stepper, (lambda: robot.t_plant)
-    plant = robot.plant  # sim.plant.SimulatedBusRobot: the Plant behind the bus
+    plant = robot.plant  # sim.bus_robot.SimulatedBusRobot: the Plant behind the bus
     return plant.stepper, (lambda: plant.t)
 
 

@@ -231,7 +231,7 @@ def test_plan_interrupted_inside_ipopt_exits_130(tmp_path):
 # -- plant: a bad stdin line gets an error and the plant runs on -----------------------------------
 def test_plant_answers_a_bad_flood_line_with_an_error_and_runs_on():
     from drivers.config import load_robot_config
-    from sim.plant import serve
+    from sim.plant_process import serve
 
     out = io.StringIO()
     lines = ["flood x y", "flood -1 0", "flood 3 -1", "flood 1" + "0" * 5000 + " 1", "flood", "flood 1 2 3",

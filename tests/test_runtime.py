@@ -226,7 +226,7 @@ def test_overruns_stop_a_realtime_loop_but_only_count_in_lockstep():
 def test_supervisor_over_the_bus_quick_stops_the_simulated_drives():
     """A joint-rate violation over the simulated CAN bus: the plant's drives (not the master's belief)
     end quick-stopped (then disabled) with zero torque, and the plant's pivot coasts without torque."""
-    from sim.plant import simulated_robot
+    from sim.bus_robot import simulated_robot
 
     with simulated_robot(CFG, with_imu=False) as (robot, plant):
         sup = Supervisor(LIMITS, SafetyConfig(max_pivot_rate=0.5), robot.period)

@@ -167,7 +167,7 @@ def _opener(args: argparse.Namespace, start):
 
         @contextlib.contextmanager
         def open_sim():
-            from sim.plant import simulated_robot
+            from sim.bus_robot import simulated_robot
 
             with simulated_robot(cfg, with_imu=with_imu, params=plant, x0=x0, noise=noise_model(args),
                                  seed=args.seed) as (robot, _plant):
