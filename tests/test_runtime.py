@@ -522,7 +522,7 @@ def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(mo
 def test_controllers_swap_between_cycles_and_a_new_reference_starts_at_its_first_command():
     """The daemon's use: start, cycle open loop, then swap to tracking a hold of the current pose
     without a jump: the swap is a recorded mode event, the new reference starts where the robot is."""
-    from otbot_hw.control.trajectories import SampledTrajectory
+    from otbot_hw.control.sampled_trajectory import SampledTrajectory
 
     robot = DirectSimRobot(P, period=0.01, imu_rate=None)
     runner = LoopRunner(robot, OpenLoopTorques(np.tile([3.0, 3.0, 0.0], (1, 1)), 0.01), Supervisor(LIMITS), TruthFeedback(),
