@@ -252,7 +252,7 @@ class Daemon:
         cfg = self.settings.daemon.adaptation
         if cfg is None or not cfg.enabled:
             return None
-        from otbot_hw.runtime.controllers import PayloadAdapter
+        from otbot_hw.runtime.payload_adapter import PayloadAdapter
 
         self.law.adapter = PayloadAdapter(self.law, cfg, period)
         return self.law.adapter
