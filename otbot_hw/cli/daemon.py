@@ -70,14 +70,16 @@ def register(sub) -> None:
 def _writable_folder(path: Path, what: str) -> Path:
     """``path``, an existing folder this user can write; the daemon never creates it (README: otbot
     never creates the folders above an output; under systemd, StateDirectory= does)."""
+    from otbot_hw.folders import MISSING, NOT_A_FOLDER, NOT_WRITABLE, folder_problem
+
     path = Path(path)
-    if not path.exists():
-        raise CliError(f"{what} {path}: the folder does not exist (the daemon does not create it: create it, "
-                       f"or let systemd's StateDirectory= do it, or choose another with {what})")
-    if not path.is_dir():
-        raise CliError(f"{what} {path}: not a folder")
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise CliError(f"{what} {path}: not a folder this user (uid {os.geteuid()}) can write")
+    problem = folder_problem(path)
+    if problem is not None:
+        raise CliError({
+            MISSING: f"{what} {path}: the folder does not exist (the daemon does not create it: create it, "
+                     f"or let systemd's StateDirectory= do it, or choose another with {what})",
+            NOT_A_FOLDER: f"{what} {path}: not a folder",
+            NOT_WRITABLE: f"{what} {path}: not a folder this user (uid {os.geteuid()}) can write"}[problem])
     return path
 
 

@@ -12,6 +12,8 @@ import socket
 import stat
 from pathlib import Path
 
+from otbot_hw.folders import MISSING, NOT_A_FOLDER, NOT_WRITABLE, folder_problem
+
 log = logging.getLogger(__name__)
 
 SOCKET_MODE = 0o660
@@ -61,14 +63,14 @@ def check_socket_path(path: Path) -> None:
         raise ControlSocketError(f"control socket path {path} is {n} bytes; a Unix socket path has at most "
                                  f"{SUN_PATH_MAX - 1} (choose a shorter --socket or daemon.socket.path)")
     folder = path.parent
-    if not folder.exists():
-        raise ControlSocketError(f"control socket folder {folder} does not exist (the daemon does not create it: "
-                                 f"create it, or let systemd's RuntimeDirectory= do it, or choose --socket)")
-    if not folder.is_dir():
-        raise ControlSocketError(f"control socket folder {folder} is not a folder")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise ControlSocketError(f"control socket folder {folder} is not writable by this user "
-                                 f"(uid {os.geteuid()}): choose --socket or fix its owner/mode")
+    problem = folder_problem(folder)
+    if problem is not None:
+        raise ControlSocketError({
+            MISSING: f"control socket folder {folder} does not exist (the daemon does not create it: "
+                     f"create it, or let systemd's RuntimeDirectory= do it, or choose --socket)",
+            NOT_A_FOLDER: f"control socket folder {folder} is not a folder",
+            NOT_WRITABLE: f"control socket folder {folder} is not writable by this user "
+                          f"(uid {os.geteuid()}): choose --socket or fix its owner/mode"}[problem])
 
 
 def _tmp_name(path: Path) -> Path:
