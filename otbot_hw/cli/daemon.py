@@ -70,17 +70,12 @@ def register(sub) -> None:
 def _writable_folder(path: Path, what: str) -> Path:
     """``path``, an existing folder this user can write; the daemon never creates it (README: otbot
     never creates the folders above an output; under systemd, StateDirectory= does)."""
-    from otbot_hw.folders import MISSING, NOT_A_FOLDER, NOT_WRITABLE, folder_problem
+    from otbot_hw.folders import require_folder
 
-    path = Path(path)
-    problem = folder_problem(path)
-    if problem is not None:
-        raise CliError({
-            MISSING: f"{what} {path}: the folder does not exist (the daemon does not create it: create it, "
-                     f"or let systemd's StateDirectory= do it, or choose another with {what})",
-            NOT_A_FOLDER: f"{what} {path}: not a folder",
-            NOT_WRITABLE: f"{what} {path}: not a folder this user (uid {os.geteuid()}) can write"}[problem])
-    return path
+    return require_folder(path, CliError, f"{what} {path}: the folder does not exist (the daemon does not create it: "
+                          f"create it, or let systemd's StateDirectory= do it, or choose another with {what})",
+                          f"{what} {path}: not a folder",
+                          f"{what} {path}: not a folder this user (uid {os.geteuid()}) can write")
 
 
 def _allowed_users(args: argparse.Namespace, configured: tuple) -> tuple:

@@ -15,6 +15,19 @@ from otbot_hw.recording.format import (
     FORMAT_NAME, FORMAT_VERSION, MCAP_MAGIC, SAMPLE_TOPICS, TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU,
     TOPIC_JOINTS, TOPIC_PAYLOAD, TOPIC_REFERENCE, TOPIC_TRUTH, TOPICS, Recording, RecordingError)
 
+#: per-sample topic -> the ``Recording`` fields read from its messages: (field, message key, width, required)
+FIELDS: dict[str, tuple[tuple[str, str, int, bool], ...]] = {
+    TOPIC_JOINTS: (("joint_pos", "position", 3, True), ("joint_vel", "velocity", 3, True)),
+    TOPIC_IMU: (("imu_accel", "accel", 3, True), ("imu_gyro", "gyro", 3, True)),
+    TOPIC_TRUTH: (("truth_q", "q", 6, True), ("truth_qd", "qd", 6, True), ("truth_force", "force", 2, False)),
+    TOPIC_ESTIMATE: (("estimate_pose", "pose", 3, True), ("estimate_twist", "twist", 3, True),
+                     ("estimate_std", "std", 6, True)),
+    TOPIC_REFERENCE: (("reference_p", "p", 3, True), ("reference_pd", "pd", 3, True),
+                      ("reference_pdd", "pdd", 3, False)),
+    TOPIC_PAYLOAD: (("payload_value", "value", 4, True), ("payload_std", "std", 4, True),
+                    ("payload_used", "used", 4, True)),
+}
+
 
 def _records(path: Path) -> tuple[list, bool]:
     """All readable MCAP records; ``truncated`` is True when the file ends early."""
@@ -143,31 +156,14 @@ def read_recording(path: str | Path) -> Recording:
         k = int(np.argmax(np.diff(t) <= 0)) + 1
         raise RecordingError(f"{path}: sample times must increase; sample {k} has t = {t[k]} after {t[k - 1]}")
     rec = Recording(t=t, torque=field_array(TOPIC_COMMAND, "torque", 3), metadata=meta, truncated=truncated)
-    if TOPIC_JOINTS in present:
-        rec.joint_pos = field_array(TOPIC_JOINTS, "position", 3)
-        rec.joint_vel = field_array(TOPIC_JOINTS, "velocity", 3)
-    if TOPIC_IMU in present:
-        rec.imu_accel = field_array(TOPIC_IMU, "accel", 3)
-        rec.imu_gyro = field_array(TOPIC_IMU, "gyro", 3)
-    if TOPIC_TRUTH in present:
-        rec.truth_q = field_array(TOPIC_TRUTH, "q", 6)
-        rec.truth_qd = field_array(TOPIC_TRUTH, "qd", 6)
-        rec.truth_force = field_array(TOPIC_TRUTH, "force", 2, required=False)
-    if TOPIC_ESTIMATE in present:
-        rec.estimate_pose = field_array(TOPIC_ESTIMATE, "pose", 3)
-        rec.estimate_twist = field_array(TOPIC_ESTIMATE, "twist", 3)
-        rec.estimate_std = field_array(TOPIC_ESTIMATE, "std", 6)
-        rows = data.get(TOPIC_ESTIMATE, [])[:n]
-        if rows and "gyro_bias" in rows[0]:
+    for topic, fields in FIELDS.items():
+        if topic not in present:
+            continue
+        for attr, key, width, required in fields:
+            setattr(rec, attr, field_array(topic, key, width, required))
+        rows = data.get(topic, [])[:n]
+        if topic == TOPIC_ESTIMATE and rows and "gyro_bias" in rows[0]:
             rec.estimate_gyro_bias = np.array([float(m.get("gyro_bias", np.nan)) for m in rows])
-    if TOPIC_REFERENCE in present:
-        rec.reference_p = field_array(TOPIC_REFERENCE, "p", 3)
-        rec.reference_pd = field_array(TOPIC_REFERENCE, "pd", 3)
-        rec.reference_pdd = field_array(TOPIC_REFERENCE, "pdd", 3, required=False)
-    if TOPIC_PAYLOAD in present:
-        rec.payload_value = field_array(TOPIC_PAYLOAD, "value", 4)
-        rec.payload_std = field_array(TOPIC_PAYLOAD, "std", 4)
-        rec.payload_used = field_array(TOPIC_PAYLOAD, "used", 4)
     for k, m in enumerate(data.get(TOPIC_EVENTS, [])):
         if (not isinstance(m, dict) or isinstance(m.get("t"), bool) or not isinstance(m.get("t"), (int, float))
                 or not isinstance(m.get("kind"), str) or not isinstance(m.get("text"), str)):

@@ -12,7 +12,7 @@ import socket
 import stat
 from pathlib import Path
 
-from otbot_hw.folders import MISSING, NOT_A_FOLDER, NOT_WRITABLE, folder_problem
+from otbot_hw.folders import require_folder
 
 log = logging.getLogger(__name__)
 
@@ -62,15 +62,10 @@ def check_socket_path(path: Path) -> None:
     if n >= SUN_PATH_MAX:
         raise ControlSocketError(f"control socket path {path} is {n} bytes; a Unix socket path has at most "
                                  f"{SUN_PATH_MAX - 1} (choose a shorter --socket or daemon.socket.path)")
-    folder = path.parent
-    problem = folder_problem(folder)
-    if problem is not None:
-        raise ControlSocketError({
-            MISSING: f"control socket folder {folder} does not exist (the daemon does not create it: "
-                     f"create it, or let systemd's RuntimeDirectory= do it, or choose --socket)",
-            NOT_A_FOLDER: f"control socket folder {folder} is not a folder",
-            NOT_WRITABLE: f"control socket folder {folder} is not writable by this user "
-                          f"(uid {os.geteuid()}): choose --socket or fix its owner/mode"}[problem])
+    folder = f"control socket folder {path.parent}"
+    require_folder(path.parent, ControlSocketError, f"{folder} does not exist (the daemon does not create it: create "
+                   f"it, or let systemd's RuntimeDirectory= do it, or choose --socket)", f"{folder} is not a folder",
+                   f"{folder} is not writable by this user (uid {os.geteuid()}): choose --socket or fix its owner/mode")
 
 
 def _tmp_name(path: Path) -> Path:
