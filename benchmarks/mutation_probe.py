@@ -62,7 +62,7 @@ MUTATIONS = [
      "(self.units_per_rev)", [T_UNITS]),
     ("wrong 0.1 rpm factor in the driver", "drivers/config.py", '"0.1 rpm": 2 * np.pi / 600',
      '"0.1 rpm": 2 * np.pi / 60', [T_UNITS]),
-    ("drive gear ratio dropped in the simulated velocity", "sim/canopen_slaves.py",
+    ("drive gear ratio dropped in the simulated velocity", "sim/canopen_slaves/drive.py",
      "revs_per_s = self.cfg.polarity * phi_dot * self.cfg.gear_ratio / (2 * math.pi)",
      "revs_per_s = self.cfg.polarity * phi_dot / (2 * math.pi)", [T_UNITS]),
     ("reaction does not keep SYNC alive", "drivers/reaction.py", "                arrived = self._sync_cycle(spaced=True)\n"
@@ -78,9 +78,9 @@ MUTATIONS = [
      'elif False:', [T_REACT]),
     ("PDO mapping not read back", "drivers/device.py", "            mapping.verify_pdos(self, plan)",
      "            pass", [T_EDS]),
-    ("the drives do not watch the master's heartbeat", "sim/canopen_slaves.py",
+    ("the drives do not watch the master's heartbeat", "sim/canopen_slaves/drive.py",
      "        if (index, subindex) == (0x1016, 1):", "        if False:", [T_TIMING]),
-    ("the simulated slaves keep foreign frames on their TPDO IDs", "sim/canopen_slaves.py",
+    ("the simulated slaves keep foreign frames on their TPDO IDs", "sim/canopen_slaves/node.py",
      ["                    m.data = bytearray((m.length + 7) // 8)\n", "            if m.on_message in subs:"],
      ["", "            if False:"], [T_FAULTS]),
     ("fault-bit without a statusword check", "drivers/cia402.py", "        if state in FAULT_STATES:\n"
@@ -114,10 +114,10 @@ MUTATIONS = [
      "if lim is not None and not abs(w[i]) <= lim:", "if lim is not None and not w[i] <= lim:", [T_PINS]),
     ("workspace y checked against the x bounds", "otbot_hw/runtime/supervisor.py",
      "if not (x0 <= x <= x1 and y0 <= y <= y1):", "if not (x0 <= x <= x1 and x0 <= y <= x1):", [T_PINS]),
-    ("MCAP sample log_time truncated, not rounded", "otbot_hw/recording.py",
+    ("MCAP sample log_time truncated, not rounded", "otbot_hw/recording/writer.py",
      "        self._last_t = t\n        stamp = int(round(t * 1e9))", "        self._last_t = t\n        stamp = int(t * 1e9)",
      [T_PINS]),
-    ("MCAP event log_time in microseconds", "otbot_hw/recording.py",
+    ("MCAP event log_time in microseconds", "otbot_hw/recording/writer.py",
      "        stamp = int(round(t * 1e9))\n        data = json.dumps({", "        stamp = int(round(t * 1e6)) * 1000\n"
      "        data = json.dumps({", [T_PINS]),
     ("gyro-bias walk per step, not per second (IMU prediction)", "otbot_hw/estimation/kernels.py",

@@ -27,7 +27,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from drivers.config import load_robot_config  # noqa: E402
 from otbot_hw.robot import RobotError  # noqa: E402
-from sim.plant import simulated_robot  # noqa: E402
+from sim.bus_robot import simulated_robot  # noqa: E402
 
 PATHS = ("stall", "setpoints", "heartbeat", "quick stop")
 

@@ -1,5 +1,5 @@
 """Hardware configuration of the drivers (``config/robot.yaml``: bus, drives, pivot_encoder; the
-``imu`` section is read by ``drivers.imu.load_imu_config``).
+``imu`` section is read by ``drivers.imu_config.load_imu_config``).
 
 Every error is a ``ParameterError`` naming the file and the key (the CLI exits with code 2).
 Quantities with units are written ``{value: V, unit: U}`` as in the ``motors`` section.
@@ -147,7 +147,7 @@ class RobotConfig:
     bus: BusConfig
     drives: tuple[DriveConfig, DriveConfig, DriveConfig]
     pivot_encoder: EncoderConfig
-    imu: object | None  # drivers.imu.ImuConfig (the imu section), None without one
+    imu: object | None  # drivers.imu_config.ImuConfig (the imu section), None without one
     limits: MotorLimits
     path: Path
 
@@ -359,7 +359,7 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
 
     imu = None
     if data.get("imu") is not None:
-        from drivers.imu import load_imu_config
+        from drivers.imu_config import load_imu_config
 
         imu = load_imu_config(p)
     ids = [dc.node_id for dc in drives] + ([enc.node_id] if enc.source == "encoder" else []) + [bus.master_node_id]

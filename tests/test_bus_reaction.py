@@ -15,7 +15,7 @@ import pytest
 from drivers.config import load_robot_config
 from drivers.faults import DriverError
 from otbot_hw.robot import RobotFault
-from sim.plant import simulated_robot
+from sim.bus_robot import simulated_robot
 
 CFG = load_robot_config()
 PERIOD = CFG.bus.period

@@ -11,8 +11,8 @@ import pytest
 
 from drivers.config import LOCKSTEP_TIMEOUT, load_robot_config
 from otbot_hw.robot import RobotFault
-from sim.canopen_slaves import SYNC_LOSS_CYCLES
-from sim.plant import simulated_robot
+from sim.canopen_slaves.node import SYNC_LOSS_CYCLES
+from sim.bus_robot import simulated_robot
 
 CFG = load_robot_config()
 SLACK = 0.1  # s: scheduling noise a loaded 2-core machine adds to a wall-clock watchdog

@@ -4,7 +4,7 @@
 name           robot
 =============  ======================================================================================
 ``sim``        ``sim.direct.DirectSimRobot``: the model stepped in this process, no bus, lockstep
-``bus sim``    ``sim.plant.SimulatedBusRobot``: the CANopen drivers over python-can's virtual bus to
+``bus sim``    ``sim.bus_robot.SimulatedBusRobot``: the CANopen drivers over python-can's virtual bus to
                the simulated drives/encoder/IMU (``sim.plant.Plant``) in this process, lockstep
 ``bus config`` ``drivers.robot.CanopenRobot`` on the configured bus (the real robot, or an
                ``otbot plant`` process), paced in real time with the drives' watchdogs as
@@ -141,7 +141,7 @@ class BusSimBackend(_ConfiguredRate):
 
     @contextmanager
     def open(self, plant, x0=None, forces=None, fixture: str = "floor"):
-        from sim.plant import simulated_robot
+        from sim.bus_robot import simulated_robot
 
         kw = {"params": plant, "x0": x0, "forces": forces, "fixture": fixture, "noise": self.noise or NoiseModel(),
               "seed": self.seed}
