@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from otbot_hw.diagnose import adequacy
-from otbot_hw.diagnose import select as sel
+from otbot_hw.diagnose import rules as sel
 from otbot_hw.diagnose import significance as sig
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.model.effects import ExtendedModel

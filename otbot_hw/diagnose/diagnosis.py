@@ -28,7 +28,8 @@ from otbot_hw.diagnose.geometry import EffectGeometry
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
-from otbot_hw.diagnose.select import AMBIGUOUS_DBIC, choose, free_nominal
+from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC
+from otbot_hw.diagnose.select import choose, free_nominal
 from otbot_hw.diagnose.significance import significance
 from otbot_hw.json_output import json_safe
 from otbot_hw.model.effects import ExtendedModel, parameter_unit
