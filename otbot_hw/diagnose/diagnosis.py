@@ -25,6 +25,7 @@ from otbot_hw.diagnose import catalog as cat
 from otbot_hw.diagnose.adequacy import assess
 from otbot_hw.diagnose.data import DiagnosisData, check_testable
 from otbot_hw.diagnose.geometry import EffectGeometry
+from otbot_hw.diagnose.identifiability import effect_identifiability, not_identifiable_effects
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
@@ -208,6 +209,11 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
                           "bic_margin": AMBIGUOUS_DBIC, "residual_correlation_factor": grp[0].kappa,
                           "experiment": "; ".join(dict.fromkeys(exps))})
     small = [_candidate_json(c, sel.effects) for c in sel.small]
+    # what this recording cannot reveal: effects at the catalog's smallest size, parameters on a bound
+    identifiability = effect_identifiability(sel.energy)
+    found = {c.effect for c in sel.accepted + sel.small} | {c.effect for g in sel.ambiguous for c in g}
+    not_identifiable = adequacy.not_identifiable + not_identifiable_effects(
+        identifiability, found, {n: e.title for n, e in sel.effects.items()})
     withheld = []
     if not adequacy.adequate:
         withheld = [{"name": e["name"], "parameters": e["parameters"]} for e in effects] + \
@@ -249,6 +255,8 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         "detected_small": small,
         "withheld": withheld,
         "discovered": discovered,
+        "not_identifiable": not_identifiable,
+        "identifiability": identifiability,
         "adequacy": adequacy.to_dict(),
         "suspect_parameters": adequacy.suspect_parameters,
         "geometry": geometry.to_dict(),

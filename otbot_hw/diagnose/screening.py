@@ -202,7 +202,8 @@ def screen(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: 
 
 
 def screen_simulation(recordings: list[DiagnosisData], model: ExtendedModel, nominal_free: list[str],
-                      effects: list[cat.Effect], exclude: set[str] = frozenset()) -> dict[str, tuple[float, dict]]:
+                      effects: list[cat.Effect], exclude: set[str] = frozenset(),
+                      energy: dict | None = None) -> dict[str, tuple[float, dict]]:
     """Score-test screening on the simulation residuals (the objective of the nested fits).
 
     One linearised Gauss-Newton step per effect: the simulation output change for the
@@ -211,6 +212,11 @@ def screen_simulation(recordings: list[DiagnosisData], model: ExtendedModel, nom
     with per-channel concentrated likelihoods, parameter guess)}. Integration accumulates small
     force effects into large velocity residuals, so this catches effects whose per-sample torque
     signature is below the equation-residual noise.
+
+    ``energy``: if given, filled with {effect: (chi2, k, n, magnitude)}: the signature energy of the
+    effect at its catalog step (the largest over its grid variants), ||P A 1||^2 in noise units, with k
+    its columns, n the weighted samples and magnitude the step's parameter values
+    (``identifiability.effect_identifiability``).
     """
     from otbot_hw.diagnose.refit import channel_sigmas
 
@@ -259,6 +265,10 @@ def screen_simulation(recordings: list[DiagnosisData], model: ExtendedModel, nom
     for i, A in per_variant.items():
         v = variants[i]
         A = np.column_stack(A)
+        if energy is not None:
+            chi2 = float(np.sum(A, axis=1) @ np.sum(A, axis=1))  # the catalog step: coefficient 1 on every column
+            if chi2 >= energy.get(v.effect, (-1.0,))[0]:
+                energy[v.effect] = (chi2, A.shape[1], n_tot, {**v.values, **v.fixed})
         coef, *_ = np.linalg.lstsq(A, z0, rcond=None)
         # the simulated output changes by A coef; the residual by -A coef
         dres = z0 - A @ coef

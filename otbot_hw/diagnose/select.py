@@ -70,6 +70,8 @@ class Selection:
     sim_screenings: list[dict[str, float]] = field(default_factory=list)
     small: list[Candidate] = field(default_factory=list)
     effects: dict[str, cat.Effect] = field(default_factory=dict)  # the catalog entries as applied
+    #: {effect: (chi2, k, n, magnitude)}: signature energy of each effect's catalog step on the base model
+    energy: dict = field(default_factory=dict)
 
 
 def _effect_guess(e: cat.Effect, screening: Screening, sim_guess: dict | None = None,
@@ -113,6 +115,7 @@ class _Search:
         self.screenings: list[Screening] = []
         self.sim_screens: list[dict[str, float]] = []
         self.used: set[str] = set()
+        self.energy: dict = {}  # first round's signature energies (``screen_simulation``)
 
     def reference(self, fit: FitResult) -> tuple[float, float, float]:
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
@@ -144,7 +147,8 @@ class _Search:
         """Screen from the model of ``on`` and fit the shortlist beside it."""
         sc = screen(self.recordings, on.model, self.nominal_free, self.effects, exclude=exclude)
         self.screenings.append(sc)
-        ss = screen_simulation(self.recordings, on.model, self.nominal_free, self.effects, exclude=exclude)
+        ss = screen_simulation(self.recordings, on.model, self.nominal_free, self.effects, exclude=exclude,
+                               energy=self.energy if round_index == 0 else None)
         self.sim_screens.append({e: d for e, (d, _) in ss.items()})
         names = shortlist(sc.single, {e: d for e, (d, _) in ss.items()}, round_index)
         if not names:
@@ -323,4 +327,4 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             break
         ref = S.reference(S.current)
     return Selection(S.accepted, S.ambiguous, S.tried, S.screenings, base_fit, S.current, S.sim_screens, S.small,
-                     S.by_name)
+                     S.by_name, S.energy)
