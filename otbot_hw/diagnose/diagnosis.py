@@ -138,6 +138,30 @@ def _caster_pair(recordings, sel, final, progress):
     return final
 
 
+def _small_needed(recordings, holdout, params, sel, final, progress):
+    """Effects with evidence listed as detected but small (``significance``: they do not matter by what they
+    do on these runs) are left out of the model -- unless the model without them is inadequate and with them
+    adequate: then the data need them, and they are accepted (their significance statement still says how
+    small they are). Returns the final fit (with them, or ``final``)."""
+    if not sel.small or assess(recordings, holdout, final, params).adequate:
+        return final
+    names = list(final.names)
+    start = {}
+    for c in sel.small:
+        for p in c.parameters:
+            if p not in names:
+                names.append(p)
+                start[p] = c.fit.values[p]
+    fit = refit(recordings, final.model.with_values(start), names, max_nfev=FINAL_NFEV)
+    if not assess(recordings, holdout, fit, params).adequate:
+        return final
+    progress(f"[diagnose] the model is adequate only with {', '.join(c.effect for c in sel.small)} "
+             "(detected, small): accepted")
+    sel.accepted += sel.small
+    sel.small = []
+    return fit
+
+
 def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list[DiagnosisData] | None = None,
              report_dir: Path | None = None, progress=lambda msg: None, model_out: Path | None = None,
              geometry: EffectGeometry | None = None) -> dict:
@@ -176,6 +200,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
         final = refit(recordings, final.model, final.names, max_nfev=FINAL_NFEV)
         progress(f"[diagnose] final fit: {final.message} ({final.nfev} evaluations)")
+    final = _small_needed(recordings, holdout, params, sel, final, progress)
     # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
     std = dict(final.std)
     inflation = 1.0

@@ -123,3 +123,27 @@ def undetermined_on_bound(bound: list[dict], std: dict[str, float], file_values:
                         else float(s), "file": float(ref), "why": f"on its {b['side']} bound, {why}: "
                         "the data do not determine it", "record": PARAMETER_RECORD.get(n, "a richer excitation")})
     return out
+
+
+def signature_chi2(recordings, model, nominal_free: list[str], values: dict[str, float]) -> tuple[float, int]:
+    """(chi2, n): the signature energy in ``recordings`` of the effect ``values`` switched on in ``model`` --
+    the change of the noise-weighted simulation outputs with the free nominal parameters' sensitivities
+    projected out, as ``screening.screen_simulation`` computes it at the catalog step -- and the number of
+    weighted samples. For studies that know the true effect (``benchmarks/diagnose_independent.py``): the
+    Fisher criterion at the truth is ``chi2 >= needed_chi2(k, n)``."""
+    from otbot_hw.diagnose.refit import channel_sigmas, weighted_residuals
+
+    sig = channel_sigmas(recordings)
+
+    def vec(m):
+        res = weighted_residuals(recordings, m, sig)
+        return np.concatenate([res[k] for k in sorted(res)])
+
+    r0 = vec(model)
+    cols = [vec(model.with_values({n: model.get(n) + 1e-4 * max(abs(model.get(n)), 1e-2)})) - r0 for n in nominal_free]
+    d = vec(model.with_values(values)) - r0
+    if cols:
+        q, rr = np.linalg.qr(np.column_stack(cols))
+        q = q[:, np.abs(np.diag(rr)) > 1e-8 * np.max(np.abs(np.diag(rr)))]
+        d = d - q @ (q.T @ d)
+    return float(d @ d), len(r0)
