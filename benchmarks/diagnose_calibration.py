@@ -313,7 +313,8 @@ def run_one(spec: Spec) -> dict:
                moved=[m["parameter"] for m in r["adequacy"]["moved"]], tests=r["adequacy"]["tests"],
                not_identifiable=[x["name"] for x in r.get("not_identifiable", []) if x["kind"] == "parameter"],
                effects_not_identifiable=sum(x["kind"] == "effect" for x in r.get("not_identifiable", [])),
-               diagnose_s=r["elapsed_s"], record_s=t1 - t0, total_s=time.perf_counter() - t0)
+               diagnose_s=r["elapsed_s"], diagnose_cpu_s=r.get("cpu_s"), record_s=t1 - t0,
+               total_s=time.perf_counter() - t0)
     return row
 
 

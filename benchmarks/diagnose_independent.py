@@ -311,7 +311,7 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
             **s, "worst_channel": worst,
             "heldout_before": hb[worst]["fit_percent"] if worst else None,
             "heldout_after": ha[worst]["fit_percent"] if worst else None,
-            "verdict": r["verdict"], "sim_s": t_sim, "diagnose_s": r["elapsed_s"], "fisher": fish,
+            "verdict": r["verdict"], "sim_s": t_sim, "diagnose_s": r["elapsed_s"], "diagnose_cpu_s": r.get("cpu_s"), "fisher": fish,
             "not_identifiable": [x["name"] for x in r.get("not_identifiable", [])],
             "total_s": time.perf_counter() - t0}
 

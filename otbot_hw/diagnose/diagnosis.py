@@ -176,7 +176,7 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
 
 
 def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geometry) -> dict:
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
     holdout = holdout or []
     geometry = geometry or EffectGeometry()
     if not recordings:
@@ -306,6 +306,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         "recordings": [d.name for d in recordings],
         "holdout": [d.name for d in holdout],
         "elapsed_s": 0.0,
+        "cpu_s": 0.0,
     }
     result["verdict"] = verdict(result)
     if report_dir is not None:
@@ -320,4 +321,5 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         save_model(Path(model_out), dataclasses.replace(final, std=std), effects, ambiguous, result["recordings"])
         result["model_file"] = str(model_out)
     result["elapsed_s"] = time.perf_counter() - t_start
+    result["cpu_s"] = time.process_time() - cpu_start  # this process, all its threads (prediction threads included)
     return json_safe(result)
