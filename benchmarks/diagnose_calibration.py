@@ -129,7 +129,7 @@ def plan(count: int, seed0: int = 0) -> list[Spec]:
         if family == "closed_loop":
             out.append(Spec(i, "track", family, 0.0, float(rng.choice((100.0, 200.0))), "floor", int(seed0 + i)))
             continue
-        sim = "independent" if (i // len(FAMILIES)) % 2 == 0 else "project"
+        sim = "independent" if (i // len(PLAN_FAMILIES)) % 2 == 0 else "project"
         fixture = "floor" if sim == "independent" else str(rng.choice(("floor", "floor", "stand", "locked")))
         while True:
             duration, rate = float(rng.choice(lengths)), float(rng.choice(rates))
