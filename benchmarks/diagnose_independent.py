@@ -508,7 +508,7 @@ def families_main(args) -> int:
             if (lab, m, fam, rep) not in done]
     if not args.table_only and todo:
         with ProcessPoolExecutor(max_workers=args.workers) as ex, open(out, "a") as fh:
-            futs = {ex.submit(run_family_case, *t): t for t in todo}
+            futs = {ex.submit(run_family_case, lab, m, rep, fam): (lab, m, fam, rep) for lab, m, fam, rep in todo}
             for fut in as_completed(futs):
                 lab, m, fam, rep = futs[fut]
                 try:
