@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -181,19 +182,29 @@ def seeds(rep: int) -> tuple[int, int]:
 
 
 def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATION,
-                    family: str = "piecewise") -> list[Path]:
+                    family: str = "piecewise", heldout_cache: Path | None = None) -> list[Path]:
     """Fitting (piecewise-constant torques, or an excitation ``family`` of benchmarks/diagnose_calibration.py)
-    and held-out (smooth torques) recordings of one case."""
+    and held-out (smooth torques) recordings of one case. ``heldout_cache``: a folder where the held-out
+    recording (the same for every family) is kept and reused."""
     world, p = world_of(case, ir.load_params())
     paths = []
     for kind, seed in zip(("piecewise", "smooth"), seeds(rep)):
         path = folder / f"{case.label}_{rep}_{'fit' if kind == 'piecewise' else 'heldout'}.mcap"
+        if kind == "smooth" and heldout_cache is not None:
+            path = Path(heldout_cache) / f"{case.label}_{rep}_{duration:g}s_heldout.mcap"
+            if path.exists():
+                paths.append(path)
+                continue
         if kind == "piecewise" and family != "piecewise":
             import diagnose_calibration as dc
 
             U = dc.excitation(family, duration, DT, seed)
             robot = ir.Otbot(p, world)
             ir.write_mcap(path, DT, U, robot.sensors(robot.run(U, DT), np.random.default_rng(seed + 1000)))
+        elif kind == "smooth" and heldout_cache is not None:  # complete files only in the cache
+            part = path.with_name(path.stem + f".{os.getpid()}.part.mcap")
+            ir.record(part, world, kind, seed, duration, DT, params=p)
+            part.replace(path)
         else:
             ir.record(path, world, kind, seed, duration, DT, params=p)
         paths.append(path)
@@ -275,7 +286,7 @@ def truth_fisher(case: Case, fit_data, P, geometry) -> dict[str, dict]:
 
 
 def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration: float = DURATION,
-             family: str = "piecewise", fisher: bool = False) -> dict:
+             family: str = "piecewise", fisher: bool = False, heldout_cache: Path | None = None) -> dict:
     """Simulate, write, load and diagnose one case on seed pair ``rep`` (recordings of ``duration`` s; the
     fitting run under the excitation ``family``); ``fisher``: also the Fisher criterion at the truth
     (``truth_fisher``), which scores a "not identifiable" answer."""
@@ -290,7 +301,7 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
         folder.mkdir(parents=True, exist_ok=True)
         paths = [folder / f"{case.label}_{rep}_{k}.mcap" for k in ("fit", "heldout")]
         if not (keep and duration == DURATION and family == "piecewise" and all(p.exists() for p in paths)):
-            paths = make_recordings(case, rep, folder, duration, family)  # kept recordings are reused
+            paths = make_recordings(case, rep, folder, duration, family, heldout_cache)  # kept ones are reused
         assert read_recording(paths[0]).truth_q is None
         t_sim = time.perf_counter() - t0
         P, geometry = tool_inputs(case)
@@ -466,8 +477,12 @@ def magnitude_case(label: str, f: float) -> Case:
                 c.imu_position)
 
 
+HELDOUT_CACHE = Path(tempfile.gettempdir()) / "otbot-diagnose-families-heldout"
+
+
 def run_family_case(label: str, f: float, rep: int, family: str) -> dict:
-    r = run_case(magnitude_case(label, f), rep, None, DURATION, family, fisher=True)
+    HELDOUT_CACHE.mkdir(exist_ok=True)
+    r = run_case(magnitude_case(label, f), rep, None, DURATION, family, fisher=True, heldout_cache=HELDOUT_CACHE)
     r.update(case=label, magnitude=f)
     return r
 
