@@ -231,3 +231,21 @@ def test_an_effect_is_identifiable_when_its_signature_beats_the_evidence_it_woul
     assert ident.not_identifiable_effects(out, {"b"}, {}) == []  # found: evidently revealed
     from otbot_hw.diagnose.catalog import CATALOG
     assert {e.name for e in CATALOG} == set(ident.EFFECT_RECORD)
+
+
+def test_a_nested_fit_whose_simulation_diverges_is_no_candidate_not_a_crash(monkeypatch):
+    """The wheel-slip run under one constant torque of the family study: a look-alike's trial point made the
+    simulation diverge (NaN in the Jacobian's SVD) and the diagnosis crashed."""
+    from types import SimpleNamespace
+
+    from otbot_hw.diagnose import select
+
+    def diverges(*args, **kw):
+        raise ValueError("array must not contain infs or NaNs")
+
+    monkeypatch.setattr(select, "refit", diverges)
+    search = select._Search([SimpleNamespace(fixture="floor")], [], None, [], lambda m: None, True)
+    base = SimpleNamespace(names=["m_c"], model=None)
+    c = search.nested("traction_limit", base, (0.0, 0.0, 0.0), {"k_slip": 0.01, "t_trac": 2.0})
+    assert not sel.has_evidence(c) and not sel.fitting_evidence(c) and c not in search.tried
+    assert len(sel.ambiguous_group(_cand(-100.0), [c])) == 1  # no look-alike of anything

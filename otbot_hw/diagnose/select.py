@@ -29,6 +29,9 @@ from otbot_hw.diagnose.rules import (ACCEPT_DBIC, AMBIGUOUS_DBIC, MAX_LOOKALIKES
 from otbot_hw.diagnose.screening import Screening, screen, screen_simulation
 from otbot_hw.model.effects import ExtendedModel, parameter_bounds
 
+#: what a nested fit raises when the simulation diverges at a trial point (NaN in the Jacobian's SVD)
+FIT_FAILURES = (ValueError, FloatingPointError, np.linalg.LinAlgError)
+
 FLOOR_NOMINAL = ("m_c", "I_c", "x_B", "y_B", "I_p", "b_w", "b_p")
 STAND_NOMINAL = ("I_a", "b_w", "I_p", "b_p")
 LOCKED_NOMINAL = ("I_p", "b_p")
@@ -129,11 +132,19 @@ class _Search:
         e = self.by_name[name]
         names = list(on.names) + [p for p in e.parameters if p not in on.names]
         self.progress(f"[diagnose] nested fit: + {name} (start {guess})")
-        fit = refit(self.recordings, on.model, names, guess=guess, max_nfev=QUICK_NFEV, tol=NESTED_TOL)
+        try:
+            fit = refit(self.recordings, on.model, names, guess=guess, max_nfev=QUICK_NFEV, tol=NESTED_TOL)
+        except FIT_FAILURES as exc:  # the simulation diverged at a trial point: no evidence for this effect
+            self.progress(f"[diagnose]   {name}: the fit failed ({type(exc).__name__}: {exc}); not a candidate")
+            return Candidate(name, on, np.inf, np.inf, np.inf, screen_gains[0], screen_gains[1],
+                             parameters=tuple(e.parameters))
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
         bar = ref[1] + (beside if beside is not None else 0.0)
         if fit.nfev >= QUICK_NFEV and bic - bar < -ACCEPT_DBIC:  # promising and not converged yet: go on
-            fit = refit(self.recordings, fit.model, names, max_nfev=NESTED_NFEV - QUICK_NFEV, tol=NESTED_TOL)
+            try:
+                fit = refit(self.recordings, fit.model, names, max_nfev=NESTED_NFEV - QUICK_NFEV, tol=NESTED_TOL)
+            except FIT_FAILURES as exc:  # keep the quick look
+                self.progress(f"[diagnose]   {name}: the continued fit failed ({type(exc).__name__}); quick look kept")
             aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
         c = Candidate(name, fit, bic - ref[1], aic - ref[0], holdout_cost(self.holdout, fit.model) - ref[2],
                       screen_gains[0], screen_gains[1], parameters=tuple(e.parameters))
