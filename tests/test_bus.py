@@ -297,7 +297,7 @@ def test_socketcan_transport_where_the_kernel_has_it():
     proc = _plant_process("--transport", "socketcan", "--channel", "vcan0", "--noise", "none", "--no-imu")
     try:
         json.loads(proc.stdout.readline())
-        with CanopenRobot(cfg) as robot:
+        with LockstepCanopenRobot(cfg) as robot:  # a plant process: lockstep is the simulated back end's
             robot.open()
             res = run_torques(robot, np.tile([1.0, 1.0, 1.0], (20, 1)))
         assert res.completed
