@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -28,26 +29,26 @@ from otbot_hw.sensors import NoiseModel
 WATCHDOG_CODES = (0x8100, 0x8130)
 
 
+@dataclass
 class BenchRuns:
     """The runs of one bench invocation on the opened ``robot``: ``run`` (``timing``: where the runs' wall
-    time and robot time add up), ``meta`` (a run's recording metadata), ``idle_resets`` (the communication
-    faults reset between runs, each a list of fault dicts)."""
+    time and robot time add up), ``meta`` (a run's recording metadata, from ``metadata``), ``idle_resets``
+    (the communication faults reset between runs, each a list of fault dicts)."""
 
-    def __init__(self, robot: Robot, settings: BenchSettings, session: SessionFolder, timing,
-                 realtime: bool = False, say: Callable[[str], None] = lambda m: None,
-                 sim: SimulatedRobot | None = None, metadata: dict | None = None):
-        self.robot = robot
-        self.s = settings
-        self.session = session
-        self.timing = timing
-        self.realtime = realtime
-        self.say = say
-        self.sim = sim
-        self.metadata = metadata if metadata is not None else {}
-        self.period = float(robot.period)
-        self.torque_limits = MotorLimits(np.minimum(np.asarray(settings.motor_limits.max_torque, dtype=float),
-                                                    settings.limits.torque))
-        self.idle_resets: list = []
+    robot: Robot
+    s: BenchSettings
+    session: SessionFolder
+    timing: Any
+    realtime: bool = False
+    say: Callable[[str], None] = lambda m: None
+    sim: SimulatedRobot | None = None
+    metadata: dict = field(default_factory=dict)
+    idle_resets: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.period = float(self.robot.period)
+        self.torque_limits = MotorLimits(np.minimum(np.asarray(self.s.motor_limits.max_torque, dtype=float),
+                                                    self.s.limits.torque))
 
     def meta(self, step: str, kind: str, attempt: int, fixture: str, extra: dict | None = None) -> dict:
         meta = {**self.metadata, "sample_period": self.period, "fixture": fixture, "noise": self.s.noise.to_dict(),
