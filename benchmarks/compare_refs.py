@@ -8,7 +8,7 @@ script's `--json` output (or, for a script without `--json`, the numbers of its 
 lines, keyed by the line's label). Per number: the median over the repeats of each
 checkout, the ratio after / before, and the noise = the larger relative spread
 ((max - min) / median) of the two checkouts' repeats; a number "moved" when the ratio is
-further from 1 than that noise and the two checkouts' ranges do not overlap.
+further from 1 than that noise and than ``--min-change`` (5 %), and the two checkouts' ranges do not overlap.
 
     python benchmarks/compare_refs.py --before ../before --after . --rounds 3 [--only model,bus]
     python benchmarks/compare_refs.py --load results.json          # reprint a saved run
@@ -125,8 +125,9 @@ def loadavg() -> float:
     return os.getloadavg()[0]
 
 
-def summarize(runs: dict) -> dict:
-    """Per benchmark and number: medians, ratio, noise, moved."""
+def summarize(runs: dict, min_change: float = 0.05) -> dict:
+    """Per benchmark and number: medians, ratio, noise, moved (ranges disjoint and the ratio further from
+    1 than both the noise and ``min_change``)."""
     table: dict[str, list[dict]] = {}
     for name, sides in runs.items():
         before, after = sides.get("before", []), sides.get("after", [])
@@ -139,7 +140,7 @@ def summarize(runs: dict) -> dict:
             spread = max((max(v) - min(v)) / abs(m) if m else 0.0 for v, m in ((b, mb), (a, ma)))
             ratio = ma / mb if mb else (1.0 if ma == mb else math.inf)
             disjoint = min(a) > max(b) or max(a) < min(b)
-            moved = disjoint and abs(ratio - 1.0) > spread
+            moved = disjoint and abs(ratio - 1.0) > max(spread, min_change)
             rows.append(dict(key=key, before=mb, after=ma, ratio=ratio, noise=spread, moved=moved,
                              n_before=len(b), n_after=len(a)))
         table[name] = rows
@@ -159,8 +160,15 @@ def print_table(table: dict, keys: re.Pattern | None) -> None:
                   f"{100 * r['noise']:.0f} % | {'**yes**' if r['moved'] else ''} |")
 
 
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):
+        """One line, exit 2 (the project's rule for bad input)."""
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        sys.exit(2)
+
+
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = _Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--before", type=Path, help="checkout of the code before (its root folder)")
     ap.add_argument("--after", type=Path, default=HERE.parent, help="checkout after (default: this one)")
     ap.add_argument("--only", default="", help=f"comma list of {', '.join(BENCHES)} (default: all)")
@@ -171,6 +179,8 @@ def main() -> int:
     ap.add_argument("--keys", default=None, help="regular expression: only numbers whose key matches")
     ap.add_argument("--save", type=Path, default=None, help="write the raw runs to this JSON file as they come")
     ap.add_argument("--load", type=Path, default=None, help="reprint the table of a saved JSON file")
+    ap.add_argument("--min-change", type=float, default=0.05,
+                    help="smallest relative change called moved, whatever the noise (default 0.05)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args()
 
@@ -184,7 +194,7 @@ def main() -> int:
             runs = saved["runs"]
         except (OSError, ValueError, KeyError, TypeError) as exc:
             ap.error(f"--load {args.load}: not a saved comparison ({exc})")
-        table = summarize(runs)
+        table = summarize(runs, args.min_change)
         if args.json:
             print(json.dumps(dict(saved, table=table), indent=1))
         else:
@@ -230,7 +240,7 @@ def main() -> int:
                 save()
     meta["finished"] = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     save()
-    table = summarize(runs)
+    table = summarize(runs, args.min_change)
     if args.json:
         print(json.dumps(dict(meta, runs=runs, table=table), indent=1))
     else:
