@@ -46,7 +46,43 @@ BENCHES: dict[str, tuple[str, list[str], str]] = {
     "identification": ("identification.py", ["--seeds", "3", "--skip-sweep"], "text"),
     "loop": ("loop.py", ["--rates", "100,250", "--skip-bus-1khz", "--json"], "json"),
     "loop_cycle": ("loop_cycle.py", ["--rate", "500", "--seconds", "10", "--json"], "json"),
+    "direct_cpu": ("-c", [], "json"),  # DIRECT_CPU below
 }
+
+#: Process CPU per cycle (us) of the 30 s corridor's first 10 s through the loop runner on the direct
+#: back end at 1 kHz, truth feedback (exact sensors; like the robot: encoders, IMU 100 Hz, paper noise),
+#: and of ``DirectSimRobot`` write + read alone; best of 3. CPU time, which the load of other jobs
+#: distorts less than wall time. Uses what ``benchmarks/loop.py`` has in both checkouts.
+DIRECT_CPU = """
+import json, os, sys, time
+sys.path.insert(0, os.getcwd()); sys.path.insert(0, os.path.join(os.getcwd(), "benchmarks"))
+from loop import robot_alone, runner
+from drivers.config import load_robot_config
+from otbot_hw.control.scenarios import corridor_spec
+from otbot_hw.params import nominal
+from otbot_hw.runtime.backends import DirectBackend
+from otbot_hw.sensors import NoiseModel
+params, cfg = nominal(), load_robot_config()
+ref = corridor_spec().reference
+runner(ref, params, cfg.limits, DirectBackend(), "truth", duration=0.2)
+out = {}
+for name, make in (("runner_exact_us", lambda: DirectBackend(rate=1000.0, imu_rate=None)),
+                   ("runner_like_robot_us", lambda: DirectBackend.from_config(cfg, 1000.0, NoiseModel.paper()))):
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.process_time()
+        run = runner(ref, params, cfg.limits, make(), "truth", duration=10.0)
+        best = min(best, (time.process_time() - t0) / run.loop.stats.cycles * 1e6)
+    out[name] = best
+robot_alone(params, 100)
+best = float("inf")
+for _ in range(3):
+    t0 = time.process_time()
+    robot_alone(params, 10000)
+    best = min(best, (time.process_time() - t0) / 10000 * 1e6)
+out["direct_robot_alone_us"] = best
+print(json.dumps(out))
+"""
 #: scripts that time the checkout in the current folder, so the newer copy may time an older
 #: checkout that lacks them
 CWD_SCRIPTS = {"loop_cycle.py"}
@@ -96,12 +132,15 @@ def text_numbers(text: str) -> dict[str, float]:
 def run_one(tree: Path, name: str, nice: int, timeout: float) -> dict[str, float]:
     """One run of benchmark `name` in checkout `tree`: its numbers, or {} if it failed."""
     script, args, kind = BENCHES[name]
-    path = tree / "benchmarks" / script
-    if not path.exists():
-        if script not in CWD_SCRIPTS:
-            return {}
-        path = HERE / script
-    cmd = ["nice", "-n", str(nice), sys.executable, str(path), *args]
+    if script == "-c":
+        cmd = ["nice", "-n", str(nice), sys.executable, "-c", DIRECT_CPU]
+    else:
+        path = tree / "benchmarks" / script
+        if not path.exists():
+            if script not in CWD_SCRIPTS:
+                return {}
+            path = HERE / script
+        cmd = ["nice", "-n", str(nice), sys.executable, str(path), *args]
     try:
         proc = subprocess.run(cmd, cwd=tree, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
