@@ -179,25 +179,22 @@ def effect_force(x, tau, eff, prm, fixture):
 
 @njit(cache=True)
 def forces_active(eff):
-    """True when an effect adds a generalized force or a wheel slip (friction, rolling resistance,
-    caster drag, slip, traction limit, slope, air drag, viscous asymmetry, unequal radii); False for
-    the paper's model and for effects that act only on the drives or the sensors."""
+    """Whether an effect adds a generalized force or a wheel slip (False: the paper's model, or effects
+    on the drives' gain and saturation or the sensors only; ``integrators.ext_rk4_into`` then runs the
+    paper model's RK4)."""
     return (eff[C_R] != 0.0 or eff[C_L] != 0.0 or eff[C_P] != 0.0 or eff[S_W] != 0.0 or eff[C_RR] != 0.0
-            or eff[F_CST] != 0.0 or eff[K_SLIP] != 0.0 or eff[G_X] != 0.0 or eff[G_Y] != 0.0
-            or eff[C_AIR] != 0.0 or eff[DB_W] != 0.0 or eff[DR_R] != 0.0 or eff[DR_L] != 0.0
-            or eff[T_TRAC] != 0.0)
+            or eff[F_CST] != 0.0 or eff[K_SLIP] != 0.0 or eff[G_X] != 0.0 or eff[G_Y] != 0.0 or eff[C_AIR] != 0.0
+            or eff[DB_W] != 0.0 or eff[DR_R] != 0.0 or eff[DR_L] != 0.0 or eff[T_TRAC] != 0.0)
 
 
 @njit(cache=True)
 def _effect_force_into(x, tau, eff, prm, fixture, gen, slip):
     """Write ``effect_force`` into gen (6,) and ``slip_rates`` into slip (2,) (one slip law solve
-    serves both). Zero without a force effect (``forces_active``), the paper's model."""
+    serves both)."""
     for i in range(6):
         gen[i] = 0.0
     slip[0] = 0.0
     slip[1] = 0.0
-    if not forces_active(eff):
-        return
     bw = prm[_BW]
     rho = radius_ratios(eff)
     # wheel motors, expressed on the rolling angles psi
@@ -376,18 +373,7 @@ def lagged_torque_into(tc, t0, s, T, out):
 
 @njit(cache=True)
 def ext_derivative_into(z, tau, f, eff, prm, fixture, dz, gen, acc, g2, slip):
-    """Write d/dt of z = (x (12,), slip angles (2,)) into dz (14,); gen, acc, g2 (6,), slip (2,) scratch.
-    Without a force effect (``forces_active``: the paper's model) the paper's derivative is called
-    directly (no effect force, no slip): the same numbers, without the effect terms' calls."""
-    if not forces_active(eff):
-        for i in range(6):
-            gen[i] = 0.0
-        slip[0] = 0.0
-        slip[1] = 0.0
-        compiled._derivative_into(z, tau, f, gen, prm, fixture, dz, acc)
-        dz[12] = 0.0
-        dz[13] = 0.0
-        return
+    """Write d/dt of z = (x (12,), slip angles (2,)) into dz (14,); gen, acc, g2 (6,), slip (2,) scratch."""
     x = z[:12]
     for i in range(6):
         dz[i] = x[6 + i]
