@@ -34,6 +34,7 @@ from otbot_hw.model import effects as fx
 from otbot_hw.model import sensor_model
 from otbot_hw.model.effects import ExtendedModel
 from otbot_hw.model.fixtures import fixture_code
+from otbot_hw.model.kinematics import fik_entries
 from otbot_hw.simulation.simulator import default_substeps, simulate_extended
 
 
@@ -50,12 +51,9 @@ class Motion:
 
 
 def delivered_torque_intervals(u: np.ndarray, dt: float, eff: np.ndarray, tau0: np.ndarray) -> np.ndarray:
-    """Mean delivered torque (N, 3) over each ZOH interval [t_k, t_k+1) (gain, saturation, exact lag)."""
-    tc = u * (1.0 + eff[[fx.K_R, fx.K_L, fx.K_P]])
-    for i in range(3):
-        m = eff[fx.U_MAX_R + i]
-        if m > 0:
-            tc[:, i] = np.clip(tc[:, i], -m, m)
+    """Mean delivered torque (N, 3) over each ZOH interval [t_k, t_k+1) (``actuated_torque``: gain, dead
+    zone, soft limit, saturation; then the exact lag)."""
+    tc = phys.actuated_torques(np.ascontiguousarray(u, dtype=float), np.asarray(eff, dtype=float))
     T = eff[fx.T_I]
     if T <= 0:
         return tc
@@ -72,8 +70,12 @@ def delivered_torque_intervals(u: np.ndarray, dt: float, eff: np.ndarray, tau0: 
 TORQUE_CACHE_SIZE = 64  # delivered-torque series kept per recording (one per actuator-effect combination)
 
 
+ACTUATOR_ENTRIES = [fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I] + \
+    [fx.DZ_R + i for i in range(3)] + [fx.TS_R + i for i in range(3)]  # what the delivered torque depends on
+
+
 def _actuator_key(eff: np.ndarray) -> tuple:
-    return tuple(eff[[fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]])
+    return tuple(eff[ACTUATOR_ENTRIES])
 
 
 def _bounded(data: DiagnosisData, name: str, key, compute):
@@ -203,17 +205,14 @@ def estimate_motion(data: DiagnosisData, model: ExtendedModel, smooth_rates: boo
         th = q[:, 2] - pos[:, 2]
         c, s = np.cos(th), np.sin(th)
         thd = k * (vel[:, 0] - vel[:, 1])
-        l1, l2 = p.l1, p.l2
-        kf = p.r / (2 * l2)
-        a11, a12 = l2 * c - l1 * s, l2 * c + l1 * s
-        a21, a22 = l1 * c + l2 * s, -l1 * c + l2 * s
-        qd[:, 0] = kf * (a11 * vel[:, 0] + a12 * vel[:, 1])
-        qd[:, 1] = kf * (a21 * vel[:, 0] + a22 * vel[:, 1])
+        # M_FIK(theta) and its derivative in theta (the entries at theta + pi/2: sin -> cos, cos -> -sin)
+        b00, b01, b10, b11, kf = fik_entries(s, c, p.l1, p.l2, p.r)
+        e00, e01, e10, e11, _ = fik_entries(c, -s, p.l1, p.l2, p.r)
+        qd[:, 0] = b00 * vel[:, 0] + b01 * vel[:, 1]
+        qd[:, 1] = b10 * vel[:, 0] + b11 * vel[:, 1]
         qd[:, 2] = kf * (vel[:, 0] - vel[:, 1]) + vel[:, 2]
-        qdd[:, 0] = kf * (a11 * acc[:, 0] + a12 * acc[:, 1]
-                          + thd * ((-l2 * s - l1 * c) * vel[:, 0] + (-l2 * s + l1 * c) * vel[:, 1]))
-        qdd[:, 1] = kf * (a21 * acc[:, 0] + a22 * acc[:, 1]
-                          + thd * ((-l1 * s + l2 * c) * vel[:, 0] + (l1 * s + l2 * c) * vel[:, 1]))
+        qdd[:, 0] = b00 * acc[:, 0] + b01 * acc[:, 1] + thd * (e00 * vel[:, 0] + e01 * vel[:, 1])
+        qdd[:, 1] = b10 * acc[:, 0] + b11 * acc[:, 1] + thd * (e10 * vel[:, 0] + e11 * vel[:, 1])
         qdd[:, 2] = kf * (acc[:, 0] - acc[:, 1]) + acc[:, 2]
         a_meas = qdd[:, :3].copy()
     else:
@@ -308,7 +307,7 @@ def encoder_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     deps = [fx.E_R, fx.E_L, fx.DR_R, fx.DR_L, fx.K_SLIP, fx.T_TRAC]
     slip = (eff[fx.K_SLIP] != 0.0 or eff[fx.T_TRAC] != 0.0) and data.fixture == "floor"
     if slip:  # estimate_motion's slip correction: the delivered torque through the slip law
-        deps += [fx.DB_W, fx.K_R, fx.K_L, fx.K_P, fx.U_MAX_R, fx.U_MAX_L, fx.U_MAX_P, fx.T_I]
+        deps += [fx.DB_W] + ACTUATOR_ENTRIES
     key = (p.l1, p.l2, p.r, p.b_w if slip else None, tuple(eff[deps]))
     cache = data.memo("encoder_states", dict)
     x0 = cache.get(key)  # one lookup: another prediction thread may clear the cache meanwhile
