@@ -51,11 +51,13 @@ def _params_json(fit, names, std: dict | None = None):
             for n in names}
 
 
-def save_model(path: Path, fit, effects: list[dict], ambiguous: list[dict], recordings: list[str]) -> None:
+def save_model(path: Path, fit, effects: list[dict], ambiguous: list[dict], recordings: list[str],
+               discovered: list[dict] | None = None) -> None:
     """Write the diagnosed model (the final fit: refit nominal parameters and effects, with std) as a
     parameter YAML with an ``effects`` section: what ``otbot simulate`` and ``otbot track`` load. An
     ambiguous group's best candidate is in the final fit (it predicts as well as its look-alikes);
-    the header says so."""
+    the header says so. ``discovered``: laws beyond the catalog (``discover``) the fit holds, named in
+    the header."""
     import dataclasses
 
     from otbot_hw.params import PARAM_INDEX
@@ -66,6 +68,9 @@ def save_model(path: Path, fit, effects: list[dict], ambiguous: list[dict], reco
     lines = ["Diagnosed model (otbot diagnose --out): nominal parameters refit together with the accepted",
              "effects; std = one standard deviation. Recordings: " + ", ".join(Path(r).name for r in recordings),
              "Accepted effects: " + (", ".join(e["name"] for e in effects) or "none")]
+    if discovered:
+        lines.append("Model inadequate for the catalog; laws discovered beyond it (diagnose/discover.py), refit by "
+                     "simulation: " + ", ".join(lw["law"] for lw in discovered))
     for g in ambiguous:
         names = [c["name"] for c in g["candidates"]]
         lines.append(f"Ambiguous, the data cannot tell apart: {' / '.join(names)}. The file holds the best of them "
@@ -134,6 +139,70 @@ def _caster_pair(recordings, sel, final, progress):
                                               {k: pair.std.get(k, float("nan")) for k in pars}, pair.model, recordings)
         return pair
     return final
+
+
+DISCOVERY_NFEV = 15  # iterations of the simulation refit of the discovered laws
+LAW_T = 3.0  # a law whose main entry the simulation refit puts within LAW_T std of none is dropped
+
+
+def _resim(sets, model) -> dict[str, dict]:
+    """RMS of measured minus simulated per channel over ``sets`` and its ratio to the channel noise."""
+    from otbot_hw.diagnose.residuals import simulation_residual
+
+    acc: dict[str, list] = {}
+    for d in sets:
+        for ch, r in simulation_residual(d, model).items():
+            acc.setdefault(ch, []).append((r, d.noise_sigma(ch)))
+    return {ch: {"rms": float(np.sqrt(np.mean(np.concatenate([r for r, _ in v]) ** 2))),
+                 "noise_ratio": float(np.sqrt(np.mean(np.concatenate([(r / s) ** 2 for r, s in v]))))}
+            for ch, v in acc.items()}
+
+
+def _step_laws(recordings, holdout, base, disc: dict, nominal_free, params, progress):
+    """The discovered laws stepped: their entries (and the nominal parameters) refit by simulation from the
+    regression's values, standard deviations by HAC, and the held-out recordings (else the fitting ones)
+    re-simulated with and without them. Updates ``disc`` (``laws[i].refit``, ``resimulation``,
+    ``improves``, ``adequate_with_laws``); returns the fit (std = HAC) or None when the refit fails."""
+    from otbot_hw.diagnose.discover import model_with_laws
+
+    try:
+        start = model_with_laws(base.model, disc)
+    except ValueError as exc:
+        disc["refit_error"] = str(exc)
+        return None
+    free = list(nominal_free) + [n for lw in disc["laws"] for n in lw["free"] if n not in nominal_free]
+    fit = refit(recordings, start, free, max_nfev=DISCOVERY_NFEV)
+    progress(f"[diagnose] discovered laws refit by simulation: {fit.message} ({fit.nfev} evaluations)")
+    hac = robust_std(recordings, fit)
+    std = {n: max(fit.std.get(n, np.nan), hac.get(n, np.nan)) if np.isfinite(hac.get(n, np.nan)) else
+           fit.std.get(n, np.nan) for n in free}
+    dropped = {}
+    for lw in disc["laws"]:
+        lw["refit"] = {n: {"value": float(fit.model.get(n)), "std": _finite(std.get(n)), "unit": parameter_unit(n)}
+                       for n in lw["effect"]}
+        main = lw["free"][0]
+        v, s = fit.model.get(main), std.get(main, np.nan)
+        if np.isfinite(s) and abs(v - base.model.get(main)) < LAW_T * s:  # the simulation does not need it
+            dropped.update({n: base.model.get(n) for n in lw["effect"]})
+            lw["dropped"] = f"the simulation refit takes it back ({main} = {v:.3g} +- {s:.2g})"
+    disc["dropped"] = [lw for lw in disc["laws"] if lw.get("dropped")]
+    disc["laws"] = [lw for lw in disc["laws"] if not lw.get("dropped")]
+    disc["terms"] = [t for t in disc["terms"] if any(t["term"] == lw["law"] for lw in disc["laws"])]
+    if not disc["laws"]:
+        return None
+    if dropped:
+        fit = dataclasses.replace(fit, model=fit.model.with_values(dropped))
+    sets = holdout or recordings
+    before, after = _resim(sets, base.model), _resim(sets, fit.model)
+    cost = [sum(v["noise_ratio"] ** 2 for v in x.values()) for x in (before, after)]
+    disc["resimulation"] = {"set": "held-out" if holdout else "fitting",
+                            "channels": {ch: {"before_rms": before[ch]["rms"], "after_rms": after[ch]["rms"],
+                                              "before_noise_ratio": before[ch]["noise_ratio"],
+                                              "after_noise_ratio": after[ch]["noise_ratio"]} for ch in before},
+                            "cost_before": cost[0], "cost_after": cost[1]}
+    disc["improves"] = bool(cost[1] < cost[0])
+    disc["adequate_with_laws"] = bool(assess(recordings, holdout, fit, params).adequate)
+    return dataclasses.replace(fit, std=std)
 
 
 def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list[DiagnosisData] | None = None,
@@ -213,13 +282,18 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
                    [{"name": g["candidates"][0]["name"], "parameters": g["candidates"][0]["parameters"],
                      "ambiguous_with": [c["name"] for c in g["candidates"][1:]]} for g in ambiguous]
         effects, ambiguous = [], []
-    discovered = None
-    if not adequacy.adequate:  # beyond the catalog: what the nominal model misses, by sparse regression
+    discovered, law_fit = None, None
+    if not adequacy.adequate:  # beyond the catalog: what the nominal model misses, by grouped sparse regression
         from otbot_hw.diagnose.discover import discover
 
         try:
-            discovered = discover(recordings, holdout, base.model)
-            progress(f"[diagnose] discovered terms: {', '.join(t['term'] for t in discovered['terms']) or 'none'}")
+            t_disc = time.perf_counter()
+            discovered = discover(recordings, holdout, base.model, nominal_free)
+            discovered["regression_s"] = time.perf_counter() - t_disc
+            progress(f"[diagnose] discovered laws: {', '.join(lw['law'] for lw in discovered['laws']) or 'none'}")
+            if discovered["laws"]:
+                law_fit = _step_laws(recordings, holdout, base, discovered, nominal_free, params, progress)
+            discovered["elapsed_s"] = time.perf_counter() - t_disc
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             discovered = {"error": f"{type(exc).__name__}: {exc}"}
     k_before, k_after = base.n_params, final.n_params
@@ -284,6 +358,9 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         result["plots"] = plots
     if model_out is not None and adequacy.adequate:
         save_model(Path(model_out), dataclasses.replace(final, std=std), effects, ambiguous, result["recordings"])
+        result["model_file"] = str(model_out)
+    elif model_out is not None and law_fit is not None and discovered.get("improves"):
+        save_model(Path(model_out), law_fit, [], [], result["recordings"], discovered=discovered["laws"])
         result["model_file"] = str(model_out)
     result["elapsed_s"] = time.perf_counter() - t_start
     return json_safe(result)
