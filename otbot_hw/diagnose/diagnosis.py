@@ -270,9 +270,14 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
             e = sel.effects[c.effect]
             if any(o.effect in e.lookalikes for o in grp) or not exps:
                 exps.append(e.separating_experiment)
-        # the group's best member is in the final model: its values and std from the final fit
-        ambiguous.append({"candidates": [_candidate_json(c, sel.effects, *((std, final) if i == 0 else ()))
-                                         for i, c in enumerate(grp)],
+        # the group's best member is in the final model: its values and std from the final fit; the others'
+        # nested fits stop early (decisions), so each is converged like the final one before its values are
+        # reported (a look-alike's unconverged fit read c_w +30 % when the lead of a tie flipped)
+        members = [_candidate_json(grp[0], sel.effects, std, final)]
+        for c in grp[1:]:
+            conv = refit(recordings, c.fit.model, c.fit.names, max_nfev=FINAL_NFEV)
+            members.append(_candidate_json(c, sel.effects, conv.std, conv))
+        ambiguous.append({"candidates": members,
                           "bic_margin": AMBIGUOUS_DBIC, "residual_correlation_factor": grp[0].kappa,
                           "experiment": "; ".join(dict.fromkeys(exps))})
     small = [_candidate_json(c, sel.effects) for c in sel.small]
@@ -287,13 +292,14 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         from otbot_hw.diagnose.discover import discover
 
         try:
-            t_disc = time.perf_counter()
+            t_disc, c_disc = time.perf_counter(), time.process_time()
             discovered = discover(recordings, holdout, base.model, nominal_free)
             discovered["regression_s"] = time.perf_counter() - t_disc
             progress(f"[diagnose] discovered laws: {', '.join(lw['law'] for lw in discovered['laws']) or 'none'}")
             if discovered["laws"]:
                 law_fit = _step_laws(recordings, holdout, base, discovered, nominal_free, params, progress)
             discovered["elapsed_s"] = time.perf_counter() - t_disc
+            discovered["cpu_s"] = time.process_time() - c_disc  # process CPU (all threads), unaffected by load
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             discovered = {"error": f"{type(exc).__name__}: {exc}"}
     k_before, k_after = base.n_params, final.n_params
