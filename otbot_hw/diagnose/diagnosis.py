@@ -108,6 +108,17 @@ def _candidate_json(c, effects: dict, std: dict | None = None, fit=None) -> dict
     return out
 
 
+def _in_place_of(recordings, final, base, effects, lead, other):
+    """(std, fit) of the final fit with the ambiguous group's ``other`` member in place of its ``lead``: the
+    lead's parameters back to the nominal fit's values (none), the other's free, started from its nested fit."""
+    out_p, in_p = effects[lead.effect].parameters, effects[other.effect].parameters
+    names = [n for n in final.names if n not in out_p] + [n for n in in_p if n not in final.names]
+    start = final.model.with_values({n: base.model.get(n) for n in out_p if n not in in_p})
+    start = start.with_values({n: other.fit.values[n] for n in in_p if n in other.fit.values})
+    fit = refit(recordings, start, names, max_nfev=FINAL_NFEV)
+    return fit.std, fit
+
+
 PAIR_SPREAD = 0.15  # m: the pair's start, (x, +-PAIR_SPREAD) about the single caster's fitted x
 PAIR_EVIDENCE = 10.0  # BIC gain the pair needs over the single caster
 
@@ -270,13 +281,14 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
             e = sel.effects[c.effect]
             if any(o.effect in e.lookalikes for o in grp) or not exps:
                 exps.append(e.separating_experiment)
-        # the group's best member is in the final model: its values and std from the final fit; the others'
-        # nested fits stop early (decisions), so each is converged like the final one before its values are
-        # reported (a look-alike's unconverged fit read c_w +30 % when the lead of a tie flipped)
+        # the group's best member is in the final model: its values and std from the final fit; each other
+        # member from the same final fit with it in the best one's place (its nested fit held the other
+        # accepted effects: beside Stribeck friction held, a Coulomb look-alike read c_w +30 % once rolling
+        # resistance led the tie)
         members = [_candidate_json(grp[0], sel.effects, std, final)]
         for c in grp[1:]:
-            conv = refit(recordings, c.fit.model, c.fit.names, max_nfev=FINAL_NFEV)
-            members.append(_candidate_json(c, sel.effects, conv.std, conv))
+            members.append(_candidate_json(c, sel.effects, *_in_place_of(recordings, final, base, sel.effects,
+                                                                         grp[0], c)))
         ambiguous.append({"candidates": members,
                           "bic_margin": AMBIGUOUS_DBIC, "residual_correlation_factor": grp[0].kappa,
                           "experiment": "; ".join(dict.fromkeys(exps))})
