@@ -216,6 +216,26 @@ def _step_laws(recordings, holdout, base, disc: dict, nominal_free, params, prog
     return dataclasses.replace(fit, std=std)
 
 
+def discover_laws(recordings, holdout, base, nominal_free, params, progress=lambda msg: None):
+    """Beyond the catalog (``discover``): laws in the nominal fit's torque residual, then stepped (``_step_laws``).
+    Returns (the ``discovered`` JSON, the fit with the laws or None)."""
+    from otbot_hw.diagnose.discover import discover
+
+    law_fit = None
+    try:
+        t_disc, c_disc = time.perf_counter(), time.process_time()
+        discovered = discover(recordings, holdout, base.model, nominal_free)
+        discovered["regression_s"] = time.perf_counter() - t_disc
+        progress(f"[diagnose] discovered laws: {', '.join(lw['law'] for lw in discovered['laws']) or 'none'}")
+        if discovered["laws"]:
+            law_fit = _step_laws(recordings, holdout, base, discovered, nominal_free, params, progress)
+        discovered["elapsed_s"] = time.perf_counter() - t_disc
+        discovered["cpu_s"] = time.process_time() - c_disc  # process CPU (all threads), unaffected by load
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        discovered = {"error": f"{type(exc).__name__}: {exc}"}
+    return discovered, law_fit
+
+
 def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list[DiagnosisData] | None = None,
              report_dir: Path | None = None, progress=lambda msg: None, model_out: Path | None = None,
              geometry: EffectGeometry | None = None) -> dict:
@@ -301,19 +321,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         effects, ambiguous = [], []
     discovered, law_fit = None, None
     if not adequacy.adequate:  # beyond the catalog: what the nominal model misses, by grouped sparse regression
-        from otbot_hw.diagnose.discover import discover
-
-        try:
-            t_disc, c_disc = time.perf_counter(), time.process_time()
-            discovered = discover(recordings, holdout, base.model, nominal_free)
-            discovered["regression_s"] = time.perf_counter() - t_disc
-            progress(f"[diagnose] discovered laws: {', '.join(lw['law'] for lw in discovered['laws']) or 'none'}")
-            if discovered["laws"]:
-                law_fit = _step_laws(recordings, holdout, base, discovered, nominal_free, params, progress)
-            discovered["elapsed_s"] = time.perf_counter() - t_disc
-            discovered["cpu_s"] = time.process_time() - c_disc  # process CPU (all threads), unaffected by load
-        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
-            discovered = {"error": f"{type(exc).__name__}: {exc}"}
+        discovered, law_fit = discover_laws(recordings, holdout, base, nominal_free, params, progress)
     k_before, k_after = base.n_params, final.n_params
     fit_before = {"fitting": channel_stats(recordings, base.model, k_before),
                   "heldout": channel_stats(holdout, base.model, k_before)}
