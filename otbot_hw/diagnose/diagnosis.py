@@ -26,7 +26,7 @@ from otbot_hw.diagnose.adequacy import assess
 from otbot_hw.diagnose.data import DiagnosisData, check_testable
 from otbot_hw.diagnose.geometry import EffectGeometry
 from otbot_hw.diagnose.locate import locate, summarize
-from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
+from otbot_hw.diagnose.refit import correlation_factor, refit, robust_std, single_blas_thread, weighted_residuals
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
 from otbot_hw.diagnose.select import AMBIGUOUS_DBIC, choose, free_nominal
 from otbot_hw.diagnose.significance import significance
@@ -153,7 +153,7 @@ def _caster_pair(recordings, sel, final, progress):
 
 
 DISCOVERY_NFEV = 15  # iterations of the simulation refit of the discovered laws
-LAW_T = 3.0  # a law whose main entry the simulation refit puts within LAW_T std of none is dropped
+LAW_DBIC = 10.0  # effective BIC a discovered law must be worth in the refit model's simulation, else dropped
 
 
 def _resim(sets, model) -> dict[str, dict]:
@@ -187,15 +187,24 @@ def _step_laws(recordings, holdout, base, disc: dict, nominal_free, params, prog
     hac = robust_std(recordings, fit)
     std = {n: max(fit.std.get(n, np.nan), hac.get(n, np.nan)) if np.isfinite(hac.get(n, np.nan)) else
            fit.std.get(n, np.nan) for n in free}
+    # a law the simulation does not need is dropped: removing it from the refit model costs less than its
+    # BIC penalty in effective samples (the residual correlation factor divides the RSS change)
+    res = weighted_residuals(recordings, fit.model, fit.sigma)
+    rss = sum(float(r @ r) for r in res.values())
+    n_all = sum(len(r) for r in res.values())
+    kappa = correlation_factor(res)
     dropped = {}
     for lw in disc["laws"]:
         lw["refit"] = {n: {"value": float(fit.model.get(n)), "std": _finite(std.get(n)), "unit": parameter_unit(n)}
                        for n in lw["effect"]}
-        main = lw["free"][0]
-        v, s = fit.model.get(main), std.get(main, np.nan)
-        if np.isfinite(s) and abs(v - base.model.get(main)) < LAW_T * s:  # the simulation does not need it
+        without = fit.model.with_values({n: base.model.get(n) for n in lw["effect"]})
+        rss_wo = sum(float(r @ r) for r in weighted_residuals(recordings, without, fit.sigma).values())
+        gain = (rss_wo - rss) / kappa
+        lw["simulation_delta_bic"] = float(-gain + len(lw["free"]) * np.log(n_all))
+        if lw["simulation_delta_bic"] > -LAW_DBIC:
             dropped.update({n: base.model.get(n) for n in lw["effect"]})
-            lw["dropped"] = f"the simulation refit takes it back ({main} = {v:.3g} +- {s:.2g})"
+            lw["dropped"] = (f"the simulation does not need it (removing it from the refit model: effective dBIC "
+                             f"{-lw['simulation_delta_bic']:+.1f})")
     disc["dropped"] = [lw for lw in disc["laws"] if lw.get("dropped")]
     disc["laws"] = [lw for lw in disc["laws"] if not lw.get("dropped")]
     disc["terms"] = [t for t in disc["terms"] if any(t["term"] == lw["law"] for lw in disc["laws"])]
