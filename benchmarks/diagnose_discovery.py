@@ -103,7 +103,7 @@ def run(label: str, rep: int, keep: Path | None) -> dict:
 
 
 def table(rows: list[dict]) -> list[str]:
-    lines = ["| law (truth) | discovered (refit by simulation, value ± HAC std) | also named / dropped | "
+    lines = ["| law (truth) | discovered (refit by simulation, value ± HAC std) | picked by the regression, dropped by the simulation | "
              "held-out re-simulation, RMS / noise before → after (w_r, w_l, w_p, a_x, a_y, g_z) | "
              "model adequate with the law | verdict | discovery / whole diagnosis (s) |",
              "|---|---|---|---|---|---|---|"]

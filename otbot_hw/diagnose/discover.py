@@ -211,17 +211,6 @@ def _basis(d: DiagnosisData, model: ExtendedModel, nominal: list[str]) -> Basis:
                  data=d, keep=keep)
 
 
-@dataclass
-class _Rows:
-    """Stacked, weighted rows of a set of recordings: design blocks per part, target, joint of each row,
-    recording of each row."""
-
-    parts: list[tuple[Basis, slice]]  # (basis, rows of it used)
-    y: np.ndarray
-    joint: np.ndarray
-    block: np.ndarray
-
-
 def _flat(c: np.ndarray) -> np.ndarray:
     """(n, 3, k) -> (3n, k), rows sample-major (joint = row mod 3)."""
     return c.reshape(-1, c.shape[2])
@@ -245,8 +234,7 @@ class _Design:
     def _stack(self, parts, fn) -> np.ndarray:
         blocks = []
         for b, sl in parts:
-            c = fn(b)[sl] * self.wj[None, :, None] if hasattr(self, "wj") else fn(b)[sl]
-            blocks.append(_flat(c))
+            blocks.append(_flat(fn(b)[sl] * self.wj[None, :, None]))
         return np.concatenate(blocks)
 
     def matrices(self, fn):
@@ -317,14 +305,13 @@ def discover(recordings: list[DiagnosisData], holdout: list[DiagnosisData], mode
             test_parts.append((b, slice(cut, None)))
         source = f"last {100 * HOLDOUT_FRACTION:.0f} % of each fitting recording"
     fixtures = {d.fixture for d in recordings + holdout}
-    fixture = "floor" if "floor" in fixtures and len(fixtures) == 1 else \
-        ("locked" if fixtures == {"locked"} else "mixed")
-    active = [True, True, True] if fixtures != {"locked"} else [False, False, True]
-    D = _Design(fit_parts, test_parts, active)
+    # the pivot-drag laws need every recording on the floor; locked wheels leave the pivot alone
+    fixture = fixtures.pop() if len(fixtures) == 1 else "stand"
+    D = _Design(fit_parts, test_parts, [fixture != "locked", fixture != "locked", True])
     y, yt = D.matrices(lambda b: b.res[:, :, None])
     y, yt = y[:, 0], yt[:, 0]
     X0, X0t = D.matrices(lambda b: b.nominal)
-    groups = candidate_groups("floor" if fixture == "floor" else ("locked" if fixture == "locked" else "stand"))
+    groups = candidate_groups(fixture)
     cols_cache: dict[Law, tuple[np.ndarray, np.ndarray]] = {}
 
     def cols(law: Law):
