@@ -40,3 +40,12 @@ def test_cogging_needs_a_whole_harmonic_and_the_file_round_trips(tmp_path):
     back = ExtendedModel.load(tmp_path / "m.yaml")
     assert np.array_equal(back.eff, m.eff)
     assert set(back.active_effects()) == {"cog_l", "cogn_l", "cogph_l", "dz_p", "c_lin"}
+
+
+def test_the_controller_compensation_undoes_dead_zone_and_soft_limit():
+    """``compensated_command``: the drives then deliver the wanted torque (dead zone and soft limit inverted)."""
+    eff = effect_vector({"dz_p": 0.5, "ts_r": 4.0, "k_l": 0.1, "dz_l": 0.3})
+    x = np.zeros(12)
+    for want in (np.array([2.0, -1.5, 0.8]), np.array([-3.0, 0.6, -2.0])):
+        u = phys.compensated_command(x, want, eff, P.as_array(), compiled.STAND)
+        assert np.allclose(phys.actuated_torque(u, eff), want, atol=1e-6), (u, want)

@@ -141,6 +141,7 @@ def radius_ratios(eff):
     return 1.0 / (1.0 + eff[DR_R]), 1.0 / (1.0 + eff[DR_L])
 
 
+DEADZONE_SMOOTH = 0.02  # N m: width of the dead-zone compensation's sign (``compensated_command``)
 K_SLIP_MIN = 1e-4  # rad/(s N m): creep of the traction curve when k_slip = 0 (rigid up to the limit)
 
 
@@ -309,15 +310,26 @@ def compensated_command(x, u_task, eff, prm, fixture):
     """Command (3,) N m under which the extended model's drives act like the paper model's torque
     ``u_task``: the delivered torque tau solves tau + Delta^T gen(x, tau) = u_task (fixed point; gen
     depends on tau only through unequal wheel radii, a contraction of factor |dr_r|, |dr_l|), then each
-    motor's gain error is divided out. Not compensated: saturation, dead zone, soft limit, current-loop
-    lag, the inertia change of unequal radii, slip (and a traction limit) and sensor effects."""
+    motor's soft limit (inverted up to 0.99 ts), dead zone (dz added in the torque's direction, smoothed
+    over ``DEADZONE_SMOOTH`` N m so that the command does not chatter about zero) and gain error are
+    undone. Not compensated: saturation, current-loop lag, the inertia change of unequal radii, slip (and a
+    traction limit) and sensor effects."""
     tau = u_task.copy()
     for _ in range(3):
         tau = u_task - effect_joint_torque(x, tau, eff, prm, fixture)
     out = np.empty(3)
-    out[0] = tau[0] / (1.0 + eff[K_R])
-    out[1] = tau[1] / (1.0 + eff[K_L])
-    out[2] = tau[2] / (1.0 + eff[K_P])
+    for i in range(3):
+        t = tau[i]
+        ts = eff[TS_R + i]
+        if ts > 0.0:
+            t = ts * np.arctanh(min(max(t / ts, -0.99), 0.99))
+        d = eff[DZ_R + i]
+        if d > 0.0:
+            t += d * np.tanh(t / DEADZONE_SMOOTH)
+        out[i] = t
+    out[0] /= 1.0 + eff[K_R]
+    out[1] /= 1.0 + eff[K_L]
+    out[2] /= 1.0 + eff[K_P]
     return out
 
 
