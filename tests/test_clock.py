@@ -73,7 +73,7 @@ def test_the_drivers_sequences_wait_on_the_runtimes_clock_and_never_sleep(monkey
     """enable (several SYNCs) and the quick stop (SYNC kept alive until confirmed), with a real-time
     clock handed down: each SYNC at the clock's tick one period after the last one; the calling thread
     sleeps only inside the clock. (The plant answers in lockstep: a loaded machine cannot spoil it.)"""
-    from sim.plant import simulated_robot
+    from sim.bus_robot import simulated_robot
 
     cfg = load_robot_config().relaxed(1.0)
     me = threading.get_ident()
