@@ -58,7 +58,8 @@ def _record(folder: Path, label: str, world: dict, rep: int) -> list[Path]:
 def run(label: str, rep: int, keep: Path | None) -> dict:
     """Record (or reuse in ``keep``) and diagnose one case; clean cases also run the discovery step alone."""
     from otbot_hw.diagnose.data import load
-    from otbot_hw.diagnose.diagnosis import diagnose, discover_laws
+    from otbot_hw.diagnose.diagnosis import diagnose
+    from otbot_hw.diagnose.discover import discover_laws
     from otbot_hw.diagnose.refit import refit
     from otbot_hw.diagnose.select import free_nominal
     from otbot_hw.model.effects import ExtendedModel

@@ -27,7 +27,7 @@ from otbot_hw.diagnose.data import DiagnosisData, check_testable
 from otbot_hw.diagnose.geometry import EffectGeometry
 from otbot_hw.diagnose.identifiability import effect_identifiability, not_identifiable_effects
 from otbot_hw.diagnose.locate import locate, summarize
-from otbot_hw.diagnose.refit import correlation_factor, refit, robust_std, single_blas_thread, weighted_residuals
+from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
 from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC
 from otbot_hw.diagnose.select import choose, free_nominal
@@ -154,99 +154,6 @@ def _caster_pair(recordings, sel, final, progress):
     return final
 
 
-DISCOVERY_NFEV = 15  # iterations of the simulation refit of the discovered laws
-LAW_DBIC = 10.0  # effective BIC a discovered law must be worth in the refit model's simulation, else dropped
-
-
-def _resim(sets, model) -> dict[str, dict]:
-    """RMS of measured minus simulated per channel over ``sets`` and its ratio to the channel noise."""
-    from otbot_hw.diagnose.residuals import simulation_residual
-
-    acc: dict[str, list] = {}
-    for d in sets:
-        for ch, r in simulation_residual(d, model).items():
-            acc.setdefault(ch, []).append((r, d.noise_sigma(ch)))
-    return {ch: {"rms": float(np.sqrt(np.mean(np.concatenate([r for r, _ in v]) ** 2))),
-                 "noise_ratio": float(np.sqrt(np.mean(np.concatenate([(r / s) ** 2 for r, s in v]))))}
-            for ch, v in acc.items()}
-
-
-def _step_laws(recordings, holdout, base, disc: dict, nominal_free, params, progress):
-    """The discovered laws stepped: their entries (and the nominal parameters) refit by simulation from the
-    regression's values, standard deviations by HAC, and the held-out recordings (else the fitting ones)
-    re-simulated with and without them. Updates ``disc`` (``laws[i].refit``, ``resimulation``,
-    ``improves``, ``adequate_with_laws``); returns the fit (std = HAC) or None when the refit fails."""
-    from otbot_hw.diagnose.discover import model_with_laws
-
-    try:
-        start = model_with_laws(base.model, disc)
-    except ValueError as exc:
-        disc["refit_error"] = str(exc)
-        return None
-    free = list(nominal_free) + [n for lw in disc["laws"] for n in lw["free"] if n not in nominal_free]
-    fit = refit(recordings, start, free, max_nfev=DISCOVERY_NFEV)
-    progress(f"[diagnose] discovered laws refit by simulation: {fit.message} ({fit.nfev} evaluations)")
-    hac = robust_std(recordings, fit)
-    std = {n: max(fit.std.get(n, np.nan), hac.get(n, np.nan)) if np.isfinite(hac.get(n, np.nan)) else
-           fit.std.get(n, np.nan) for n in free}
-    # a law the simulation does not need is dropped: removing it from the refit model costs less than its
-    # BIC penalty in effective samples (the residual correlation factor divides the RSS change)
-    res = weighted_residuals(recordings, fit.model, fit.sigma)
-    rss = sum(float(r @ r) for r in res.values())
-    n_all = sum(len(r) for r in res.values())
-    kappa = correlation_factor(res)
-    dropped = {}
-    for lw in disc["laws"]:
-        lw["refit"] = {n: {"value": float(fit.model.get(n)), "std": _finite(std.get(n)), "unit": parameter_unit(n)}
-                       for n in lw["effect"]}
-        without = fit.model.with_values({n: base.model.get(n) for n in lw["effect"]})
-        rss_wo = sum(float(r @ r) for r in weighted_residuals(recordings, without, fit.sigma).values())
-        gain = (rss_wo - rss) / kappa
-        lw["simulation_delta_bic"] = float(-gain + len(lw["free"]) * np.log(n_all))
-        if lw["simulation_delta_bic"] > -LAW_DBIC:
-            dropped.update({n: base.model.get(n) for n in lw["effect"]})
-            lw["dropped"] = (f"the simulation does not need it (removing it from the refit model: effective dBIC "
-                             f"{-lw['simulation_delta_bic']:+.1f})")
-    disc["dropped"] = [lw for lw in disc["laws"] if lw.get("dropped")]
-    disc["laws"] = [lw for lw in disc["laws"] if not lw.get("dropped")]
-    disc["terms"] = [t for t in disc["terms"] if any(t["term"] == lw["law"] for lw in disc["laws"])]
-    if not disc["laws"]:
-        return None
-    if dropped:
-        fit = dataclasses.replace(fit, model=fit.model.with_values(dropped))
-    sets = holdout or recordings
-    before, after = _resim(sets, base.model), _resim(sets, fit.model)
-    cost = [sum(v["noise_ratio"] ** 2 for v in x.values()) for x in (before, after)]
-    disc["resimulation"] = {"set": "held-out" if holdout else "fitting",
-                            "channels": {ch: {"before_rms": before[ch]["rms"], "after_rms": after[ch]["rms"],
-                                              "before_noise_ratio": before[ch]["noise_ratio"],
-                                              "after_noise_ratio": after[ch]["noise_ratio"]} for ch in before},
-                            "cost_before": cost[0], "cost_after": cost[1]}
-    disc["improves"] = bool(cost[1] < cost[0])
-    disc["adequate_with_laws"] = bool(assess(recordings, holdout, fit, params).adequate)
-    return dataclasses.replace(fit, std=std)
-
-
-def discover_laws(recordings, holdout, base, nominal_free, params, progress=lambda msg: None):
-    """Beyond the catalog (``discover``): laws in the nominal fit's torque residual, then stepped (``_step_laws``).
-    Returns (the ``discovered`` JSON, the fit with the laws or None)."""
-    from otbot_hw.diagnose.discover import discover
-
-    law_fit = None
-    try:
-        t_disc, c_disc = time.perf_counter(), time.process_time()
-        discovered = discover(recordings, holdout, base.model, nominal_free)
-        discovered["regression_s"] = time.perf_counter() - t_disc
-        progress(f"[diagnose] discovered laws: {', '.join(lw['law'] for lw in discovered['laws']) or 'none'}")
-        if discovered["laws"]:
-            law_fit = _step_laws(recordings, holdout, base, discovered, nominal_free, params, progress)
-        discovered["elapsed_s"] = time.perf_counter() - t_disc
-        discovered["cpu_s"] = time.process_time() - c_disc  # process CPU (all threads), unaffected by load
-    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
-        discovered = {"error": f"{type(exc).__name__}: {exc}"}
-    return discovered, law_fit
-
-
 def _small_needed(recordings, holdout, params, sel, final, progress):
     """Effects with evidence listed as detected but small (``significance``: they do not matter by what they
     do on these runs) are left out of the model -- unless the model without them is inadequate and with them
@@ -362,6 +269,8 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         effects, ambiguous = [], []
     discovered, law_fit = None, None
     if not adequacy.adequate:  # beyond the catalog: what the nominal model misses, by grouped sparse regression
+        from otbot_hw.diagnose.discover import discover_laws
+
         discovered, law_fit = discover_laws(recordings, holdout, base, nominal_free, params, progress)
     k_before, k_after = base.n_params, final.n_params
     fit_before = {"fitting": channel_stats(recordings, base.model, k_before),

@@ -5,7 +5,7 @@ the torque residual per joint (``residuals.torque_residual``: the command minus 
 needs for the motion estimated from the encoders, N m; unmodelled friction reads as +friction). It is
 regressed on a library of candidate *laws*, each a group of columns sharing one physical meaning and
 each a law the model can step (``otbot_hw.model.effect_catalog``: the catalog's entries or the laws
-beyond it), per joint j (r, l, p):
+beyond it; the library is ``law_library``), per joint j (r, l, p):
 
 * ``cogging``: sin(n phi_j), cos(n phi_j) for n in ``HARMONICS`` -> cog_j, cogn_j, cogph_j;
 * ``dead_zone``: clip(u_j, -d, d), d on ``DEADZONE_GRID`` -> dz_j (coefficient ~1 for a true dead zone);
@@ -24,191 +24,41 @@ after the nominal fit (the pivot and the wheels have different torque noise).
 
 Selection is greedy over *laws* (the catalog's group-OMP style): at each step every law not yet chosen is
 fitted beside the chosen ones (a grid law at the grid point of least fitting error); among the laws that
-pass two gates -- a held-out gain of ``MIN_HELDOUT_GAIN`` and an F test at ``ALPHA`` on the fitting data with the sample count divided by the residual correlation factor
-(``refit.correlation_factor``: the residual is smoothed and coloured) -- the one that lowers the held-out
-error most is taken; none passing ends the search. A law whose coefficients are not
-physical (negative drag or friction, a dead-zone or limit coefficient far from 1) is not a candidate. So
+pass two gates -- a held-out gain of ``MIN_HELDOUT_GAIN`` and an F test at ``ALPHA`` on the fitting data
+with the sample count divided by the residual correlation factor (``refit.correlation_factor``: the
+residual is smoothed and coloured) -- the one that lowers the held-out error most is taken; none passing
+ends the search. A law whose coefficients are not physical (negative drag or friction, a dead-zone or limit coefficient far from 1) is not a candidate. So
 nearly collinear command terms do not mix: one law per joint at a time, with its meaning. Held-out: the
 held-out recordings, else the last ``HOLDOUT_FRACTION`` of each fitting recording.
 
 Reported per law: the effect entries it sets in physical units with a Newey-West (HAC) std on the
-coloured residual, what it does, and the held-out torque-residual RMS per joint before/after. The
-diagnosis (``diagnosis``) then refits the laws' parameters by simulation and re-simulates the held-out
-recordings with them stepped (``model_with_laws`` builds the model that ``--out`` writes).
+coloured residual, what it does, and the held-out torque-residual RMS per joint before/after. Then
+(``discover_laws``, what the diagnosis runs) the laws are stepped: refit by simulation with the nominal
+parameters, dropped when the simulation does not need them (``LAW_DBIC``), and the held-out recordings
+re-simulated with them; that fit is the model ``--out`` writes.
 
 ``pysindy`` is not used: its optimizers threshold single raw coefficients of columns with different
 units, with no grouping of columns into laws and no held-out choice without scikit-learn on top.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+import time
 
 import numpy as np
 from scipy import stats
 
+from otbot_hw.diagnose.adequacy import assess
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.refit import bandwidth, correlation_factor
-from otbot_hw.diagnose.residuals import estimate_motion, integral_rate, torque_residual
-from otbot_hw.model.effects import ExtendedModel
-from otbot_hw.model.kinematics import fik_entries
+from otbot_hw.diagnose.law_library import (JOINTS, MEANING, Law, basis, candidate_groups, effect_std,
+                                           model_with_laws)
+from otbot_hw.diagnose.refit import bandwidth, correlation_factor, refit, robust_std, weighted_residuals
+from otbot_hw.model.effects import ExtendedModel, parameter_unit
 
-JOINTS = ("r", "l", "p")
-SIGN_WIDTH = 0.02  # rad/s
-HARMONICS = (1, 2, 3, 4, 6, 8)  # cogging cycles per turn tried
-DEADZONE_GRID = tuple(float(v) for v in np.geomspace(0.05, 3.0, 16))  # N m
-SOFT_GRID = tuple(float(v) for v in np.geomspace(1.0, 12.0, 12))  # N m
-SHAPE_COEF = (0.6, 1.5)  # a dead-zone or soft-limit coefficient outside this is not that law
 MAX_LAWS = 4
 MIN_HELDOUT_GAIN = 0.03  # relative drop of the held-out weighted mean square a law must bring
 ALPHA = 1e-3  # F test size per step
 HOLDOUT_FRACTION = 0.3
-EDGE = 0.1  # s dropped at each end (filter edges)
-
-#: what each law does (torque, drift, odometry), for the report
-MEANING = {
-    "cogging": "a torque ripple with the motor's angle: rate wobble at n cycles per turn, no net drift",
-    "dead_zone": "commands below the width deliver nothing: the joint does not start, small corrections are lost "
-                 "(the path drifts under feedback)",
-    "soft_limit": "large commands deliver less (ts tanh(u / ts)): accelerations fall short at high torque",
-    "coulomb": "a constant friction torque opposing the joint's rotation",
-    "gain": "the drive delivers (1 + k) times the command",
-    "linear_drag": "a force -c_lin v at the pivot: the platform slows in proportion to its speed (odometry and IMU "
-                   "agree; the model over-predicts speed and distance)",
-    "quadratic_drag": "a force -c_air |v| v at the pivot: the platform slows with the square of its speed",
-}
-
-
-@dataclass
-class Basis:
-    """What the library is built from, for one recording (kept samples only): residual (n, 3) N m, nominal
-    columns (n, 3, k0), joint rates w and angles phi (n, 3), raw commands u (n, 3) and the pivot Jacobian J
-    (n, 2, 3) with the pivot velocity v (n, 2) m/s on the floor."""
-
-    res: np.ndarray
-    nominal: np.ndarray
-    w: np.ndarray
-    phi: np.ndarray
-    u: np.ndarray
-    J: np.ndarray | None
-    v: np.ndarray | None
-    data: DiagnosisData
-    keep: np.ndarray
-
-    def filtered(self, y: np.ndarray) -> np.ndarray:
-        """A command-derived series (N, 3) of the whole record through the residual's torque filter, kept rows."""
-        return integral_rate(self.data, y)[self.keep]
-
-
-@dataclass(frozen=True)
-class Law:
-    kind: str
-    joint: str  # r, l, p, or "platform"
-    grid: float = 0.0  # harmonic, dead-zone width or soft limit
-
-    @property
-    def group(self) -> tuple[str, str]:
-        return self.kind, self.joint
-
-    @property
-    def label(self) -> str:
-        j = self.joint
-        return {"cogging": f"cogging {self.grid:g}/turn on {j}", "dead_zone": f"dead zone {self.grid:.3g} N m on {j}",
-                "soft_limit": f"soft limit {self.grid:.3g} N m on {j}", "coulomb": f"Coulomb friction on {j}",
-                "gain": f"torque gain on {j}", "linear_drag": "linear drag at the pivot",
-                "quadratic_drag": "quadratic drag at the pivot"}[self.kind]
-
-    def columns(self, b: Basis) -> np.ndarray:
-        """(n, 3, k) generalized-force columns of this law on the kept samples."""
-        n = len(b.res)
-        if self.kind in ("linear_drag", "quadratic_drag"):
-            v = b.v if self.kind == "linear_drag" else np.linalg.norm(b.v, axis=1)[:, None] * b.v
-            return np.einsum("nij,ni->nj", b.J, v)[:, :, None]
-        j = JOINTS.index(self.joint)
-
-        def on(*xs):
-            c = np.zeros((n, 3, len(xs)))
-            for k, x in enumerate(xs):
-                c[:, j, k] = x
-            return c
-
-        if self.kind == "cogging":
-            a = self.grid * b.phi[:, j]
-            return on(np.sin(a), np.cos(a))
-        if self.kind == "coulomb":
-            return on(np.tanh(b.w[:, j] / SIGN_WIDTH))
-        u = np.zeros((len(b.data), 3))
-        uj = b.data.u[:, j]
-        if self.kind == "gain":
-            u[:, j] = uj
-        elif self.kind == "dead_zone":
-            u[:, j] = np.clip(uj, -self.grid, self.grid)
-        else:  # soft_limit
-            u[:, j] = uj - self.grid * np.tanh(uj / self.grid)
-        return on(b.filtered(u)[:, j])
-
-    def effect(self, coef: np.ndarray) -> dict[str, float] | None:
-        """The model's effect entries of this law for its fitted coefficients; None when not physical."""
-        c = coef[0]
-        j = self.joint
-        if self.kind in ("linear_drag", "quadratic_drag", "coulomb"):
-            name = {"linear_drag": "c_lin", "quadratic_drag": "c_air", "coulomb": f"c_{j}"}[self.kind]
-            return {name: float(c)} if c > 0 else None
-        if self.kind == "gain":
-            return {f"k_{j}": float(-c)} if abs(c) < 0.5 else None
-        if self.kind == "cogging":
-            return {f"cog_{j}": float(np.hypot(coef[0], coef[1])), f"cogn_{j}": float(self.grid),
-                    f"cogph_{j}": float(np.arctan2(coef[1], coef[0]))}
-        if not SHAPE_COEF[0] <= c <= SHAPE_COEF[1]:
-            return None
-        return {("dz_" if self.kind == "dead_zone" else "ts_") + j: float(self.grid)}
-
-    def free(self) -> list[str]:
-        """Effect entries a simulation refit adjusts (the harmonic stays)."""
-        j = self.joint
-        return {"cogging": [f"cog_{j}", f"cogph_{j}"], "dead_zone": [f"dz_{j}"], "soft_limit": [f"ts_{j}"],
-                "coulomb": [f"c_{j}"], "gain": [f"k_{j}"], "linear_drag": ["c_lin"],
-                "quadratic_drag": ["c_air"]}[self.kind]
-
-
-def candidate_groups(fixture: str) -> list[list[Law]]:
-    """The library: one list of grid variants per law (kind, joint)."""
-    groups = []
-    joints = ("p",) if fixture == "locked" else JOINTS
-    for j in joints:
-        groups.append([Law("cogging", j, n) for n in HARMONICS])
-        groups.append([Law("dead_zone", j, d) for d in DEADZONE_GRID])
-        groups.append([Law("soft_limit", j, t) for t in SOFT_GRID])
-        groups.append([Law("coulomb", j)])
-    if fixture == "floor":
-        groups.append([Law("linear_drag", "platform")])
-        groups.append([Law("quadratic_drag", "platform")])
-    return groups
-
-
-def _basis(d: DiagnosisData, model: ExtendedModel, nominal: list[str]) -> Basis:
-    m = estimate_motion(d, model)
-    res = torque_residual(d, model, m)
-    n = len(d)
-    cols = []
-    for name in nominal:
-        v = model.get(name)
-        h = 1e-3 * max(abs(v), 1e-2)
-        cols.append((res - torque_residual(d, model.with_values({name: v + h}), m)) / h)
-    keep = np.zeros(n, bool)
-    e = int(round(EDGE / d.dt))
-    keep[e:n - e] = True
-    J = v = None
-    if d.fixture == "floor":
-        th = m.q[:, 2] - m.q[:, 5]
-        p = model.params
-        b00, b01, b10, b11, _ = fik_entries(np.sin(th), np.cos(th), p.l1, p.l2, p.r)
-        J = np.zeros((n, 2, 3))
-        J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1] = b00, b01, b10, b11
-        v = m.qd[:, :2]
-        J, v = J[keep], v[keep]
-    nom = np.stack(cols, axis=2)[keep] if cols else np.zeros((int(keep.sum()), 3, 0))
-    return Basis(res=res[keep], nominal=nom, w=m.qd[keep, 3:6], phi=d.enc_pos[keep], u=d.u[keep], J=J, v=v,
-                 data=d, keep=keep)
 
 
 def _flat(c: np.ndarray) -> np.ndarray:
@@ -291,9 +141,9 @@ def discover(recordings: list[DiagnosisData], holdout: list[DiagnosisData], mode
     from otbot_hw.diagnose.select import free_nominal
 
     nominal = list(free_nominal(recordings) if nominal is None else nominal)
-    fit_b = [_basis(d, model, nominal) for d in recordings]
+    fit_b = [basis(d, model, nominal) for d in recordings]
     if holdout:
-        hold_b = [_basis(d, model, nominal) for d in holdout]
+        hold_b = [basis(d, model, nominal) for d in holdout]
         fit_parts = [(b, slice(None)) for b in fit_b]
         test_parts = [(b, slice(None)) for b in hold_b]
         source = "held-out recordings"
@@ -378,13 +228,13 @@ def discover(recordings: list[DiagnosisData], holdout: list[DiagnosisData], mode
         k = law.columns(fit_b[0]).shape[2]
         cf, cs = c[i:i + k], std[i:i + k]
         eff = law.effect(cf) or {}
-        est = _effect_std(law, cf, cs)
+        est = effect_std(law, cf, cs)
         laws.append({"law": law.label, "kind": law.kind, "joint": law.joint, "grid": law.grid, "effect": eff,
                      "std": est, "coefficient": [float(v) for v in cf], "coefficient_std": [float(v) for v in cs],
                      "meaning": MEANING[law.kind], "heldout_gain": float(gain), "free": law.free()})
         i += k
     terms = [{"term": lw["law"], "joint": lw["joint"], "value": float(next(iter(lw["effect"].values()))),
-              "std": float(next(iter(lw["std"].values()))), "unit": _unit(next(iter(lw["effect"]))),
+              "std": float(next(iter(lw["std"].values()))), "unit": parameter_unit(next(iter(lw["effect"]))),
               "meaning": lw["meaning"]} for lw in laws]
     heldout = {}
     rt = yt - Xt @ c
@@ -406,35 +256,94 @@ def discover(recordings: list[DiagnosisData], holdout: list[DiagnosisData], mode
                       "HAC standard deviations"}
 
 
-def _unit(name: str) -> str:
-    from otbot_hw.model.effects import parameter_unit
-
-    return parameter_unit(name)
+DISCOVERY_NFEV = 15  # iterations of the simulation refit of the discovered laws
+LAW_DBIC = 10.0  # effective BIC a discovered law must be worth in the refit model's simulation, else dropped
 
 
-def _effect_std(law: Law, coef: np.ndarray, std: np.ndarray) -> dict[str, float]:
-    """Std of the law's effect entries from its coefficients' (delta method; grid entries: NaN = on the grid)."""
-    j = law.joint
-    if law.kind == "cogging":
-        a, b = coef
-        amp = float(np.hypot(a, b)) or 1e-300
-        return {f"cog_{j}": float(np.hypot(a * std[0], b * std[1]) / amp),
-                f"cogph_{j}": float(np.hypot(b * std[0], a * std[1]) / amp ** 2)}
-    if law.kind in ("dead_zone", "soft_limit"):
-        # the width from the grid; its coefficient's std relative to 1 scales the width's uncertainty
-        return {("dz_" if law.kind == "dead_zone" else "ts_") + j: float(law.grid * std[0])}
-    name = law.effect(coef)
-    return {next(iter(name)): float(std[0])} if name else {}
+def _resim(sets, model) -> dict[str, dict]:
+    """RMS of measured minus simulated per channel over ``sets`` and its ratio to the channel noise."""
+    from otbot_hw.diagnose.residuals import simulation_residual
+
+    acc: dict[str, list] = {}
+    for d in sets:
+        for ch, r in simulation_residual(d, model).items():
+            acc.setdefault(ch, []).append((r, d.noise_sigma(ch)))
+    return {ch: {"rms": float(np.sqrt(np.mean(np.concatenate([r for r, _ in v]) ** 2))),
+                 "noise_ratio": float(np.sqrt(np.mean(np.concatenate([(r / s) ** 2 for r, s in v]))))}
+            for ch, v in acc.items()}
 
 
-def model_with_laws(model: ExtendedModel, disc: dict, nominal_shift: bool = True) -> ExtendedModel:
-    """``model`` with the discovered laws' effect entries set (added to what the model has for the catalog's
-    entries) and, with ``nominal_shift``, the nominal parameters moved by the regression's shift."""
-    values: dict[str, float] = {}
-    for lw in disc.get("laws", []):
-        for k, v in lw["effect"].items():
-            values[k] = v + (model.get(k) if k in ("c_air", "c_r", "c_l", "c_p", "k_r", "k_l", "k_p") else 0.0)
-    if nominal_shift:
-        for k, dv in disc.get("nominal_shift", {}).items():
-            values[k] = model.get(k) + dv
-    return model.with_values(values).checked()
+def _step_laws(recordings, holdout, base, disc: dict, nominal_free, params, progress):
+    """The discovered laws stepped: their entries (and the nominal parameters) refit by simulation from the
+    regression's values, standard deviations by HAC, and the held-out recordings (else the fitting ones)
+    re-simulated with and without them. Updates ``disc`` (``laws[i].refit``, ``resimulation``,
+    ``improves``, ``adequate_with_laws``); returns the fit (std = HAC) or None when the refit fails."""
+    try:
+        start = model_with_laws(base.model, disc)
+    except ValueError as exc:
+        disc["refit_error"] = str(exc)
+        return None
+    free = list(nominal_free) + [n for lw in disc["laws"] for n in lw["free"] if n not in nominal_free]
+    fit = refit(recordings, start, free, max_nfev=DISCOVERY_NFEV)
+    progress(f"[diagnose] discovered laws refit by simulation: {fit.message} ({fit.nfev} evaluations)")
+    hac = robust_std(recordings, fit)
+    std = {n: max(fit.std.get(n, np.nan), hac.get(n, np.nan)) if np.isfinite(hac.get(n, np.nan)) else
+           fit.std.get(n, np.nan) for n in free}
+    # a law the simulation does not need is dropped: removing it from the refit model costs less than its
+    # BIC penalty in effective samples (the residual correlation factor divides the RSS change)
+    res = weighted_residuals(recordings, fit.model, fit.sigma)
+    rss = sum(float(r @ r) for r in res.values())
+    n_all = sum(len(r) for r in res.values())
+    kappa = correlation_factor(res)
+    dropped = {}
+    for lw in disc["laws"]:
+        lw["refit"] = {n: {"value": float(fit.model.get(n)), "std": _finite(std.get(n)), "unit": parameter_unit(n)}
+                       for n in lw["effect"]}
+        without = fit.model.with_values({n: base.model.get(n) for n in lw["effect"]})
+        rss_wo = sum(float(r @ r) for r in weighted_residuals(recordings, without, fit.sigma).values())
+        gain = (rss_wo - rss) / kappa
+        lw["simulation_delta_bic"] = float(-gain + len(lw["free"]) * np.log(n_all))
+        if lw["simulation_delta_bic"] > -LAW_DBIC:
+            dropped.update({n: base.model.get(n) for n in lw["effect"]})
+            lw["dropped"] = (f"the simulation does not need it (removing it from the refit model: effective dBIC "
+                             f"{-lw['simulation_delta_bic']:+.1f})")
+    disc["dropped"] = [lw for lw in disc["laws"] if lw.get("dropped")]
+    disc["laws"] = [lw for lw in disc["laws"] if not lw.get("dropped")]
+    disc["terms"] = [t for t in disc["terms"] if any(t["term"] == lw["law"] for lw in disc["laws"])]
+    if not disc["laws"]:
+        return None
+    if dropped:
+        fit = dataclasses.replace(fit, model=fit.model.with_values(dropped))
+    sets = holdout or recordings
+    before, after = _resim(sets, base.model), _resim(sets, fit.model)
+    cost = [sum(v["noise_ratio"] ** 2 for v in x.values()) for x in (before, after)]
+    disc["resimulation"] = {"set": "held-out" if holdout else "fitting",
+                            "channels": {ch: {"before_rms": before[ch]["rms"], "after_rms": after[ch]["rms"],
+                                              "before_noise_ratio": before[ch]["noise_ratio"],
+                                              "after_noise_ratio": after[ch]["noise_ratio"]} for ch in before},
+                            "cost_before": cost[0], "cost_after": cost[1]}
+    disc["improves"] = bool(cost[1] < cost[0])
+    disc["adequate_with_laws"] = bool(assess(recordings, holdout, fit, params).adequate)
+    return dataclasses.replace(fit, std=std)
+
+
+def discover_laws(recordings, holdout, base, nominal_free, params, progress=lambda msg: None):
+    """Beyond the catalog (``discover``): laws in the nominal fit's torque residual, then stepped (``_step_laws``).
+    Returns (the ``discovered`` JSON, the fit with the laws or None)."""
+    law_fit = None
+    try:
+        t_disc, c_disc = time.perf_counter(), time.process_time()
+        discovered = discover(recordings, holdout, base.model, nominal_free)
+        discovered["regression_s"] = time.perf_counter() - t_disc
+        progress(f"[diagnose] discovered laws: {', '.join(lw['law'] for lw in discovered['laws']) or 'none'}")
+        if discovered["laws"]:
+            law_fit = _step_laws(recordings, holdout, base, discovered, nominal_free, params, progress)
+        discovered["elapsed_s"] = time.perf_counter() - t_disc
+        discovered["cpu_s"] = time.process_time() - c_disc  # process CPU (all threads), unaffected by load
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        discovered = {"error": f"{type(exc).__name__}: {exc}"}
+    return discovered, law_fit
+
+
+def _finite(v):
+    return None if v is None or not np.isfinite(v) else float(v)
