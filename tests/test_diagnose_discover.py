@@ -28,7 +28,7 @@ def test_dead_zone_is_discovered_written_stepped_and_simulated(tmp_path, capsys)
     the held-out recording far closer than the nominal model, and ``otbot simulate --params`` steps it (a
     0.4 N m pivot command moves nothing)."""
     from otbot_hw.diagnose.data import load
-    from otbot_hw.diagnose.residuals import simulation_residual
+    from otbot_hw.diagnose.simulated_run import simulation_residual
     from otbot_hw.model.effects import ExtendedModel
 
     fit = _write(tmp_path / "fit.mcap", {"dz_p": 0.5}, "multisine", 5.0, 11)

@@ -262,7 +262,7 @@ LAW_DBIC = 10.0  # effective BIC a discovered law must be worth in the refit mod
 
 def _resim(sets, model) -> dict[str, dict]:
     """RMS of measured minus simulated per channel over ``sets`` and its ratio to the channel noise."""
-    from otbot_hw.diagnose.residuals import simulation_residual
+    from otbot_hw.diagnose.simulated_run import simulation_residual
 
     acc: dict[str, list] = {}
     for d in sets:

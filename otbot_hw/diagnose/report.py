@@ -18,7 +18,8 @@ import numpy as np
 from scipy import stats
 
 from otbot_hw.diagnose.data import CHANNEL_UNITS, CHANNELS, DiagnosisData
-from otbot_hw.diagnose.residuals import simulate_outputs, torque_residual
+from otbot_hw.diagnose.residuals import torque_residual
+from otbot_hw.diagnose.simulated_run import simulate_outputs
 from otbot_hw.model.effects import ExtendedModel
 
 LB_LAGS = 20
