@@ -119,7 +119,8 @@ def test_bad_input_is_rejected_with_a_clear_message(tmp_path, capsys):
     d = from_recording(rec, "imu")
     assert "a_y" in d.unusable and "NaN" in d.unusable["a_y"]
     assert "a_y" not in d.channels() and "a_x" in d.channels()
-    from otbot_hw.diagnose.residuals import imu_residual, simulation_residual, torque_residual
+    from otbot_hw.diagnose.residuals import imu_residual, torque_residual
+    from otbot_hw.diagnose.simulated_run import simulation_residual
     from otbot_hw.model.effects import ExtendedModel
     m = ExtendedModel.paper(P)
     ir = imu_residual(d, m)
@@ -178,7 +179,7 @@ def test_extended_model_serves_the_shared_fitter_interface():
     parameter sets its members; the seam's per-channel RSS is that of the fitted model's residuals."""
     from otbot_hw.diagnose.prediction import ExtendedPredictionModel, diagnosis_experiments
     from otbot_hw.diagnose.refit import channel_sigmas, refit, weighted_residuals
-    from otbot_hw.diagnose.residuals import simulate_outputs
+    from otbot_hw.diagnose.simulated_run import simulate_outputs
     from otbot_hw.model.effects import ExtendedModel
 
     d = from_recording(concealed_recording(P, {"c_w": 0.2}, "stand", 2.0, seed=3), "stand")
@@ -350,6 +351,7 @@ def test_fast_paths_give_the_plain_numbers():
     import dataclasses
 
     from otbot_hw.diagnose import residuals as R
+    from otbot_hw.diagnose import simulated_run as S
     from otbot_hw.model import effect_physics as phys
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.model.fixtures import fixture_code
@@ -374,14 +376,14 @@ def test_fast_paths_give_the_plain_numbers():
     for vals in ({}, {"k_slip": 0.02, "t_trac": 3.0, "k_l": 0.1, "T_i": 0.01}, {"e_r": 0.05, "dr_l": -0.03}):
         m = ExtendedModel.paper(P).with_values(vals)
         whole = R.estimate_motion(d, m, smooth_rates=False)
-        assert np.array_equal(R.encoder_state(d, m), np.concatenate([whole.q[0], whole.qd[0]]))
+        assert np.array_equal(S.encoder_state(d, m), np.concatenate([whole.q[0], whole.qd[0]]))
     m = ExtendedModel.paper(P).with_values({"c_w": 0.2})
-    first = R.simulate_outputs(d, m)
-    again = R.simulate_outputs(d, m)
-    R._SIM_CACHE.clear()
-    fresh = R.simulate_outputs(d, m)
+    first = S.simulate_outputs(d, m)
+    again = S.simulate_outputs(d, m)
+    S._SIM_CACHE.clear()
+    fresh = S.simulate_outputs(d, m)
     assert all(np.array_equal(first[k], fresh[k]) and np.array_equal(again[k], fresh[k]) for k in fresh)
     with pytest.raises(ValueError):
         again["w_r"][0] = 0.0
     other = dataclasses.replace(d, u=d.u * 1.5)
-    assert not np.array_equal(R.simulate_outputs(other, m)["w_r"], fresh["w_r"])
+    assert not np.array_equal(S.simulate_outputs(other, m)["w_r"], fresh["w_r"])

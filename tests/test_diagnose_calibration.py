@@ -21,7 +21,7 @@ def test_issue_20_clean_case_is_clean_and_its_cause_is_the_initial_pivot_rate(ca
     """10 s floor run of the independent simulator, piecewise-constant torques +-8 N m held 0.4-1.2 s, 100 Hz:
     the first pivot-rate reading is beyond 3 sigma, which used to set the initial pivot rate (judged
     "model inadequate", w_p 2.1 x noise); the initial rates fitted to the first 0.25 s give a start at rest."""
-    from otbot_hw.diagnose import residuals as R
+    from otbot_hw.diagnose import simulated_run as R
     from otbot_hw.diagnose.data import load
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.params import nominal

@@ -178,7 +178,8 @@ def run(args: argparse.Namespace) -> dict:
         if quiet:
             print(json.dumps(result, allow_nan=False))
         print("otbot diagnose: model inadequate: suspect " + ", ".join(result["suspect_parameters"]) +
-              (" (no model file written)" if args.out is not None else ""), file=sys.stderr)
+              ("" if args.out is None else f" (the model with the discovered laws: {result['model_file']})"
+               if result.get("model_file") else " (no model file written)"), file=sys.stderr)
         raise SystemExit(1)
     return result
 

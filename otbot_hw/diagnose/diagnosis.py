@@ -54,11 +54,13 @@ def _params_json(fit, names, std: dict | None = None):
             for n in names}
 
 
-def save_model(path: Path, fit, effects: list[dict], ambiguous: list[dict], recordings: list[str]) -> None:
+def save_model(path: Path, fit, effects: list[dict], ambiguous: list[dict], recordings: list[str],
+               discovered: list[dict] | None = None) -> None:
     """Write the diagnosed model (the final fit: refit nominal parameters and effects, with std) as a
     parameter YAML with an ``effects`` section: what ``otbot simulate`` and ``otbot track`` load. An
     ambiguous group's best candidate is in the final fit (it predicts as well as its look-alikes);
-    the header says so."""
+    the header says so. ``discovered``: laws beyond the catalog (``discover``) the fit holds, named in
+    the header."""
     import dataclasses
 
     from otbot_hw.params import PARAM_INDEX
@@ -69,6 +71,9 @@ def save_model(path: Path, fit, effects: list[dict], ambiguous: list[dict], reco
     lines = ["Diagnosed model (otbot diagnose --out): nominal parameters refit together with the accepted",
              "effects; std = one standard deviation. Recordings: " + ", ".join(Path(r).name for r in recordings),
              "Accepted effects: " + (", ".join(e["name"] for e in effects) or "none")]
+    if discovered:
+        lines.append("Model inadequate for the catalog; laws discovered beyond it (diagnose/discover.py), refit by "
+                     "simulation: " + ", ".join(lw["law"] for lw in discovered))
     for g in ambiguous:
         names = [c["name"] for c in g["candidates"]]
         lines.append(f"Ambiguous, the data cannot tell apart: {' / '.join(names)}. The file holds the best of them "
@@ -104,6 +109,17 @@ def _candidate_json(c, effects: dict, std: dict | None = None, fit=None) -> dict
                         "simulation_screening_delta_bic": c.sim_screen_dbic,
                         "heldout_delta_cost": _finite(c.dholdout)}}
     return out
+
+
+def _in_place_of(recordings, final, base, effects, lead, other):
+    """(std, fit) of the final fit with the ambiguous group's ``other`` member in place of its ``lead``: the
+    lead's parameters back to the nominal fit's values (none), the other's free, started from its nested fit."""
+    out_p, in_p = effects[lead.effect].parameters, effects[other.effect].parameters
+    names = [n for n in final.names if n not in out_p] + [n for n in in_p if n not in final.names]
+    start = final.model.with_values({n: base.model.get(n) for n in out_p if n not in in_p})
+    start = start.with_values({n: other.fit.values[n] for n in in_p if n in other.fit.values})
+    fit = refit(recordings, start, names, max_nfev=FINAL_NFEV)
+    return fit.std, fit
 
 
 PAIR_SPREAD = 0.15  # m: the pair's start, (x, +-PAIR_SPREAD) about the single caster's fitted x
@@ -229,9 +245,15 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
             e = sel.effects[c.effect]
             if any(o.effect in e.lookalikes for o in grp) or not exps:
                 exps.append(e.separating_experiment)
-        # the group's best member is in the final model: its values and std from the final fit
-        ambiguous.append({"candidates": [_candidate_json(c, sel.effects, *((std, final) if i == 0 else ()))
-                                         for i, c in enumerate(grp)],
+        # the group's best member is in the final model: its values and std from the final fit; each other
+        # member from the same final fit with it in the best one's place (its nested fit held the other
+        # accepted effects: beside Stribeck friction held, a Coulomb look-alike read c_w +30 % once rolling
+        # resistance led the tie)
+        members = [_candidate_json(grp[0], sel.effects, std, final)]
+        for c in grp[1:]:
+            members.append(_candidate_json(c, sel.effects, *_in_place_of(recordings, final, base, sel.effects,
+                                                                         grp[0], c)))
+        ambiguous.append({"candidates": members,
                           "bic_margin": AMBIGUOUS_DBIC, "residual_correlation_factor": grp[0].kappa,
                           "experiment": "; ".join(dict.fromkeys(exps))})
     small = [_candidate_json(c, sel.effects) for c in sel.small]
@@ -249,15 +271,11 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
                    [{"name": g["candidates"][0]["name"], "parameters": g["candidates"][0]["parameters"],
                      "ambiguous_with": [c["name"] for c in g["candidates"][1:]]} for g in ambiguous]
         effects, ambiguous = [], []
-    discovered = None
-    if not adequacy.adequate:  # beyond the catalog: what the nominal model misses, by sparse regression
-        from otbot_hw.diagnose.discover import discover
+    discovered, law_fit = None, None
+    if not adequacy.adequate:  # beyond the catalog: what the nominal model misses, by grouped sparse regression
+        from otbot_hw.diagnose.discover import discover_laws
 
-        try:
-            discovered = discover(recordings, holdout, base.model)
-            progress(f"[diagnose] discovered terms: {', '.join(t['term'] for t in discovered['terms']) or 'none'}")
-        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
-            discovered = {"error": f"{type(exc).__name__}: {exc}"}
+        discovered, law_fit = discover_laws(recordings, holdout, base, nominal_free, params, progress)
     k_before, k_after = base.n_params, final.n_params
     fit_before = {"fitting": channel_stats(recordings, base.model, k_before),
                   "heldout": channel_stats(holdout, base.model, k_before)}
@@ -323,6 +341,9 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         result["plots"] = plots
     if model_out is not None and adequacy.adequate:
         save_model(Path(model_out), dataclasses.replace(final, std=std), effects, ambiguous, result["recordings"])
+        result["model_file"] = str(model_out)
+    elif model_out is not None and law_fit is not None and discovered.get("improves"):
+        save_model(Path(model_out), law_fit, [], [], result["recordings"], discovered=discovered["laws"])
         result["model_file"] = str(model_out)
     result["elapsed_s"] = time.perf_counter() - t_start
     result["cpu_s"] = time.process_time() - cpu_start  # this process, all its threads (prediction threads included)

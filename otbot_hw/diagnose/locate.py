@@ -23,7 +23,8 @@ import numpy as np
 from scipy import stats
 
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.residuals import estimate_motion, joint_rates, simulation_residual, torque_residual
+from otbot_hw.diagnose.residuals import estimate_motion, joint_rates, torque_residual
+from otbot_hw.diagnose.simulated_run import simulation_residual
 from otbot_hw.model.effects import ExtendedModel
 
 WINDOW = 0.5  # s

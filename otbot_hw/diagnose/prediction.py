@@ -15,7 +15,7 @@ diagnosis runs through the same fitter as the identification.
 * Channels: the diagnosis channels (encoder rates ``w_r, w_l, w_p`` rad/s, IMU ``a_x,
   a_y`` m/s^2, gyro z rad/s); the gyro is called ``omega_z`` as in the identification
   (``g_z`` in the diagnosis).
-* Prediction: ``residuals.simulate_outputs`` -- the whole run simulated from the initial
+* Prediction: ``simulated_run.simulate_outputs`` -- the whole run simulated from the initial
   state estimated from the encoders *with the candidate parameters* (encoder scale,
   radius asymmetry and slip change it), with the experiment's RK4 ``substeps``.
   A simulation that fails or diverges predicts ``FAILED_OUTPUT`` (a large finite value,
@@ -30,7 +30,7 @@ import numpy as np
 
 from otbot_hw.diagnose.data import CHANNELS as DIAGNOSIS_CHANNELS
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.residuals import diagnosis_substeps, initial_state, simulate_outputs
+from otbot_hw.diagnose.simulated_run import diagnosis_substeps, initial_state, simulate_outputs
 from otbot_hw.identification.experiment import Experiment
 from otbot_hw.identification.model import map_prediction_rows
 from otbot_hw.model.effects import EFFECT_PARAM_NAMES, TIED_PARAMS, ExtendedModel
@@ -97,7 +97,7 @@ def diagnosis_experiments(recordings: Sequence[DiagnosisData], model: ExtendedMo
                           sigmas: dict[tuple[str, str], float]) -> list[DiagnosisExperiment]:
     """One fitter experiment per recording: its usable channels, weighted by ``sigmas[(name, channel)]``
     (units of the channel), x0 from the encoders under ``model``, the diagnosis's RK4 step for ``model``
-    (``residuals.diagnosis_substeps``; pass the model at the fit's start values)."""
+    (``simulated_run.diagnosis_substeps``; pass the model at the fit's start values)."""
     out = []
     for d in recordings:
         chans = d.channels()

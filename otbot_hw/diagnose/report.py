@@ -18,7 +18,8 @@ import numpy as np
 from scipy import stats
 
 from otbot_hw.diagnose.data import CHANNEL_UNITS, CHANNELS, DiagnosisData
-from otbot_hw.diagnose.residuals import simulate_outputs, torque_residual
+from otbot_hw.diagnose.residuals import torque_residual
+from otbot_hw.diagnose.simulated_run import simulate_outputs
 from otbot_hw.model.effects import ExtendedModel
 
 LB_LAGS = 20
@@ -85,14 +86,28 @@ def channel_stats(recordings: list[DiagnosisData], model: ExtendedModel, k: int)
 
 
 def _discovered_text(disc: dict | None) -> str:
-    """One sentence on the law found beyond the catalog (``discover``), empty without one."""
-    if not disc or not disc.get("terms"):
-        return ""
-    terms = ", ".join(f"{t['term']} ({t['joint']}) {t['value']:.3g} ± {t['std']:.2g} {t['unit']}: {t['meaning']}"
-                      for t in disc["terms"][:4])
-    held = "; ".join(f"{j} {v['before_rms']:.3g} -> {v['after_rms']:.3g} N m" for j, v in disc["heldout"].items())
-    return (f" Beyond the catalog, the residual torques fit best with {terms} (held-out torque residual RMS, "
-            f"{disc['heldout_source']}: {held}).")
+    """Sentences on the laws found beyond the catalog (``discover``, stepped by the diagnosis), empty without one."""
+    if not disc or not disc.get("laws"):
+        tried = (disc or {}).get("tried") or []
+        if not tried:
+            return ""
+        close = ", ".join(f"{t['law']} (held-out {100 * t['heldout_gain']:+.0f} %, p {t['p_value']:.2g})"
+                          for t in tried[:3])
+        return f" No law of the discovery library passes its gates; the closest: {close}."
+    parts = []
+    for lw in disc["laws"]:
+        vals = lw.get("refit") or {k: {"value": v, "std": lw["std"].get(k), "unit": ""} for k, v in lw["effect"].items()}
+        ps = ", ".join(f"{k} = " + (f"{v['value']:g}" if k.startswith("cogn_") else _fmt(v["value"], v["std"]))
+                       + f" {v['unit']}".rstrip() for k, v in vals.items())
+        parts.append(f"{lw['law']} ({ps}): {lw['meaning']}")
+    text = " Beyond the catalog, discovered: " + "; ".join(parts) + "."
+    rs = disc.get("resimulation")
+    if rs:
+        ch = ", ".join(f"{c} {v['before_noise_ratio']:.2g} -> {v['after_noise_ratio']:.2g}"
+                       for c, v in rs["channels"].items())
+        text += (f" Re-simulating the {rs['set']} recordings with them stepped, residual RMS / noise: {ch}"
+                 + (" (the model with them is adequate)." if disc.get("adequate_with_laws") else "."))
+    return text
 
 
 def _not_identifiable_text(items: list[dict]) -> str:

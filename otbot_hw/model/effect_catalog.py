@@ -30,6 +30,14 @@ dr_r, dr_l     1          wheel radii: r_right = r (1 + dr_r), r_left = r (1 + d
 t_trac         N m        traction limit of each wheel: ground torque t_trac tanh(tau_tr / t_trac) (0 = none)
 n_cst          1          number of casters (1..4) sharing the caster drag f_cst equally
 x_c1 .. y_c4   m          caster contact points in the chassis frame B' (from the robot configuration)
+c_lin          N s/m      linear drag at the pivot: F = -c_lin v (discovered law)
+dz_r, dz_l,    N m        drive dead zone: delivered = sgn(u) max(|u| - dz, 0) (discovered law)
+  dz_p
+ts_r, ts_l,    N m        soft torque limit: delivered = ts tanh(u / ts) (0 = none; discovered law)
+  ts_p
+cog_r, ...     N m        cogging torque -cog sin(cogn phi + cogph) at the right/left wheel and pivot
+cogn_r, ...    1/turn     cogging cycles per turn (whole number; 0 = none)
+cogph_r, ...   rad        cogging phase
 b_ax, b_ay     m/s^2      IMU accelerometer bias (x, y of the IMU frame)
 b_gz           rad/s      gyro bias (z)
 d_x, d_y       m          IMU position in the platform frame B'' (lever arm from the pivot)
@@ -50,7 +58,7 @@ __all__ = [
     'D_IMU', 'D_X', 'D_Y', 'EFFECT_BOUNDS', 'EFFECT_INDEX', 'EFFECT_PARAMS', 'EFFECT_PARAM_NAMES',
     'EFFECT_UNITS', 'E_L', 'E_R', 'F_CST', 'GEOMETRY_PARAMS', 'G_X', 'G_Y', 'K_L', 'K_P', 'K_R', 'K_SLIP',
     'MAX_CASTERS', 'N_CST', 'N_EFFECT', 'PSI', 'S_W', 'TIED_PARAMS', 'T_I', 'T_TRAC', 'U_MAX_L', 'U_MAX_P',
-    'U_MAX_R', 'V_S', 'WIDTH_MIN_CASTER', 'WIDTH_MIN_PIVOT', 'WIDTH_MIN_WHEEL', 'WIDTH_PER_NM_PIVOT',
+    'U_MAX_R', 'V_S', 'C_LIN', 'DZ_R', 'TS_R', 'COG_R', 'COGN_R', 'COGPH_R', 'DISCOVERED_PARAMS', 'MAX_COGN', 'WIDTH_MIN_CASTER', 'WIDTH_MIN_PIVOT', 'WIDTH_MIN_WHEEL', 'WIDTH_PER_NM_PIVOT',
     'WIDTH_PER_NM_WHEEL', 'WIDTH_PER_N_CASTER', 'X_C1', 'effect_vector', 'parameter_bounds', 'parameter_unit']
 
 WIDTH_PER_NM_PIVOT = 0.005  # rad/s per N m of friction level: smoothed sign width at the pivot motor
@@ -61,7 +69,9 @@ WIDTH_PER_N_CASTER = 5e-5  # m/s per N of caster drag: smoothed direction of a c
 WIDTH_MIN_CASTER = 1e-3  # m/s
 CASTER_POSITION = (0.15, 0.0)  # m, default single caster contact in the chassis frame B'
 MAX_CASTERS = 4
+MAX_COGN = 64  # cogging cycles per turn, at most
 
+_MOTORS = (("r", "right wheel motor"), ("l", "left wheel motor"), ("p", "pivot motor"))
 #: (name, unit, lower bound, upper bound, description)
 EFFECT_PARAMS: tuple[tuple[str, str, float, float, str], ...] = (
     ("c_r", "N m", 0.0, 2.0, "Coulomb friction, right wheel motor"),
@@ -97,15 +107,30 @@ EFFECT_PARAMS: tuple[tuple[str, str, float, float, str], ...] = (
     ("e_l", "1", -0.2, 0.2, "left wheel encoder scale error"),
     ("n_cst", "1", 1.0, float(MAX_CASTERS), "number of casters"),
 ) + tuple((f"{a}_c{i}", "m", -1.0, 1.0, f"caster {i} contact {a} in B'") for i in range(1, MAX_CASTERS + 1)
-          for a in ("x", "y"))
+          for a in ("x", "y")) + (
+    # laws beyond the catalog (otbot_hw.diagnose.discover writes them into a model file)
+    ("c_lin", "N s/m", 0.0, 500.0, "linear drag coefficient at the pivot"),
+) + tuple((f"dz_{j}", "N m", 0.0, 10.0, f"drive dead zone, {m}") for j, m in _MOTORS) \
+  + tuple((f"ts_{j}", "N m", 0.0, 100.0, f"soft torque limit ts tanh(u / ts), {m} (0 = none)") for j, m in _MOTORS) \
+  + tuple((f"cog_{j}", "N m", -10.0, 10.0, f"cogging amplitude, {m}") for j, m in _MOTORS) \
+  + tuple((f"cogn_{j}", "1/turn", 0.0, float(MAX_COGN), f"cogging cycles per turn, {m}") for j, m in _MOTORS) \
+  + tuple((f"cogph_{j}", "rad", -10.0, 10.0, f"cogging phase, {m}") for j, m in _MOTORS)
 EFFECT_PARAM_NAMES: tuple[str, ...] = tuple(p[0] for p in EFFECT_PARAMS)
 EFFECT_INDEX: dict[str, int] = {n: i for i, n in enumerate(EFFECT_PARAM_NAMES)}
 EFFECT_UNITS: dict[str, str] = {p[0]: p[1] for p in EFFECT_PARAMS}
 EFFECT_BOUNDS: dict[str, tuple[float, float]] = {p[0]: (p[2], p[3]) for p in EFFECT_PARAMS}
 N_EFFECT = len(EFFECT_PARAMS)
 (C_R, C_L, C_P, S_W, V_S, C_RR, F_CST, K_SLIP, G_X, G_Y, C_AIR, K_R, K_L, K_P, U_MAX_R, U_MAX_L, U_MAX_P, T_I, DB_W,
- DR_R, DR_L, T_TRAC, B_AX, B_AY, B_GZ, D_X, D_Y, PSI, D_IMU, E_R, E_L, N_CST) = range(N_EFFECT - 2 * MAX_CASTERS)
+ DR_R, DR_L, T_TRAC, B_AX, B_AY, B_GZ, D_X, D_Y, PSI, D_IMU, E_R, E_L, N_CST) = range(EFFECT_INDEX["n_cst"] + 1)
 X_C1 = N_CST + 1  # x_ci at X_C1 + 2 (i - 1), y_ci one after
+C_LIN = X_C1 + 2 * MAX_CASTERS
+DZ_R = C_LIN + 1  # dz_r, dz_l, dz_p
+TS_R = DZ_R + 3  # ts_r, ts_l, ts_p
+COG_R = TS_R + 3  # cog_r, cog_l, cog_p
+COGN_R = COG_R + 3
+COGPH_R = COGN_R + 3
+#: the entries of the laws beyond the catalog (``otbot_hw.diagnose.discover``): all zero = none
+DISCOVERED_PARAMS: tuple[str, ...] = EFFECT_PARAM_NAMES[C_LIN:]
 #: effect entries that describe where things are, not an effect (active only with their effect)
 GEOMETRY_PARAMS: tuple[str, ...] = ("n_cst",) + tuple(n for n in EFFECT_PARAM_NAMES if n[1:3] == "_c" and n[3:].isdigit())
 
@@ -128,6 +153,11 @@ def effect_vector(values: dict[str, float] | None = None) -> np.ndarray:
             raise ValueError(f"{EFFECT_PARAM_NAMES[i]} must be in (-0.5, 0.5), got {eff[i]}")
     if eff[N_CST] not in range(1, MAX_CASTERS + 1):
         raise ValueError(f"n_cst must be a whole number of casters 1..{MAX_CASTERS}, got {eff[N_CST]}")
+    for j in range(3):
+        n = eff[COGN_R + j]
+        if n != round(n) or not 0 <= n <= MAX_COGN or (eff[COG_R + j] != 0.0 and n == 0):
+            raise ValueError(f"{EFFECT_PARAM_NAMES[COGN_R + j]} must be a whole number of cycles per turn "
+                             f"1..{MAX_COGN} with a cogging amplitude, got {n}")
     return eff
 
 

@@ -39,7 +39,11 @@ Modelling choices (documented, not hidden):
 * Rolling resistance assumes the weight shared equally by the two wheels.
 * Current-loop lag is integrated exactly inside each zero-order-hold interval
   (tau_a(t) = tau_c + (tau_a0 - tau_c) exp(-t / T_i)), so small T_i never makes RK4 unstable.
-* Floor slope, rolling resistance, caster drag, slip and air drag act only on the
+* Laws beyond the catalog (written by ``otbot diagnose`` when it discovers them): linear drag
+  -c_lin v at the pivot (beside the quadratic air drag), cogging -cog sin(cogn phi + cogph) on a
+  motor at its own angle (a wheel's: the rolling angle times r / r_i), a drive dead zone and a
+  soft torque limit ts tanh(t / ts) in ``actuated_torque`` (after the gain, before the hard saturation).
+* Floor slope, rolling resistance, caster drag, slip, linear and air drag act only on the
   ``floor`` fixture; on the stand/locked fixtures the slope turns the platform only.
 """
 from __future__ import annotations
@@ -49,11 +53,12 @@ from numba import njit
 
 from otbot_hw.model import compiled
 from otbot_hw.model.constants import GRAVITY
-from otbot_hw.model.effect_catalog import (C_AIR, C_L, C_P, C_R, C_RR, DB_W, DR_L, DR_R, F_CST, G_X, G_Y, K_L, K_P, K_R,
-                                           K_SLIP, N_CST, S_W, T_TRAC, U_MAX_R, V_S, WIDTH_MIN_CASTER,
+from otbot_hw.model.effect_catalog import (C_AIR, C_L, C_LIN, C_P, C_R, C_RR, COG_R, COGN_R, COGPH_R, DB_W, DZ_R, DR_L, DR_R, F_CST, G_X, G_Y, K_L, K_P, K_R,
+                                           K_SLIP, N_CST, S_W, T_TRAC, TS_R, U_MAX_R, V_S, WIDTH_MIN_CASTER,
                                            WIDTH_MIN_PIVOT, WIDTH_MIN_WHEEL, WIDTH_PER_N_CASTER, WIDTH_PER_NM_PIVOT,
                                            WIDTH_PER_NM_WHEEL, X_C1)
 from otbot_hw.model.kinematics import fik_entries
+from otbot_hw.model.slip_law import K_SLIP_MIN, slip_rate_series, slip_state  # noqa: F401 (the model's slip law)
 
 _L1, _L2, _IA, _BW, _R, _MC, _MP, _XB, _YB, _XF, _YF = 0, 1, 11, 12, 2, 3, 7, 5, 6, 9, 10  # OtbotParams.as_array()
 
@@ -81,12 +86,19 @@ def sign_width(i, eff, prm):
 
 @njit(cache=True)
 def actuated_torque(u, eff):
-    """Commanded torque (3,) -> torque the drives deliver in steady state (gain, then each motor's saturation)."""
+    """Commanded torque (3,) -> torque the drives deliver in steady state: gain, then each motor's dead
+    zone sgn(t) max(|t| - dz, 0), soft limit ts tanh(t / ts) and (hard) saturation."""
     out = np.empty(3)
     out[0] = (1.0 + eff[K_R]) * u[0]
     out[1] = (1.0 + eff[K_L]) * u[1]
     out[2] = (1.0 + eff[K_P]) * u[2]
     for i in range(3):
+        d = eff[DZ_R + i]
+        if d > 0.0:
+            out[i] = max(out[i] - d, 0.0) if out[i] >= 0.0 else min(out[i] + d, 0.0)
+        ts = eff[TS_R + i]
+        if ts > 0.0:
+            out[i] = ts * np.tanh(out[i] / ts)
         m = eff[U_MAX_R + i]
         if m > 0.0:
             out[i] = min(max(out[i], -m), m)
@@ -115,56 +127,22 @@ def _motor_friction(w, i, eff, prm):
 
 
 @njit(cache=True)
+def cogging_torque(phi, i, eff):
+    """Cogging torque (N m) acting on motor i (0 r, 1 l, 2 p) at its angle phi (rad):
+    -cog sin(cogn phi + cogph) (0 without cogging)."""
+    a = eff[COG_R + i]
+    if a == 0.0:
+        return 0.0
+    return -a * np.sin(eff[COGN_R + i] * phi + eff[COGPH_R + i])
+
+
+@njit(cache=True)
 def radius_ratios(eff):
     """rho_i = r / r_i (right, left): the nominal radius over each wheel's own."""
     return 1.0 / (1.0 + eff[DR_R]), 1.0 / (1.0 + eff[DR_L])
 
 
-K_SLIP_MIN = 1e-4  # rad/(s N m): creep of the traction curve when k_slip = 0 (rigid up to the limit)
-
-
-@njit(cache=True)
-def slip_state(tau_tr, b_i, eff):
-    """(slip rate sigma rad/s, ground torque tau_g N m) of a wheel transmitting tau_tr.
-
-    Without a traction limit: tau_g = tau_tr and sigma = k_slip tau_g (linear creep). With one
-    (t_trac > 0) the traction curve tau_g(sigma) = t_trac tanh(sigma / (k_slip t_trac)) and the
-    wheel's balance tau_tr - b_i sigma = tau_g(sigma) (the motor's viscous friction acts on the
-    spin rolling + sigma) give sigma, solved by safeguarded Newton (the balance is monotone):
-    creep below the limit, spin-up until the viscous friction takes the excess above it."""
-    T = eff[T_TRAC]
-    k = eff[K_SLIP]
-    if T <= 0.0:
-        return k * tau_tr, tau_tr
-    kk = max(k, K_SLIP_MIN)
-    b = max(b_i, 1e-3)
-    # g(s) = tau_tr - b s - T tanh(s / (kk T)) decreases; the root lies between 0 and tau_tr / b
-    lo, hi = min(0.0, tau_tr / b), max(0.0, tau_tr / b)
-    s = min(max(kk * tau_tr, lo), hi) if abs(tau_tr) < T else (tau_tr - np.sign(tau_tr) * T) / b
-    for _ in range(60):
-        th = np.tanh(s / (kk * T))
-        g = tau_tr - b * s - T * th
-        if abs(g) < 1e-12 * (1.0 + abs(tau_tr)):
-            break
-        if g > 0.0:
-            lo = s
-        else:
-            hi = s
-        dg = -b - (1.0 - th * th) / kk
-        s_new = s - g / dg
-        s = s_new if lo < s_new < hi else 0.5 * (lo + hi)
-    return s, T * np.tanh(s / (kk * T))
-
-
-@njit(cache=True)
-def slip_rate_series(tau_tr, b_i, eff):
-    """Slip rates (N,) for transmitted torques tau_tr (N,) (``slip_state``)."""
-    out = np.empty(len(tau_tr))
-    for j in range(len(tau_tr)):
-        out[j] = slip_state(tau_tr[j], b_i, eff)[0]
-    return out
-
-
+DEADZONE_SMOOTH = 0.02  # N m: width of the dead-zone compensation's sign (``compensated_command``)
 @njit(cache=True)
 def effect_force(x, tau, eff, prm, fixture):
     """Extra generalized force (6,) of the effects at state x under delivered torque tau.
@@ -184,7 +162,8 @@ def forces_active(eff):
     paper model's RK4)."""
     return (eff[C_R] != 0.0 or eff[C_L] != 0.0 or eff[C_P] != 0.0 or eff[S_W] != 0.0 or eff[C_RR] != 0.0
             or eff[F_CST] != 0.0 or eff[K_SLIP] != 0.0 or eff[G_X] != 0.0 or eff[G_Y] != 0.0 or eff[C_AIR] != 0.0
-            or eff[DB_W] != 0.0 or eff[DR_R] != 0.0 or eff[DR_L] != 0.0 or eff[T_TRAC] != 0.0)
+            or eff[DB_W] != 0.0 or eff[DR_R] != 0.0 or eff[DR_L] != 0.0 or eff[T_TRAC] != 0.0
+            or eff[C_LIN] != 0.0 or eff[COG_R] != 0.0 or eff[COG_R + 1] != 0.0 or eff[COG_R + 2] != 0.0)
 
 
 @njit(cache=True)
@@ -204,7 +183,7 @@ def _effect_force_into(x, tau, eff, prm, fixture, gen, slip):
         psid = x[9 + i]
         w = rho[i] * psid
         b_i = bw + eff[DB_W] * (1.0 if i == 0 else -1.0)
-        t_tr = tau[i] - b_i * w - _motor_friction(w, i, eff, prm)
+        t_tr = tau[i] - b_i * w - _motor_friction(w, i, eff, prm) + cogging_torque(rho[i] * x[3 + i], i, eff)
         if slipping:
             sigma, t_g = slip_state(t_tr, b_i, eff)
             slip[i] = sigma
@@ -212,7 +191,7 @@ def _effect_force_into(x, tau, eff, prm, fixture, gen, slip):
         else:
             motor = rho[i] * t_tr
         gen[3 + i] = motor - (tau[i] - bw * psid)
-    gen[5] = -_motor_friction(x[11], 2, eff, prm)
+    gen[5] = -_motor_friction(x[11], 2, eff, prm) + cogging_torque(x[5], 2, eff)
     mc, mp = prm[_MC], prm[_MP]
     gx, gy = eff[G_X], eff[G_Y]
     slope = gx != 0.0 or gy != 0.0
@@ -267,6 +246,10 @@ def _effect_force_into(x, tau, eff, prm, fixture, gen, slip):
             m = -rcy * Fx + rcx * Fy
             gen[2] += m
             gen[5] -= m
+    # linear drag at the pivot
+    if eff[C_LIN] != 0.0:
+        gen[0] -= eff[C_LIN] * x[6]
+        gen[1] -= eff[C_LIN] * x[7]
     # air drag at the pivot
     if eff[C_AIR] != 0.0:
         sp = np.sqrt(x[6] * x[6] + x[7] * x[7])
@@ -294,15 +277,26 @@ def compensated_command(x, u_task, eff, prm, fixture):
     """Command (3,) N m under which the extended model's drives act like the paper model's torque
     ``u_task``: the delivered torque tau solves tau + Delta^T gen(x, tau) = u_task (fixed point; gen
     depends on tau only through unequal wheel radii, a contraction of factor |dr_r|, |dr_l|), then each
-    motor's gain error is divided out. Not compensated: saturation, current-loop lag, the inertia
-    change of unequal radii, slip (and a traction limit) and sensor effects."""
+    motor's soft limit (inverted up to 0.99 ts), dead zone (dz added in the torque's direction, smoothed
+    over ``DEADZONE_SMOOTH`` N m so that the command does not chatter about zero) and gain error are
+    undone. Not compensated: saturation, current-loop lag, the inertia change of unequal radii, slip (and a
+    traction limit) and sensor effects."""
     tau = u_task.copy()
     for _ in range(3):
         tau = u_task - effect_joint_torque(x, tau, eff, prm, fixture)
     out = np.empty(3)
-    out[0] = tau[0] / (1.0 + eff[K_R])
-    out[1] = tau[1] / (1.0 + eff[K_L])
-    out[2] = tau[2] / (1.0 + eff[K_P])
+    for i in range(3):
+        t = tau[i]
+        ts = eff[TS_R + i]
+        if ts > 0.0:
+            t = ts * np.arctanh(min(max(t / ts, -0.99), 0.99))
+        d = eff[DZ_R + i]
+        if d > 0.0:
+            t += d * np.tanh(t / DEADZONE_SMOOTH)
+        out[i] = t
+    out[0] /= 1.0 + eff[K_R]
+    out[1] /= 1.0 + eff[K_L]
+    out[2] /= 1.0 + eff[K_P]
     return out
 
 
@@ -346,7 +340,8 @@ def slip_rates(x, tau, eff, prm, fixture):
     for i in range(2):
         w = rho[i] * x[9 + i]
         b_i = prm[_BW] + eff[DB_W] * (1.0 if i == 0 else -1.0)
-        out[i] = slip_state(tau[i] - b_i * w - _motor_friction(w, i, eff, prm), b_i, eff)[0]
+        t_tr = tau[i] - b_i * w - _motor_friction(w, i, eff, prm) + cogging_torque(rho[i] * x[3 + i], i, eff)
+        out[i] = slip_state(t_tr, b_i, eff)[0]
     return out
 
 

@@ -1,0 +1,53 @@
+"""The wheel slip law of the extended model (compiled): the quasi-static longitudinal slip of a wheel and,
+with a traction limit, the traction curve solved from the wheel's torque balance (``effect_physics`` module
+doc: "Wheel slip"). Split out of ``effect_physics``, which steps it."""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from otbot_hw.model.effect_catalog import K_SLIP, T_TRAC
+
+K_SLIP_MIN = 1e-4  # rad/(s N m): creep of the traction curve when k_slip = 0 (rigid up to the limit)
+
+
+@njit(cache=True)
+def slip_state(tau_tr, b_i, eff):
+    """(slip rate sigma rad/s, ground torque tau_g N m) of a wheel transmitting tau_tr.
+
+    Without a traction limit: tau_g = tau_tr and sigma = k_slip tau_g (linear creep). With one
+    (t_trac > 0) the traction curve tau_g(sigma) = t_trac tanh(sigma / (k_slip t_trac)) and the
+    wheel's balance tau_tr - b_i sigma = tau_g(sigma) (the motor's viscous friction acts on the
+    spin rolling + sigma) give sigma, solved by safeguarded Newton (the balance is monotone):
+    creep below the limit, spin-up until the viscous friction takes the excess above it."""
+    T = eff[T_TRAC]
+    k = eff[K_SLIP]
+    if T <= 0.0:
+        return k * tau_tr, tau_tr
+    kk = max(k, K_SLIP_MIN)
+    b = max(b_i, 1e-3)
+    # g(s) = tau_tr - b s - T tanh(s / (kk T)) decreases; the root lies between 0 and tau_tr / b
+    lo, hi = min(0.0, tau_tr / b), max(0.0, tau_tr / b)
+    s = min(max(kk * tau_tr, lo), hi) if abs(tau_tr) < T else (tau_tr - np.sign(tau_tr) * T) / b
+    for _ in range(60):
+        th = np.tanh(s / (kk * T))
+        g = tau_tr - b * s - T * th
+        if abs(g) < 1e-12 * (1.0 + abs(tau_tr)):
+            break
+        if g > 0.0:
+            lo = s
+        else:
+            hi = s
+        dg = -b - (1.0 - th * th) / kk
+        s_new = s - g / dg
+        s = s_new if lo < s_new < hi else 0.5 * (lo + hi)
+    return s, T * np.tanh(s / (kk * T))
+
+
+@njit(cache=True)
+def slip_rate_series(tau_tr, b_i, eff):
+    """Slip rates (N,) for transmitted torques tau_tr (N,) (``slip_state``)."""
+    out = np.empty(len(tau_tr))
+    for j in range(len(tau_tr)):
+        out[j] = slip_state(tau_tr[j], b_i, eff)[0]
+    return out
