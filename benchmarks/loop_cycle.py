@@ -58,6 +58,13 @@ def _request(sock: Path, cmd: str, **args):
         return c.request(cmd, args or None)
 
 
+def _loop_call(daemon, fn):
+    """Run ``fn`` on the daemon's loop thread between two cycles."""
+    if hasattr(daemon, "_loop_call"):  # older daemons
+        return daemon._loop_call(fn)
+    return daemon.mailbox.call(fn, timeout=5.0)
+
+
 class _Probe:
     """Wraps the robot's read/write (instance attributes: the runner looks them up each cycle) and
     keeps the loop thread's CPU times per cycle."""
@@ -170,19 +177,20 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
                             (robot.network.bus, "send", "CAN send (virtual bus)")):
         probe.section(obj, attr, name)
     if daemon.telemetry is not None:  # after the cycle (the daemon's _after_cycle), not in read -> write
-        probe.section(daemon.telemetry, "publish", "telemetry publish (after the write)")
+        name = "publish_cycle" if hasattr(daemon.telemetry, "publish_cycle") else "publish"  # (code before: publish)
+        probe.section(daemon.telemetry, name, "telemetry publish (after the write)")
     _request(sock, "enable")
     time.sleep(1.0)  # the hold settles
     notifier_threads = set()
     with contextlib.suppress(Exception):
         notifier_threads = {t.name for t in robot.network.notifier._readers if isinstance(t, threading.Thread)}
     if profile is not None:  # start the profiler on the loop thread, between two cycles
-        daemon._loop_call(lambda: prof_box["p"].start())
+        _loop_call(daemon, lambda: prof_box["p"].start())
     if cprofile is not None:  # cProfile, enabled on the loop thread: that thread only
         import cProfile
 
         prof_box["c"] = cProfile.Profile()
-        daemon._loop_call(prof_box["c"].enable)
+        _loop_call(daemon, prof_box["c"].enable)
     cpu0 = _thread_cpu()
     st0 = _request(sock, "status")
     probe.active = True
@@ -199,13 +207,13 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     cpu1 = _thread_cpu()
     if profile is not None:
         p = prof_box["p"]
-        daemon._loop_call(p.stop)
+        _loop_call(daemon, p.stop)
         profile.write_text(p.output_text(unicode=False, color=False, show_all=False))
     if cprofile is not None:
         import io
         import pstats
 
-        daemon._loop_call(prof_box["c"].disable)
+        _loop_call(daemon, prof_box["c"].disable)
         out = io.StringIO()
         stats = pstats.Stats(prof_box["c"], stream=out)
         out.write(f"cProfile of the loop thread, {rate:g} Hz, {wall:.0f} s (CPU time per function; profiling "
