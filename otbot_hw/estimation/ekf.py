@@ -64,10 +64,12 @@ robot's wheels). Not estimated: the gyro x, y and accelerometer z biases, which 
 flat ground never uses.
 
 Parts: ``ekf_state`` (state layout, ``Estimate``, ``EstimatorFault``), ``model_prediction`` (the
-dynamic-model prediction and the held-IMU correction), ``pivot_quantization`` (e_p), ``standstill``
-(the zero-velocity detector), ``kernels`` (the compiled hot path). This module is the filter: set-up,
-one cycle's prediction and gated updates, the gyro's walk adaptation and the health checks (a little
-over 400 lines: the cycle's steps read in order here, where splitting them would scatter one sequence).
+dynamic-model prediction), ``gyro_update`` (the gyro's update and the walk adaptation it drives),
+``pivot_quantization`` (e_p), ``standstill`` (the zero-velocity detector), ``kernels`` (the compiled
+hot path) and ``imu_cycle`` (the IMU-predicted cycle's prediction and encoder updates as one compiled
+call). This module is the filter: set-up, one cycle's prediction and gated updates in order, the
+heading's re-anchoring and the health checks (a little over 400 lines: the cycle's steps read in order
+here, where splitting them further would scatter one sequence).
 """
 from __future__ import annotations
 
@@ -81,27 +83,22 @@ from otbot_hw.estimation import imu_cycle as cyc
 from otbot_hw.estimation import kernels
 from otbot_hw.estimation.config import EstimatorConfig
 from otbot_hw.estimation.ekf_state import (  # noqa: F401 (the state layout and records, importable from here)
-    A, BAX, BAY, BG, DA, EP, INITIAL_POSE_STD, INITIAL_TWIST_STD, KAPPA, N_STATE, NAX, NAY, STATE_NAMES, UPDATE_KINDS,
+    A, BAX, BAY, BG, DA, EP, INITIAL_POSE_STD, INITIAL_TWIST_STD, KAPPA, N_STATE, NAX, NAY, REANCHOR_AFTER, STATE_NAMES,
+    UPDATE_KINDS,
     VA, VX, VY, X, Y, Estimate, EstimatorFault, check_vector)
+from otbot_hw.estimation.gyro_update import WALK_SCALE_MAX, GyroUpdate  # noqa: F401 (importable from here)
 from otbot_hw.estimation.model_prediction import ModelPrediction
 from otbot_hw.estimation.pivot_quantization import PivotQuantization
 from otbot_hw.estimation.standstill import StandstillDetector
 from otbot_hw.model.angles import wrap_angle  # noqa: F401  (the one angle wrap; importable from here)
 from otbot_hw.params import OtbotParams
 
-#: A wheel heading that disagrees this long (s) while the joint rates agree has moved: re-anchor it.
-REANCHOR_AFTER = 0.02
-#: Largest factor by which the adaptation may multiply the variance of d's walk (walk x 1000).
-WALK_SCALE_MAX = 1e6
 #: While the adapted walk variance is above this multiple of the configured one, the yaw prediction is
 #: suspect: a wheel heading that disagrees re-anchors alpha (the wheels are right), not kappa (slip).
 YAW_SUSPECT_SCALE = 2.0
-#: The yaw states whose covariance the adaptation inflates: alpha_dot, d (alpha too let a joint-rate update
-#: throw it by 0.1 rad on a 280 kg load; its error is re-anchored on the wheel heading instead).
-_YAW = [5, 11]
 
 
-class PoseEKF(ModelPrediction):
+class PoseEKF(ModelPrediction, GyroUpdate):
     """Pose EKF over one robot's encoders and IMU, stepped once per control period.
 
     ``params``: the robot's geometry (l1, l2, r) and, for the model prediction, its dynamics;
@@ -420,55 +417,6 @@ class PoseEKF(ModelPrediction):
             self.kf.P[i, i] += nu * nu
             self._heading_off_since = None
             self._update("heading", t, np.array([nu]), self._H_heading, self._R_heading, force=True)
-
-    def _update_gyro(self, t: float) -> None:
-        """The gyro: alpha_dot + b_g. Its NIS drives the adaptation of d's walk (``_adapt_walk``). The gyro
-        does not slip: rejected for ``REANCHOR_AFTER``, it is the yaw prediction that is lost (a model that
-        is wrong), so alpha_dot's variance grows by the innovation squared and alpha_dot re-anchors on the
-        gyro -- the gate cannot starve the filter of its yaw rate. A single outlier is still rejected."""
-        x = self.kf.x
-        nu = np.array([self._gyro[2] - x[VA] - x[BG]])
-        ok = self._update("gyro", t, nu, self._H_gyro, self._R_gyro)
-        self._adapt_walk(t, self._nis["gyro"])
-        if ok:
-            self._gyro_off_since = None
-            return
-        if self._gyro_off_since is None:
-            self._gyro_off_since = self._t_prev
-        if t - self._gyro_off_since >= REANCHOR_AFTER - 1e-9:
-            self.kf.P[VA, VA] += nu[0] * nu[0]
-            self._gyro_off_since = None
-            self._update("gyro", t, nu, self._H_gyro, self._R_gyro, force=True)
-
-    def _adapt_walk(self, t: float, nis: float) -> None:
-        """Covariance matching on the gyro (Mehra 1972; Mohamed & Schwarz 1999): the gyro's NIS averaged
-        exponentially over ``walk_adaptation_window`` has expectation 1 for a consistent filter; above its
-        chi-square bound at ``gate_probability`` (the average of n_eff = (2 - w) / w readings, w the
-        averaging weight) the alpha_dot prediction is worse than the filter believes -- the model's alpha
-        row is wrong -- and the variance of d's walk is multiplied by that average, at every reading,
-        until the innovations fit (at most ``WALK_SCALE_MAX``). The step relaxes it back."""
-        cfg = self.config
-        if cfg.walk_adaptation_window <= 0:
-            return
-        dt = t - self._gyro_t if self._gyro_t is not None else self.period
-        self._gyro_t = t
-        w = round(1.0 - math.exp(-dt / cfg.walk_adaptation_window), 6)
-        if not w > 0:
-            return
-        bound = self._nis_bounds.get(w)
-        if bound is None:
-            n_eff = (2.0 - w) / w
-            bound = self._nis_bounds[w] = float(chi2.ppf(cfg.gate_probability, n_eff) / n_eff)
-        self._gyro_nis_avg += w * (nis - self._gyro_nis_avg)
-        avg = self._gyro_nis_avg
-        if avg > bound:
-            self.walk_scale = min(self.walk_scale * avg, WALK_SCALE_MAX)
-            # fading memory on the yaw states: the error the wrong model already put into alpha, alpha_dot
-            # and d is as much larger than their covariance says (P -> T P T, T = sqrt(avg) on their rows)
-            g = math.sqrt(avg)
-            P = self.kf.P
-            P[_YAW, :] *= g
-            P[:, _YAW] *= g
 
     # ------------------------------------------------------------------ health and output
     def _check_health(self, t: float) -> None:
