@@ -250,12 +250,17 @@ class PoseEKF(ModelPrediction, GyroUpdate):
             raise EstimatorFault("step before initialize")
         if not math.isfinite(t):
             raise EstimatorFault(f"non-finite sample time {t}")
-        phi = check_vector(joint_pos, 3, "joint_pos", t) + self._half_count
-        phid = check_vector(joint_vel, 3, "joint_vel", t)
+        if cyc.plain_vectors(joint_pos, joint_vel, joint_vel if torque is None else torque):  # the loop's case
+            phi, phid = joint_pos + self._half_count, joint_vel
+            if torque is not None:
+                self._torque = torque
+        else:  # anything else: converted, or the error that names it
+            phi = check_vector(joint_pos, 3, "joint_pos", t) + self._half_count
+            phid = check_vector(joint_vel, 3, "joint_vel", t)
         dt = t - self._t
         if not dt > 0:
             raise EstimatorFault(f"time does not increase: t = {t} s after {self._t} s")
-        if torque is not None:
+        if torque is not None and self._torque is not torque:
             self._torque = check_vector(torque, 3, "torque", t)
         nis = self._nis
         for kind in nis:
@@ -335,8 +340,11 @@ class PoseEKF(ModelPrediction, GyroUpdate):
     def _take_imu(self, t: float, acc, gyro) -> None:
         if acc is None or gyro is None:
             raise EstimatorFault(f"IMU sample at t = {t} s lacks {'accel' if acc is None else 'gyro'}")
-        a = check_vector(acc, 3, "imu_accel", t)
-        g = check_vector(gyro, 3, "imu_gyro", t)
+        if cyc.plain_vectors(acc, gyro, acc):
+            a, g = acc, gyro
+        else:
+            a = check_vector(acc, 3, "imu_accel", t)
+            g = check_vector(gyro, 3, "imu_gyro", t)
         self._imu_t = t
         self._acc, self._gyro = a, g
         self._acc_t, self._acc_u = t, None  # the torque the reading was taken under is known one step later

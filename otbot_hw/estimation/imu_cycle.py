@@ -135,3 +135,22 @@ def estimate_vectors(x, P, out):
         out[i] = x[i]
         out[6 + i] = math.sqrt(P[i, i])
     out[12], out[13] = x[kernels.BAX], x[kernels.BAY]
+
+
+_F8 = np.dtype(np.float64)
+
+
+def plain_vectors(a, b, c) -> bool:
+    """Whether ``a``, ``b``, ``c`` are all float64 numpy arrays of shape (3,) with finite values (the
+    loop's sensor vectors: then ``PoseEKF.step`` takes them as they are, one check for the three)."""
+    return (type(a) is np.ndarray and type(b) is np.ndarray and type(c) is np.ndarray and a.shape == (3,)
+            and b.shape == (3,) and c.shape == (3,) and a.dtype == _F8 and b.dtype == _F8 and c.dtype == _F8
+            and finite9(a, b, c))
+
+
+@njit(cache=True)
+def finite9(a, b, c) -> bool:
+    for i in range(3):
+        if not (math.isfinite(a[i]) and math.isfinite(b[i]) and math.isfinite(c[i])):
+            return False
+    return True
