@@ -414,16 +414,10 @@ class PoseEKF(ModelPrediction, GyroUpdate):
     def _heading_outcome(self, t: float, ok: bool, nu: float) -> None:
         """A wheel heading rejected for ``REANCHOR_AFTER`` with the rates accepted re-anchors (``nu``: its
         residual, rad)."""
-        if ok:
-            self._heading_off_since = None
-            return
-        if self._heading_off_since is None:
-            self._heading_off_since = self._t_prev
-        if t - self._heading_off_since >= REANCHOR_AFTER - 1e-9:
+        if self._rejected_long("_heading_off_since", t, ok):
             # slip moved kappa -- unless the gyro says the yaw prediction is wrong (the walk adapted): then alpha
             i = A if self.walk_scale > YAW_SUSPECT_SCALE else KAPPA
             self.kf.P[i, i] += nu * nu
-            self._heading_off_since = None
             self._update("heading", t, np.array([nu]), self._H_heading, self._R_heading, force=True)
 
     # ------------------------------------------------------------------ health and output

@@ -33,15 +33,24 @@ class GyroUpdate:
         nu = np.array([self._gyro[2] - x[VA] - x[BG]])
         ok = self._update("gyro", t, nu, self._H_gyro, self._R_gyro)
         self._adapt_walk(t, self._nis["gyro"])
-        if ok:
-            self._gyro_off_since = None
-            return
-        if self._gyro_off_since is None:
-            self._gyro_off_since = self._t_prev
-        if t - self._gyro_off_since >= REANCHOR_AFTER - 1e-9:
+        if self._rejected_long("_gyro_off_since", t, ok):
             self.kf.P[VA, VA] += nu[0] * nu[0]
-            self._gyro_off_since = None
             self._update("gyro", t, nu, self._H_gyro, self._R_gyro, force=True)
+
+    def _rejected_long(self, since: str, t: float, ok: bool) -> bool:
+        """Whether an update kind rejected at t (``ok`` False) has been for ``REANCHOR_AFTER`` s (then it
+        re-anchors); ``since``: the attribute holding since when (None while accepted; reset by True)."""
+        if ok:
+            setattr(self, since, None)
+            return False
+        t0 = getattr(self, since)
+        if t0 is None:
+            t0 = self._t_prev
+            setattr(self, since, t0)
+        if t - t0 >= REANCHOR_AFTER - 1e-9:
+            setattr(self, since, None)
+            return True
+        return False
 
     def _adapt_walk(self, t: float, nis: float) -> None:
         """Covariance matching on the gyro (Mehra 1972; Mohamed & Schwarz 1999): the gyro's NIS averaged
