@@ -68,8 +68,10 @@ dynamic-model prediction), ``gyro_update`` (the gyro's update and the walk adapt
 ``pivot_quantization`` (e_p), ``standstill`` (the zero-velocity detector), ``kernels`` (the compiled
 hot path) and ``imu_cycle`` (the IMU-predicted cycle's prediction and encoder updates as one compiled
 call). This module is the filter: set-up, one cycle's prediction and gated updates in order, the
-heading's re-anchoring and the health checks (a little over 400 lines: the cycle's steps read in order
-here, where splitting them further would scatter one sequence).
+heading's re-anchoring and the health checks.
+
+Length: about 440 lines, most of them this docstring (the filter's model, in one place) and the cycle's
+steps, which read in order here; splitting them further would scatter one sequence.
 """
 from __future__ import annotations
 
