@@ -3,7 +3,7 @@ virtual bus in the same process) at a control rate, enabled and driven around a 
 velocity mode (a new twist every 0.1 s), telemetry and recording on — as benchmarks/daemon.py
 ``--in-process`` does, but measured from inside.
 
-    python benchmarks/loop_cycle.py [--rate 500] [--seconds 30] [--profile FILE] [--json]
+    python benchmarks/loop_cycle.py [--rate 500] [--seconds 30] [--profile FILE] [--label NAME] [--json]
     (cd /work/main && python /path/to/benchmarks/loop_cycle.py ...)   # another checkout's code
 
 The code measured is the checkout in the current directory when it holds ``otbot_hw`` (so the same
@@ -245,6 +245,7 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
             "threads_us_per_cycle": {k2: round(v * 1e6, 1) for k2, v in sorted(others.items(), key=lambda x: -x[1])
                                      if v > 0},
             "overruns": loop["overruns"] - loop0["overruns"],
+            "overruns_per_min": (loop["overruns"] - loop0["overruns"]) / (wall / 60.0),
             "period_p99_ms": None if loop["period"]["p99"] is None else 1e3 * loop["period"]["p99"],
             "fault": (st.get("faults") or [None])[0], "load": load}
 
@@ -259,23 +260,25 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {os.getloadavg()[0]:.1f}) ...",
-          file=sys.stderr, flush=True)
+    load0 = os.getloadavg()[0]
+    print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
         row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile)
     row["label"] = a.label
-    row["load_before"] = os.getloadavg()[0]
+    row["load_before"] = load0  # 1-min load average at the start; "load": at the window's end
     if a.json:
         print(json.dumps(row))
         return 0
     print("| code | rate (Hz) | cycles | work p50 / p99 / max (us) | work less virtual-bus sends p50 / p99 (us) "
-          "| read p50 / p99 (us) | compute + write p50 / p99 (us) | master CAN receive (us per cycle) | overruns | load |")
+          "| read p50 / p99 (us) | compute + write p50 / p99 (us) | master CAN receive (us per cycle) | overruns (per min) "
+          "| load avg (before, end) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     print(f"| {row['label']} | {row['rate']:g} | {row['measured']} | {row['work_p50_us']:.0f} / "
           f"{row['work_p99_us']:.0f} / {row['work_max_us']:.0f} | {row['work_less_sends_p50_us']:.0f} / "
           f"{row['work_less_sends_p99_us']:.0f} | {row['read_p50_us']:.0f} / {row['read_p99_us']:.0f} | "
           f"{row['compute_write_p50_us']:.0f} / {row['compute_write_p99_us']:.0f} | "
-          f"{row['master_rx_us_per_cycle']:.0f} | {row['overruns']} | {row['load']:.1f} |")
+          f"{row['master_rx_us_per_cycle']:.0f} | {row['overruns']} ({row['overruns_per_min']:.0f}) | "
+          f"{row['load_before']:.1f}, {row['load']:.1f} |")
     print("\nloop-thread sections, CPU p50 / p99 (us): " + ", ".join(
         f"{k}: {v[0]:.0f} / {v[1]:.0f}" for k, v in row["sections_p50_p99_us"].items()))
     print("\nother threads, CPU us per cycle: "

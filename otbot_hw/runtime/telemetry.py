@@ -26,10 +26,12 @@ except that a changed mode or fault list goes out at once, and the status channe
 second for clients that join later.
 
 Nothing is encoded on the loop's thread: a sample that goes out is copied into one of a fixed set
-of preallocated slots and queued; the ``otbot-telemetry`` thread, waking every half telemetry
-period, builds the messages (protobuf, JSON) and hands them to the server. The queue is bounded
-(``queue_size``): when the consumer stalls, the loop takes back the oldest queued slot -- that
-sample is dropped and counted (``state.dropped``), the loop never waits.
+of preallocated slots and queued; the ``otbot-telemetry`` thread, woken by it, builds the messages
+(protobuf, JSON) and hands them to the server. The loop publishes after its write, so that work falls
+in the period's idle time (a thread waking at times of its own could take the interpreter, which the
+threads share, from the loop in the middle of a cycle). The queue is bounded (``queue_size``): when
+the consumer stalls, the loop takes back the oldest queued slot -- that sample is dropped and counted
+(``state.dropped``), the loop never waits.
 """
 from __future__ import annotations
 
@@ -213,6 +215,7 @@ class TelemetryServer:
         self._queue: collections.deque = collections.deque()
         self._free = collections.deque(Slot() for _ in range(self.queue_size + 2))
         self._stop = threading.Event()
+        self._wake = threading.Event()  # set by each queued sample
         self._idle = threading.Event()  # set while the telemetry thread has nothing in hand
         self._idle.set()
         self._thread = threading.Thread(target=self._run, name="otbot-telemetry", daemon=True)
@@ -276,6 +279,7 @@ class TelemetryServer:
         if slot.status:
             st.last_status = now
         self._queue.append(slot)
+        self._wake.set()  # the loop calls this after its write: the encoding runs in the period's idle time
         return True
 
     def _take_slot(self) -> Slot | None:
@@ -293,9 +297,10 @@ class TelemetryServer:
 
     # -- the telemetry thread ----------------------------------------------------------------
     def _run(self) -> None:
-        poll = 0.5 * self.period
         while True:
-            stopping = self._stop.wait(poll)
+            self._wake.wait(1.0)
+            self._wake.clear()
+            stopping = self._stop.is_set()
             self._drain()
             if stopping:
                 return
@@ -343,6 +348,7 @@ class TelemetryServer:
         """Send what is queued (up to 1 s), stop the telemetry thread, then the server."""
         self.flush(1.0)
         self._stop.set()
+        self._wake.set()
         self._thread.join(2.0)
         self.server.stop()
 
