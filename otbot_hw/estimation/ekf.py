@@ -86,8 +86,7 @@ from otbot_hw.estimation import kernels
 from otbot_hw.estimation.config import EstimatorConfig
 from otbot_hw.estimation.ekf_state import (  # noqa: F401 (the state layout and records, importable from here)
     A, BAX, BAY, BG, DA, EP, INITIAL_POSE_STD, INITIAL_TWIST_STD, KAPPA, N_STATE, NAX, NAY, REANCHOR_AFTER, STATE_NAMES,
-    UPDATE_KINDS,
-    VA, VX, VY, X, Y, Estimate, EstimatorFault, check_vector)
+    UPDATE_KINDS, VA, VX, VY, X, Y, Estimate, EstimatorFault, check_vector)
 from otbot_hw.estimation.gyro_update import WALK_SCALE_MAX, GyroUpdate  # noqa: F401 (importable from here)
 from otbot_hw.estimation.model_prediction import ModelPrediction
 from otbot_hw.estimation.pivot_quantization import PivotQuantization
