@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+import threading
 import time
 
 import numpy as np
@@ -115,6 +116,34 @@ def test_faults_go_out_at_once_and_nan_never_reaches_json(telemetry):
     telemetry.publish(sample(10, pose=np.array([np.nan, 0.0, 0.0])), now=1.0)
     # json.loads in the client would have accepted NaN; the server must not send it
     assert telemetry.state.published == 2
+
+
+def test_a_stalled_consumer_drops_the_oldest_and_never_blocks_the_loop():
+    """The telemetry thread stuck in a send: the loop's 100 publishes (each due) all return, the oldest
+    queued samples are dropped and counted, and once the consumer runs again it sends the newest ones."""
+    srv = TelemetryServer(host="127.0.0.1", port=0, rate=50.0, limits=[40.0, 40.0, 30.0], l1=L1, queue_size=8)
+    release, sent = threading.Event(), []
+    send = srv._send
+
+    def stalled(slot):
+        release.wait(30)
+        sent.append(slot.t)
+        send(slot)
+
+    srv._send = stalled
+    try:
+        loop = threading.Thread(target=lambda: [srv.publish(sample(k), now=k * 0.02) for k in range(100)])
+        loop.start()
+        loop.join(20)
+        assert not loop.is_alive()  # the loop never waited for the stalled consumer
+        assert srv.state.published == 100 and srv.state.dropped >= 100 - 10  # 8 queued + 2 spare slots at most
+        release.set()
+        assert srv.flush(10)
+    finally:
+        release.set()
+        srv.close()
+    assert len(sent) + srv.state.dropped == 100 and srv.state.errors == 0
+    assert sent[-9:] == pytest.approx([k * 0.004 for k in range(91, 100)])  # the newest survive
 
 
 def test_clients_cannot_publish_or_call_services(telemetry):
