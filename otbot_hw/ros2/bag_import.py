@@ -41,7 +41,7 @@ from otbot_hw.recording import FORMAT_NAME, Recording, source_metadata
 from otbot_hw.ros2 import BagError
 from otbot_hw.ros2 import messages as M
 from otbot_hw.ros2.bag_open import Connection, Types, open_bag
-from otbot_hw.ros2.bag_series import Source, read_imu, read_joints, read_optional, read_torque, require
+from otbot_hw.ros2.bag_series import Series, Source, read_imu, read_joints, read_optional, read_torque, require
 from otbot_hw.ros2.bag_time import check_clock, check_gaps, loo_error, nominal_rate, uniform, unwrap_joints
 from otbot_hw.ros2.mapping import BagMap
 
