@@ -92,29 +92,43 @@ def test_stale_tpdo_window_realtime_and_lockstep():
 
 
 def test_drives_stop_when_the_masters_heartbeat_stops():
-    cfg = with_times(CFG, master_consumer=0.15)
+    # the master's consumer of the nodes' heartbeats is not under test: widened (1 s) so that a loaded
+    # machine spoils fewer set-ups
+    cfg = with_times(CFG, consumer=1.0, master_consumer=0.15)
     consumer, producer = 0.15, cfg.bus.master_heartbeat
-    with simulated_robot(cfg, with_imu=False, heartbeat_consumer=None) as (robot, plant):
-        robot.enable()
-        robot.write([2.0, 2.0, 2.0])
-        robot.read()
-        assert all(d.node.sdo[0x1016][1].raw == (cfg.bus.master_node_id << 16 | 150) for d in robot.drives)
-        assert all(d.od_value(0x6007) == 3 for d in plant.drives)  # quick stop, as configured
-        robot.master_heartbeat.stop()  # the master's process hangs or dies: its heartbeat stops
-        t0 = time.monotonic()
-        assert plant.wait_all_stopped(consumer + 0.5)
-        for d in plant.drives:
-            # quick stop by itself (the master, told by EMCY, may have disabled it since)
-            assert d.state in ("QUICK STOP ACTIVE", "SWITCH ON DISABLED") and d.applied_permille() == 0
-            code, why, _ = d.aborts[0]
-            assert code == 0x8130 and "master (node 127)" in why
-            assert consumer - producer - 0.005 <= d.stopped_since[1] - t0 <= consumer + 0.01 + SLACK
-        # and they say so: EMCY 0x8130 from each drive
-        t1 = time.monotonic()
-        while len([f for f in robot.faults if f.kind == "emcy"]) < 3:
-            assert time.monotonic() - t1 < 0.5
-            time.sleep(0.002)
-        assert {f.code for f in robot.faults if f.kind == "emcy"} == {0x8130}
+
+    def scenario():
+        with simulated_robot(cfg, with_imu=False, heartbeat_consumer=None) as (robot, plant):
+            def cycle():
+                robot.write([2.0, 2.0, 2.0])
+                robot.read()
+
+            _set_up(robot, cycle)
+            _undisturbed(robot, plant)
+            assert all(d.node.sdo[0x1016][1].raw == (cfg.bus.master_node_id << 16 | 150) for d in robot.drives)
+            assert all(d.od_value(0x6007) == 3 for d in plant.drives)  # quick stop, as configured
+            robot.master_heartbeat.stop()  # the master's process hangs or dies: its heartbeat stops
+            t0 = time.monotonic()
+            assert plant.wait_all_stopped(consumer + 5.0), [d.state for d in plant.drives]
+            for d in plant.drives:
+                # quick stop by itself (the master, told by EMCY, may have disabled it since)
+                assert d.state in ("QUICK STOP ACTIVE", "SWITCH ON DISABLED") and d.applied_permille() == 0
+                assert d.aborts, f"{d.name} stopped without its own watchdog"
+                code, why, _ = d.aborts[0]
+                assert code == 0x8130 and "master (node 127)" in why
+                if _lost_for(why) > consumer + SLACK:  # by its own account its check came that late
+                    raise Disturbed(f"{d.name}'s heartbeat watchdog checked late (the machine held it up): {why}")
+                assert consumer - producer - 0.005 <= d.stopped_since[1] - t0 <= consumer + 0.01 + SLACK
+            # and they say so: EMCY 0x8130 from each drive
+            assert _until(lambda: len([f for f in robot.faults if f.kind == "emcy"]) >= 3, 1.0), robot.faults
+            assert {f.code for f in robot.faults if f.kind == "emcy"} == {0x8130}
+
+    _measured(scenario)
+
+
+def _lost_for(why: str) -> float:
+    """X of a simulated drive's abort text '... lost for X s'."""
+    return float(why.partition("lost for ")[2].split(" s")[0])
 
 
 class Disturbed(Exception):
