@@ -29,7 +29,7 @@ from otbot_hw.sensors import NoiseModel  # noqa: E402
 
 
 def measure_inprocess(rate: float, cycles: int, with_imu: bool) -> dict:
-    from sim.plant import simulated_robot
+    from sim.bus_robot import simulated_robot
 
     cfg = load_robot_config().replace_bus(control_rate=rate)
     wall = np.empty(cycles)

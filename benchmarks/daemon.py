@@ -4,7 +4,7 @@ process, at several control rates.
     python benchmarks/daemon.py [--rates 100,250,500,1000] [--seconds 60] [--long 300] [--fifo 50]
                                 [--paced] [--json]
 
-Per rate: a plant process (``sim.plant.PlantProcess``: slcan on a pty, IMU on a pty, at that rate,
+Per rate: a plant process (``sim.plant_process.PlantProcess``: slcan on a pty, IMU on a pty, at that rate,
 paper noise) and a daemon process (``--bus config --lockstep`` on it: the robot waits for each
 SYNC's answers; with ``--paced`` within the period, the drives' SYNC/RPDO watchdogs armed, as on
 the real bus; telemetry on, recording on); the daemon is enabled and then driven in
@@ -39,7 +39,7 @@ from drivers.config import load_robot_config  # noqa: E402
 from otbot_hw.runtime.daemon_process import (DaemonProcess, local_config, plant_bus_args,  # noqa: E402
                                              realtime_priority)
 from otbot_hw.sensors import NoiseModel  # noqa: E402
-from sim.plant import PlantProcess  # noqa: E402
+from sim.plant_process import PlantProcess  # noqa: E402
 
 RELAX = {"max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {value: 1000000000",
          "master_heartbeat_consumer: {value: 100, unit: ms}": "master_heartbeat_consumer: {value: 500, unit: ms}",

@@ -37,7 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from otbot_hw.recording import (  # noqa: E402
     TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU, TOPIC_JOINTS, TOPIC_REFERENCE)
-from otbot_hw.runtime.control_socket import ControlClient, ControlServer  # noqa: E402
+from otbot_hw.runtime.control_client import ControlClient  # noqa: E402
+from otbot_hw.runtime.control_socket import ControlServer  # noqa: E402
 from otbot_hw.runtime.daemon_config import ControlSocketConfig  # noqa: E402
 from otbot_hw.runtime.session_recording import SessionRecording  # noqa: E402
 from otbot_hw.runtime.systemd import Notifier, Watchdog  # noqa: E402

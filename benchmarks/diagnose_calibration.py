@@ -8,7 +8,11 @@ recordings come from generators the diagnosis's rules were not tuned on:
   RK45, own sensor model and MCAP writer; floor only) and ``project`` (``otbot_hw.simulation.runs``:
   the project's simulator and sensor model with 4096*4*10-count encoders; floor, stand, locked);
   closed-loop runs come from ``otbot track ... --sim`` (computed-torque tracking with EKF feedback
-  through the loop runner, recorded by the loop);
+  through the loop runner, recorded by the loop); ``daemon``: sessions of the on-robot daemon
+  (``otbot daemon --bus sim`` in-process, real time: enable, random velocity commands with EKF
+  feedback, stop), its own session recording; ``bus``: the open-loop families played through the
+  CANopen drivers against the simulated robot on virtual CAN (``otbot run --bus sim``'s path, with the
+  supervisor and motor limits; a run the supervisor stops is replayed at half the torque);
 * **excitation families**: the paper's constant torques (``constant``), random piecewise-constant
   torques with three hold ranges (``piecewise_short`` 0.15-0.8 s +-4 N m, ``piecewise_long``
   0.4-1.2 s +-8 N m -- the case of issue 20 --, ``piecewise_slow`` 1-3 s +-6 N m), ``multisine``
@@ -25,7 +29,7 @@ A recording is diagnosed alone (no held-out run). Results are appended to a JSON
 come (an interrupted study keeps what it did); ``--doc`` writes the table between the CALIBRATION
 markers of docs/diagnose.md.
 
-    nice .venv/bin/python benchmarks/diagnose_calibration.py --count 500 --workers 2 --doc
+    nice .venv/bin/python benchmarks/diagnose_calibration.py --count 500 --per-family 50 --workers 1 --doc
 """
 from __future__ import annotations
 
@@ -46,8 +50,15 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-FAMILIES = ("constant", "piecewise_short", "piecewise_long", "piecewise_slow", "multisine", "prbs", "chirp",
-            "closed_loop")
+#: the families of the first plan (``plan``: indices 0..count-1, cycling through these)
+PLAN_FAMILIES = ("constant", "piecewise_short", "piecewise_long", "piecewise_slow", "multisine", "prbs", "chirp",
+                 "closed_loop")
+#: the recording paths added after it (``plan_paths``: indices from PATH_INDEX[family]): daemon sessions
+#: (velocity sessions with EKF feedback, in real time) and the simulated CAN bus (open-loop excitations
+#: of the other families played through the CANopen drivers)
+PATH_INDEX = {"daemon": 10000, "sim_bus": 20000}
+FAMILIES = PLAN_FAMILIES + tuple(PATH_INDEX)
+OPEN_LOOP = ("constant", "piecewise_short", "piecewise_long", "piecewise_slow", "multisine", "prbs", "chirp")
 MAX_SAMPLES = 3000
 #: torque scale per fixture (wheels, wheels, pivot) relative to the floor's amplitudes
 FIXTURE_SCALE = {"floor": np.array([1.0, 1.0, 1.0]), "stand": np.array([0.12, 0.12, 0.6]),
@@ -65,6 +76,7 @@ class Spec:
     rate: float
     fixture: str
     seed: int
+    excitation: str = ""  # sim_bus: the open-loop family played over the bus
 
 
 def excitation(family: str, duration: float, dt: float, seed: int, fixture: str = "floor") -> np.ndarray:
@@ -113,11 +125,11 @@ def plan(count: int, seed0: int = 0) -> list[Spec]:
     lengths = (1.0, 3.0, 10.0, 30.0, 60.0)
     rates = (100.0, 200.0, 500.0, 1000.0)
     for i in range(count):
-        family = FAMILIES[i % len(FAMILIES)]
+        family = PLAN_FAMILIES[i % len(PLAN_FAMILIES)]
         if family == "closed_loop":
             out.append(Spec(i, "track", family, 0.0, float(rng.choice((100.0, 200.0))), "floor", int(seed0 + i)))
             continue
-        sim = "independent" if (i // len(FAMILIES)) % 2 == 0 else "project"
+        sim = "independent" if (i // len(PLAN_FAMILIES)) % 2 == 0 else "project"
         fixture = "floor" if sim == "independent" else str(rng.choice(("floor", "floor", "stand", "locked")))
         while True:
             duration, rate = float(rng.choice(lengths)), float(rng.choice(rates))
@@ -127,10 +139,129 @@ def plan(count: int, seed0: int = 0) -> list[Spec]:
     return out
 
 
+def plan_paths(per_family: int, seed0: int = 0) -> list[Spec]:
+    """``per_family`` recordings of each added path (deterministic): daemon velocity sessions of 3-10 s at
+    100 Hz on the floor; the simulated bus at 100 or 200 Hz, 1-10 s, floor / stand / locked, cycling
+    through the open-loop families."""
+    rng = np.random.default_rng(20261126 + seed0)
+    out = []
+    for i in range(per_family):
+        k = PATH_INDEX["daemon"] + i
+        out.append(Spec(k, "daemon", "daemon", float(rng.choice((3.0, 5.0, 10.0))), 100.0, "floor", int(seed0 + k)))
+    for i in range(per_family):
+        k = PATH_INDEX["sim_bus"] + i
+        fixture = str(rng.choice(("floor", "floor", "stand", "locked")))
+        out.append(Spec(k, "bus", "sim_bus", float(rng.choice((1.0, 3.0, 10.0))), float(rng.choice((100.0, 200.0))),
+                        fixture, int(seed0 + k), OPEN_LOOP[i % len(OPEN_LOOP)]))
+    return out
+
+
+def record_bus(spec: Spec, path: Path) -> Path:
+    """The open-loop excitation ``spec.excitation`` played through the CANopen drivers against the simulated
+    robot on virtual CAN (``otbot run --bus sim``'s path: ``BusSimBackend``, the loop runner, the supervisor
+    with the motor limits), paper noise; the drives' encoders and the pivot encoder as configured."""
+    from otbot_hw.cli.checks import bus_config
+    from otbot_hw.params import nominal
+    from otbot_hw.recording import source_metadata
+    from otbot_hw.runtime.backends import BusSimBackend
+    from otbot_hw.runtime.openloop import run_torques
+    from otbot_hw.sensors import NoiseModel
+
+    from otbot_hw.runtime.daemon_process import local_config
+
+    cfg = bus_config(local_config(path.parent / "cfg", replace=SHARED_MACHINE), spec.rate)
+    cfg = cfg.replace_bus(interface="virtual", channel=f"otbot-cal-{os.getpid()}")
+    U = excitation(spec.excitation, spec.duration, 1.0 / spec.rate, spec.seed, spec.fixture)
+    params = nominal()
+    for scale in BUS_SCALES:  # the supervisor stopped the run at a joint-rate limit: as an operator would, less torque
+        with BusSimBackend(cfg, NoiseModel.paper(), spec.seed + 1000).open(params, fixture=spec.fixture) as robot:
+            res = run_torques(robot, scale * U, cfg.limits, None, path,
+                              {"fixture": spec.fixture, **source_metadata(simulated=True, bus=True),
+                               "noise": NoiseModel.paper().to_dict(), "seed": spec.seed + 1000,
+                               "params": params.to_dict(), "excitation_scale": scale})
+        if res.completed:
+            return path
+    raise RuntimeError(f"bus run stopped by fault: {res.fault}")
+
+
+BUS_SCALES = (1.0, 0.5, 0.25)  # excitation amplitude tried in turn when the supervisor stops a bus run
+
+
+#: a machine shared with other jobs (load 10-25 on 2 cores) delays the simulated drives' heartbeats and the loop:
+#: the tests' relaxed timeouts (tests/test_daemon.py RELAXED_SLCAN), so that no run stops for a reason it does not test
+SHARED_MACHINE = {"master_heartbeat_consumer: {value: 100, unit: ms}": "master_heartbeat_consumer: {value: 1000, unit: ms}",
+                  "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 1000, unit: ms}",
+                  "tpdo_timeout: {value: 2, unit: periods}": "tpdo_timeout: {value: 20, unit: periods}",
+                  "reaction_timeout: {value: 2, unit: periods}": "reaction_timeout: {value: 20, unit: periods}"}
+DAEMON_CONFIG = {**SHARED_MACHINE, "max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {value: 50"}
+
+
+def record_daemon(spec: Spec, folder: Path) -> Path:
+    """A daemon session (``otbot daemon --bus sim`` in this process, the simulated robot on virtual CAN, EKF
+    feedback): enable, velocity commands -- a random twist (|v| <= 0.3 m/s, |w| <= 0.6 rad/s) held 0.5-1.5 s,
+    repeated at 5 Hz within the deadman -- for ``spec.duration`` s, stop (ramp to rest, hold) and shut down;
+    the session's recording as the daemon wrote it. Runs in real time."""
+    import threading
+
+    from otbot_hw.cli import build_parser
+    from otbot_hw.cli.daemon import prepare
+    from otbot_hw.runtime.control_socket import ControlClient
+    from otbot_hw.runtime.daemon_process import local_config
+
+    rng = np.random.default_rng(spec.seed)
+    sock = folder / "c.sock"
+    (folder / "rec").mkdir()
+    cfg = local_config(folder / "cfg", replace=DAEMON_CONFIG)
+    args = build_parser().parse_args(["daemon", "--bus", "sim", "--config", str(cfg), "--socket", str(sock),
+                                      "--record-dir", str(folder / "rec"), "--no-telemetry", "--noise", "paper",
+                                      "--seed", str(spec.seed + 1000), "--rate", f"{spec.rate:g}"])
+    daemon, opener = prepare(args)
+    summary: dict = {}
+    thread = threading.Thread(target=lambda: summary.update(daemon.serve(opener)), daemon=True)
+    thread.start()
+
+    def ctl(cmd, **kw):
+        with ControlClient(sock, timeout=10.0) as c:
+            return c.request(cmd, kw or None)
+
+    try:
+        t_end = time.monotonic() + 60
+        while not (daemon.runner is not None and daemon.mode not in ("starting",)) and time.monotonic() < t_end:
+            time.sleep(0.05)
+        ctl("enable")
+        time.sleep(0.5)
+        t_stop = time.monotonic() + spec.duration
+        while time.monotonic() < t_stop:
+            v = rng.uniform(0.0, 0.3) * np.array([np.cos(a := rng.uniform(0, 2 * np.pi)), np.sin(a)])
+            twist = {"vx": float(v[0]), "vy": float(v[1]), "wz": float(rng.uniform(-0.6, 0.6))}
+            t_next = min(time.monotonic() + rng.uniform(0.5, 1.5), t_stop)
+            while time.monotonic() < t_next:
+                ctl("velocity", **twist)
+                time.sleep(0.2)
+        ctl("stop")
+        time.sleep(1.5)
+        faults = ctl("status")["faults"]
+        ctl("shutdown")
+    finally:
+        if thread.is_alive():
+            daemon.request_stop("calibration run done")
+        thread.join(60)
+    if faults:
+        raise RuntimeError(f"daemon session faulted: {faults}")
+    files = sorted((folder / "rec").glob("*.mcap"))
+    if len(files) != 1:
+        raise RuntimeError(f"daemon session left {len(files)} recording files")
+    return files[0]
+
+
 def record(spec: Spec, folder: Path) -> Path:
     """Write the clean recording of ``spec`` and return its path."""
     path = folder / f"cal_{spec.index}_{spec.simulator}_{spec.family}.mcap"
     dt = 1.0 / spec.rate
+    if spec.simulator == "daemon":
+        return record_daemon(spec, folder)
+    if spec.simulator == "bus":
+        return record_bus(spec, path)
     if spec.simulator == "track":
         scenario = ("corridor", "corridor-smooth")[spec.seed % 2]
         cmd = [sys.executable, "-m", "otbot_hw", "track", scenario, "--sim", "--rate", f"{spec.rate:g}",
@@ -189,7 +320,10 @@ def run_one(spec: Spec) -> dict:
                worst=None if worst is None else {k: worst[k] for k in ("channel", "noise_ratio", "limit", "samples")},
                on_bound=[b["parameter"] for b in r["adequacy"]["on_bound"]],
                moved=[m["parameter"] for m in r["adequacy"]["moved"]], tests=r["adequacy"]["tests"],
-               diagnose_s=r["elapsed_s"], record_s=t1 - t0, total_s=time.perf_counter() - t0)
+               not_identifiable=[x["name"] for x in r.get("not_identifiable", []) if x["kind"] == "parameter"],
+               effects_not_identifiable=sum(x["kind"] == "effect" for x in r.get("not_identifiable", [])),
+               diagnose_s=r["elapsed_s"], diagnose_cpu_s=r.get("cpu_s"), record_s=t1 - t0,
+               total_s=time.perf_counter() - t0)
     return row
 
 
@@ -215,13 +349,18 @@ def table(rows: list[dict]) -> list[str]:
                 f"{tmax:.1f} |") if n else f"| {label} | 0 | - | - | - | - |"
 
     lines.append(line("**all**", done))
-    for key, values in (("family", FAMILIES), ("simulator", ("independent", "project", "track")),
+    for key, values in (("family", FAMILIES), ("simulator", ("independent", "project", "track", "daemon", "bus")),
                         ("fixture", ("floor", "stand", "locked")), ("rate", (100.0, 200.0, 500.0, 1000.0))):
         for v in values:
             lines.append(line(f"{key} {v:g}" if isinstance(v, float) else f"{key} {v}",
                               [r for r in done if r[key] == v]))
     for lo, hi in ((0, 2), (2, 12), (12, 61)):
         lines.append(line(f"length {lo}-{hi} s", [r for r in done if lo <= (r["duration"] or 18) < hi]))
+    undetermined = [r for r in done if r.get("not_identifiable")]
+    if undetermined:
+        lines += ["", "Parameters reported \"not identifiable from this recording\" (on a bound, std too large; "
+                  "not a finding): " + ", ".join(f"#{r['index']} {'/'.join(r['not_identifiable'])}"
+                                                 for r in undetermined)]
     bad = [r for r in done if r["outcome"] == "false"]
     if bad:
         lines += ["", "False findings:", ""]
@@ -251,20 +390,37 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0, help="first seed of the plan")
     ap.add_argument("--families", default="", help="comma-separated families (default: all)")
+    ap.add_argument("--per-family", type=int, default=0,
+                    help="at most this many recordings per family: the first of the plan (--count) and of the "
+                         "added paths (daemon, sim_bus); default: the plan only, all --count")
+    ap.add_argument("--rerun", default="",
+                    help="comma-separated indices whose rows are dropped from --out and run again (after a rule "
+                         "change that can affect them)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "diagnose_calibration.jsonl",
                     help="JSON lines, appended as results come (rows already there are skipped)")
     ap.add_argument("--doc", action="store_true", help="write the table into docs/diagnose.md")
     ap.add_argument("--table-only", action="store_true", help="only write the table from --out")
     args = ap.parse_args()
     specs = plan(args.count, args.seed)
+    if args.per_family:
+        specs = [s for s in specs if s.index < args.count] + plan_paths(args.per_family, args.seed)
+        specs = [s for f in FAMILIES for s in [x for x in specs if x.family == f][:args.per_family]]
     if args.families:
         keep = set(args.families.split(","))
         specs = [s for s in specs if s.family in keep]
     rows = []
     if args.out.exists():
         rows = [json.loads(x) for x in args.out.read_text().splitlines() if x.strip()]
+    rerun = {int(x) for x in args.rerun.split(",") if x.strip()}
+    if rerun and not args.table_only:
+        rows = [r for r in rows if r["index"] not in rerun]
+        args.out.write_text("".join(json.dumps(r) + "\n" for r in rows))
     done = {r["index"] for r in rows}
     todo = [s for s in specs if s.index not in done]
+    # round robin over the families, so that an interrupted study has covered every family evenly
+    rank = {}
+    todo.sort(key=lambda s: (rank.setdefault(s.family, {}).setdefault(s.index, len(rank[s.family])),
+                             FAMILIES.index(s.family)))
     if not args.table_only:
         os.environ.setdefault("OMP_NUM_THREADS", "1")
         with ProcessPoolExecutor(args.workers) as ex, open(args.out, "a") as fh:

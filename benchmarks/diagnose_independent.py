@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -181,19 +182,29 @@ def seeds(rep: int) -> tuple[int, int]:
 
 
 def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATION,
-                    family: str = "piecewise") -> list[Path]:
+                    family: str = "piecewise", heldout_cache: Path | None = None) -> list[Path]:
     """Fitting (piecewise-constant torques, or an excitation ``family`` of benchmarks/diagnose_calibration.py)
-    and held-out (smooth torques) recordings of one case."""
+    and held-out (smooth torques) recordings of one case. ``heldout_cache``: a folder where the held-out
+    recording (the same for every family) is kept and reused."""
     world, p = world_of(case, ir.load_params())
     paths = []
     for kind, seed in zip(("piecewise", "smooth"), seeds(rep)):
         path = folder / f"{case.label}_{rep}_{'fit' if kind == 'piecewise' else 'heldout'}.mcap"
+        if kind == "smooth" and heldout_cache is not None:
+            path = Path(heldout_cache) / f"{case.label}_{rep}_{duration:g}s_heldout.mcap"
+            if path.exists():
+                paths.append(path)
+                continue
         if kind == "piecewise" and family != "piecewise":
             import diagnose_calibration as dc
 
             U = dc.excitation(family, duration, DT, seed)
             robot = ir.Otbot(p, world)
             ir.write_mcap(path, DT, U, robot.sensors(robot.run(U, DT), np.random.default_rng(seed + 1000)))
+        elif kind == "smooth" and heldout_cache is not None:  # complete files only in the cache
+            part = path.with_name(path.stem + f".{os.getpid()}.part.mcap")
+            ir.record(part, world, kind, seed, duration, DT, params=p)
+            part.replace(path)
         else:
             ir.record(path, world, kind, seed, duration, DT, params=p)
         paths.append(path)
@@ -211,8 +222,10 @@ def _zero_tolerance(param: str) -> float:
     return 1e-3
 
 
-def score(case: Case, r: dict) -> dict:
-    """Right or wrong, with the estimates and errors (see module doc)."""
+def score(case: Case, r: dict, fisher: dict | None = None) -> dict:
+    """Right or wrong, with the estimates and errors (see module doc). With ``fisher`` (``truth_fisher``), a
+    true effect the recording cannot reveal by that criterion also counts as found when the diagnosis says
+    it is not identifiable from this recording (and only then)."""
     from otbot_hw.diagnose.catalog import effect as catalog_effect
 
     named = [e["name"] for e in r["effects"]]
@@ -240,6 +253,8 @@ def score(case: Case, r: dict) -> dict:
                 errs[k] = (got - v) / _zero_tolerance(k) * TOLERANCE  # scaled so that |err| <= 0.2 passes
         errors[eff] = errs
         found[eff] = present and all(e is not None and abs(e) <= TOLERANCE for e in errs.values())
+        if fisher is not None and not fisher[eff]["identifiable"] and not present:
+            found[eff] = eff in {x["name"] for x in r.get("not_identifiable", [])}
     truth_names = set(case.truth)
     extra = [n for n in named if n not in truth_names]
     extra += [",".join(g) for g in groups if not (set(g) & truth_names)]
@@ -253,10 +268,28 @@ def score(case: Case, r: dict) -> dict:
     return {"right": right, "found": found, "errors": errors, "extra": extra, "estimate": est}
 
 
+def truth_fisher(case: Case, fit_data, P, geometry) -> dict[str, dict]:
+    """The Fisher criterion at the truth, per true effect of ``case``: its signature energy in the fitting
+    recording at the true size (``identifiability.signature_chi2``, the free nominal parameters projected
+    out) against what a nested fit needs (``needed_chi2``)."""
+    from otbot_hw.diagnose.identifiability import needed_chi2, signature_chi2
+    from otbot_hw.diagnose.select import free_nominal
+    from otbot_hw.model.effects import ExtendedModel
+
+    model = ExtendedModel.paper(P).with_values(geometry.effect_values())
+    out = {}
+    for eff, params in case.truth.items():
+        chi2, n = signature_chi2(fit_data, model, free_nominal(fit_data), dict(params))
+        need = needed_chi2(len(params), n)
+        out[eff] = {"chi2": chi2, "needed": need, "identifiable": bool(chi2 >= need)}
+    return out
+
+
 def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration: float = DURATION,
-             family: str = "piecewise") -> dict:
+             family: str = "piecewise", fisher: bool = False, heldout_cache: Path | None = None) -> dict:
     """Simulate, write, load and diagnose one case on seed pair ``rep`` (recordings of ``duration`` s; the
-    fitting run under the excitation ``family``)."""
+    fitting run under the excitation ``family``); ``fisher``: also the Fisher criterion at the truth
+    (``truth_fisher``), which scores a "not identifiable" answer."""
     from otbot_hw.diagnose.data import load
     from otbot_hw.diagnose.diagnosis import diagnose
     from otbot_hw.recording import read_recording
@@ -268,12 +301,14 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
         folder.mkdir(parents=True, exist_ok=True)
         paths = [folder / f"{case.label}_{rep}_{k}.mcap" for k in ("fit", "heldout")]
         if not (keep and duration == DURATION and family == "piecewise" and all(p.exists() for p in paths)):
-            paths = make_recordings(case, rep, folder, duration, family)  # kept recordings are reused
+            paths = make_recordings(case, rep, folder, duration, family, heldout_cache)  # kept ones are reused
         assert read_recording(paths[0]).truth_q is None
         t_sim = time.perf_counter() - t0
         P, geometry = tool_inputs(case)
-        r = diagnose(load(paths[:1]), P, load(paths[1:]), geometry=geometry)
-    s = score(case, r)
+        fit_data = load(paths[:1])
+        r = diagnose(fit_data, P, load(paths[1:]), geometry=geometry)
+        fish = truth_fisher(case, fit_data, P, geometry) if fisher else None
+    s = score(case, r, fish)
     hb, ha = r["fit_before"]["heldout"], r["fit_after"]["heldout"]
     worst = min(hb, key=lambda ch: hb[ch]["fit_percent"]) if hb else None
     return {"case": case.label, "kind": case.kind, "rep": rep, "seeds": list(seeds(rep)), "family": family,
@@ -287,7 +322,8 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
             **s, "worst_channel": worst,
             "heldout_before": hb[worst]["fit_percent"] if worst else None,
             "heldout_after": ha[worst]["fit_percent"] if worst else None,
-            "verdict": r["verdict"], "sim_s": t_sim, "diagnose_s": r["elapsed_s"],
+            "verdict": r["verdict"], "sim_s": t_sim, "diagnose_s": r["elapsed_s"], "diagnose_cpu_s": r.get("cpu_s"), "fisher": fish,
+            "not_identifiable": [x["name"] for x in r.get("not_identifiable", [])],
             "total_s": time.perf_counter() - t0}
 
 
@@ -348,7 +384,13 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "docs" / "diagnose_independent.json"), help="JSON results file")
     ap.add_argument("--no-doc", action="store_true", help="do not rewrite docs/diagnose.md")
     ap.add_argument("--families", default="", help="comma-separated excitation families of the fitting run "
-                    "(benchmarks/diagnose_calibration.py FAMILIES but closed_loop): a family x case table instead")
+                    "(benchmarks/diagnose_calibration.py FAMILIES but closed_loop): a family x effect table instead")
+    ap.add_argument("--magnitudes", default="1,0.5", help="with --families: effect sizes relative to the cases' "
+                    "(default 1,0.5)")
+    ap.add_argument("--jsonl", default=str(ROOT / "docs" / "diagnose_families.jsonl"),
+                    help="with --families: JSON lines, appended as results come (rows already there are skipped)")
+    ap.add_argument("--doc", action="store_true", help="with --families: write the table into docs/diagnose.md")
+    ap.add_argument("--table-only", action="store_true", help="with --families: only the table from --jsonl")
     args = ap.parse_args()
     if args.families:
         return families_main(args)
@@ -403,33 +445,117 @@ def main() -> int:
     return 0
 
 
-def families_main(args) -> int:
-    """Every chosen case x excitation family x seed pair: the family x case table of right answers
-    (written to ``--out`` and printed; docs/diagnose.md is not rewritten)."""
-    fams = args.families.split(",")
-    chosen = [c for c in CASES if not args.cases or c.label in args.cases.split(",")]
-    rows = []
-    with ProcessPoolExecutor(max_workers=args.workers) as ex:
-        futs = {ex.submit(run_case, c.label, rep, None, DURATION, f): (c.label, rep, f)
-                for f in fams for rep in range(args.seeds) for c in chosen}
-        for fut in as_completed(futs):
-            lab, rep, fam = futs[fut]
-            try:
-                r = fut.result()
-            except Exception as exc:  # noqa: BLE001 - reported, the others go on
-                r = {"case": lab, "rep": rep, "family": fam, "error": repr(exc), "kind": BY_LABEL[lab].kind}
-            rows.append(r)
-            print(f"[families] {fam} {lab} #{rep}: " + ("ERROR " + r["error"] if "error" in r else
-                  f"{'RIGHT' if r['right'] else 'wrong'}  {_reported(r)}  {_errors(r)}"), file=sys.stderr, flush=True)
-    Path(args.out).write_text(json.dumps({"runs": rows}, indent=1, default=float) + "\n")
-    lines = ["| case | " + " | ".join(fams) + " |", "|---|" + "---|" * len(fams)]
-    for c in chosen:
+#: one case per catalog effect (saturation_left / saturation_pivot: as saturation_right, not repeated)
+FAMILY_CASES = ("coulomb_wheels", "coulomb_pivot", "stribeck_wheels", "rolling_resistance", "caster_configured",
+                "wheel_slip", "traction_limit", "floor_slope", "air_drag", "gain_right", "gain_left", "gain_pivot",
+                "torque_saturation", "saturation_right", "current_lag", "imu_bias", "imu_lever_arm",
+                "imu_misalignment", "imu_latency", "encoder_scale", "wheel_friction_asymmetry", "radius_one_wheel")
+KEEP = {"casters", "slip_tmax", "v_s", "t_trac"}  # positions and shape parameters: not scaled with the magnitude
+SATURATION = {"u_max", "u_max_r", "u_max_l", "u_max_p"}  # levels: a smaller effect saturates later
+
+
+def _scale(k: str, v, f: float):
+    if k in KEEP:
+        return v
+    if k in SATURATION:  # magnitude f of a saturation: the level raised by (1 - f) / 2 of itself
+        g = 1.0 + (1.0 - f) / 2.0
+        return tuple(x * g for x in v) if isinstance(v, tuple) else v * g
+    if k == "stribeck":
+        return (v[0] * f, v[1])
+    return tuple(x * f for x in v) if isinstance(v, tuple) else v * f
+
+
+def magnitude_case(label: str, f: float) -> Case:
+    """Case ``label`` with its effect at magnitude ``f`` (1: as listed; 0.5: half the size -- a saturation
+    level 1.25 x higher; positions of casters, Stribeck speed and traction limit kept)."""
+    c = BY_LABEL[label]
+    if f == 1.0:
+        return c
+    world = {k: _scale(k, v, f) for k, v in c.world.items()}
+    truth = {e: {k: _scale(k, v, f) for k, v in ps.items()} for e, ps in c.truth.items()}
+    return Case(f"{label}@{f:g}", c.kind, f"{c.description} (x{f:g})", world, truth, dict(c.file), c.casters,
+                c.imu_position)
+
+
+HELDOUT_CACHE = Path(tempfile.gettempdir()) / "otbot-diagnose-families-heldout"
+
+
+def run_family_case(label: str, f: float, rep: int, family: str) -> dict:
+    HELDOUT_CACHE.mkdir(exist_ok=True)
+    r = run_case(magnitude_case(label, f), rep, None, DURATION, family, fisher=True, heldout_cache=HELDOUT_CACHE)
+    r.update(case=label, magnitude=f)
+    return r
+
+
+def family_table(rows: list[dict], fams: list[str], labels: list[str]) -> list[str]:
+    """Family x effect table: right / runs per cell (both magnitudes, every seed pair), "n.i." counts of
+    runs the Fisher criterion at the truth says this recording cannot reveal."""
+    ok = [r for r in rows if "error" not in r]
+    lines = ["| effect | " + " | ".join(fams) + " |", "|---|" + "---|" * len(fams)]
+    for lab in labels:
         cells = []
         for f in fams:
-            rs = [r for r in rows if r["case"] == c.label and r["family"] == f and "error" not in r]
-            cells.append(f"{sum(r['right'] for r in rs)}/{len(rs)}")
-        lines.append(f"| {c.label} | " + " | ".join(cells) + " |")
+            rs = [r for r in ok if r["case"] == lab and r["family"] == f]
+            ni = sum(not all(v["identifiable"] for v in (r["fisher"] or {}).values()) for r in rs)
+            cells.append(f"{sum(r['right'] for r in rs)}/{len(rs)}" + (f" ({ni} n.i.)" if ni else "") if rs else "-")
+        lines.append(f"| {lab} | " + " | ".join(cells) + " |")
+    cells = []
+    for f in fams:
+        rs = [r for r in ok if r["family"] == f]
+        cells.append(f"**{100 * sum(r['right'] for r in rs) / len(rs):.0f} %** ({sum(r['right'] for r in rs)}/{len(rs)})"
+                     if rs else "-")
+    lines.append("| **all effects** | " + " | ".join(cells) + " |")
+    return lines
+
+
+def families_main(args) -> int:
+    """Every catalog effect (``FAMILY_CASES``) at each magnitude x excitation family x seed pair, one row per
+    run appended to ``--jsonl`` as it comes (rows already there are skipped; run order: seed pair, magnitude,
+    case, family -- an interrupted study covers every family evenly); the family x effect table
+    printed and (``--doc``) written between the FAMILIES markers of docs/diagnose.md."""
+    fams = args.families.split(",")
+    labels = [c for c in FAMILY_CASES if not args.cases or c in args.cases.split(",")]
+    mags = [float(x) for x in args.magnitudes.split(",")]
+    out = Path(args.jsonl)
+    rows = [json.loads(x) for x in out.read_text().splitlines() if x.strip()] if out.exists() else []
+    done = {(r["case"], r["magnitude"], r["family"], r["rep"]) for r in rows}
+    todo = [(lab, m, fam, rep) for rep in range(args.seeds) for m in mags for lab in labels for fam in fams
+            if (lab, m, fam, rep) not in done]
+    if not args.table_only and todo:
+        with ProcessPoolExecutor(max_workers=args.workers) as ex, open(out, "a") as fh:
+            futs = {ex.submit(run_family_case, lab, m, rep, fam): (lab, m, fam, rep) for lab, m, fam, rep in todo}
+            for fut in as_completed(futs):
+                lab, m, fam, rep = futs[fut]
+                try:
+                    r = fut.result()
+                except Exception as exc:  # noqa: BLE001 - reported, the others go on
+                    r = {"case": lab, "magnitude": m, "rep": rep, "family": fam, "error": repr(exc), "kind": "effect"}
+                rows.append(r)
+                fh.write(json.dumps(r, default=float) + "\n")
+                fh.flush()
+                print(f"[families] {fam} {lab} x{m:g} #{rep}: " + ("ERROR " + r["error"] if "error" in r else
+                      f"{'RIGHT' if r['right'] else 'wrong'}  {_reported(r)}  {_errors(r)}  "
+                      f"fisher {r['fisher']}  ({r['diagnose_s']:.1f} s)"), file=sys.stderr, flush=True)
+    rows = [r for r in rows if r["family"] in fams and r["case"] in labels]
+    lines = family_table(rows, fams, labels)
     print("\n".join(lines))
+    if args.doc:
+        ok = [r for r in rows if "error" not in r]
+        head = [f"{len(rows)} runs ({len(rows) - len(ok)} failed): {len(labels)} effects x magnitudes "
+                f"{', '.join(f'{m:g}' for m in mags)} x families {', '.join(fams)} x seed pairs "
+                f"{', '.join(str(x) for x in sorted({r['rep'] for r in rows}))} (see the text for which ran). "
+                f"Slowest diagnosis {max((r['diagnose_s'] for r in ok), default=float('nan')):.1f} s (wall, "
+                "machine shared).", ""]
+        doc = ROOT / "docs" / "diagnose.md"
+        text = doc.read_text()
+        begin, end = "<!-- FAMILIES:BEGIN (written by benchmarks/diagnose_independent.py --families) -->", \
+            "<!-- FAMILIES:END -->"
+        block = begin + "\n\n" + "\n".join(head + lines) + "\n\n" + end
+        if begin in text:
+            text = text[:text.index(begin)] + block + text[text.index(end) + len(end):]
+        else:
+            text += "\n" + block + "\n"
+        doc.write_text(text)
     return 0
 
 

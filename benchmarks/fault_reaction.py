@@ -34,7 +34,8 @@ from drivers.config import load_robot_config  # noqa: E402
 from otbot_hw.runtime.openloop import run_torques  # noqa: E402
 from otbot_hw.robot import RobotError  # noqa: E402
 from sim.injection import Injection, reaction  # noqa: E402
-from sim.plant import PlantProcess, simulated_robot  # noqa: E402
+from sim.bus_robot import simulated_robot  # noqa: E402
+from sim.plant_process import PlantProcess  # noqa: E402
 
 KINDS = ("drive-silent", "emcy", "fault-bit", "imu-loss", "imu-error", "bus-off")
 

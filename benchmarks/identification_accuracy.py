@@ -75,7 +75,7 @@ def random_starts(out: dict, n_truths: int, n_guesses: int) -> None:
 
     from otbot_hw.identification.experiments import deviation_guess, simulate_experiment
     from otbot_hw.identification.model import OtbotModel
-    from otbot_hw.identification.prediction_error import ResidualProblem, full_vector
+    from otbot_hw.identification.residual_problem import ResidualProblem, full_vector
     from otbot_hw.identification.steps import experiments_from_recordings, identify_step, platform_bounds
 
     robot = nominal()

@@ -52,7 +52,7 @@ RELAX = {"max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {valu
 
 
 def _request(sock: Path, cmd: str, **args):
-    from otbot_hw.runtime.control_socket import ControlClient
+    from otbot_hw.runtime.control_client import ControlClient
 
     with ControlClient(sock, timeout=10.0) as c:
         return c.request(cmd, args or None)

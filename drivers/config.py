@@ -1,5 +1,5 @@
 """Hardware configuration of the drivers (``config/robot.yaml``: bus, drives, pivot_encoder; the
-``imu`` section is read by ``drivers.imu.load_imu_config``).
+``imu`` section is read by ``drivers.imu_config.load_imu_config``).
 
 Every error is a ``ParameterError`` naming the file and the key (the CLI exits with code 2).
 Quantities with units are written ``{value: V, unit: U}`` as in the ``motors`` section.
@@ -81,7 +81,8 @@ class DriveConfig:
     velocity_unit of 0x606C (motor side, one of ``VELOCITY_UNITS``).
 
     Drive-side protection, written by SDO at boot: master_heartbeat_consumer (s, 0x1016),
-    rpdo_timeout (periods, RPDO deadline 0x1400:05 on a paced bus), abort_connection_option
+    sync_watchdog (0x1006 = the control period: the drive watches SYNC; False: 0, off), rpdo_timeout
+    (periods, RPDO deadline 0x1400:05; 0: off), abort_connection_option
     (0x6007: what the drive does when the master's heartbeat, SYNC or RPDOs stop), quick_stop_option
     (0x605A, CiA 402 code 0-8; 2: quick stop ramp, then SWITCH ON DISABLED)."""
 
@@ -101,6 +102,7 @@ class DriveConfig:
     rpdo_timeout: int = 3
     abort_connection_option: int = 3
     quick_stop_option: int = 2
+    sync_watchdog: bool = True
 
     @property
     def rad_s_per_velocity_unit(self) -> float:
@@ -145,7 +147,7 @@ class RobotConfig:
     bus: BusConfig
     drives: tuple[DriveConfig, DriveConfig, DriveConfig]
     pivot_encoder: EncoderConfig
-    imu: object | None  # drivers.imu.ImuConfig (the imu section), None without one
+    imu: object | None  # drivers.imu_config.ImuConfig (the imu section), None without one
     limits: MotorLimits
     path: Path
 
@@ -154,6 +156,13 @@ class RobotConfig:
         from dataclasses import replace
 
         return replace(self, bus=replace(self.bus, **kw))
+
+    def unpaced(self) -> "RobotConfig":
+        """A copy whose drives watch neither the SYNC period (0x1006) nor their RPDO deadline
+        (0x1400:05): for a bus whose SYNCs keep no period (lockstep with a simulated plant)."""
+        from dataclasses import replace
+
+        return replace(self, drives=tuple(replace(d, sync_watchdog=False, rpdo_timeout=0) for d in self.drives))
 
     def relaxed(self, seconds: float) -> "RobotConfig":
         """A copy whose heartbeat consumer times (the master's of each node, each drive's of the
@@ -350,7 +359,7 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
 
     imu = None
     if data.get("imu") is not None:
-        from drivers.imu import load_imu_config
+        from drivers.imu_config import load_imu_config
 
         imu = load_imu_config(p)
     ids = [dc.node_id for dc in drives] + ([enc.node_id] if enc.source == "encoder" else []) + [bus.master_node_id]

@@ -121,6 +121,13 @@ class Robot(abc.ABC):
     imu_rate: float | None = None
     warnings: tuple[str, ...] | list[str] = ()
     close_report: tuple[str, ...] | list[str] = ()
+    #: The clock the back end's own multi-cycle sequences tick (``otbot_hw.clock``; None: it has none)
+    clock = None
+
+    def use_clock(self, clock) -> None:
+        """The runtime's clock (``otbot_hw.clock``), handed down by the loop that drives this robot:
+        the back end's own multi-cycle sequences (a driver's enable, fault reaction) tick it too."""
+        self.clock = clock
 
     @abc.abstractmethod
     def read(self) -> Snapshot:

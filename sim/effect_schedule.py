@@ -1,21 +1,19 @@
 """Effects of the simulated robot that change during a run (e.g. bursts of wheel slip).
 
 ``EffectSchedule`` [(t_start s, {effect: value})] sets entries of the extended model's effect vector
-(``otbot_hw.model.effects``) at plant time; ``ScheduledEffects`` wraps a simulated ``Robot``
-(``sim.direct.DirectSimRobot`` or ``sim.plant.SimulatedBusRobot``) so that before every read --
-before the sample at t_k is taken and the model steps on from it -- the effects of t_k are in force;
-``with_schedule(backend, schedule)`` wraps a simulated back end's robots. The robot must step the
+(``otbot_hw.model.effects``) at plant time; ``with_schedule(backend, schedule)`` wraps a simulated back
+end so that its robots (``sim.scheduled_robot.ScheduledRobot`` around a ``sim.direct.DirectSimRobot`` or
+``sim.bus_robot.SimulatedBusRobot``) have the effects of t_k in force before every read. The robot must step the
 extended model: its plant an ``ExtendedModel`` whose effects include every scheduled one (give them
 their burst value; the schedule's first entry sets the value at t = 0).
 """
 from __future__ import annotations
 
-from contextlib import contextmanager
-
 import numpy as np
 
 from otbot_hw.model import effects as fx
 from otbot_hw.robot import SimulatedRobot
+from sim.scheduled_robot import ScheduledBackend, stepper_and_clock
 
 
 class EffectSchedule:
@@ -52,135 +50,29 @@ class EffectSchedule:
         return self.values_at(t).get(name, 0.0) != 0.0
 
 
-def _stepper_and_clock(robot: SimulatedRobot):
-    if robot.plant is robot:  # sim.direct.DirectSimRobot: its own plant
-        return robot.stepper, (lambda: robot.t_plant)
-    plant = robot.plant  # sim.plant.SimulatedBusRobot: the Plant behind the bus
-    return plant.stepper, (lambda: plant.t)
-
-
-class ScheduledEffects(SimulatedRobot):
-    """A simulated robot whose extended-model effects follow ``schedule`` (everything else delegated)."""
-
-    def __init__(self, robot: SimulatedRobot, schedule: EffectSchedule):
-        self.robot = robot
-        self.schedule = schedule
-        self.stepper, self._clock = _stepper_and_clock(robot)
-        eff = getattr(self.stepper, "eff", None)
+def _effect_change(schedule: EffectSchedule):
+    """The change before each read: the scheduled effects of the plant's time written into the effect
+    vector of the robot's extended-model stepper."""
+    def make(robot: SimulatedRobot, plant):
+        stepper, clock = stepper_and_clock(robot)
+        eff = getattr(stepper, "eff", None)
         if eff is None:
             raise ValueError("scheduled effects need a robot that steps the extended model (an ExtendedModel "
                              "plant with the scheduled effects active)")
-        self._eff = eff
-        self.period = robot.period
 
-    def _schedule(self) -> None:
-        for name, v in self.schedule.values_at(self._clock()).items():
-            self._eff[fx.EFFECT_INDEX[name]] = v
-
-    def read(self):
-        self._schedule()
-        return self.robot.read()
-
-    def write(self, torques):
-        return self.robot.write(torques)
-
-    def _apply(self, torques):  # pragma: no cover - write() is the inner robot's
-        return self.robot._apply(torques)
-
-    def enable(self) -> None:
-        self.robot.enable()
-
-    def disable(self) -> None:
-        self.robot.disable()
-
-    def quick_stop(self) -> None:
-        self.robot.quick_stop()
-
-    def fault_reset(self) -> None:
-        self.robot.fault_reset()
-
-    @property
-    def faults(self):
-        return self.robot.faults
-
-    @property
-    def faulted(self) -> bool:
-        return self.robot.faulted
-
-    @property
-    def has_imu(self) -> bool:
-        return self.robot.has_imu
-
-    def truth(self):
-        return self.robot.truth()
-
-    def truth_force(self):
-        return self.robot.truth_force()
-
-    @property
-    def plant(self):
-        return self.robot.plant
-
-    @property
-    def simulated_params(self):
-        return self.robot.simulated_params
-
-    @property
-    def has_operator(self) -> bool:
-        return self.robot.has_operator
-
-    def operator(self, command: str) -> dict:
-        return self.robot.operator(command)
-
-    @property
-    def imu(self):
-        return self.robot.imu
-
-    @property
-    def imu_rate(self):
-        return self.robot.imu_rate
-
-    @property
-    def warnings(self):
-        return self.robot.warnings
-
-    @property
-    def close_report(self):
-        return self.robot.close_report
-
-    def node_identities(self) -> dict:
-        return self.robot.node_identities()
-
-    def close(self):
-        return self.robot.close()
-
-    def __getattr__(self, name):
-        return getattr(self.robot, name)
+        def change() -> None:
+            for name, v in schedule.values_at(clock()).items():
+                eff[fx.EFFECT_INDEX[name]] = v
+        return change
+    return make
 
 
-class _ScheduledBackend:
-    """A simulated back end whose robots follow an effect schedule (attributes of the inner back end)."""
-
-    def __init__(self, backend, schedule: EffectSchedule):
-        self._backend = backend
-        self.schedule = schedule
-
-    def __getattr__(self, name):
-        return getattr(self._backend, name)
-
-    @contextmanager
-    def open(self, plant, *args, **kwargs):
-        if not hasattr(plant, "eff") or any(plant.eff[fx.EFFECT_INDEX[n]] == 0.0 for n in self.schedule.names):
-            raise ValueError("scheduled effects need an ExtendedModel plant with every scheduled effect active "
-                             f"({', '.join(self.schedule.names)})")
-        own = fx.ExtendedModel(plant.params, np.array(plant.eff, dtype=float))  # the schedule writes into its effects
-        with self._backend.open(own, *args, **kwargs) as robot:
-            yield ScheduledEffects(robot, self.schedule)
-
-    def describe(self) -> dict:
-        return {**self._backend.describe(), "effect_schedule": [[t, v] for t, v in self.schedule.entries]}
-
-
-def with_schedule(backend, schedule: EffectSchedule):
+def with_schedule(backend, schedule: EffectSchedule) -> ScheduledBackend:
     """``backend`` (``DirectBackend`` or ``BusSimBackend``) with its robots' effects following ``schedule``."""
-    return _ScheduledBackend(backend, schedule)
+    def prepare(plant):
+        if not hasattr(plant, "eff") or any(plant.eff[fx.EFFECT_INDEX[n]] == 0.0 for n in schedule.names):
+            raise ValueError("scheduled effects need an ExtendedModel plant with every scheduled effect active "
+                             f"({', '.join(schedule.names)})")
+        return fx.ExtendedModel(plant.params, np.array(plant.eff, dtype=float))  # the schedule writes into its effects
+
+    return ScheduledBackend(backend, "effect_schedule", schedule.entries, _effect_change(schedule), prepare)

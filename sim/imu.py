@@ -50,7 +50,7 @@ class SimulatedIMU:
             raise ValueError(f"output must be one of {', '.join(vn.ASYNC_OUTPUT_TYPES)}, got {output!r}")
         if rate_hz not in vn.ASYNC_RATES_HZ:
             raise ValueError(f"rate_hz must be one of {vn.ASYNC_RATES_HZ}, got {rate_hz!r}")
-        from drivers.imu import check_rotation
+        from drivers.imu_config import check_rotation
 
         self.mounting = np.eye(3) if mounting is None else check_rotation(mounting)
         self.ador = vn.ASYNC_OUTPUT_TYPES[output]

@@ -2,16 +2,14 @@
 
 ``LoadSchedule`` [(t_start s, (mass kg, x m, y m, own inertia kg m^2) or None)] gives the load in force
 at plant time t (None: the bare platform of the plant's parameters); ``with_loads(backend, schedule)``
-wraps a simulated back end (``DirectBackend``, ``BusSimBackend``) so that before every read the plant
-steps with the platform + load of t_k (``Stepper.set_params``, ``OtbotParams.with_load``). The paper's
-model only (an ``ExtendedModel`` plant keeps its effects; its physical parameters change). The robot is
-not told: the controller and its payload adapter must find out from the motion.
+wraps a simulated back end (``DirectBackend``, ``BusSimBackend``; ``sim.scheduled_robot``) so that before
+every read the plant steps with the platform + load of t_k (``Stepper.set_params``,
+``OtbotParams.with_load``). The paper's model only (an ``ExtendedModel`` plant keeps its effects; its
+physical parameters change). The robot is not told: the controller and its payload adapter must find out from the motion.
 """
 from __future__ import annotations
 
-from contextlib import contextmanager
-
-from sim.effect_schedule import _stepper_and_clock
+from sim.scheduled_robot import ScheduledBackend, stepper_and_clock
 
 
 class LoadSchedule:
@@ -30,52 +28,28 @@ class LoadSchedule:
         return cur
 
 
-class LoadedRobot:
-    """A simulated robot whose platform carries the scheduled load (everything else delegated)."""
+def _load_change(schedule: LoadSchedule):
+    """The change before each read: the robot's stepper given the platform + load of the plant's time
+    (``Stepper.set_params``; an extended-model stepper: its physical parameters)."""
+    def make(robot, plant):
+        stepper, clock = stepper_and_clock(robot)
+        base = getattr(plant, "params", plant)
+        current = ["unset"]
 
-    def __init__(self, robot, schedule: LoadSchedule, base):
-        self.robot = robot
-        self.schedule = schedule
-        self.stepper, self._clock = _stepper_and_clock(robot)
-        self.base = base
-        self._current = "unset"
-
-    def _apply(self) -> None:
-        load = self.schedule.load_at(self._clock())
-        if load != self._current:
-            self._current = load
-            p = self.base if load is None else self.base.with_load(*load)
-            if hasattr(self.stepper, "set_params"):
-                self.stepper.set_params(p)
-            else:  # an extended-model stepper: its physical parameters
-                self.stepper.params = p
-                self.stepper._prm = p.as_array()
-
-    def read(self):
-        self._apply()
-        return self.robot.read()
-
-    def __getattr__(self, name):
-        return getattr(self.robot, name)
+        def change() -> None:
+            load = schedule.load_at(clock())
+            if load != current[0]:
+                current[0] = load
+                p = base if load is None else base.with_load(*load)
+                if hasattr(stepper, "set_params"):
+                    stepper.set_params(p)
+                else:  # an extended-model stepper: its physical parameters
+                    stepper.params = p
+                    stepper._prm = p.as_array()
+        return change
+    return make
 
 
-class _LoadedBackend:
-    def __init__(self, backend, schedule: LoadSchedule):
-        self._backend = backend
-        self.schedule = schedule
-
-    def __getattr__(self, name):
-        return getattr(self._backend, name)
-
-    @contextmanager
-    def open(self, plant, *args, **kwargs):
-        with self._backend.open(plant, *args, **kwargs) as robot:
-            yield LoadedRobot(robot, self.schedule, getattr(plant, "params", plant))
-
-    def describe(self) -> dict:
-        return {**self._backend.describe(), "load_schedule": [[t, v] for t, v in self.schedule.entries]}
-
-
-def with_loads(backend, schedule: LoadSchedule):
+def with_loads(backend, schedule: LoadSchedule) -> ScheduledBackend:
     """``backend`` with its robots' platform load following ``schedule``."""
-    return _LoadedBackend(backend, schedule)
+    return ScheduledBackend(backend, "load_schedule", schedule.entries, _load_change(schedule))

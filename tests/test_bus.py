@@ -21,7 +21,7 @@ from otbot_hw.recording import read_recording
 from otbot_hw.runtime.openloop import run_torques
 from otbot_hw.sensors import NoiseModel, encoders_ideal, imu_sigma
 from sim.lockstep import LockstepCanopenRobot
-from sim.plant import simulated_robot
+from sim.bus_robot import simulated_robot
 from otbot_hw.simulation.runs import simulated_recording
 from otbot_hw.simulation.simulator import ForceSchedule, PivotForce, simulate
 
@@ -351,11 +351,11 @@ def test_the_loop_runner_paces_and_the_driver_never_sleeps_to_pace():
     import can
 
     from otbot_hw.runtime.openloop import run_torques
-    from sim.plant import VirtualPlant
+    from sim.bus_robot import VirtualPlant
 
     cfg = lenient(CFG).replace_bus(channel="otbot-realtime-test")
     with VirtualPlant(cfg) as plant:
-        robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel), realtime=True)
+        robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=cfg.bus.channel))  # the real driver
         with robot:
             robot.open()
             robot.enable()
@@ -398,7 +398,7 @@ def test_a_second_master_on_a_running_plant_keeps_imu_lockstep():
     IMU ticks of the second master line up with the plant's because the node resets restart the count."""
     import can
 
-    from sim.plant import VirtualPlant, open_sim_imu
+    from sim.bus_robot import VirtualPlant, open_sim_imu
 
     cfg = lenient(CFG).replace_bus(channel="otbot-two-masters", control_rate=1000.0)
     pub, drv = open_sim_imu(cfg)
@@ -442,7 +442,7 @@ def test_every_paced_run_arms_the_drives_sync_and_rpdo_watchdogs():
     """``bus config`` without lockstep (otbot run/track/bench and the daemon alike) arms 0x1006 and
     the RPDO deadline; whatever a caller passes as ``paced``; lockstep arms neither."""
     from otbot_hw.runtime.backends import BusConfigBackend
-    from sim.plant import VirtualPlant
+    from sim.bus_robot import VirtualPlant
 
     cfg = lenient(CFG).replace_bus(interface="virtual", channel="otbot-paced-arming")
     period_us = int(round(cfg.bus.period * 1e6))

@@ -84,7 +84,7 @@ def test_derived_dictionaries_run_with_the_configuration_filling_in(variant, mis
 def test_fixed_mapping_is_used_as_it_is_and_its_extra_object_filled(tmp_path):
     from dataclasses import replace
 
-    from sim.plant import simulated_robot
+    from sim.bus_robot import simulated_robot
 
     eds = ev.robot_control_fixed(tmp_path)
     cfg = replace(CFG, drives=tuple(replace(d, eds=eds) for d in CFG.drives))
@@ -110,7 +110,7 @@ def test_fixed_mapping_is_used_as_it_is_and_its_extra_object_filled(tmp_path):
 def test_torque_actual_absent_reads_nan_and_the_dictionary_defaults_apply(tmp_path):
     from dataclasses import replace
 
-    from sim.plant import simulated_robot
+    from sim.bus_robot import simulated_robot
 
     eds = ev.cia402_slave_torque(tmp_path)
     cfg = replace(CFG, drives=tuple(replace(d, eds=eds) for d in CFG.drives))
@@ -128,7 +128,7 @@ def test_torque_actual_absent_reads_nan_and_the_dictionary_defaults_apply(tmp_pa
 def test_a_mapping_the_device_does_not_keep_is_refused_by_the_read_back(monkeypatch, capsys):
     from drivers.faults import DeviceConfigError
     from sim import plant as plant_mod
-    from sim.plant import simulated_robot
+    from sim.bus_robot import simulated_robot
 
     class Forgetful(plant_mod.SimulatedDrive):
         """Accepts the write of a third TPDO1 mapping entry but keeps nothing there."""
@@ -163,7 +163,7 @@ def test_the_simulated_drives_live_with_any_of_these_dictionaries(tmp_path):
     import can
     import canopen
 
-    from sim.plant import VirtualPlant
+    from sim.bus_robot import VirtualPlant
 
     for eds in (ev.CIA402_SLAVE, ev.ROBOT_CONTROL_SLAVE):
         cfg = replace(CFG, drives=tuple(replace(d, eds=eds) for d in CFG.drives)).replace_bus(
@@ -195,7 +195,7 @@ def test_a_const_count_with_writable_entries_is_planned_within_that_count(tmp_pa
     from dataclasses import replace
 
     from drivers.mapping import import_dictionary, plan_pdos
-    from sim.plant import simulated_robot
+    from sim.bus_robot import simulated_robot
 
     src = CFG.drives[0].eds
     e = ev.Eds(src)
@@ -222,6 +222,6 @@ def test_a_const_count_with_writable_entries_is_planned_within_that_count(tmp_pa
 
 
 def _drive_needs():
-    from drivers.cia402 import RPDO_LAYOUT, RX_NEEDS, TPDO_LAYOUT, TX_NEEDS
+    from drivers.cia402_setup import RPDO_LAYOUT, RX_NEEDS, TPDO_LAYOUT, TX_NEEDS
 
     return RX_NEEDS, TX_NEEDS, RPDO_LAYOUT, TPDO_LAYOUT

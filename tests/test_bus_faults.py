@@ -12,7 +12,7 @@ from drivers.config import load_robot_config
 from drivers.faults import error_meaning
 from otbot_hw.robot import RobotFault
 from otbot_hw.params import ParameterError
-from sim.plant import simulated_robot
+from sim.bus_robot import simulated_robot
 
 CFG = load_robot_config()
 

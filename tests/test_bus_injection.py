@@ -23,7 +23,8 @@ from otbot_hw.recording import read_recording
 from otbot_hw.robot import RobotFault
 from otbot_hw.runtime.openloop import run_torques
 from sim.injection import Injection, reaction
-from sim.plant import PlantProcess, flood_frames, send_flood, simulated_robot
+from sim.bus_robot import simulated_robot
+from sim.plant_process import PlantProcess, flood_frames, send_flood
 
 CFG = load_robot_config()
 PERIOD = CFG.bus.period

@@ -11,8 +11,8 @@ import pytest
 
 from drivers.config import LOCKSTEP_TIMEOUT, load_robot_config
 from otbot_hw.robot import RobotFault
-from sim.canopen_slaves import SYNC_LOSS_CYCLES
-from sim.plant import simulated_robot
+from sim.canopen_slaves.node import SYNC_LOSS_CYCLES
+from sim.bus_robot import simulated_robot
 
 CFG = load_robot_config()
 SLACK = 0.1  # s: scheduling noise a loaded 2-core machine adds to a wall-clock watchdog
@@ -175,8 +175,9 @@ def _until(condition, timeout: float) -> bool:
 
 
 def pace(robot, period: float) -> None:
-    """The test is the loop's clock (the driver never paces): the next SYNC one period after the last."""
-    time.sleep(max(0.0, robot._sync_wall + period - time.monotonic()))
+    """The test is the loop: it ticks the robot's clock (the driver never paces; one SYNC per period)."""
+    assert robot.clock.realtime and robot.clock.period == period
+    robot.clock.wait()
 
 
 def _emcy_codes(robot) -> set:

@@ -12,7 +12,7 @@ import pytest
 
 from drivers.config import VELOCITY_UNITS, load_robot_config
 from otbot_hw.sensors import NoiseModel, accelerations, imu_ideal
-from sim.plant import simulated_robot
+from sim.bus_robot import simulated_robot
 
 CFG = load_robot_config()
 #: sensor x -> B'' y, sensor y -> B'' z, sensor z -> B'' x: a proper rotation with R != R^T

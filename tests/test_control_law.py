@@ -6,7 +6,8 @@ from otbot_hw.control.computed_torque import ComputedTorqueController, TaskState
 from otbot_hw.control.gains import Gains, axis_gains, gains_from_tstab
 from otbot_hw.control.limiter import TorqueLimiter
 from otbot_hw.control.task_model import task_space
-from otbot_hw.control.trajectories import PolylineTrajectory, SampledTrajectory, figure_eight
+from otbot_hw.control.sampled_trajectory import SampledTrajectory
+from otbot_hw.control.trajectories import PolylineTrajectory, figure_eight
 from otbot_hw.model.kinematics import inverse_kinematics_matrix
 from otbot_hw.model.task_space import task_space_model
 from otbot_hw.motors import MotorLimits

@@ -20,8 +20,10 @@ import pytest
 
 from daemon_fakes import FakeHandler
 from otbot_hw.runtime.control_protocol import ArgumentLimits, ProtocolError, parse_request
-from otbot_hw.runtime.control_socket import (
-    ControlClient, ControlError, ControlServer, DaemonUnreachable, LoopMailbox, SocketInUse)
+from otbot_hw.runtime.control_client import ControlClient, ControlError, DaemonUnreachable
+from otbot_hw.runtime.control_socket import ControlServer
+from otbot_hw.runtime.control_socket_file import SocketInUse
+from otbot_hw.runtime.loop_mailbox import LoopMailbox
 from otbot_hw.runtime.daemon_config import ControlSocketConfig, daemon_config_from_dict
 from otbot_hw.params import ParameterError
 

@@ -37,7 +37,8 @@ from hypothesis import strategies as st
 from daemon_fakes import FakeHandler
 from otbot_hw.runtime.control_client import ControlClient, ControlError
 from otbot_hw.runtime.control_protocol import ArgumentLimits
-from otbot_hw.runtime.control_socket import Authorizer, ControlServer, Peer
+from otbot_hw.runtime.control_peers import Authorizer, Peer
+from otbot_hw.runtime.control_socket import ControlServer
 from otbot_hw.runtime.daemon_config import ControlSocketConfig
 
 ROOT = os.geteuid() == 0

@@ -2,9 +2,8 @@
 import numpy as np
 import pytest
 
-from otbot_hw.control.trajectories import (
-    PolylineTrajectory, SampledTrajectory, TrajectoryError, corridor, figure_eight, load_csv, save_csv,
-)
+from otbot_hw.control.sampled_trajectory import SampledTrajectory, load_csv, save_csv
+from otbot_hw.control.trajectories import PolylineTrajectory, TrajectoryError, corridor, figure_eight
 
 
 def _fd_consistency(traj, dt=1e-4):

@@ -8,7 +8,7 @@ own state, not from what the daemon believes.
   latch a fault; shutdown disables the drives and leaves loadable recordings.
 * A daemon process, ``--bus sim``: systemd's READY/WATCHDOG/STATUS/STOPPING; SIGTERM gives exit 0
   and a loadable recording.
-* A daemon process over slcan to ``otbot plant`` in its own process (``sim.plant.PlantProcess``,
+* A daemon process over slcan to ``otbot plant`` in its own process (``sim.plant_process.PlantProcess``,
   whose report gives the drives' own states): tracks with EKF feedback; estop stops the drives and
   latches; ``kill -9`` of the daemon is stopped by the drives' master-heartbeat consumer.
 
@@ -34,7 +34,7 @@ import numpy as np
 import pytest
 
 from otbot_hw.recording import read_recording
-from otbot_hw.runtime.control_socket import ControlClient, ControlError
+from otbot_hw.runtime.control_client import ControlClient, ControlError
 from otbot_hw.runtime.daemon_process import DaemonProcess, local_config, plant_bus_args
 from otbot_hw.sensors import NoiseModel
 
@@ -426,7 +426,7 @@ def test_daemon_process_notifies_systemd_and_sigterm_gives_exit_0_and_a_loadable
 def slcan(tmp_path_factory):
     """``otbot plant`` in its own process (its report gives the drives' own states) and a daemon on it."""
     from drivers.config import load_robot_config
-    from sim.plant import PlantProcess
+    from sim.plant_process import PlantProcess
 
     folder = tmp_path_factory.mktemp("slcan")
     cfg_path = local_config(folder / "cfg", replace=RELAXED_SLCAN)

@@ -37,6 +37,8 @@ def _check_found(result, name, truth):
     assert max(gain) > 2.0 and min(gain) > -1.0, (before, after)
     assert result["ambiguous"] == []
     assert name in result["verdict"] or result["effects"][0]["title"] in result["verdict"]
+    # the recording that revealed it is one the Fisher criterion says can reveal it
+    assert result["identifiability"][name]["identifiable"]
 
 
 def test_coulomb_wheel_friction_absorbed_in_b_w_is_found():

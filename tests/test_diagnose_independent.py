@@ -48,3 +48,17 @@ def test_independent_negative_control_adds_nothing(independent):
     r = independent.run_case("none", rep=1, duration=5.0)
     assert r["right"] and r["named"] == [] and r["ambiguous"] == [] and r["model_adequate"], r["verdict"]
     assert r["verdict"].startswith("No missing physics found")
+
+
+def test_not_identifiable_counts_as_right_only_when_the_fisher_criterion_at_the_truth_says_so(independent):
+    case = independent.magnitude_case("gain_left", 0.5)
+    assert case.truth == {"gain_left": {"k_l": 0.03}} and case.world["gain"] == (0.0, 0.03, 0.0)
+    assert independent.magnitude_case("torque_saturation", 0.5).truth["torque_saturation"]["u_max"] == 4.0
+    r = {"effects": [], "ambiguous": [], "model_adequate": True,
+         "not_identifiable": [{"kind": "effect", "name": "gain_left"}]}
+    hidden = {"gain_left": {"chi2": 3.0, "needed": 16.0, "identifiable": False}}
+    shown = {"gain_left": {"chi2": 300.0, "needed": 16.0, "identifiable": True}}
+    assert independent.score(case, r, hidden)["right"]
+    assert not independent.score(case, r, shown)["right"]  # the recording could reveal it: a miss
+    assert not independent.score(case, {**r, "not_identifiable": []}, hidden)["right"]  # nothing said
+    assert not independent.score(case, {**r, "model_adequate": False}, hidden)["right"]

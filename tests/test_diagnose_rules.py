@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from otbot_hw.diagnose import adequacy
-from otbot_hw.diagnose import select as sel
+from otbot_hw.diagnose import rules as sel
 from otbot_hw.diagnose import significance as sig
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.model.effects import ExtendedModel
@@ -201,3 +201,51 @@ def test_a_candidate_that_only_adds_a_parameter_is_not_a_look_alike():
     enc = sel.Candidate("encoder_scale", None, -995.0, -995.0, -1.0, 0.0, parameters=("e_r", "e_l"))
     assert [c.effect for c in sel.ambiguous_group(limit, [slip, enc])] == ["wheel_slip", "encoder_scale"]
     assert [c.effect for c in sel.ambiguous_group(slip, [limit])] == ["wheel_slip"]
+
+
+def test_a_parameter_on_its_bound_is_not_identifiable_only_when_its_std_says_the_data_do_not_determine_it():
+    from otbot_hw.diagnose import identifiability as ident
+
+    on = adequacy.on_bound({"I_c": 1e-9, "k_r": -0.5})
+    assert [b["parameter"] for b in on] == ["I_c", "k_r"]
+    files = {"I_c": P.I_c}
+    # std 0.99 kg m^2 (a 1 s run under one constant torque): the file's 1.3 is within 3 std of the bound
+    loose = ident.undetermined_on_bound(on, {"I_c": 0.99, "k_r": 1.0}, files)
+    assert [u["parameter"] for u in loose] == ["I_c"] and "otbot identify chassis" in loose[0]["record"]
+    assert ident.undetermined_on_bound(on, {"I_c": float("nan")}, files)[0]["std"] is None
+    # determined (std 0.1): on the bound is evidence of a wrong model; an effect parameter never qualifies
+    assert ident.undetermined_on_bound(on, {"I_c": P.I_c / ident.BOUND_SIGMAS - 0.01, "k_r": 1.0}, files) == []
+
+
+def test_an_effect_is_identifiable_when_its_signature_beats_the_evidence_it_would_need():
+    from otbot_hw.diagnose import identifiability as ident
+
+    need = ident.needed_chi2(1, 1000)
+    assert need == pytest.approx(sel.ACCEPT_DBIC + np.log(1000))
+    out = ident.effect_identifiability({"a": (need * 1.01, 1, 1000, {"c_w": 0.15}),
+                                        "b": (need / 4, 1, 1000, {"c_w": 0.15})})
+    assert out["a"]["identifiable"] and not out["b"]["identifiable"]
+    assert out["b"]["revealable_factor"] == pytest.approx(2.0)  # chi2 grows with the square of the size
+    missing = ident.not_identifiable_effects(out, set(), {"b": "B"})
+    assert [m["name"] for m in missing] == ["b"] and missing[0]["record"]
+    assert ident.not_identifiable_effects(out, {"b"}, {}) == []  # found: evidently revealed
+    from otbot_hw.diagnose.catalog import CATALOG
+    assert {e.name for e in CATALOG} == set(ident.EFFECT_RECORD)
+
+
+def test_a_nested_fit_whose_simulation_diverges_is_no_candidate_not_a_crash(monkeypatch):
+    """The wheel-slip run under one constant torque of the family study: a look-alike's trial point made the
+    simulation diverge (NaN in the Jacobian's SVD) and the diagnosis crashed."""
+    from types import SimpleNamespace
+
+    from otbot_hw.diagnose import select
+
+    def diverges(*args, **kw):
+        raise ValueError("array must not contain infs or NaNs")
+
+    monkeypatch.setattr(select, "refit", diverges)
+    search = select._Search([SimpleNamespace(fixture="floor")], [], None, [], lambda m: None, True)
+    base = SimpleNamespace(names=["m_c"], model=None)
+    c = search.nested("traction_limit", base, (0.0, 0.0, 0.0), {"k_slip": 0.01, "t_trac": 2.0})
+    assert not sel.has_evidence(c) and not sel.fitting_evidence(c) and c not in search.tried
+    assert len(sel.ambiguous_group(_cand(-100.0), [c])) == 1  # no look-alike of anything

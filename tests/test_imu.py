@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from drivers import vectornav as vn
-from drivers.imu import ImuFault, VectorNavIMU, check_rotation, load_imu_config
+from drivers.imu import ImuFault, VectorNavIMU
+from drivers.imu_config import check_rotation, load_imu_config
 from otbot_hw.params import ParameterError
 from sim.imu import SimulatedIMU
 

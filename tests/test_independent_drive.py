@@ -19,6 +19,7 @@ from drivers.faults import DeviceConfigError
 from drivers.robot import CanopenRobot
 from independent_drive import IndependentDrive
 from otbot_hw.robot import RobotFault
+from sim.lockstep import LockstepCanopenRobot
 
 CFG = load_robot_config()
 ENABLED = "OPERATION ENABLED"
@@ -43,7 +44,9 @@ def independent(realtime: bool = False, eds=None, absent=(), reject_mapping=(), 
     cfg = config(channel, eds, heartbeats, **bus)
     drives = [IndependentDrive(d.node_id, channel, absent=absent, reject_mapping=reject_mapping).start()
               for d in cfg.drives]
-    robot = CanopenRobot(cfg, bus=can.Bus(interface="virtual", channel=channel), realtime=realtime)
+    bus = can.Bus(interface="virtual", channel=channel)
+    # paced: the real driver as it is; else lockstep, the simulated back end's (no period is kept)
+    robot = CanopenRobot(cfg, bus=bus) if realtime else LockstepCanopenRobot(cfg, bus=bus)
     try:
         if open_:
             robot.open()
@@ -56,8 +59,8 @@ def independent(realtime: bool = False, eds=None, absent=(), reject_mapping=(), 
 
 def cycle(robot, u=(0.0, 0.0, 0.0), period: float | None = None):
     """One loop cycle (write, read); a faulted robot only reads. ``period``: pace it (s)."""
-    if period:
-        time.sleep(max(0.0, robot._sync_wall + period - time.monotonic()))
+    if period:  # the test is the loop: it ticks the robot's clock (one SYNC per period)
+        robot.clock.wait()
     try:
         robot.write(list(u))
     except RobotFault:

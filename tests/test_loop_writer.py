@@ -1,4 +1,4 @@
-"""``otbot_hw.runtime.loop.BackgroundWriter``: the loop's recording written by a thread of its own
+"""``otbot_hw.runtime.loop_recording.BackgroundWriter``: the loop's recording written by a thread of its own
 keeps every sample and event in order, flushes and closes when asked, and hands the writer's
 exceptions back to the loop."""
 from __future__ import annotations
@@ -7,7 +7,7 @@ import threading
 
 import pytest
 
-from otbot_hw.runtime.loop import BackgroundWriter
+from otbot_hw.runtime.loop_recording import BackgroundWriter
 
 
 class _Writer:

@@ -94,7 +94,7 @@ def test_an_oversized_yaml_is_refused_before_it_is_read(tmp_path):
 
 # -- CSV: a byte-order mark (what spreadsheets save) -------------------------------------------------
 def test_a_trajectory_csv_with_a_byte_order_mark_loads(tmp_path):
-    from otbot_hw.control.trajectories import csv_table, load_csv
+    from otbot_hw.control.sampled_trajectory import csv_table, load_csv
 
     body = "# obstacle: 1, 0.5, 0.2\nt,x,y,alpha\n0,0,0,0\n2,1,0,0.5\n"
     plain, bom = tmp_path / "plain.csv", tmp_path / "bom.csv"
@@ -114,7 +114,7 @@ def test_a_trajectory_csv_with_a_byte_order_mark_loads(tmp_path):
 def test_the_feasibility_check_works_in_chunks_says_where_it_is_and_refuses_beyond_its_size(monkeypatch):
     from otbot_hw.control import feasibility
     from otbot_hw.control.gains import gains_from_tstab
-    from otbot_hw.control.trajectories import SampledTrajectory
+    from otbot_hw.control.sampled_trajectory import SampledTrajectory
     from otbot_hw.motors import load_motor_limits
 
     ref = SampledTrajectory(np.array([0.0, 2.0, 5.0]), np.array([[0, 0, 0], [1.0, 0.5, 0.3], [2.0, 0, 0]]))
@@ -231,7 +231,7 @@ def test_plan_interrupted_inside_ipopt_exits_130(tmp_path):
 # -- plant: a bad stdin line gets an error and the plant runs on -----------------------------------
 def test_plant_answers_a_bad_flood_line_with_an_error_and_runs_on():
     from drivers.config import load_robot_config
-    from sim.plant import serve
+    from sim.plant_process import serve
 
     out = io.StringIO()
     lines = ["flood x y", "flood -1 0", "flood 3 -1", "flood 1" + "0" * 5000 + " 1", "flood", "flood 1 2 3",

@@ -1,4 +1,4 @@
-"""Online payload adaptation (otbot_hw.estimation.payload, runtime.controllers.PayloadAdapter): the
+"""Online payload adaptation (otbot_hw.estimation.payload, runtime.payload_adapter.PayloadAdapter): the
 linear-in-parameters form, recovery of a known payload, step-change detection, bounds refusal, the
 bumpless switch, the recording topic and the configuration's bad input."""
 from __future__ import annotations

@@ -12,7 +12,7 @@ import pytest
 
 from otbot_hw.params import nominal, write_yaml
 from otbot_hw.recording import read_recording
-from otbot_hw.runtime.control_socket import ControlClient, ControlError
+from otbot_hw.runtime.control_client import ControlClient, ControlError
 from otbot_hw.runtime.daemon_process import local_config
 
 LOAD = (60.0, 0.15, -0.10, 1.0)

@@ -82,7 +82,7 @@ def test_write_refuses_a_faulted_or_disabled_back_end_with_the_shared_errors():
 def test_the_direct_simulated_robot_is_a_simulated_robot_and_the_bus_driver_is_not():
     from drivers.robot import CanopenRobot
     from sim.direct import DirectSimRobot
-    from sim.plant import SimulatedBusRobot
+    from sim.bus_robot import SimulatedBusRobot
 
     robot = DirectSimRobot(period=0.01, imu_rate=None)
     assert isinstance(robot, SimulatedRobot) and robot.plant is robot

@@ -226,7 +226,7 @@ def test_overruns_stop_a_realtime_loop_but_only_count_in_lockstep():
 def test_supervisor_over_the_bus_quick_stops_the_simulated_drives():
     """A joint-rate violation over the simulated CAN bus: the plant's drives (not the master's belief)
     end quick-stopped (then disabled) with zero torque, and the plant's pivot coasts without torque."""
-    from sim.plant import simulated_robot
+    from sim.bus_robot import simulated_robot
 
     with simulated_robot(CFG, with_imu=False) as (robot, plant):
         sup = Supervisor(LIMITS, SafetyConfig(max_pivot_rate=0.5), robot.period)
@@ -522,7 +522,7 @@ def test_plant_process_with_plant_params_and_tracking_over_the_configured_bus(mo
 def test_controllers_swap_between_cycles_and_a_new_reference_starts_at_its_first_command():
     """The daemon's use: start, cycle open loop, then swap to tracking a hold of the current pose
     without a jump: the swap is a recorded mode event, the new reference starts where the robot is."""
-    from otbot_hw.control.trajectories import SampledTrajectory
+    from otbot_hw.control.sampled_trajectory import SampledTrajectory
 
     robot = DirectSimRobot(P, period=0.01, imu_rate=None)
     runner = LoopRunner(robot, OpenLoopTorques(np.tile([3.0, 3.0, 0.0], (1, 1)), 0.01), Supervisor(LIMITS), TruthFeedback(),

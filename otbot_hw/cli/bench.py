@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.experiment_limits import load_experiment_limits
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.params import OtbotParams
-    from otbot_hw.runtime.bench.procedure import BenchSettings, SimulatedRobot, settings_from_manifest
+    from otbot_hw.runtime.bench.steps import BenchSettings, SimulatedRobot, settings_from_manifest
     from otbot_hw.runtime.bench.session import SessionError, SessionFolder
     from otbot_hw.runtime.supervisor import SafetyConfig
     from otbot_hw.sensors import NoiseModel
@@ -209,9 +209,10 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
     from otbot_hw.runtime.bench.buslog import BusLog
     from otbot_hw.runtime.bench.operator import AutomaticOperator, NoOperator, OperatorStopped, PromptOperator
-    from otbot_hw.runtime.bench.procedure import BenchAbort, BenchError, BenchProcedure, identity, warm_up
+    from otbot_hw.runtime.bench.procedure import BenchProcedure, warm_up
     from otbot_hw.runtime.bench.report import write_report
-    from otbot_hw.runtime.bench.session import SessionError, SessionFolder
+    from otbot_hw.runtime.bench.session import SessionError, SessionFolder, identity
+    from otbot_hw.runtime.bench.steps import BenchAbort, BenchError
 
     meta = {"command": "otbot bench", "config": str(cfg.path),
             "bus": {"mode": args.bus, "interface": cfg.bus.interface, "channel": cfg.bus.channel,

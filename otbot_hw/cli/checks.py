@@ -112,7 +112,7 @@ def sample_count(duration_s: float, rate_hz: float, limit: int = MAX_SAMPLES) ->
 def bus_config(config_path: Path | None, rate_hz: float | None = None):
     """The hardware configuration (``drivers.config.RobotConfig``) with ``--rate`` applied; CliError
     when the control period 1/rate cannot be programmed into the drives (0x60C2)."""
-    from drivers.cia402 import interpolation_period
+    from drivers.cia402_setup import interpolation_period
     from drivers.config import load_robot_config
 
     cfg = load_robot_config(config_path)

@@ -70,15 +70,12 @@ def register(sub) -> None:
 def _writable_folder(path: Path, what: str) -> Path:
     """``path``, an existing folder this user can write; the daemon never creates it (README: otbot
     never creates the folders above an output; under systemd, StateDirectory= does)."""
-    path = Path(path)
-    if not path.exists():
-        raise CliError(f"{what} {path}: the folder does not exist (the daemon does not create it: create it, "
-                       f"or let systemd's StateDirectory= do it, or choose another with {what})")
-    if not path.is_dir():
-        raise CliError(f"{what} {path}: not a folder")
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise CliError(f"{what} {path}: not a folder this user (uid {os.geteuid()}) can write")
-    return path
+    from otbot_hw.folders import require_folder
+
+    return require_folder(path, CliError, f"{what} {path}: the folder does not exist (the daemon does not create it: "
+                          f"create it, or let systemd's StateDirectory= do it, or choose another with {what})",
+                          f"{what} {path}: not a folder",
+                          f"{what} {path}: not a folder this user (uid {os.geteuid()}) can write")
 
 
 def _allowed_users(args: argparse.Namespace, configured: tuple) -> tuple:
@@ -107,7 +104,7 @@ def prepare(args: argparse.Namespace):
     from otbot_hw.motors import load_motor_limits
     from otbot_hw.runtime.daemon import Daemon, DaemonSettings
     from otbot_hw.runtime.daemon_config import load_daemon_config
-    from otbot_hw.runtime.control_socket import ControlSocketError, check_socket_path
+    from otbot_hw.runtime.control_socket_file import ControlSocketError, check_socket_path
     from otbot_hw.runtime.supervisor import SafetyConfig
     from otbot_hw.runtime.telemetry import TelemetryError, check_telemetry_address, parse_host_port
 
@@ -167,7 +164,7 @@ def _opener(args: argparse.Namespace, start):
 
         @contextlib.contextmanager
         def open_sim():
-            from sim.plant import simulated_robot
+            from sim.bus_robot import simulated_robot
 
             with simulated_robot(cfg, with_imu=with_imu, params=plant, x0=x0, noise=noise_model(args),
                                  seed=args.seed) as (robot, _plant):
@@ -181,7 +178,7 @@ def _opener(args: argparse.Namespace, start):
 
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.robot import RobotError
-    from otbot_hw.runtime.control_socket import ControlSocketError
+    from otbot_hw.runtime.control_socket_file import ControlSocketError
     from otbot_hw.runtime.telemetry import TelemetryError
 
     if not logging.getLogger().handlers:  # the journal's lines: ours at INFO, libraries' warnings

@@ -30,7 +30,11 @@ def register(sub) -> None:
             "held-out prediction, refit them with the nominal parameters (values with one-sigma std, SI units) "
             "and report the fit before/after. Only commands, encoders and IMU are used; /otbot/truth is ignored. "
             "Exit 1 when the model is inadequate (no catalog effect brings it to the noise level, an estimate on its "
-            "bound or an implausible refit): no finding is named, the suspect parameters are listed."),
+            "bound or an implausible refit): no finding is named, the suspect parameters are listed. What the "
+            "recording cannot determine (an effect whose signature at the catalog's smallest size is below the "
+            "evidence it would need; a parameter on its bound whose std says the data do not determine it) is "
+            "reported as 'not identifiable from this recording' with what to record instead (exit 0; JSON "
+            "not_identifiable, identifiability)."),
     )
     p.add_argument("recordings", nargs="*", type=Path, metavar="RECORDING", help="fitting recordings (.mcap)")
     p.add_argument("--params", type=Path, default=None,

@@ -131,7 +131,8 @@ def _rest_publisher(sim, stop: threading.Event, seed: int, sigma: float, gravity
 
 
 def run_read(args: argparse.Namespace) -> dict:
-    from drivers.imu import ImuFault, VectorNavIMU, load_imu_config
+    from drivers.imu import ImuFault, VectorNavIMU
+    from drivers.imu_config import load_imu_config
 
     cfg = load_imu_config(args.config)
     sim = stop = thread = None

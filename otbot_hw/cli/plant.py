@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> None:
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.sensors import NoiseModel
     from sim.injection import Injection
-    from sim.plant import serve
+    from sim.plant_process import serve
 
     model = ExtendedModel.load(args.plant_params)
     cfg = bus_config(args.config, args.rate)

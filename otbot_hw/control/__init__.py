@@ -7,7 +7,8 @@ One concept per module:
 * ``task_model``      — compiled closed-form M_bar, C_bar (the law's model evaluation)
 * ``computed_torque`` — the control law and the feedback interface (``TaskState``)
 * ``limiter``         — run-time torque saturation that reports every episode
-* ``trajectories``    — desired trajectories p_d(t) with derivatives, CSV format
+* ``trajectories``    — desired trajectories p_d(t) with derivatives (analytic: polyline, path, stop, placed)
+* ``sampled_trajectory`` — a trajectory given by samples (splines) and its CSV format
 * ``prediction``      — the task state one period ahead (the loop's sample delay compensated)
 * ``metrics``         — tracking errors, peaks and settle times of events
 * ``interval``        — small interval arithmetic used by ``feasibility``

@@ -71,7 +71,7 @@ class ComputedTorqueController:
         self._kv = np.ascontiguousarray(self.gains.kv)
         self._out = np.empty((3, 3))
         self.compensation = np.zeros(3)  # N m: command - the paper model's torque, of the last evaluation
-        self.adapter = None  # an online payload adapter (otbot_hw.runtime.controllers.PayloadAdapter) or None
+        self.adapter = None  # an online payload adapter (otbot_hw.runtime.payload_adapter.PayloadAdapter) or None
 
     @property
     def prm(self) -> np.ndarray:

@@ -108,12 +108,12 @@ class PlanResult:
 
     def trajectory(self, hold: float = 0.0):
         """The planned states as a desired trajectory (cubic Hermite through positions and velocities)."""
-        from otbot_hw.control.trajectories import SampledTrajectory
+        from otbot_hw.control.sampled_trajectory import SampledTrajectory
 
         return SampledTrajectory(self.t, self.z[:, :3], self.z[:, 4:7], torques=self.u, source="planner", hold=hold)
 
     def save_csv(self, path: str | Path) -> Path:
-        from otbot_hw.control.trajectories import save_csv
+        from otbot_hw.control.sampled_trajectory import save_csv
 
         return save_csv(path, self.t, self.z[:, :3], self.z[:, 4:7], self.u,
                         comment=f"otbot plan: T = {self.t[-1]:.4f} s, {len(self.t) - 1} collocation intervals, "

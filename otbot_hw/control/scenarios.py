@@ -12,7 +12,7 @@ The runs themselves go through the one loop runner (``otbot_hw.runtime.tracking`
 * ``planned``         — a corridor crowded with circular obstacles planned by
   ``otbot_hw.control.planner``; the planned torques are also replayed open loop (drift and
   collisions reported) before tracking the planned states in closed loop.
-* a CSV trajectory file (``trajectories.load_csv``).
+* a CSV trajectory file (``sampled_trajectory.load_csv``).
 
 Robustness variants rerun a scenario with (a) the controller's platform mass and inertia
 20 % below the plant's (an unknown payload) and (b) viscous friction in the plant that the
@@ -29,7 +29,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from otbot_hw.control.metrics import Event, error_summary, event_summary, fraction_within, peak_torques
-from otbot_hw.control.trajectories import DesiredTrajectory, PolylineTrajectory, corridor, figure_eight, load_csv
+from otbot_hw.control.sampled_trajectory import load_csv
+from otbot_hw.control.trajectories import DesiredTrajectory, PolylineTrajectory, corridor, figure_eight
 from otbot_hw.motors import MOTORS, MotorLimits
 from otbot_hw.params import OtbotParams
 from otbot_hw.simulation.simulator import ForceSchedule, PivotForce

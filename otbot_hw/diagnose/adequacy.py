@@ -21,7 +21,10 @@ final model is judged three ways before any effect is named:
    >= ``MIN_SEGMENT`` samples) catch a misfit that sits in one part of the record. The fitted
    parameters and initial rates absorb some noise (E[T] = 1 - p/n): ignored, which only makes
    the test more conservative;
-2. **bounds**: no free parameter (nominal or effect) may sit on a bound of its physical range;
+2. **bounds**: no free parameter (nominal or effect) may sit on a bound of its physical range -- unless
+   it is a nominal parameter the data do not determine (its std NaN, or the file's value within
+   ``identifiability.BOUND_SIGMAS`` std of the bound): then it is "not identifiable from this
+   recording" (``not_identifiable``, with what to record), not evidence of a wrong model;
 3. **plausibility**: the refit nominal parameters stay near the file's values -- relative
    change below ``RELATIVE_SHIFT`` (masses, inertias, frictions), centre-of-mass offsets within
    ``OFFSET_SHIFT``.
@@ -38,6 +41,7 @@ import numpy as np
 from scipy.stats import norm
 
 from otbot_hw.diagnose.data import DiagnosisData
+from otbot_hw.diagnose.identifiability import undetermined_on_bound
 from otbot_hw.diagnose.refit import FitResult, channel_sigmas, weighted_residuals
 from otbot_hw.model.effects import parameter_bounds
 from otbot_hw.params import OtbotParams
@@ -81,6 +85,9 @@ class Adequacy:
     advice: str = ""
     tests: int = 0  # residual tests made (recording x channel x segment); each at ALPHA / tests
     alpha: float = ALPHA
+    #: nominal parameters on a bound that the data do not determine {parameter, value, bound, side, std, file,
+    #: why, record}: "not identifiable from this recording", not a reason for "model inadequate"
+    not_identifiable: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -204,6 +211,9 @@ def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final:
             tests += residual_tests(_residuals(recs, final.model), excess, label)
     channels = failed(tests)
     bound = on_bound(final.values)
+    undetermined = undetermined_on_bound(bound, final.std, {n: float(getattr(given, n)) for n in final.values
+                                                            if hasattr(given, n)})
+    bound = [b for b in bound if b["parameter"] not in {u["parameter"] for u in undetermined}]
     moved = implausible_shifts({n: v for n, v in final.values.items() if hasattr(given, n)}, given, final.std)
     adequate = not (channels or bound or moved)
     suspects: list[str] = []
@@ -219,4 +229,4 @@ def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final:
                   f"{', '.join(n for n in final.names if hasattr(given, n)) or 'no nominal parameter'} and takes "
                   "the others as known), redo identification " + "; or ".join(steps[:3]) +
                   ", then diagnose again; if the parameters are right, the missing physics is outside the catalog")
-    return Adequacy(adequate, channels, bound, moved, suspects, advice, len(tests))
+    return Adequacy(adequate, channels, bound, moved, suspects, advice, len(tests), not_identifiable=undetermined)

@@ -25,10 +25,12 @@ from otbot_hw.diagnose import catalog as cat
 from otbot_hw.diagnose.adequacy import assess
 from otbot_hw.diagnose.data import DiagnosisData, check_testable
 from otbot_hw.diagnose.geometry import EffectGeometry
+from otbot_hw.diagnose.identifiability import effect_identifiability, not_identifiable_effects
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
-from otbot_hw.diagnose.select import AMBIGUOUS_DBIC, choose, free_nominal
+from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC
+from otbot_hw.diagnose.select import choose, free_nominal
 from otbot_hw.diagnose.significance import significance
 from otbot_hw.json_output import json_safe
 from otbot_hw.model.effects import ExtendedModel, parameter_unit
@@ -136,6 +138,30 @@ def _caster_pair(recordings, sel, final, progress):
     return final
 
 
+def _small_needed(recordings, holdout, params, sel, final, progress):
+    """Effects with evidence listed as detected but small (``significance``: they do not matter by what they
+    do on these runs) are left out of the model -- unless the model without them is inadequate and with them
+    adequate: then the data need them, and they are accepted (their significance statement still says how
+    small they are). Returns the final fit (with them, or ``final``)."""
+    if not sel.small or assess(recordings, holdout, final, params).adequate:
+        return final
+    names = list(final.names)
+    start = {}
+    for c in sel.small:
+        for p in c.parameters:
+            if p not in names:
+                names.append(p)
+                start[p] = c.fit.values[p]
+    fit = refit(recordings, final.model.with_values(start), names, max_nfev=FINAL_NFEV)
+    if not assess(recordings, holdout, fit, params).adequate:
+        return final
+    progress(f"[diagnose] the model is adequate only with {', '.join(c.effect for c in sel.small)} "
+             "(detected, small): accepted")
+    sel.accepted += sel.small
+    sel.small = []
+    return fit
+
+
 def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list[DiagnosisData] | None = None,
              report_dir: Path | None = None, progress=lambda msg: None, model_out: Path | None = None,
              geometry: EffectGeometry | None = None) -> dict:
@@ -150,7 +176,7 @@ def diagnose(recordings: list[DiagnosisData], params: OtbotParams, holdout: list
 
 
 def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geometry) -> dict:
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
     holdout = holdout or []
     geometry = geometry or EffectGeometry()
     if not recordings:
@@ -174,6 +200,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
         final = refit(recordings, final.model, final.names, max_nfev=FINAL_NFEV)
         progress(f"[diagnose] final fit: {final.message} ({final.nfev} evaluations)")
+    final = _small_needed(recordings, holdout, params, sel, final, progress)
     # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
     std = dict(final.std)
     inflation = 1.0
@@ -207,6 +234,11 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
                           "bic_margin": AMBIGUOUS_DBIC, "residual_correlation_factor": grp[0].kappa,
                           "experiment": "; ".join(dict.fromkeys(exps))})
     small = [_candidate_json(c, sel.effects) for c in sel.small]
+    # what this recording cannot reveal: effects at the catalog's smallest size, parameters on a bound
+    identifiability = effect_identifiability(sel.energy)
+    found = {c.effect for c in sel.accepted + sel.small} | {c.effect for g in sel.ambiguous for c in g}
+    not_identifiable = adequacy.not_identifiable + not_identifiable_effects(
+        identifiability, found, {n: e.title for n, e in sel.effects.items()})
     withheld = []
     if not adequacy.adequate:
         withheld = [{"name": e["name"], "parameters": e["parameters"]} for e in effects] + \
@@ -248,6 +280,8 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         "detected_small": small,
         "withheld": withheld,
         "discovered": discovered,
+        "not_identifiable": not_identifiable,
+        "identifiability": identifiability,
         "adequacy": adequacy.to_dict(),
         "suspect_parameters": adequacy.suspect_parameters,
         "geometry": geometry.to_dict(),
@@ -272,6 +306,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         "recordings": [d.name for d in recordings],
         "holdout": [d.name for d in holdout],
         "elapsed_s": 0.0,
+        "cpu_s": 0.0,
     }
     result["verdict"] = verdict(result)
     if report_dir is not None:
@@ -286,4 +321,5 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         save_model(Path(model_out), dataclasses.replace(final, std=std), effects, ambiguous, result["recordings"])
         result["model_file"] = str(model_out)
     result["elapsed_s"] = time.perf_counter() - t_start
+    result["cpu_s"] = time.process_time() - cpu_start  # this process, all its threads (prediction threads included)
     return json_safe(result)

@@ -26,7 +26,8 @@ from threadpoolctl import threadpool_limits
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.diagnose.prediction import FITTER_CHANNEL, ExtendedPredictionModel, diagnosis_experiments
 from otbot_hw.diagnose.residuals import simulate_outputs
-from otbot_hw.identification.prediction_error import RANK_TOL, fit_parameters
+from otbot_hw.identification.prediction_error import fit_parameters
+from otbot_hw.identification.residual_problem import RANK_TOL
 from otbot_hw.model.effects import TIED_PARAMS, ExtendedModel, parameter_bounds
 
 

@@ -95,6 +95,19 @@ def _discovered_text(disc: dict | None) -> str:
             f"{disc['heldout_source']}: {held}).")
 
 
+def _not_identifiable_text(items: list[dict]) -> str:
+    """Sentences on what this recording cannot determine (``identifiability``); empty when nothing."""
+    params = [i for i in items if i["kind"] == "parameter"]
+    effects = [i for i in items if i["kind"] == "effect"]
+    out = []
+    for p in params:
+        out.append(f"Not identifiable from this recording: {p['name']} ({p['why']}); record {p['record']}.")
+    if effects:
+        out.append("Not identifiable from this recording at the catalog's smallest size: "
+                   + "; ".join(f"{e['title']} (record {e['record']})" for e in effects) + ".")
+    return " ".join(out)
+
+
 def verdict(result: dict) -> str:
     """One plain-language paragraph from the diagnosis JSON."""
     parts = []
@@ -147,6 +160,7 @@ def verdict(result: dict) -> str:
             parts.append(f"The nominal fit had absorbed it: {n} {v['before']:.4g} -> {v['after']:.4g} {v['unit']}.")
     if not (result["effects"] or result["ambiguous"] or result.get("detected_small")):
         parts.append("No missing physics found: no catalog effect improves the model by the evidence threshold.")
+    parts.append(_not_identifiable_text(result.get("not_identifiable") or []))
     key = "heldout" if result["fit_before"].get("heldout") else "fitting"
     before, after = result["fit_before"].get(key, {}), result["fit_after"].get(key, {})
 
@@ -159,7 +173,7 @@ def verdict(result: dict) -> str:
         label = "Held-out" if key == "heldout" else "Fitting"
         parts.append(f"{label} fit of {ch}: {before[ch]['fit_percent']:.0f} % -> {after[ch]['fit_percent']:.0f} %.")
     parts += [w[0].upper() + w[1:] + "." for w in result.get("warnings", []) if "cut short" not in w]
-    return " ".join(parts)
+    return " ".join(p for p in parts if p)
 
 
 def cat_experiment(name: str) -> str:

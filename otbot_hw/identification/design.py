@@ -42,7 +42,8 @@ from otbot_hw.identification.errors import IdentificationError
 from otbot_hw.identification.experiment import Experiment
 from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, ExperimentSpec, paper_noise
 from otbot_hw.identification.model import OtbotModel
-from otbot_hw.identification.prediction_error import TYPICAL_SCALE, ResidualProblem
+from otbot_hw.identification.prediction_error import TYPICAL_SCALE
+from otbot_hw.identification.residual_problem import ResidualProblem
 from otbot_hw.model.fixtures import fixture_code
 from otbot_hw.params import OtbotParams
 from otbot_hw.sensors import NoiseModel

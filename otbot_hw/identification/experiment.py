@@ -109,7 +109,7 @@ class Experiment:
             raise IdentificationError(f"{self.name}: unknown fixture '{self.fixture}' (known: {', '.join(FIXTURES)})")
         if not self.substeps:
             # RK4 steps per sample interval: the simulator's safe default until the fitter
-            # tunes it to the noise (``prediction_error.tune_substeps``)
+            # tunes it to the noise (``residual_problem.tune_substeps``)
             self.substeps = default_substeps(self.dt, self.fixture)
             self.auto_substeps = True
         for c in self.measured:

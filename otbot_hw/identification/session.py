@@ -35,7 +35,7 @@ import numpy as np
 from otbot_hw.identification.errors import IdentificationError
 from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, STEPS, ExperimentSpec
 from otbot_hw.identification.gates import GateLimits, StepGates, check_fit, check_step
-from otbot_hw.identification.prediction_error import FitResult
+from otbot_hw.identification.fit_result import FitResult
 from otbot_hw.identification.steps import StepResult, identify_step
 from otbot_hw.identification.uncertainty import (KNOWN_PARAMS, LOADED_STEPS, NUISANCE_PARAMS, SESSION_PARAMS,
                                                  STEP_PARAMS,

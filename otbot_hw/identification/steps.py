@@ -27,7 +27,8 @@ from otbot_hw.identification.errors import IdentificationError
 from otbot_hw.identification.experiment import Experiment
 from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, STEPS, ExperimentSpec, paper_guess
 from otbot_hw.identification.model import OtbotModel
-from otbot_hw.identification.prediction_error import DEFAULT_BOUNDS, FitResult, fit_parameters
+from otbot_hw.identification.fit_result import FitResult
+from otbot_hw.identification.prediction_error import DEFAULT_BOUNDS, fit_parameters
 from otbot_hw.params import OtbotParams, ParameterError
 
 

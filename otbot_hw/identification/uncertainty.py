@@ -33,8 +33,9 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 from otbot_hw.identification.model import CHANNELS, OtbotModel
-from otbot_hw.identification.prediction_error import (DEFAULT_BOUNDS, TYPICAL_SCALE, FitResult, ResidualProblem,
-                                                      fit_parameters)
+from otbot_hw.identification.fit_result import FitResult
+from otbot_hw.identification.prediction_error import DEFAULT_BOUNDS, TYPICAL_SCALE, fit_parameters
+from otbot_hw.identification.residual_problem import ResidualProblem
 from otbot_hw.params import PARAM_NAMES, OtbotParams
 
 #: Parameters a bench session identifies, by the paper's symbols (I_p0: unloaded platform about the pivot).

@@ -1,7 +1,9 @@
 """The runtime: the one control loop of the project and what plugs into it.
 
 * ``loop``        — ``LoopRunner``: read -> estimate -> supervise -> record -> control -> limit -> write
-  at a fixed period over any ``otbot_hw.robot.Robot``; timing stats, recording, faults, progress
+  at a fixed period over any ``otbot_hw.robot.Robot`` and its pacing; its parts ``loop_timing``
+  (``LoopStats``, histograms, overruns), ``loop_recording`` (writer, topics, events) and
+  ``loop_power`` (enable/disable, trips, the fault latch and quick stop)
 * ``controllers`` — the ``Controller`` protocol; ``TrackingController`` (computed torque on a
   ``DesiredTrajectory``), ``OpenLoopTorques`` (a torque sequence)
 * ``feedback``    — where the state comes from: ``EkfFeedback`` (``otbot_hw.estimation``) or
@@ -22,7 +24,8 @@ _EXPORTS = {
     **dict.fromkeys(["ControlStep", "Controller", "Feedback", "OpenLoopTorques", "Reference", "TrackingController"],
                     "controllers"),
     **dict.fromkeys(["EkfFeedback", "FeedbackUnavailable", "StateEstimate", "TruthFeedback"], "feedback"),
-    **dict.fromkeys(["LoopResult", "LoopRunner", "LoopStats"], "loop"),
+    **dict.fromkeys(["LoopResult", "LoopRunner"], "loop"),
+    "LoopStats": "loop_timing",
     **dict.fromkeys(["SafetyConfig", "Supervisor", "Violation"], "supervisor"),
 }
 

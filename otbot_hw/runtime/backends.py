@@ -4,11 +4,11 @@
 name           robot
 =============  ======================================================================================
 ``sim``        ``sim.direct.DirectSimRobot``: the model stepped in this process, no bus, lockstep
-``bus sim``    ``sim.plant.SimulatedBusRobot``: the CANopen drivers over python-can's virtual bus to
+``bus sim``    ``sim.bus_robot.SimulatedBusRobot``: the CANopen drivers over python-can's virtual bus to
                the simulated drives/encoder/IMU (``sim.plant.Plant``) in this process, lockstep
 ``bus config`` ``drivers.robot.CanopenRobot`` on the configured bus (the real robot, or an
-               ``otbot plant`` process), paced in real time with the drives' watchdogs armed
-               unless ``lockstep``
+               ``otbot plant`` process), paced in real time with the drives' watchdogs as
+               configured; ``lockstep``: ``sim.lockstep.LockstepCanopenRobot``
 =============  ======================================================================================
 
 ``make_backend(name, config, options)`` builds one from the registry ``BACKENDS`` (the command line
@@ -141,7 +141,7 @@ class BusSimBackend(_ConfiguredRate):
 
     @contextmanager
     def open(self, plant, x0=None, forces=None, fixture: str = "floor"):
-        from sim.plant import simulated_robot
+        from sim.bus_robot import simulated_robot
 
         kw = {"params": plant, "x0": x0, "forces": forces, "fixture": fixture, "noise": self.noise or NoiseModel(),
               "seed": self.seed}
@@ -163,11 +163,12 @@ class BusSimBackend(_ConfiguredRate):
 @dataclass
 class BusConfigBackend(_ConfiguredRate):
     """``bus config``: ``CanopenRobot`` on the configured bus and IMU port (``imu_port`` overrides
-    it); ``lockstep``: the other end is a simulated plant (SYNCs back to back, IMU sample awaited per
-    SYNC) instead of a real robot paced in real time. Every run that is not lockstep is paced by the
-    loop runner (the one clock) and arms the drives' SYNC and RPDO watchdogs (0x1006, 0x1400:05):
-    ``CanopenRobot(realtime=True)``, each SYNC's TPDOs awaited within the period. ``paced`` is that
-    fact (``not lockstep``), kept for callers that still pass it: a value passed is ignored."""
+    it); ``lockstep``: the other end is a simulated plant (``sim.lockstep.LockstepCanopenRobot``:
+    SYNCs back to back, each SYNC's TPDOs and IMU sample awaited, no period-based drive watchdogs)
+    instead of a real robot paced in real time. Every run that is not lockstep is paced by the loop
+    runner (the one clock, handed down to the driver) with the drives' watchdogs as the configuration
+    says (0x1006, 0x1400:05 armed by default), each SYNC's TPDOs awaited within the period. ``paced``
+    is that fact (``not lockstep``), kept for callers that still pass it: a value passed is ignored."""
 
     config: object  # drivers.config.RobotConfig
     imu_port: str | None = None
@@ -194,14 +195,13 @@ class BusConfigBackend(_ConfiguredRate):
 
         if plant is not None or forces is not None:
             raise ValueError("the configured bus runs the robot that is there: no plant parameters or forces")
-        # the configuration's watchdog times are kept as written (even in lockstep): it is what the user asked for
-        config, kw = self.config, {}
-        if self.lockstep:  # a simulated plant answers in its own time: wait for it longer than for a drive
-            kw = {"lockstep_timeout": LOCKSTEP_TIMEOUT, "sdo_timeout": LOCKSTEP_SDO_TIMEOUT}
+        config = self.config
         imu = open_imu(config.imu, port=self.imu_port) if (self.with_imu and config.imu is not None) else None
-        # lockstep is the simulated plant's property (sim.lockstep): the real driver never waits for its IMU
-        robot = (LockstepCanopenRobot if self.lockstep else CanopenRobot)(
-            config, imu=imu, realtime=not self.lockstep, **kw)
+        if self.lockstep:  # lockstep is the simulated plant's property (sim.lockstep): it answers in its own time
+            robot = LockstepCanopenRobot(config, imu=imu, lockstep_timeout=LOCKSTEP_TIMEOUT,
+                                         sdo_timeout=LOCKSTEP_SDO_TIMEOUT)
+        else:  # the real driver: the drives' watchdogs as configured, paced by the loop's clock
+            robot = CanopenRobot(config, imu=imu)
         with robot:
             robot.open()
             yield robot

@@ -13,110 +13,40 @@ Threads and hand-over to the loop (the server never blocks the control loop):
 * to act on the loop thread, the handler puts work into a ``LoopMailbox`` (a thread-safe queue
   the loop drains once per cycle with ``service()``, never waiting) and waits for its result.
 
-Authorization: the kernel's peer credentials (SO_PEERCRED: pid, uid, gid; SO_PEERGROUPS: the
-supplementary groups), read once per connection, against ``daemon.socket.allowed_users`` /
-``allowed_groups``; ``status`` is open to every peer. The socket file is created mode 0660; a
-live daemon on the same path (probed by connecting) makes ``ControlServer`` refuse to start, a
-stale socket file is removed. There is no network listener.
+Its parts: ``control_peers`` (peer credentials and who may command), ``control_socket_file``
+(the socket file: path checks, safe bind, a live daemon refused, a stale socket removed),
+``loop_mailbox`` (``LoopMailbox``), the wire format in ``control_protocol``. This module is the
+server: connections, line framing, admission, dispatch.
+
+Length: ``ControlServer`` is one state machine (the I/O thread's connections, their buffers, slots and
+timeouts); its methods share those invariants, and spreading them over modules would hide them.
 """
 from __future__ import annotations
 
-import errno
-import grp
 import itertools
 import json
 import logging
 import math
-import os
-import pwd
 import queue
 import select
 import selectors
 import socket
-import stat
-import struct
 import threading
 import time
-from concurrent.futures import Future
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Callable, Protocol
 
-from otbot_hw.runtime.control_client import ControlClient, ControlError, DaemonUnreachable
+from otbot_hw.runtime.control_peers import Authorizer, Peer, peer_credentials
 from otbot_hw.runtime.control_protocol import (
-    COMMANDS, OPEN_COMMANDS, ArgumentLimits, CommandRefused, ProtocolError, Request, check_command, check_status,
+    OPEN_COMMANDS, ArgumentLimits, CommandRefused, ProtocolError, Request, check_command, check_status,
     decode_request, encode_reply, validate_args)
+from otbot_hw.runtime.control_socket_file import bind_control_socket
 from otbot_hw.runtime.daemon_config import ControlSocketConfig
 
 log = logging.getLogger(__name__)
 
-SOCKET_MODE = 0o660
-SO_PEERGROUPS = getattr(socket, "SO_PEERGROUPS", 59)  # Linux >= 4.13
 MAX_IN_FLIGHT = 8              # requests of one connection waiting for the handler
 MAX_OUTPUT = 1 << 20           # bytes of unread replies before a client is dropped
-
-
-class ControlSocketError(RuntimeError):
-    """The control socket cannot be set up (its folder is missing or not writable, the path is too
-    long for AF_UNIX, ...); the message names the path and what to do. Bad input: exit 2."""
-
-
-class SocketInUse(ControlSocketError):
-    """Another live daemon answers on the socket path, or the path is not a socket."""
-
-
-@dataclass(frozen=True)
-class Peer:
-    """The connected process as the kernel reports it: pid, uid, gid, supplementary groups."""
-
-    pid: int
-    uid: int
-    gid: int
-    groups: tuple[int, ...] = ()
-
-    def __str__(self) -> str:
-        return f"pid {self.pid} uid {self.uid} gid {self.gid}"
-
-
-def peer_credentials(conn: socket.socket) -> Peer:
-    pid, uid, gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))
-    try:  # Python caps getsockopt's buffer at 1024 bytes (a larger one raises OSError at once)
-        raw = conn.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, 1024)
-        groups = struct.unpack(f"{len(raw) // 4}I", raw)
-    except OSError:  # older kernel or more than 256 groups: the user database's list
-        try:
-            groups = tuple(os.getgrouplist(pwd.getpwuid(uid).pw_name, gid))
-        except KeyError:
-            groups = ()
-    return Peer(pid=pid, uid=uid, gid=gid, groups=tuple(groups))
-
-
-class Authorizer:
-    """Who may send commands beyond ``OPEN_COMMANDS``: users and groups by name or numeric id.
-    Names are looked up when a peer connects (a user added later is recognized); names that do
-    not exist match nobody. Nobody is implied, root included."""
-
-    def __init__(self, users=(), groups=()):
-        self.users = tuple(users)
-        self.groups = tuple(groups)
-
-    def _ids(self, entries, lookup) -> set[int]:
-        out = set()
-        for e in entries:
-            if isinstance(e, int):
-                out.add(e)
-            else:
-                try:
-                    out.add(lookup(e))
-                except KeyError:
-                    pass
-        return out
-
-    def allows(self, peer: Peer) -> bool:
-        if peer.uid in self._ids(self.users, lambda n: pwd.getpwnam(n).pw_uid):
-            return True
-        gids = self._ids(self.groups, lambda n: grp.getgrnam(n).gr_gid)
-        return bool(gids & ({peer.gid} | set(peer.groups)))
 
 
 class CommandHandler(Protocol):
@@ -143,151 +73,6 @@ class CommandHandler(Protocol):
     def record(self, *, action: str, peer: Peer) -> dict: ...
     def shutdown(self, *, peer: Peer) -> dict: ...
 
-
-class LoopMailbox:
-    """Work for the loop thread: other threads ``call(fn)`` (blocking, with a timeout) or
-    ``submit(fn)`` (a Future); the loop calls ``service()`` once per cycle, which runs what is
-    queued on the loop thread without ever waiting. A call the loop has not picked up within
-    the timeout raises ``TimeoutError`` and is dropped (it never runs late)."""
-
-    def __init__(self, max_per_cycle: int = 4):
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self.max_per_cycle = max_per_cycle
-
-    def submit(self, fn: Callable[[], Any]) -> Future:
-        fut: Future = Future()
-        self._queue.put((fn, fut))
-        return fut
-
-    def call(self, fn: Callable[[], Any], timeout: float = 1.0) -> Any:
-        fut = self.submit(fn)
-        try:
-            return fut.result(timeout)
-        except TimeoutError:
-            if fut.cancel():
-                raise TimeoutError(f"the control loop did not take the command within {timeout:g} s") from None
-            return fut.result()  # picked up just now: wait for it
-
-    def service(self) -> int:
-        """Run up to ``max_per_cycle`` queued calls on the calling (loop) thread; returns how many."""
-        n = 0
-        while n < self.max_per_cycle:
-            try:
-                fn, fut = self._queue.get_nowait()
-            except queue.Empty:
-                break
-            if not fut.set_running_or_notify_cancel():
-                continue
-            n += 1
-            try:
-                fut.set_result(fn())
-            except BaseException as exc:  # handed back to the caller's thread
-                fut.set_exception(exc)
-        return n
-
-
-def probe_socket(path: Path, timeout: float = 0.5) -> bool:
-    """Whether a process accepts connections on the Unix socket ``path``."""
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.settimeout(timeout)
-    try:
-        s.connect(str(path))
-        return True
-    except (ConnectionRefusedError, FileNotFoundError):
-        return False
-    except PermissionError:
-        raise SocketInUse(f"{path} belongs to someone this process may not connect to: "
-                          f"refusing to replace it") from None
-    except OSError as exc:
-        if exc.errno == errno.EAGAIN:  # backlog full: someone is listening
-            return True
-        raise
-    finally:
-        s.close()
-
-
-#: bytes of an AF_UNIX socket path, its terminating NUL included (``sun_path`` on Linux)
-SUN_PATH_MAX = 108
-
-
-def check_socket_path(path: Path) -> None:
-    """ControlSocketError unless a socket can be created at ``path``: its folder exists (the daemon
-    never creates it: systemd's ``RuntimeDirectory=`` does), is a folder this process may write, and
-    the path fits AF_UNIX's 107 bytes."""
-    path = Path(path)
-    n = len(os.fsencode(str(path)))
-    if n >= SUN_PATH_MAX:
-        raise ControlSocketError(f"control socket path {path} is {n} bytes; a Unix socket path has at most "
-                                 f"{SUN_PATH_MAX - 1} (choose a shorter --socket or daemon.socket.path)")
-    folder = path.parent
-    if not folder.exists():
-        raise ControlSocketError(f"control socket folder {folder} does not exist (the daemon does not create it: "
-                                 f"create it, or let systemd's RuntimeDirectory= do it, or choose --socket)")
-    if not folder.is_dir():
-        raise ControlSocketError(f"control socket folder {folder} is not a folder")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise ControlSocketError(f"control socket folder {folder} is not writable by this user "
-                                 f"(uid {os.geteuid()}): choose --socket or fix its owner/mode")
-
-
-def _tmp_name(path: Path) -> Path:
-    """A name beside ``path`` no longer than it (so it fits AF_UNIX whenever ``path`` does), unique
-    to this process and call."""
-    tag = f"{os.getpid():x}{next(_TMP_COUNTER):x}{os.urandom(4).hex()}"
-    width = max(len(path.name), 8)
-    return path.with_name(("." + tag)[:width])
-
-
-_TMP_COUNTER = itertools.count()
-
-
-def bind_control_socket(path: Path, backlog: int = 64) -> tuple[socket.socket, os.stat_result]:
-    """A listening socket at ``path``, mode 0660, created safely: refuse if a live daemon answers
-    there or the path is not a socket; remove a stale socket. The socket is bound under a
-    temporary name, given its mode, and linked into place (``link`` fails if the name has been
-    taken meanwhile), so clients never see a socket with the wrong mode or half set up. The folder
-    must exist (``check_socket_path``); every failure is a ``ControlSocketError`` naming the path."""
-    path = Path(path)
-    check_socket_path(path)
-    try:
-        st = path.lstat()
-    except FileNotFoundError:
-        st = None
-    except OSError as exc:
-        raise ControlSocketError(f"control socket {path}: {exc.strerror}") from None
-    if st is not None:
-        if stat.S_ISDIR(st.st_mode):
-            raise SocketInUse(f"{path} is a folder, not a socket: refusing to replace it")
-        if not stat.S_ISSOCK(st.st_mode):
-            raise SocketInUse(f"{path} exists and is not a socket: refusing to replace it")
-        if probe_socket(path):
-            raise SocketInUse(f"another daemon is running on {path}")
-        log.warning("removing stale control socket %s", path)
-        try:
-            path.unlink(missing_ok=True)
-        except OSError as exc:
-            raise ControlSocketError(f"cannot remove the stale control socket {path}: {exc.strerror}") from None
-    tmp = _tmp_name(path)
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    try:
-        tmp.unlink(missing_ok=True)
-        sock.bind(str(tmp))
-        os.chmod(tmp, SOCKET_MODE)
-        sock.listen(backlog)
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            raise SocketInUse(f"another daemon created {path} while this one was starting") from None
-        finally:
-            tmp.unlink(missing_ok=True)
-    except OSError as exc:
-        sock.close()
-        raise ControlSocketError(f"cannot create the control socket {path}: {exc.strerror or exc}") from None
-    except BaseException:
-        sock.close()
-        raise
-    sock.setblocking(False)
-    return sock, path.lstat()
 
 
 class _Connection:
@@ -744,8 +529,3 @@ class ControlServer:
         except Exception as exc:  # noqa: BLE001 - the handler's failure is this request's, not the server's
             log.exception("%s failed", req.cmd)
             return encode_reply(req.id, error=("internal", f"{req.cmd} failed: {type(exc).__name__}: {str(exc)[:200]}"))
-
-
-__all__ = ["ControlServer", "ControlClient", "CommandHandler", "LoopMailbox", "Peer", "Authorizer",
-           "ControlSocketError", "SocketInUse", "DaemonUnreachable", "ControlError", "bind_control_socket", "probe_socket",
-           "peer_credentials", "COMMANDS"]

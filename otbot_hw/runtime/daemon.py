@@ -48,7 +48,9 @@ from otbot_hw.model.constants import GRAVITY
 from otbot_hw.recording import source_metadata
 from otbot_hw.robot import Robot
 from otbot_hw.runtime.control_protocol import ArgumentLimits
-from otbot_hw.runtime.control_socket import ControlServer, LoopMailbox, Peer
+from otbot_hw.runtime.control_peers import Peer
+from otbot_hw.runtime.control_socket import ControlServer
+from otbot_hw.runtime.loop_mailbox import LoopMailbox
 from otbot_hw.runtime.controllers import TrackingController
 from otbot_hw.runtime.daemon_commands import LOOP_PICKUP_TIMEOUT, DaemonCommands  # noqa: F401 (re-exported)
 from otbot_hw.runtime.daemon_config import DaemonConfig
@@ -250,7 +252,7 @@ class Daemon:
         cfg = self.settings.daemon.adaptation
         if cfg is None or not cfg.enabled:
             return None
-        from otbot_hw.runtime.controllers import PayloadAdapter
+        from otbot_hw.runtime.payload_adapter import PayloadAdapter
 
         self.law.adapter = PayloadAdapter(self.law, cfg, period)
         return self.law.adapter

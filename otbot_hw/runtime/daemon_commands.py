@@ -18,7 +18,7 @@ from otbot_hw.control.trajectories import TrajectoryError
 from otbot_hw.json_output import json_safe
 from otbot_hw.motors import MOTORS
 from otbot_hw.runtime.control_protocol import CommandRefused, ProtocolError
-from otbot_hw.runtime.control_socket import Peer
+from otbot_hw.runtime.control_peers import Peer
 from otbot_hw.runtime.supervisor import Violation
 
 log = logging.getLogger("otbot_hw.runtime.daemon")

@@ -33,7 +33,7 @@ import numpy as np
 from otbot_hw.control.trajectories import PlacedTrajectory, StopTrajectory
 from otbot_hw.robot import RobotError
 from otbot_hw.runtime.control_protocol import CommandRefused
-from otbot_hw.runtime.control_socket import Peer
+from otbot_hw.runtime.control_peers import Peer
 from otbot_hw.runtime.controllers import OpenLoopTorques, TrackingController, TwistReference
 
 log = logging.getLogger("otbot_hw.runtime.daemon")

@@ -6,7 +6,7 @@ replaced (the tests' one set-up, ``tests/conftest.py``); ``local_config(folder)`
 hardware configuration that this user may command (``daemon.socket.allowed_users``), with the object
 dictionaries beside it and no slcan settle delay; ``DaemonProcess`` starts ``otbot daemon``, waits
 until it answers ``status`` and talks to it like ``otbot ctl``; ``plant_bus_args`` puts it on a
-``sim.plant.PlantProcess``; ``realtime_priority`` gives a process SCHED_FIFO, as the unit's
+``sim.plant_process.PlantProcess``; ``realtime_priority`` gives a process SCHED_FIFO, as the unit's
 CPUSchedulingPolicy=fifo would.
 """
 from __future__ import annotations
@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from otbot_hw.motors import DEFAULT_ROBOT_FILE
-from otbot_hw.runtime.control_socket import ControlClient, ControlError, DaemonUnreachable
+from otbot_hw.runtime.control_client import ControlClient, ControlError, DaemonUnreachable
 
 
 def config_copy(folder: Path, replace: dict[str, str] | None = None, source: Path | None = None) -> Path:
@@ -69,7 +69,7 @@ def _cli() -> list[str]:
 
 
 def plant_bus_args(info: dict) -> list[str]:
-    """``otbot daemon`` options that put it on a plant process (``sim.plant.PlantProcess.info``:
+    """``otbot daemon`` options that put it on a plant process (``sim.plant_process.PlantProcess.info``:
     slcan on a pty, the IMU on another), answering in lockstep (``otbot daemon --lockstep``)."""
     return ["--bus", "config", "--lockstep", "--interface", "slcan", "--channel", info["can_channel"],
             *(["--imu-port", info["imu_port"]] if info.get("imu_port") else ["--no-imu"])]

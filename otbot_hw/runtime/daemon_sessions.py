@@ -11,7 +11,7 @@ import logging
 
 from otbot_hw.recording import RecordingError
 from otbot_hw.runtime.control_protocol import CommandRefused
-from otbot_hw.runtime.control_socket import Peer
+from otbot_hw.runtime.control_peers import Peer
 from otbot_hw.runtime.session_recording import SessionRecording, os_error_text
 from otbot_hw.runtime.supervisor import Violation
 

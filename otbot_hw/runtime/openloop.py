@@ -67,7 +67,7 @@ def load_torque_sequence(path) -> tuple[np.ndarray, np.ndarray]:
             raise TorqueSequenceError(str(exc)) from None
         t, u = np.asarray(rec.t, float), np.asarray(rec.torque, float)
     else:
-        from otbot_hw.control.trajectories import csv_numbers, csv_table
+        from otbot_hw.control.sampled_trajectory import csv_numbers, csv_table
 
         try:
             text = path.read_text()

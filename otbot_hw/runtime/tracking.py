@@ -173,7 +173,7 @@ def track_reference(reference, law: ComputedTorqueController, plant=None, limits
         warm_up(reference, law, feedback if isinstance(feedback, str) else None, backend.period, x0, config_path)
     adapter = None
     if adapt is not None:
-        from otbot_hw.runtime.controllers import PayloadAdapter
+        from otbot_hw.runtime.payload_adapter import PayloadAdapter
 
         law.adapter = adapter = PayloadAdapter(law, adapt, backend.period)
     with backend.open(plant if sim else None, x0=x0 if sim else None, forces=forces if sim else None) as robot:

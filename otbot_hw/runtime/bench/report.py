@@ -81,21 +81,20 @@ def write_report(folder: Path, summary: dict, final) -> list[str]:
         line += "---|---|"
     L += [head, line]
     es = summary.get("error_sigma") or {}
+
+    def truth_cells(n: str) -> str:  # a simulated robot's truth and error / std of ``n``
+        return f" {_fmt(truth.get(n), 6)} | {_fmt(es.get(n), 3)} |" if truth else ""
+
     for n, p in summary["parameters"].items():
-        row = f"| {n} | {_fmt(p['value'], 6)} | {_fmt(p['std'], 3)} | {summary['units'][n]} |"
-        if truth:
-            row += f" {_fmt(truth.get(n), 6)} | {_fmt(es.get(n), 3)} |"
-        L.append(row)
+        L.append(f"| {n} | {_fmt(p['value'], 6)} | {_fmt(p['std'], 3)} | {summary['units'][n]} |" + truth_cells(n))
     up = summary.get("unloaded_platform") or {}
     if up:
         L += ["", "The unloaded platform (a floor run sees the chassis' and the platform's masses only together):", "",
               "| parameter | value | std | in the parameter file | source |" + (" truth | error / std |" if truth else ""),
               "|---|---|---|---|---|" + ("---|---|" if truth else "")]
         for n, d in up.items():
-            row = f"| {n} | {_fmt(d['value'], 6)} | {_fmt(d['std'], 3)} | {_fmt(d['file'], 6)} | {d['source']} |"
-            if truth:
-                row += f" {_fmt(truth.get(n), 6)} | {_fmt(es.get(n), 3)} |"
-            L.append(row)
+            L.append(f"| {n} | {_fmt(d['value'], 6)} | {_fmt(d['std'], 3)} | {_fmt(d['file'], 6)} | {d['source']} |"
+                     + truth_cells(n))
     combos = summary.get("combinations") or {}
     if combos:
         L += ["", "Identified combinations (kg): " + "; ".join(

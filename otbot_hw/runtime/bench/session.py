@@ -19,7 +19,10 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from otbot_hw.runtime.bench.steps import SimulatedRobot
 
 FORMAT = "otbot-bench-session"
 VERSION = 1
@@ -185,3 +188,15 @@ def _jsonable(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def identity(robot, bus: str, sim: SimulatedRobot | None = None, sim_label: str | None = None) -> dict:
+    """Who the robot is: each node's CiA 301 identity object 0x1018 (vendor, product, revision, serial)
+    read over SDO, and for a simulated robot a fingerprint of its parameters, effects and load."""
+    import hashlib
+
+    out: dict[str, Any] = {"bus": bus, "nodes": robot.node_identities(), "simulated": None}
+    if sim is not None:
+        blob = json.dumps({"params": sim.unloaded.values(), "effects": sim.effects, "load": sim.load}, sort_keys=True)
+        out["simulated"] = {"sha": hashlib.sha256(blob.encode()).hexdigest()[:16], "label": sim_label or "simulated"}
+    return out

@@ -1,0 +1,100 @@
+"""One clock (issue 19 item 3): ``otbot_hw.clock``, owned by the loop runner and handed down to the
+robot, whose own multi-SYNC sequences wait on it instead of sleeping."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from drivers.config import load_robot_config
+from otbot_hw.clock import Pacer, Unpaced, clock_for
+from otbot_hw.motors import load_motor_limits
+from otbot_hw.params import nominal
+from otbot_hw.runtime import LoopRunner, OpenLoopTorques, SafetyConfig, Supervisor
+from sim.direct import DirectSimRobot
+
+P = 0.01  # s
+
+
+def test_a_pacer_ticks_one_period_apart_and_takes_a_late_tick_at_once_without_a_burst():
+    c = Pacer(P)
+    ticks = [c.wait() for _ in range(4)]
+    assert np.all(np.diff(ticks) >= P - 1e-9)  # never early (a loaded machine may only make a tick late)
+    assert time.monotonic() >= ticks[-1]  # never ahead of the wall clock
+    time.sleep(3 * P)  # the caller was late: the next tick is now, the one after a period later
+    late = c.wait()
+    assert late >= ticks[-1] + 3 * P
+    assert c.wait() >= late + P - 1e-9  # no burst of catch-up ticks
+
+
+def test_a_sequence_tick_pushes_the_grid_and_an_unpaced_clock_never_waits():
+    c = Pacer(P)
+    t0 = c.wait()
+    t = time.monotonic() + 2 * P
+    c.wait_until(t)  # a driver's SYNC one period after its last: the loop's next tick a period after it
+    assert time.monotonic() >= t
+    assert c.wait() >= t + P - 1e-9
+    u = Unpaced(P)
+    start = time.monotonic()
+    for _ in range(100):
+        u.wait()
+        u.wait_until(start + 10.0)
+    assert time.monotonic() - start < 0.5 and t0 > 0
+
+
+def test_the_loop_owns_the_clock_and_hands_it_to_its_robot():
+    limits = load_motor_limits()
+    for realtime in (False, True):
+        robot = DirectSimRobot(nominal(), period=P, imu_rate=None)
+        runner = LoopRunner(robot, OpenLoopTorques(np.zeros((1, 3)), P), Supervisor(limits, SafetyConfig(), P),
+                            realtime=realtime)
+        assert robot.clock is runner.clock and runner.clock.realtime is realtime
+        assert type(runner.clock) is type(clock_for(P, realtime))
+
+
+class _Watched(Pacer):
+    """A pacer that records each sequence tick with the driver's last SYNC time at the call."""
+
+    def __init__(self, period, robot):
+        super().__init__(period)
+        self.robot, self.ticks, self.inside = robot, [], False
+
+    def wait_until(self, t):
+        self.ticks.append((t, self.robot._sync_wall))
+        self.inside = True
+        try:
+            super().wait_until(t)
+        finally:
+            self.inside = False
+
+
+def test_the_drivers_sequences_wait_on_the_runtimes_clock_and_never_sleep(monkeypatch):
+    """enable (several SYNCs) and the quick stop (SYNC kept alive until confirmed), with a real-time
+    clock handed down: each SYNC at the clock's tick one period after the last one; the calling thread
+    sleeps only inside the clock. (The plant answers in lockstep: a loaded machine cannot spoil it.)"""
+    from sim.bus_robot import simulated_robot
+
+    cfg = load_robot_config().relaxed(1.0)
+    me = threading.get_ident()
+    sleeps = []
+    real_sleep = time.sleep
+    with simulated_robot(cfg, with_imu=False) as (robot, plant):
+        assert not robot.clock.realtime  # lockstep's own clock, until the runtime hands one down
+        clock = _Watched(robot.period, robot)
+        robot.use_clock(clock)
+
+        def sleep(s):
+            if threading.get_ident() == me and not clock.inside:
+                sleeps.append(s)
+            real_sleep(s)
+
+        monkeypatch.setattr(time, "sleep", sleep)
+        robot.enable()
+        n_enable = len(clock.ticks)
+        robot.quick_stop()
+        monkeypatch.setattr(time, "sleep", real_sleep)
+    assert n_enable >= 3 and len(clock.ticks) > n_enable  # the enable path, then the quick stop's SYNCs
+    assert all(t == last + robot.period for t, last in clock.ticks)
+    assert np.all(np.diff([t for t, _ in clock.ticks]) >= robot.period - 1e-9)
+    assert sleeps == []
