@@ -19,7 +19,6 @@ MAX_LINES = 400
 ALLOWED: dict[str, str] = {
     "otbot_hw/estimation/ekf.py": "h22fast",
     "otbot_hw/diagnose/residuals.py": "h20disc",
-    "otbot_hw/ros2/bag_import.py": "hmisc",
 }
 
 
