@@ -56,12 +56,19 @@ def check_reaction(r: dict, kind: str, consumer: float) -> None:
 @pytest.mark.parametrize("kind", IN_PROCESS)
 def test_otbot_run_inject_on_virtual_can(kind, tmp_path, capsys):
     out = tmp_path / "run.mcap"
-    with pytest.raises(SystemExit) as exc:
-        main(["run", "--bus", "sim", "--inject", f"{kind}@{AT}", "--duration", "0.25", "--noise", "none",
-              "--out", str(out), "--json"])
-    assert exc.value.code == 1
-    captured = capsys.readouterr()
-    res = json.loads(captured.out)
+    for _ in range(3):
+        with pytest.raises(SystemExit) as exc:
+            main(["run", "--bus", "sim", "--inject", f"{kind}@{AT}", "--duration", "0.25", "--noise", "none",
+                  "--out", str(out), "--json"])
+        assert exc.value.code == 1
+        captured = capsys.readouterr()
+        res = json.loads(captured.out)
+        # A wall-clock watchdog a loaded machine tripped before the injection ended the run without
+        # one (injected_s null): nothing to judge; run it again (a fault that comes every time fails).
+        if res["reaction"]["injected_s"] is not None:
+            break
+    else:
+        pytest.fail(f"every run faulted before the injection; the last: {res['faults']}")
     assert res["completed"] is False
     check_reaction(res["reaction"], kind, LOCKSTEP_HEARTBEAT)
     assert any(WORDS[kind] in f["meaning"] for f in res["faults"]), res["faults"]
