@@ -161,8 +161,8 @@ def _matrix_run(pp: PlantProcess, kind: str) -> tuple[dict, list, str | None]:
             if code == 0x8130 and (x := _lost_for(why)) is not None and x > MATRIX_CONSUMER + MATRIX_SLACK]
     if late:  # the drive's own check ran that late: a measurement of the machine, not of the drive
         return r, list(res.robot_faults), f"a drive's heartbeat watchdog checked late (plant held up): {late}"
-    if stamps:
-        r["first_fault_kind"] = min(stamps, key=stamps.get).kind
+    if stamps:  # the first the master latched, in wall-clock order (the stamps of a loaded lockstep run are not)
+        r["first_fault_kind"] = min(stamps, key=lambda f: f.time).kind
     return _bounded_by_the_read(r, reported_at, pp.after), list(res.robot_faults), None
 
 
