@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from drivers.config import LOCKSTEP_HEARTBEAT, load_robot_config
+from drivers.faults import DeviceConfigError, DriverError
 from otbot_hw.cli import main
 from otbot_hw.recording import read_recording
 from otbot_hw.robot import RobotFault
@@ -124,7 +125,8 @@ def _matrix_run(pp: PlantProcess, kind: str) -> tuple[dict, list, str | None]:
     """One run with the fault ``kind`` injected: (reaction, the loop's faults, why the run is no
     measurement of the reaction or None).
 
-    A run is no measurement when the machine disturbed it before the injection: the plant never
+    A run is no measurement when the machine disturbed it before the injection: the boot timed out
+    (an SDO answer or boot-up later than its wall-clock timeout), the plant never
     started its clock (no injection happened), or the master latched a fault before the injected
     SYNC (a wall-clock watchdog, here the heartbeats relaxed to 0.3 s, lapsed while the machine
     held a process up; the drives then stopped before anything was injected), or a drive's own
@@ -135,7 +137,12 @@ def _matrix_run(pp: PlantProcess, kind: str) -> tuple[dict, list, str | None]:
     robot = pp.robot(cfg)
     reported_at: list[int] = []  # the SYNC whose read first reported a fault
     with robot:
-        robot.open()
+        try:
+            robot.open()
+        except DeviceConfigError:
+            raise
+        except DriverError as exc:  # an SDO or boot-up answer later than its wall-clock timeout
+            return {}, [], f"the boot timed out (plant held up): {exc}"
         read = robot.read
 
         def read_and_note():
