@@ -35,6 +35,8 @@ def full_recording(n: int = 60, dt: float = 0.01, t0: float = 0.37) -> Recording
                     estimate_gyro_bias=r.normal(0, 1e-3, n),
                     reference_p=np.column_stack([r.normal(0, 1, (n, 2)), alpha - 0.1]),
                     reference_pd=r.normal(0, 1, (n, 3)), reference_pdd=r.normal(0, 1, (n, 3)),
+                    payload_value=r.normal([60, 4, 0.05, -0.02], 1, (n, 4)), payload_std=r.uniform(0, 1, (n, 4)),
+                    payload_used=r.normal([60, 4, 0.05, -0.02], 1, (n, 4)),
                     events=[{"t": float(t[0]), "kind": "mode", "text": "track corridor"},
                             {"t": float(t[7]), "kind": "fault", "text": "drive 2 silent", "drive": 2, "code": "0x8130"},
                             {"t": float(t[7]), "kind": "note", "text": "two at one sample"}],
@@ -50,8 +52,8 @@ def test_export_import_round_trip_gives_every_channel_back(tmp_path, capsys):
     assert main(["export", str(tmp_path / "run.mcap"), "--ros2", str(tmp_path / "bag"), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["topics"]) == {"/joint_states", "/imu", "/odom", "/odom/gyro_bias", "/truth", "/truth/force",
-                                  "/reference", "/events", "/tf"}
-    assert out["topics"]["/events"] == [M.DIAGNOSTIC_ARRAY, 3]
+                                  "/reference", "/payload", "/events", "/tf"}
+    assert out["topics"]["/events"] == [M.DIAGNOSTIC_ARRAY, 3] and out["topics"]["/payload"] == [M.PAYLOAD, 60]
     assert main(["import", str(tmp_path / "bag"), "--out", str(tmp_path / "back.mcap"), "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     assert rep["resampling"]["method"].startswith("none")
@@ -60,7 +62,7 @@ def test_export_import_round_trip_gives_every_channel_back(tmp_path, capsys):
     assert np.array_equal(np.round(back.t * 1e9).astype(np.int64), np.round(rec.t * 1e9).astype(np.int64))
     # plain float fields: bit for bit
     for name in ("torque", "joint_pos", "joint_vel", "imu_accel", "imu_gyro", "truth_q", "truth_qd", "truth_force",
-                 "estimate_gyro_bias", "reference_pd", "reference_pdd"):
+                 "estimate_gyro_bias", "reference_pd", "reference_pdd", "payload_value", "payload_std", "payload_used"):
         assert np.array_equal(getattr(back, name), getattr(rec, name)), name
     # through a quaternion (yaw) or a rotation into the body frame: to rounding, angles unwrapped back
     for name in ("estimate_pose", "estimate_twist", "estimate_std", "reference_p"):
