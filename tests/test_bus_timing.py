@@ -62,21 +62,34 @@ def test_stale_tpdo_window_realtime_and_lockstep():
     cfg = CFG.replace_bus(control_rate=rate)
     period = 1 / rate
     n = cfg.bus.tpdo_timeout
-    with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
-        robot.enable()
-        for _ in range(3):
-            robot.write([0.0, 0.0, 0.0])
-            s = robot.read()
-            assert time.monotonic() - s.host_time < TPDO_WINDOW * period  # all TPDOs in time
-        plant.encoder.drop_tpdos = True
-        for k in range(n):
-            robot.write([0.0, 0.0, 0.0])
-            s = robot.read()
-            waited = time.monotonic() - s.host_time
-            assert bool(s.faults) == (k == n - 1), (k, s.faults)
-            if k < n - 1:  # (the last one also runs the fault reaction)
-                # a missing TPDO is awaited for the window, never into the next period
-                assert TPDO_WINDOW * period - 0.002 <= waited <= period + SLACK / 2, waited
+    def realtime():
+        with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
+            def cycles():
+                for _ in range(3):
+                    robot.write([0.0, 0.0, 0.0])
+                    s = robot.read()
+                    if time.monotonic() - s.host_time >= TPDO_WINDOW * period:  # all TPDOs in time, else
+                        raise Disturbed("a TPDO of the set-up came after its window (the plant held up)")
+
+            _set_up(robot, cycles)
+            _undisturbed(robot, plant)
+            plant.encoder.drop_tpdos = True
+            for k in range(n):
+                robot.write([0.0, 0.0, 0.0])
+                s = robot.read()
+                waited = time.monotonic() - s.host_time
+                if k < n - 1 and s.faults:  # another TPDO late too: a stale fault one SYNC early
+                    raise Disturbed(f"a fault before the encoder's stale window ran out: {s.faults}")
+                assert bool(s.faults) == (k == n - 1), (k, s.faults)
+                if k < n - 1:  # (the last one also runs the fault reaction)
+                    # a missing TPDO is awaited for the window, never into the next period; a wait
+                    # that returns later than that is a thread the machine woke late: run again
+                    assert TPDO_WINDOW * period - 0.002 <= waited, waited
+                    if waited > period + SLACK / 2:
+                        raise Disturbed(f"the read returned {waited:.3f} s after its SYNC (window "
+                                        f"{TPDO_WINDOW * period:.3f} s): the thread woke late")
+
+    _measured(realtime)
     with simulated_robot(CFG, with_imu=False) as (robot, plant):  # lockstep
         robot.enable()
         plant.encoder.drop_tpdos = True
@@ -118,7 +131,11 @@ def test_drives_stop_when_the_masters_heartbeat_stops():
                 assert code == 0x8130 and "master (node 127)" in why
                 if _lost_for(why) > consumer + SLACK:  # by its own account its check came that late
                     raise Disturbed(f"{d.name}'s heartbeat watchdog checked late (the machine held it up): {why}")
-                assert consumer - producer - 0.005 <= d.stopped_since[1] - t0 <= consumer + 0.01 + SLACK
+                # from the drive's side: its stop after the master's last heartbeat it heard (stop()
+                # above joins the producer thread: t0 may come later than that heartbeat on a loaded machine)
+                seen = d._master_seen
+                assert seen <= t0 and t0 - seen <= producer + SLACK, (t0 - seen)
+                assert consumer <= d.stopped_since[1] - seen <= consumer + 0.01 + SLACK, d.stopped_since[1] - seen
             # and they say so: EMCY 0x8130 from each drive
             assert _until(lambda: len([f for f in robot.faults if f.kind == "emcy"]) >= 3, 1.0), robot.faults
             assert {f.code for f in robot.faults if f.kind == "emcy"} == {0x8130}
