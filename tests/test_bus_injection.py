@@ -162,6 +162,8 @@ def _matrix_run(pp: PlantProcess, kind: str) -> tuple[dict, list, str | None]:
     stamps = robot.fault_syncs()
     injected_sync = start + pp.injected_t / PERIOD
     early = [str(f) for f, k in stamps.items() if k < injected_sync - 1e-6]
+    if reported_at and reported_at[0] < injected_sync - 1e-6:  # the loop saw it before (its stamp may be late)
+        early = early or [str(f) for f in stamps]
     if early:
         return r, list(res.robot_faults), f"faults before the injection: {early}"
     late = [(d["name"], x) for d in pp.after["drives"] for code, why, _ in d["aborts"]
