@@ -131,7 +131,9 @@ def _matrix_run(pp: PlantProcess, kind: str) -> tuple[dict, list, str | None]:
     SYNC (a wall-clock watchdog, here the heartbeats relaxed to 0.3 s, lapsed while the machine
     held a process up; the drives then stopped before anything was injected), or a drive's own
     heartbeat watchdog tripped more than MATRIX_SLACK after its consumer time by its own account
-    (the plant process was held up: its watchdog thread checked late). A drive misconfigured with
+    (the plant process was held up: its watchdog thread checked late), or a drive the master could
+    still reach lost the master's heartbeat (the master process was held up longer than the consumer
+    time, so its reaction came after the drives' own). A drive misconfigured with
     a longer consumer time says so in every run, and fails."""
     cfg = CFG.relaxed(MATRIX_CONSUMER)
     robot = pp.robot(cfg)
@@ -166,6 +168,12 @@ def _matrix_run(pp: PlantProcess, kind: str) -> tuple[dict, list, str | None]:
         early = early or [str(f) for f in stamps]
     if early:
         return r, list(res.robot_faults), f"faults before the injection: {early}"
+    cut = {d["name"] for d in pp.after["drives"]} if kind == "bus-off" else {pp.injection.device} if (
+        kind == "drive-silent") else set()
+    lapsed = [d["name"] for d in pp.after["drives"]
+              if d["name"] not in cut and any(code == 0x8130 for code, _, _ in d["aborts"])]
+    if lapsed:  # drives the master could reach lost its heartbeat: the master process was held up
+        return r, list(res.robot_faults), f"the master's heartbeat lapsed at {lapsed} (master held up)"
     late = [(d["name"], x) for d in pp.after["drives"] for code, why, _ in d["aborts"]
             if code == 0x8130 and (x := _lost_for(why)) is not None and x > MATRIX_CONSUMER + MATRIX_SLACK]
     if late:  # the drive's own check ran that late: a measurement of the machine, not of the drive
