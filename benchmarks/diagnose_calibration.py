@@ -205,7 +205,7 @@ def record_daemon(spec: Spec, folder: Path) -> Path:
 
     from otbot_hw.cli import build_parser
     from otbot_hw.cli.daemon import prepare
-    from otbot_hw.runtime.control_socket import ControlClient
+    from otbot_hw.runtime.control_client import ControlClient
     from otbot_hw.runtime.daemon_process import local_config
 
     rng = np.random.default_rng(spec.seed)

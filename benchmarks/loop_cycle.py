@@ -3,7 +3,7 @@ virtual bus in the same process) at a control rate, enabled and driven around a 
 velocity mode (a new twist every 0.1 s), telemetry and recording on — as benchmarks/daemon.py
 ``--in-process`` does, but measured from inside.
 
-    python benchmarks/loop_cycle.py [--rate 500] [--seconds 30] [--profile FILE] [--json]
+    python benchmarks/loop_cycle.py [--rate 500] [--seconds 30] [--profile FILE] [--label NAME] [--json]
     (cd /work/main && python /path/to/benchmarks/loop_cycle.py ...)   # another checkout's code
 
 The code measured is the checkout in the current directory when it holds ``otbot_hw`` (so the same
@@ -17,7 +17,7 @@ their sum (the master's cycle work excluding the wait for frames). Cycles withou
 first, unpowered ones) are left out. Sections of it, timed the same way: the EKF step, the
 supervisor's check, the recording's loop side, the limiter, the loop's timing bookkeeping and the
 CAN sends (SYNC and RPDOs: python-can's virtual bus copies each frame for its receivers, which a
-real bus's send does not). Besides, per thread of the process, CPU time per cycle over the
+real bus's send does not; *work less virtual-bus sends* takes them out cycle by cycle). Besides, per thread of the process, CPU time per cycle over the
 window: the master's CAN notifier (which decodes the TPDOs: the rest of the master's work), the
 plant's (the simulated drives: not the master's), heartbeats, telemetry, ...; and the loop's own
 timing from ``status`` (period, overruns: wall time, distorted by the machine's load).
@@ -56,6 +56,13 @@ def _request(sock: Path, cmd: str, **args):
 
     with ControlClient(sock, timeout=10.0) as c:
         return c.request(cmd, args or None)
+
+
+def _loop_call(daemon, fn):
+    """Run ``fn`` on the daemon's loop thread between two cycles."""
+    if hasattr(daemon, "_loop_call"):  # older daemons
+        return daemon._loop_call(fn)
+    return daemon.mailbox.call(fn, timeout=5.0)
 
 
 class _Probe:
@@ -170,19 +177,20 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
                             (robot.network.bus, "send", "CAN send (virtual bus)")):
         probe.section(obj, attr, name)
     if daemon.telemetry is not None:  # after the cycle (the daemon's _after_cycle), not in read -> write
-        probe.section(daemon.telemetry, "publish", "telemetry publish (after the write)")
+        name = "publish_cycle" if hasattr(daemon.telemetry, "publish_cycle") else "publish"  # (code before: publish)
+        probe.section(daemon.telemetry, name, "telemetry publish (after the write)")
     _request(sock, "enable")
     time.sleep(1.0)  # the hold settles
     notifier_threads = set()
     with contextlib.suppress(Exception):
         notifier_threads = {t.name for t in robot.network.notifier._readers if isinstance(t, threading.Thread)}
     if profile is not None:  # start the profiler on the loop thread, between two cycles
-        daemon._loop_call(lambda: prof_box["p"].start())
+        _loop_call(daemon, lambda: prof_box["p"].start())
     if cprofile is not None:  # cProfile, enabled on the loop thread: that thread only
         import cProfile
 
         prof_box["c"] = cProfile.Profile()
-        daemon._loop_call(prof_box["c"].enable)
+        _loop_call(daemon, prof_box["c"].enable)
     cpu0 = _thread_cpu()
     st0 = _request(sock, "status")
     probe.active = True
@@ -199,13 +207,13 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     cpu1 = _thread_cpu()
     if profile is not None:
         p = prof_box["p"]
-        daemon._loop_call(p.stop)
+        _loop_call(daemon, p.stop)
         profile.write_text(p.output_text(unicode=False, color=False, show_all=False))
     if cprofile is not None:
         import io
         import pstats
 
-        daemon._loop_call(prof_box["c"].disable)
+        _loop_call(daemon, prof_box["c"].disable)
         out = io.StringIO()
         stats = pstats.Stats(prof_box["c"], stream=out)
         out.write(f"cProfile of the loop thread, {rate:g} Hz, {wall:.0f} s (CPU time per function; profiling "
@@ -225,16 +233,19 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     us = lambda a, q: float(np.nanpercentile(a, q) * 1e6)  # noqa: E731
     k = probe.k
     r, w = probe.read_cpu[:k], probe.work_cpu[:k]
+    sends = probe.sections["CAN send (virtual bus)"][0][:k]  # the simulated transport's share of the work
     return {"rate": rate, "seconds": wall, "cycles": cycles, "measured": k, "commands": commands,
             "read_p50_us": us(r, 50), "read_p99_us": us(r, 99),
             "compute_write_p50_us": us(w - r, 50), "compute_write_p99_us": us(w - r, 99),
             "work_p50_us": us(w, 50), "work_p99_us": us(w, 99), "work_max_us": us(w, 100),
+            "work_less_sends_p50_us": us(w - sends, 50), "work_less_sends_p99_us": us(w - sends, 99),
             "master_rx_us_per_cycle": master_rx * 1e6,
             "sections_p50_p99_us": {name: (us(acc[0][:k], 50), us(acc[0][:k], 99))
                                     for name, acc in probe.sections.items()},
             "threads_us_per_cycle": {k2: round(v * 1e6, 1) for k2, v in sorted(others.items(), key=lambda x: -x[1])
                                      if v > 0},
             "overruns": loop["overruns"] - loop0["overruns"],
+            "overruns_per_min": (loop["overruns"] - loop0["overruns"]) / (wall / 60.0),
             "period_p99_ms": None if loop["period"]["p99"] is None else 1e3 * loop["period"]["p99"],
             "fault": (st.get("faults") or [None])[0], "load": load}
 
@@ -249,22 +260,25 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {os.getloadavg()[0]:.1f}) ...",
-          file=sys.stderr, flush=True)
+    load0 = os.getloadavg()[0]
+    print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
         row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile)
     row["label"] = a.label
-    row["load_before"] = os.getloadavg()[0]
+    row["load_before"] = load0  # 1-min load average at the start; "load": at the window's end
     if a.json:
         print(json.dumps(row))
         return 0
-    print("| code | rate (Hz) | cycles | work p50 / p99 / max (us) | read p50 / p99 (us) "
-          "| compute + write p50 / p99 (us) | master CAN receive (us per cycle) | overruns | load |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| code | rate (Hz) | cycles | work p50 / p99 / max (us) | work less virtual-bus sends p50 / p99 (us) "
+          "| read p50 / p99 (us) | compute + write p50 / p99 (us) | master CAN receive (us per cycle) | overruns (per min) "
+          "| load avg (before, end) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     print(f"| {row['label']} | {row['rate']:g} | {row['measured']} | {row['work_p50_us']:.0f} / "
-          f"{row['work_p99_us']:.0f} / {row['work_max_us']:.0f} | {row['read_p50_us']:.0f} / {row['read_p99_us']:.0f} | "
+          f"{row['work_p99_us']:.0f} / {row['work_max_us']:.0f} | {row['work_less_sends_p50_us']:.0f} / "
+          f"{row['work_less_sends_p99_us']:.0f} | {row['read_p50_us']:.0f} / {row['read_p99_us']:.0f} | "
           f"{row['compute_write_p50_us']:.0f} / {row['compute_write_p99_us']:.0f} | "
-          f"{row['master_rx_us_per_cycle']:.0f} | {row['overruns']} | {row['load']:.1f} |")
+          f"{row['master_rx_us_per_cycle']:.0f} | {row['overruns']} ({row['overruns_per_min']:.0f}) | "
+          f"{row['load_before']:.1f}, {row['load']:.1f} |")
     print("\nloop-thread sections, CPU p50 / p99 (us): " + ", ".join(
         f"{k}: {v[0]:.0f} / {v[1]:.0f}" for k, v in row["sections_p50_p99_us"].items()))
     print("\nother threads, CPU us per cycle: "

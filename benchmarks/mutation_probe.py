@@ -87,7 +87,7 @@ MUTATIONS = [
      "            if not self._fault_reported:", "        if False:\n            if not self._fault_reported:",
      [T_REACT]),
     # issue 18 (drivers side): pinned against the independent drive and the vendor mapping layouts
-    ("0x605A not configured (a drive's own quick stop undone by the word in flight)", "drivers/cia402.py",
+    ("0x605A not configured (a drive's own quick stop undone by the word in flight)", "drivers/cia402_setup.py",
      "        self.configure_quick_stop_option()\n", "", [T_INDEP]),
     ("a drive the master quick-stopped reported as leaving by itself", "drivers/cia402.py",
      '        return ("OPERATION ENABLED", *STOPPED_STATES)', '        return ("OPERATION ENABLED",)', [T_INDEP]),

@@ -320,6 +320,10 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     if mhb_c > 65.535:
         raise r.err("drives.master_heartbeat_consumer", f"({mhb_c * 1000:g} ms) must fit 0x1016 (at most 65535 ms)")
     rpdo_timeout = r.periods(d, "rpdo_timeout", "drives.rpdo_timeout", rate, default=3)
+    sync_watchdog = r.raw(d, "sync_watchdog", "drives.sync_watchdog", True)
+    if not isinstance(sync_watchdog, bool):
+        raise r.err("drives.sync_watchdog", f"must be true or false (0x1006 = the control period, or 0: off), "
+                                            f"got {sync_watchdog!r}")
     abort = r.raw(d, "abort_connection_option", "drives.abort_connection_option", "quick_stop")
     if abort not in ABORT_OPTIONS:
         raise r.err("drives.abort_connection_option", f"must be one of {', '.join(ABORT_OPTIONS)}, got {abort!r}")
@@ -336,7 +340,8 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
             polarity=r.sign(j, "polarity", f"drives.{name}.polarity"), rated_torque=rated,
             heartbeat_producer=hb_p, heartbeat_consumer=hb_c, sdo_config=sdo,
             max_torque=float(limits.max_torque[k]), velocity_unit=vunit, master_heartbeat_consumer=mhb_c,
-            rpdo_timeout=rpdo_timeout, abort_connection_option=ABORT_OPTIONS[abort], quick_stop_option=qso))
+            rpdo_timeout=rpdo_timeout, abort_connection_option=ABORT_OPTIONS[abort], quick_stop_option=qso,
+            sync_watchdog=sync_watchdog))
 
     e = r.section(data, "pivot_encoder")
     source = r.raw(e, "source", "pivot_encoder.source")

@@ -56,8 +56,8 @@ class CyclicExchange:
         if spaced:
             self._await_tick()
         off = {f.node for f in self.faults if f.kind in ("heartbeat", "nmt")} | self._nmt_stopped
-        expected = [k for d in self.devices if d.node_id not in off for k in d.expected_tpdos()]
-        self.tracker.begin(expected)
+        expected, expected_set = self._expected(off)
+        self.tracker.begin(expected_set)
         t_sync = time.monotonic()
         self._sync_t = self._cycle * self.period
         self._sync_wall = t_sync
@@ -71,28 +71,46 @@ class CyclicExchange:
             self._add_fault(Fault("bus", None, "bus", f"cannot transmit SYNC: {exc}"), at_sync=True)
             return set()
         missing = self._await_tpdos(t_sync)
-        byid = self._by_id
-        n_max = self.config.bus.tpdo_timeout
-        for key in expected:
-            if key in missing:
-                self._misses[key] = self._misses.get(key, 0) + 1
-                if self._misses[key] == n_max:
-                    node, no = key
-                    self._add_fault(byid[node].fault("stale", f"TPDO{no} missing at {n_max} consecutive SYNCs "
-                                                              f"(bus.tpdo_timeout = {n_max} periods)"), at_sync=True)
-            else:
-                self._misses[key] = 0
-        arrived = set(expected) - missing
-        for d in self.drives:
-            f = d.check_statusword()
-            if f:
-                self._add_fault(f, at_sync=True)
-            elif (d.node_id, d.status_tpdo) in arrived and d.node_id not in off:
-                with self._lock:  # the command and the check as one: a fault staging a quick stop waits
+        if missing or self._missed_last:  # (every TPDO in, none missed before: no count to touch)
+            byid = self._by_id
+            n_max = self.config.bus.tpdo_timeout
+            for key in expected:
+                if key in missing:
+                    self._misses[key] = self._misses.get(key, 0) + 1
+                    if self._misses[key] == n_max:
+                        node, no = key
+                        self._add_fault(byid[node].fault("stale", f"TPDO{no} missing at {n_max} consecutive SYNCs "
+                                                                  f"(bus.tpdo_timeout = {n_max} periods)"),
+                                        at_sync=True)
+                else:
+                    self._misses[key] = 0
+            self._missed_last = bool(missing)
+        arrived = expected_set - missing if missing else expected_set
+        with self._lock:  # each command and its check as one: a fault staging a quick stop waits
+            for d in self.drives:
+                f = d.check_statusword()
+                if f:
+                    self._add_fault(f, at_sync=True)
+                elif (d.node_id, d.status_tpdo) in arrived and d.node_id not in off:
                     why = d.unexpected_state()
                     if why:
                         self._add_fault(d.fault("statusword", why), at_sync=True)
-        return arrived
+        return set(arrived)
+
+    _missed_last = True  # a TPDO was missing at the last SYNC (so some miss counts may be non-zero)
+    _expected_cache: tuple = ((), None, None, None)
+
+    def _expected(self, off: set) -> tuple[list, frozenset]:
+        """The (node, TPDO) pairs this SYNC should bring from the nodes not ``off``, as a list (device
+        order) and a frozenset; rebuilt only when ``off`` or a device's TPDO plan changed."""
+        plans, off_key, expected, expected_set = self._expected_cache
+        key = frozenset(off)
+        devices = self.devices
+        if off_key != key or len(plans) != len(devices) or any(p is not d.tpdos for p, d in zip(plans, devices)):
+            expected = [k for d in devices if d.node_id not in off for k in d.expected_tpdos()]
+            expected_set = frozenset(expected)
+            self._expected_cache = (tuple(d.tpdos for d in devices), key, expected, expected_set)
+        return expected, expected_set
 
     def _await_tick(self) -> None:
         """The next SYNC of the driver's own multi-SYNC sequences: at the runtime's clock's tick one

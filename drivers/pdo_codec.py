@@ -104,9 +104,7 @@ class FastTpdo:
         except struct.error:
             self.on_bad(data)
             return
-        v = self.values
-        for index, value in zip(self._indices, vals):
-            v[index] = value
+        self.values.update(zip(self._indices, vals))
         m = self.pdo_map
         m.data = data
         m.timestamp = timestamp

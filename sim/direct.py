@@ -6,11 +6,13 @@ behind the CAN bus does the same thing once per SYNC):
 1. the command written before this read (u_k, clamped to the motor limits; zero for a joint whose
    drive is not OPERATION ENABLED) and the external pivot force f_k are taken;
 2. the sensors sample the state x_k with u_k acting (``otbot_hw.simulation.sensing``: the paper's
-   model, or the extended model with its sensor effects), the seeded noise of
-   ``otbot_hw.sensors.NoiseModel`` is added and, where configured, the encoder angles are floored to
-   whole counts and the rates rounded to whole counts/s; the IMU outputs at its own rate (a new
-   sample when a new IMU period starts, ``drivers.robot.imu_due``, the bus's schedule);
-3. the model advances one period under (u_k, f_k): ``otbot_hw.simulation.simulator.make_stepper``.
+   model, or the extended model with its sensor effects) and the model advances one period under
+   (u_k, f_k) (``otbot_hw.simulation.simulator.make_stepper``), both in one compiled call
+   (``StepperSensors.sample_and_step``);
+3. the seeded noise of ``otbot_hw.sensors.NoiseModel`` is added to the sample and, where configured,
+   the encoder angles are floored to whole counts and the rates rounded to whole counts/s; the IMU
+   outputs at its own rate (a new sample when a new IMU period starts, ``drivers.robot.imu_due``, the
+   bus's schedule).
 
 So u written before read k is held on [t_k, t_k+1), the timing convention of ``otbot_hw.robot`` and
 of the bus. The drives are emulated at the level the loop sees them: CiA 402 state names
@@ -122,17 +124,20 @@ class DirectSimRobot(SimulatedRobot):
         noise = self.noise
         acc = gyro = imu_t = None
         want_imu = self.imu_rate is not None and imu_due(self._cycle, self.period, self.imu_rate)
-        if want_imu or self.sensors.latency > 0:
-            a, g = self.sensors.imu(t_model, u, f)
-            if want_imu:
-                if noise.accel:
-                    a = a + noise.accel * self.rng.standard_normal(3)
-                if noise.gyro:
-                    g = g + noise.gyro * self.rng.standard_normal(3)
-                self._imu_last = (a, g, self._cycle * self.period)
+        x_k = self.stepper.x  # the stepper replaces x at a step, never changes it in place
+        if self._started:  # the sensors at x_k and the step to x_k+1 under (u_k, f_k): one compiled call
+            pos, vel, a, g = self.sensors.sample_and_step(t_model, u, f, want_imu)
+        else:
+            a, g = self.sensors.imu(t_model, u, f) if (want_imu or self.sensors.latency > 0) else (None, None)
+            pos, vel = self.sensors.joints(u)
+        if want_imu:
+            if noise.accel:
+                a = a + noise.accel * self.rng.standard_normal(3)
+            if noise.gyro:
+                g = g + noise.gyro * self.rng.standard_normal(3)
+            self._imu_last = (a, g, self._cycle * self.period)
         if self._imu_last is not None:
             acc, gyro, imu_t = self._imu_last
-        pos, vel = self.sensors.joints(u)
         if noise.enc_rate:
             vel = vel + noise.enc_rate * self.rng.standard_normal(3)
         if noise.enc_angle:
@@ -142,13 +147,12 @@ class DirectSimRobot(SimulatedRobot):
             pos = np.floor(pos / step + 1e-9) * step
         if self.rate_step is not None:
             vel = np.round(vel / self.rate_step) * self.rate_step
-        self._truth = self.stepper.x.copy()
+        self._truth = x_k
         self._truth_f = f
         snap = Snapshot(t=self._cycle * self.period, cycle=self._cycle, host_time=time.monotonic(), joint_pos=pos,
                         joint_vel=vel, joint_torque=u.copy(), imu_accel=acc, imu_gyro=gyro, imu_time=imu_t,
                         drive_states=self._states, faults=tuple(self._faults))
         if self._started:
-            self.stepper.step(u, f)
             self._plant_k += 1
             self._cycle += 1
         return snap

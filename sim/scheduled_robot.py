@@ -105,6 +105,13 @@ class ScheduledRobot(SimulatedRobot):
     def node_identities(self) -> dict:
         return self.robot.node_identities()
 
+    @property
+    def clock(self):
+        return self.robot.clock
+
+    def use_clock(self, clock) -> None:
+        self.robot.use_clock(clock)  # the inner robot's own sequences tick the loop's clock
+
     def close(self):
         return self.robot.close()
 

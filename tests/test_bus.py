@@ -297,7 +297,7 @@ def test_socketcan_transport_where_the_kernel_has_it():
     proc = _plant_process("--transport", "socketcan", "--channel", "vcan0", "--noise", "none", "--no-imu")
     try:
         json.loads(proc.stdout.readline())
-        with CanopenRobot(cfg) as robot:
+        with LockstepCanopenRobot(cfg) as robot:  # a plant process: lockstep is the simulated back end's
             robot.open()
             res = run_torques(robot, np.tile([1.0, 1.0, 1.0], (20, 1)))
         assert res.completed
@@ -440,21 +440,24 @@ def test_controlword_values_live_in_the_cia402_module_only():
 
 def test_every_paced_run_arms_the_drives_sync_and_rpdo_watchdogs():
     """``bus config`` without lockstep (otbot run/track/bench and the daemon alike) arms 0x1006 and
-    the RPDO deadline; whatever a caller passes as ``paced``; lockstep arms neither."""
+    the RPDO deadline as the configuration says (``drives.sync_watchdog``, ``drives.rpdo_timeout``: plain
+    configuration); lockstep with a simulated plant arms neither."""
+    from dataclasses import replace
+
     from otbot_hw.runtime.backends import BusConfigBackend
     from sim.bus_robot import VirtualPlant
 
     cfg = lenient(CFG).replace_bus(interface="virtual", channel="otbot-paced-arming")
     period_us = int(round(cfg.bus.period * 1e6))
     rpdo_ms = round(cfg.drives[0].rpdo_timeout * cfg.bus.period * 1000)
-    for lockstep, paced in ((False, False), (False, None), (True, False)):
-        with VirtualPlant(cfg) as plant:
-            kw = {} if paced is None else {"paced": paced}
-            backend = BusConfigBackend(cfg, with_imu=False, lockstep=lockstep, **kw)
+    off = replace(cfg, drives=tuple(replace(d, sync_watchdog=False, rpdo_timeout=0) for d in cfg.drives))
+    for c, lockstep, want in ((cfg, False, (period_us, rpdo_ms)), (cfg, True, (0, 0)), (off, False, (0, 0))):
+        with VirtualPlant(c) as plant:
+            backend = BusConfigBackend(c, with_imu=False, lockstep=lockstep)
             assert backend.paced is (not lockstep) and backend.realtime is (not lockstep)
             with backend.open():
                 armed = [(d.od_value(0x1006), d.od_value(0x1400, 5)) for d in plant.drives]
-        assert armed == ([(0, 0)] * 3 if lockstep else [(period_us, rpdo_ms)] * 3), (lockstep, armed)
+        assert armed == [want] * 3, (lockstep, armed)
 
 
 def test_enable_operation_only_to_keep_or_make_a_commanded_drive_enabled():

@@ -142,6 +142,7 @@ def test_malformed_frames_are_ignored_without_crash():
     ("bus:\n", "bus_renamed:\n", "missing section 'bus'"),
     ("quick_stop_option: 2", "quick_stop_option: 9", "drives.quick_stop_option"),
     ("quick_stop_option: 2", "quick_stop_option: fast", "drives.quick_stop_option"),
+    ("sync_watchdog: true", "sync_watchdog: 1.5", "drives.sync_watchdog"),
     ("loop_liveness: {value: 3, unit: periods}", "loop_liveness: {value: 0, unit: periods}", "bus.loop_liveness"),
     ("loop_liveness: {value: 3, unit: periods}", "loop_liveness: {value: 2.5, unit: periods}", "bus.loop_liveness"),
 ])

@@ -13,6 +13,7 @@ from otbot_hw.motors import load_motor_limits
 from otbot_hw.params import nominal
 from otbot_hw.runtime import LoopRunner, OpenLoopTorques, SafetyConfig, Supervisor
 from sim.direct import DirectSimRobot
+from sim.scheduled_robot import ScheduledRobot
 
 P = 0.01  # s
 
@@ -51,6 +52,10 @@ def test_the_loop_owns_the_clock_and_hands_it_to_its_robot():
                             realtime=realtime)
         assert robot.clock is runner.clock and runner.clock.realtime is realtime
         assert type(runner.clock) is type(clock_for(P, realtime))
+    inner = DirectSimRobot(nominal(), period=P, imu_rate=None)  # a wrapper hands it down to the robot it wraps
+    runner = LoopRunner(ScheduledRobot(inner, lambda: None), OpenLoopTorques(np.zeros((1, 3)), P),
+                        Supervisor(limits, SafetyConfig(), P), realtime=True)
+    assert inner.clock is runner.clock
 
 
 class _Watched(Pacer):

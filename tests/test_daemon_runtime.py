@@ -128,8 +128,9 @@ def test_the_runner_runs_unpowered_then_enables_trips_reads_on_and_resets(tmp_pa
     for _ in range(80):
         r.cycle()
     assert robot.truth()[6] > 0.15
-    threading.Thread(target=r.trip, args=(Violation("estop", r.t, "from another thread"),)).start()
-    time.sleep(0.05)
+    th = threading.Thread(target=r.trip, args=(Violation("estop", r.t, "from another thread"),))
+    th.start()
+    th.join()  # the trip is in (a fixed sleep may not outlast a loaded machine's scheduling)
     assert r.cycle() is False and r.fault.kind == "estop"
     assert robot.states == ["QUICK STOP ACTIVE"] * 3 and not r.armed
     t_fault = r.t

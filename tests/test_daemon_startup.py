@@ -175,8 +175,8 @@ def test_ctl_imports_the_protocol_only():
             "rc = None\n"
             "try:\n    main(['ctl', '--socket', '/nonexistent/s.sock', 'status'])\n"
             "except SystemExit as e:\n    rc = e.code\n"
-            "heavy = sorted(m for m in ('numpy', 'scipy', 'otbot_hw.runtime.loop', 'otbot_hw.params', "
-            "'otbot_hw.runtime.control_socket') if m in sys.modules)\n"
+            "heavy = sorted(m for m in ('numpy', 'scipy', 'numba', 'canopen', 'can', 'otbot_hw.runtime.loop', "
+            "'otbot_hw.params', 'otbot_hw.runtime.control_socket') if m in sys.modules)\n"
             "print(rc, heavy)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=60)
     assert out.stdout.strip() == "1 []", (out.stdout, out.stderr[-1000:])

@@ -249,3 +249,23 @@ def test_a_nested_fit_whose_simulation_diverges_is_no_candidate_not_a_crash(monk
     c = search.nested("traction_limit", base, (0.0, 0.0, 0.0), {"k_slip": 0.01, "t_trac": 2.0})
     assert not sel.has_evidence(c) and not sel.fitting_evidence(c) and c not in search.tried
     assert len(sel.ambiguous_group(_cand(-100.0), [c])) == 1  # no look-alike of anything
+
+
+def test_a_held_out_run_beyond_the_fitting_runs_range_is_told_apart_and_saturation_above_the_commands():
+    from types import SimpleNamespace
+
+    from otbot_hw.diagnose import identifiability as ident
+    from otbot_hw.diagnose.catalog import applicable
+
+    def rec(u_top, w_top):
+        u = np.outer(np.linspace(-1, 1, 50), u_top)
+        return SimpleNamespace(u=u, measured=lambda ch: np.linspace(-w_top, w_top, 50) if ch.startswith("w_") else None)
+
+    fit = [rec([3.0, 3.0, 2.0], 5.0)]
+    assert ident.outside_range(fit, rec([3.05, 3.0, 2.0], 5.0)) == []  # within 2 % of the span
+    beyond = ident.outside_range(fit, rec([4.0, 3.0, 2.0], 5.0))
+    assert len(beyond) == 2 and beyond[0].startswith("u_r up to 4")  # up and down
+    assert any(b.startswith("w_p") for b in ident.outside_range(fit, rec([3.0, 3.0, 2.0], 6.0)))
+    sat = ident.saturation_not_identifiable(fit, applicable({"floor"}), {"saturation_right"})
+    assert {s["name"] for s in sat} == {"torque_saturation", "saturation_left", "saturation_pivot"}
+    assert "(2 N m)" in next(s["why"] for s in sat if s["name"] == "saturation_pivot")

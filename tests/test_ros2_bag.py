@@ -35,6 +35,8 @@ def full_recording(n: int = 60, dt: float = 0.01, t0: float = 0.37) -> Recording
                     estimate_gyro_bias=r.normal(0, 1e-3, n),
                     reference_p=np.column_stack([r.normal(0, 1, (n, 2)), alpha - 0.1]),
                     reference_pd=r.normal(0, 1, (n, 3)), reference_pdd=r.normal(0, 1, (n, 3)),
+                    payload_value=r.normal([60, 4, 0.05, -0.02], 1, (n, 4)), payload_std=r.uniform(0, 1, (n, 4)),
+                    payload_used=r.normal([60, 4, 0.05, -0.02], 1, (n, 4)),
                     events=[{"t": float(t[0]), "kind": "mode", "text": "track corridor"},
                             {"t": float(t[7]), "kind": "fault", "text": "drive 2 silent", "drive": 2, "code": "0x8130"},
                             {"t": float(t[7]), "kind": "note", "text": "two at one sample"}],
@@ -50,8 +52,8 @@ def test_export_import_round_trip_gives_every_channel_back(tmp_path, capsys):
     assert main(["export", str(tmp_path / "run.mcap"), "--ros2", str(tmp_path / "bag"), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["topics"]) == {"/joint_states", "/imu", "/odom", "/odom/gyro_bias", "/truth", "/truth/force",
-                                  "/reference", "/events", "/tf"}
-    assert out["topics"]["/events"] == [M.DIAGNOSTIC_ARRAY, 3]
+                                  "/reference", "/payload", "/events", "/tf"}
+    assert out["topics"]["/events"] == [M.DIAGNOSTIC_ARRAY, 3] and out["topics"]["/payload"] == [M.PAYLOAD, 60]
     assert main(["import", str(tmp_path / "bag"), "--out", str(tmp_path / "back.mcap"), "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     assert rep["resampling"]["method"].startswith("none")
@@ -60,7 +62,7 @@ def test_export_import_round_trip_gives_every_channel_back(tmp_path, capsys):
     assert np.array_equal(np.round(back.t * 1e9).astype(np.int64), np.round(rec.t * 1e9).astype(np.int64))
     # plain float fields: bit for bit
     for name in ("torque", "joint_pos", "joint_vel", "imu_accel", "imu_gyro", "truth_q", "truth_qd", "truth_force",
-                 "estimate_gyro_bias", "reference_pd", "reference_pdd"):
+                 "estimate_gyro_bias", "reference_pd", "reference_pdd", "payload_value", "payload_std", "payload_used"):
         assert np.array_equal(getattr(back, name), getattr(rec, name)), name
     # through a quaternion (yaw) or a rotation into the body frame: to rounding, angles unwrapped back
     for name in ("estimate_pose", "estimate_twist", "estimate_std", "reference_p"):
@@ -154,12 +156,15 @@ def native(fine: Recording, sub: int = 10) -> Recording:
 
 
 def robot_bag(path, fine: Recording, *, names=ROBOT_JOINTS, effort=True, imu=True, imu_jitter=True, gap=None,
-              clock_jump=None, wrap_pivot=False, storage="mcap", seed=0, robot_names=None):
+              clock_jump=None, wrap_pivot=False, storage="mcap", seed=0, robot_names=None, split=False,
+              split_offsets=None, split_drop=None):
     """Write ``fine`` with rosbags' own writer as a ROS 2 robot would: /joint_states at 200 Hz (sub-sampled
     1:10), /imu at 400 Hz with +-0.5 ms jitter (true sample times), stamps in ROS time, receive (log) times
     0.2-1 ms later. ``gap`` (t0, t1) s: no messages in it; ``clock_jump`` (t, s): header stamps jump;
     ``wrap_pivot``: pivot angle shifted to straddle pi and reported in (-pi, pi]; ``robot_names``: the
-    message's name of each of right_wheel, left_wheel, pivot."""
+    message's name of each of right_wheel, left_wheel, pivot; ``split``: one JointState per joint (as some
+    drivers publish), stamped alike unless ``split_offsets`` {name: s} moves one, ``split_drop`` (name, t)
+    leaves that joint's message of the first sample at or after t s out."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     rng = np.random.default_rng(seed)
@@ -197,7 +202,18 @@ def robot_bag(path, fine: Recording, *, names=ROBOT_JOINTS, effort=True, imu=Tru
         h = ts.types["std_msgs/msg/Header"](stamp=M.stamp(hdr_ns(i)), frame_id="")
         msg = ts.types[M.JOINT_STATE](header=h, name=list(names), position=val(p), velocity=val(fine.joint_vel[i]),
                                       effort=val(fine.torque[i]) if effort else np.array([], dtype=float))
-        out.append((log_ns(i), "/joint_states", msg))
+        if not split:
+            out.append((log_ns(i), "/joint_states", msg))
+            continue
+        for j, x in enumerate(names):
+            if split_drop is not None and x == split_drop[0] and fine.t[i] >= split_drop[1]:
+                split_drop = None
+                continue
+            dt_ns = int(round((split_offsets or {}).get(x, 0.0) * 1e9))
+            hj = ts.types["std_msgs/msg/Header"](stamp=M.stamp(hdr_ns(i) + dt_ns), frame_id="")
+            one = ts.types[M.JOINT_STATE](header=hj, name=[x], position=msg.position[j:j + 1],
+                                          velocity=msg.velocity[j:j + 1], effort=msg.effort[j:j + 1])
+            out.append((log_ns(i) + j * 1000, "/joint_states", one))
     if imu:
         for i in imu_i:
             if keep(i):
@@ -456,3 +472,53 @@ def test_a_robots_own_base_link_odometry_is_not_taken_for_the_estimate(tmp_path,
     assert rc == 0 and "/otbot/estimate" not in rep["channels"]
     assert any("/odom is the pose of frame 'base_link', not of the platform" in n for n in rep["notices"])
     assert read_recording(out).estimate_pose is None
+
+
+# --- joint states split over messages (one per joint, as some drivers publish) ---------------------
+
+def test_joint_states_split_per_joint_merge_into_the_same_recording(tmp_path, capsys, short_run):
+    """Four JointState messages per cycle (one per joint, extra caster included, stamps alike or
+    apart within the tolerance) import to the samples of the one-message bag, bit for bit."""
+    whole = robot_bag(tmp_path / "whole", short_run)
+    assert main(["import", str(whole), "--out", str(tmp_path / "whole.mcap")]) == 0
+    capsys.readouterr()
+    ref = read_recording(tmp_path / "whole.mcap")
+    for name, kw in (("alike", {}), ("apart", {"split_offsets": {"left_wheel": 4e-4, "pivot": 9e-4}})):
+        bag = robot_bag(tmp_path / name, short_run, split=True, **kw)
+        assert main(["import", str(bag), "--out", str(tmp_path / f"{name}.mcap"), "--json"]) == 0
+        rep = json.loads(capsys.readouterr().out)
+        assert any("joints come in separate messages" in n for n in rep["notices"]), rep["notices"]
+        rec = read_recording(tmp_path / f"{name}.mcap")
+        assert len(rec) == len(ref) == len(native(short_run)), name
+        for f in ("t", "torque", "joint_pos", "joint_vel"):
+            assert np.array_equal(getattr(rec, f), getattr(ref, f)), (name, f)
+        np.testing.assert_allclose(rec.imu_accel, ref.imu_accel, atol=1e-9)
+
+
+@pytest.mark.parametrize("case, kwargs, expected", [
+    ("a joint missing at a stamp", {"split_drop": ("pivot", 0.3)},
+     "/joint_states: split joint states: no 'pivot' at stamp 0.300000 s"),
+    ("stamps that disagree", {"split_offsets": {"pivot": 2.5e-3}},
+     "/joint_states: split joint states disagree: 'pivot' is stamped 0.002500 s and 'right_wheel', 'left_wheel' "
+     "0.000000 s, 2.500 ms apart, beyond the 1 ms tolerance (map joints.stamp_tolerance)"),
+])
+def test_split_joint_states_that_do_not_make_a_sample_are_refused(tmp_path, capsys, short_run, case, kwargs,
+                                                                  expected):
+    bag = robot_bag(tmp_path / "bag", short_run, split=True, **kwargs)
+    rc, out = _import(tmp_path, bag)
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert expected in err, err
+    assert not out.exists()
+
+
+def test_a_wider_stamp_tolerance_in_the_map_merges_what_the_default_refuses(tmp_path, capsys, short_run):
+    bag = robot_bag(tmp_path / "bag", short_run, split=True, split_offsets={"pivot": 2.5e-3})
+    (tmp_path / "map.yaml").write_text("joints:\n  stamp_tolerance: 0.003\n")
+    rc, out = _import(tmp_path, bag, "--map", str(tmp_path / "map.yaml"))
+    assert rc == 0, capsys.readouterr().err
+    rec = read_recording(out)
+    np.testing.assert_array_equal(rec.joint_pos, native(short_run).joint_pos)
+    (tmp_path / "map.yaml").write_text("joints:\n  stamp_tolerance: -1\n")
+    _bad(tmp_path, capsys, [str(bag), "--map", str(tmp_path / "map.yaml")],
+         "'joints.stamp_tolerance' must be a number of seconds in [0, 1], got -1")

@@ -117,7 +117,10 @@ def test_the_daemon_records_its_session_as_a_ros2_bag(tmp_path, capsys):
                       tmp_path / "control.sock", tmp_path / "daemon.log")
     try:
         d.request("enable")
-        time.sleep(0.6)
+        end = time.monotonic() + 30  # a loaded machine runs the loop slower, never the check sooner
+        while (d.request("status").get("recording") or {}).get("samples", 0) <= 20:
+            assert time.monotonic() < end, "the daemon recorded no 21 samples in 30 s"
+            time.sleep(0.05)
         code, summary = d.terminate()
     finally:
         d.kill()
@@ -133,3 +136,78 @@ def test_the_daemon_records_its_session_as_a_ros2_bag(tmp_path, capsys):
     assert len(rec) == topics["/joint_states"] > 20 and rep["resampling"]["method"].startswith("none")
     assert rec.estimate_pose is not None and rec.reference_p is not None
     assert rec.events[-1]["text"] == "idle: stopped (SIGTERM)" and rec.metadata["source"] == "otbot daemon"
+
+
+def test_the_payload_estimate_goes_into_the_ros2_session_and_comes_back_on_import(tmp_path, capsys):
+    """A session with the payload adapter's ``/otbot/payload`` written as a ROS 2 bag: ``/payload``
+    (std_msgs/Float64MultiArray, 3 x 4: value, std, used) that ``otbot import`` gives back as the
+    native recording's payload channel, to the float (the same samples as the native session)."""
+    from rosbags.rosbag2 import Reader
+
+    from otbot_hw.recording import TOPIC_PAYLOAD
+    from otbot_hw.ros2 import messages as M
+    from otbot_hw.runtime.session_recording import SessionRecording
+
+    rate, n = 100.0, 40
+    rng = np.random.default_rng(3)
+    est = rng.normal([60.0, 4.0, 0.05, -0.02], [5.0, 0.5, 0.01, 0.01], (n, 4))
+    std = np.abs(rng.normal(0.0, [2.0, 0.2, 0.005, 0.005], (n, 4)))
+    topics = TOPICS + (TOPIC_PAYLOAD,)
+
+    def sample(k):
+        m = messages(k, rate)
+        m[TOPIC_PAYLOAD] = {"t": m[TOPIC_COMMAND]["t"], "value": est[k].tolist(), "std": std[k].tolist(),
+                            "used": est[min(k, 20)].tolist(), "state": "adapting"}
+        return m
+
+    recs = {}
+    for fmt in ("otbot", "ros2"):
+        (tmp_path / fmt).mkdir()
+        with SessionRecording(tmp_path / fmt, {"source": "test"}, topics, rate=rate, session_id="s",
+                              format=fmt) as rec:
+            for k in range(n):
+                rec.write_sample(sample(k))
+            recs[fmt] = rec.path
+    native = read_recording(recs["otbot"])
+    bag = recs["ros2"]
+    with Reader(bag) as r:
+        conns = {c.topic: c for c in r.connections}
+        assert conns["/payload"].msgtype == M.PAYLOAD and conns["/payload"].msgcount == n
+        first = next(m for c, _, m in r.messages(connections=[conns["/payload"]]))
+    msg = M.typestore().deserialize_cdr(first, M.PAYLOAD)
+    assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [("value,std,used", 3, 12),
+                                                                     ("m_p,I_p,x_F,y_F", 4, 4)]
+    assert main(["import", str(bag), "--out", str(tmp_path / "back.mcap"), "--json"]) == 0
+    capsys.readouterr()
+    back = read_recording(tmp_path / "back.mcap")
+    for name in ("payload_value", "payload_std", "payload_used"):
+        assert np.array_equal(getattr(back, name), getattr(native, name)), name
+    assert np.array_equal(back.payload_value, est) and np.array_equal(back.payload_used[30], est[20])
+    assert np.array_equal(np.round(back.t * 1e9), np.round(native.t * 1e9))  # stamps to the nanosecond
+
+
+def test_a_payload_array_of_another_layout_is_refused_by_name(tmp_path, capsys):
+    """A /payload that is a Float64MultiArray of another shape: one line naming the topic, exit 2."""
+    from otbot_hw.recording import TOPIC_PAYLOAD
+    from otbot_hw.ros2 import messages as M
+    from otbot_hw.ros2.writer import BagWriter
+
+    real = M.payload
+    try:  # a writer of the same type whose layout is 12 x 1
+        def flat(value, std, used):
+            msg = real(value, std, used)
+            D = M.typestore().types["std_msgs/msg/MultiArrayDimension"]
+            msg.layout.dim = [D(label="", size=12, stride=12)]
+            return msg
+        M.payload = flat
+        with BagWriter(tmp_path / "bag", {"source": "test"}, TOPICS + (TOPIC_PAYLOAD,)) as w:
+            for k in range(5):
+                m = messages(k, 100.0)
+                m[TOPIC_PAYLOAD] = {"t": k / 100.0, "value": [1.0] * 4, "std": [0.1] * 4, "used": [1.0] * 4}
+                w.write_sample(m)
+    finally:
+        M.payload = real
+    assert main(["import", str(tmp_path / "bag"), "--out", str(tmp_path / "x.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "/payload: a payload array must have the layout" in err, err
+    assert not (tmp_path / "x.mcap").exists()

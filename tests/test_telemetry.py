@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+import threading
 import time
 
 import numpy as np
@@ -97,8 +98,7 @@ def test_a_foxglove_client_subscribes_and_decodes_every_channel(telemetry):
 def test_faults_go_out_at_once_and_nan_never_reaches_json(telemetry):
     c = FoxgloveClient(telemetry.url)
     try:
-        c.subscribe({"/otbot/status", "/otbot/log", "/otbot/estimate"})
-        time.sleep(0.2)
+        subscribed(telemetry, c, {"/otbot/status", "/otbot/log", "/otbot/estimate"})
         telemetry.publish(sample(0), now=0.0)
         fault = Fault("pivot", 3, "emcy", "excess current", code=0x2310)
         # 4 ms later: inside the 20 ms rate window, but a new fault is never held back
@@ -117,6 +117,45 @@ def test_faults_go_out_at_once_and_nan_never_reaches_json(telemetry):
     assert telemetry.state.published == 2
 
 
+def test_a_stalled_consumer_drops_the_oldest_and_never_blocks_the_loop():
+    """The telemetry thread stuck in a send: the loop's 100 publishes (each due) all return, the oldest
+    queued samples are dropped and counted, and once the consumer runs again it sends the newest ones."""
+    srv = TelemetryServer(host="127.0.0.1", port=0, rate=50.0, limits=[40.0, 40.0, 30.0], l1=L1, queue_size=8)
+    release, sent = threading.Event(), []
+    send = srv._send
+
+    def stalled(slot):
+        release.wait(30)
+        sent.append(slot.t)
+        send(slot)
+
+    srv._send = stalled
+    try:
+        loop = threading.Thread(target=lambda: [srv.publish(sample(k), now=k * 0.02) for k in range(100)])
+        loop.start()
+        loop.join(20)
+        assert not loop.is_alive()  # the loop never waited for the stalled consumer
+        assert srv.state.published == 100 and srv.state.dropped >= 100 - 10  # 8 queued + 2 spare slots at most
+        release.set()
+        assert srv.flush(10)
+    finally:
+        release.set()
+        srv.close()
+    assert len(sent) + srv.state.dropped == 100 and srv.state.errors == 0
+    assert sent[-9:] == pytest.approx([k * 0.004 for k in range(91, 100)])  # the newest survive
+
+
+def subscribed(telemetry, c, topics) -> None:
+    """Subscribe and wait (5 s at most) until the server has taken the subscriptions: a publish
+    before that reaches no one, however long a fixed sleep a loaded machine outlasts."""
+    before = telemetry.listener.subscriptions
+    c.subscribe(topics)
+    deadline = time.monotonic() + 5
+    while telemetry.listener.subscriptions < before + len(topics) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert telemetry.listener.subscriptions == before + len(topics)
+
+
 def test_clients_cannot_publish_or_call_services(telemetry):
     c = FoxgloveClient(telemetry.url)
     try:
@@ -130,8 +169,7 @@ def test_clients_cannot_publish_or_call_services(telemetry):
         c.ws.send(json.dumps({"op": "setParameters", "parameters": [{"name": "mode", "value": "track"}]}))
         time.sleep(0.3)
         # still connected and serving
-        c.subscribe({"/otbot/joints"})
-        time.sleep(0.2)
+        subscribed(telemetry, c, {"/otbot/joints"})
         telemetry.publish(sample(0), now=0.0)
         assert [t for t, _, _ in c.messages()] == ["/otbot/joints"]
     finally:

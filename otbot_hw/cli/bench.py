@@ -209,7 +209,8 @@ def _run(args, cfg, settings, session, folder, invocation, sim, model, sim_load_
     from otbot_hw.runtime.backends import BusConfigBackend, BusSimBackend
     from otbot_hw.runtime.bench.buslog import BusLog
     from otbot_hw.runtime.bench.operator import AutomaticOperator, NoOperator, OperatorStopped, PromptOperator
-    from otbot_hw.runtime.bench.procedure import BenchProcedure, warm_up
+    from otbot_hw.runtime.bench.procedure import BenchProcedure
+    from otbot_hw.runtime.bench.runs import warm_up
     from otbot_hw.runtime.bench.report import write_report
     from otbot_hw.runtime.bench.session import SessionError, SessionFolder, identity
     from otbot_hw.runtime.bench.steps import BenchAbort, BenchError

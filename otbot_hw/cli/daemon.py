@@ -172,7 +172,7 @@ def _opener(args: argparse.Namespace, start):
         return open_sim, cfg.bus.period
     from otbot_hw.runtime.backends import BusConfigBackend
 
-    backend = BusConfigBackend(cfg, args.imu_port, lockstep=args.lockstep, with_imu=with_imu, paced=not args.lockstep)
+    backend = BusConfigBackend(cfg, args.imu_port, lockstep=args.lockstep, with_imu=with_imu)
     return backend.open, cfg.bus.period
 
 

@@ -14,7 +14,9 @@ final model is judged three ways before any effect is named:
    (Monte Carlo of the statistic itself -- the MAD estimate's own scatter included, which at
    n = 1000 is larger than the chi-square's -- conservative from 50 to 60000 samples). The
    hypothesis tested is that the unexplained variance is at most ``EXCESS_FITTING`` (fitting) or
-   ``EXCESS_HELDOUT`` (held-out: prediction with estimated parameters on a new excitation) of the
+   ``EXCESS_HELDOUT`` (held-out: prediction with estimated parameters on a new excitation -- a held-out
+   run that reaches beyond the fitting runs' commands or joint rates, ``identifiability.outside_range``,
+   fails as "not identifiable from the fitting recordings", not as "model inadequate") of the
    noise variance: one-sided z-test on log T against log(1 + excess), Bonferroni over every
    (recording, channel, segment) test so that the whole diagnosis is wrong on a clean record with
    probability <= ``ALPHA``. Segments (the whole record and up to ``SEGMENTS`` equal parts of
@@ -41,7 +43,7 @@ import numpy as np
 from scipy.stats import norm
 
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.identifiability import undetermined_on_bound
+from otbot_hw.diagnose.identifiability import outside_range, undetermined_on_bound
 from otbot_hw.diagnose.refit import FitResult, channel_sigmas, weighted_residuals
 from otbot_hw.model.effects import parameter_bounds
 from otbot_hw.params import OtbotParams
@@ -210,6 +212,22 @@ def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final:
         if recs:
             tests += residual_tests(_residuals(recs, final.model), excess, label)
     channels = failed(tests)
+    # a held-out run that goes beyond the fitting runs' commands or speeds tests what they could not reveal:
+    # its misfit is "not identifiable from these recordings", not evidence of a wrong model
+    beyond = []
+    for d in holdout:
+        mine = [c for c in channels if c["set"] == "heldout" and c["recording"] == d.name]
+        where = outside_range(recordings, d) if mine else []
+        if where:
+            channels = [c for c in channels if c not in mine]
+            worst = max(mine, key=lambda c: c["z"])
+            beyond.append({"kind": "range", "name": d.name, "channels": sorted({c["channel"] for c in mine}),
+                           "why": f"the held-out run reaches beyond the fitting runs ({'; '.join(where[:3])}) and "
+                                  f"the model fitted on them misses it there ({worst['channel']} "
+                                  f"{worst['noise_ratio']:.2f} x noise): what acts there is not identifiable from "
+                                  "the fitting recordings",
+                           "record": "a fitting recording that covers the held-out run's commands and speeds (or "
+                                     "diagnose with this run among the fitting recordings)"})
     bound = on_bound(final.values)
     undetermined = undetermined_on_bound(bound, final.std, {n: float(getattr(given, n)) for n in final.values
                                                             if hasattr(given, n)})
@@ -229,4 +247,5 @@ def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final:
                   f"{', '.join(n for n in final.names if hasattr(given, n)) or 'no nominal parameter'} and takes "
                   "the others as known), redo identification " + "; or ".join(steps[:3]) +
                   ", then diagnose again; if the parameters are right, the missing physics is outside the catalog")
-    return Adequacy(adequate, channels, bound, moved, suspects, advice, len(tests), not_identifiable=undetermined)
+    return Adequacy(adequate, channels, bound, moved, suspects, advice, len(tests),
+                    not_identifiable=undetermined + beyond)

@@ -25,7 +25,8 @@ from otbot_hw.diagnose import catalog as cat
 from otbot_hw.diagnose.adequacy import assess
 from otbot_hw.diagnose.data import DiagnosisData, check_testable
 from otbot_hw.diagnose.geometry import EffectGeometry
-from otbot_hw.diagnose.identifiability import effect_identifiability, not_identifiable_effects
+from otbot_hw.diagnose.identifiability import (effect_identifiability, not_identifiable_effects,
+                                               saturation_not_identifiable)
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
@@ -261,6 +262,9 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     found = {c.effect for c in sel.accepted + sel.small} | {c.effect for g in sel.ambiguous for c in g}
     not_identifiable = adequacy.not_identifiable + not_identifiable_effects(
         identifiability, found, {n: e.title for n, e in sel.effects.items()})
+    listed = {x["name"] for x in not_identifiable}
+    not_identifiable += [x for x in saturation_not_identifiable(recordings, sel.effects.values(), found)
+                         if x["name"] not in listed]
     withheld = []
     if not adequacy.adequate:
         withheld = [{"name": e["name"], "parameters": e["parameters"]} for e in effects] + \

@@ -147,3 +147,56 @@ def signature_chi2(recordings, model, nominal_free: list[str], values: dict[str,
         q = q[:, np.abs(np.diag(rr)) > 1e-8 * np.max(np.abs(np.diag(rr)))]
         d = d - q @ (q.T @ d)
     return float(d @ d), len(r0)
+
+
+RANGE_MARGIN = 0.02  # of the fitting recordings' span: a held-out run beyond it is outside their range
+RANGE_CHANNELS = (("u_r", "N m"), ("u_l", "N m"), ("u_p", "N m"), ("w_r", "rad/s"), ("w_l", "rad/s"),
+                  ("w_p", "rad/s"))
+
+
+def _ranges(d) -> dict[str, tuple[float, float]]:
+    out = {}
+    for j, (name, _) in enumerate(RANGE_CHANNELS[:3]):
+        out[name] = (float(np.min(d.u[:, j])), float(np.max(d.u[:, j])))
+    for name, _ in RANGE_CHANNELS[3:]:
+        y = d.measured(name)
+        if y is not None and np.any(np.isfinite(y)):
+            out[name] = (float(np.nanmin(y)), float(np.nanmax(y)))
+    return out
+
+
+def outside_range(fitting, held) -> list[str]:
+    """What the held-out recording ``held`` reaches beyond the fitting recordings' range (commands u_*,
+    joint rates w_*: beyond their [min, max] by more than ``RANGE_MARGIN`` of the span), as phrases
+    ("u_r up to 4.1 N m, the fitting runs 3.0 N m"); empty when it stays within."""
+    fit = [_ranges(d) for d in fitting]
+    units = dict(RANGE_CHANNELS)
+    out = []
+    for name, (lo, hi) in _ranges(held).items():
+        got = [f[name] for f in fit if name in f]
+        if not got:
+            continue
+        flo, fhi = min(g[0] for g in got), max(g[1] for g in got)
+        m = RANGE_MARGIN * max(fhi - flo, 1e-9)
+        if hi > fhi + m:
+            out.append(f"{name} up to {hi:.3g} {units[name]}, the fitting runs {fhi:.3g}")
+        if lo < flo - m:
+            out.append(f"{name} down to {lo:.3g} {units[name]}, the fitting runs {flo:.3g}")
+    return out
+
+
+def saturation_not_identifiable(fitting, effects, found: set[str]) -> list[dict]:
+    """Saturation levels above the largest recorded command of the motor(s) never act in the fitting
+    recordings: "not identifiable from this recording" above that level, for each saturation effect not
+    found (``effects``: the applicable catalog entries)."""
+    motors = {"torque_saturation": (0, 1, 2), "saturation_right": (0,), "saturation_left": (1,),
+              "saturation_pivot": (2,)}
+    out = []
+    for e in effects:
+        if e.name not in motors or e.name in found:
+            continue
+        top = max(float(np.max(np.abs(d.u[:, list(motors[e.name])]))) for d in fitting)
+        out.append({"kind": "effect", "name": e.name, "title": e.title,
+                    "why": f"a level above the largest recorded command ({top:.3g} N m) never acts in this recording",
+                    "record": EFFECT_RECORD[e.name]})
+    return out

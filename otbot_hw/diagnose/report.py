@@ -114,12 +114,19 @@ def _not_identifiable_text(items: list[dict]) -> str:
     """Sentences on what this recording cannot determine (``identifiability``); empty when nothing."""
     params = [i for i in items if i["kind"] == "parameter"]
     effects = [i for i in items if i["kind"] == "effect"]
-    out = []
+    out = [f"Not identifiable from the fitting recordings: {r['name']}: {r['why']}; record {r['record']}."
+           for r in items if r["kind"] == "range"]
     for p in params:
         out.append(f"Not identifiable from this recording: {p['name']} ({p['why']}); record {p['record']}.")
+    sat = [e for e in effects if "never acts" in e["why"]]
+    effects = [e for e in effects if e not in sat]
     if effects:
         out.append("Not identifiable from this recording at the catalog's smallest size: "
                    + "; ".join(f"{e['title']} (record {e['record']})" for e in effects) + ".")
+    if sat:
+        out.append("Torque saturation above the largest recorded commands is not identifiable from this recording ("
+                   + "; ".join(f"{e['name']}: {e['why'].split('(')[1].split(')')[0]}" for e in sat)
+                   + "); record commands near the drives' limits.")
     return " ".join(out)
 
 

@@ -64,10 +64,14 @@ robot's wheels). Not estimated: the gyro x, y and accelerometer z biases, which 
 flat ground never uses.
 
 Parts: ``ekf_state`` (state layout, ``Estimate``, ``EstimatorFault``), ``model_prediction`` (the
-dynamic-model prediction and the held-IMU correction), ``pivot_quantization`` (e_p), ``standstill``
-(the zero-velocity detector), ``kernels`` (the compiled hot path). This module is the filter: set-up,
-one cycle's prediction and gated updates, the gyro's walk adaptation and the health checks (a little
-over 400 lines: the cycle's steps read in order here, where splitting them would scatter one sequence).
+dynamic-model prediction), ``gyro_update`` (the gyro's update and the walk adaptation it drives),
+``pivot_quantization`` (e_p), ``standstill`` (the zero-velocity detector), ``kernels`` (the compiled
+hot path) and ``imu_cycle`` (the IMU-predicted cycle's prediction and encoder updates as one compiled
+call). This module is the filter: set-up, one cycle's prediction and gated updates in order, the
+heading's re-anchoring and the health checks.
+
+Length: about 440 lines, most of them this docstring (the filter's model, in one place) and the cycle's
+steps, which read in order here; splitting them further would scatter one sequence.
 """
 from __future__ import annotations
 
@@ -77,30 +81,25 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from scipy.stats import chi2
 
+from otbot_hw.estimation import imu_cycle as cyc
 from otbot_hw.estimation import kernels
 from otbot_hw.estimation.config import EstimatorConfig
 from otbot_hw.estimation.ekf_state import (  # noqa: F401 (the state layout and records, importable from here)
-    A, BAX, BAY, BG, DA, EP, INITIAL_POSE_STD, INITIAL_TWIST_STD, KAPPA, N_STATE, NAX, NAY, STATE_NAMES, UPDATE_KINDS,
-    VA, VX, VY, X, Y, Estimate, EstimatorFault, check_vector)
+    A, BAX, BAY, BG, DA, EP, INITIAL_POSE_STD, INITIAL_TWIST_STD, KAPPA, N_STATE, NAX, NAY, REANCHOR_AFTER, STATE_NAMES,
+    UPDATE_KINDS, VA, VX, VY, X, Y, Estimate, EstimatorFault, check_vector)
+from otbot_hw.estimation.gyro_update import WALK_SCALE_MAX, GyroUpdate  # noqa: F401 (importable from here)
 from otbot_hw.estimation.model_prediction import ModelPrediction
 from otbot_hw.estimation.pivot_quantization import PivotQuantization
 from otbot_hw.estimation.standstill import StandstillDetector
 from otbot_hw.model.angles import wrap_angle  # noqa: F401  (the one angle wrap; importable from here)
 from otbot_hw.params import OtbotParams
 
-#: A wheel heading that disagrees this long (s) while the joint rates agree has moved: re-anchor it.
-REANCHOR_AFTER = 0.02
-#: Largest factor by which the adaptation may multiply the variance of d's walk (walk x 1000).
-WALK_SCALE_MAX = 1e6
 #: While the adapted walk variance is above this multiple of the configured one, the yaw prediction is
 #: suspect: a wheel heading that disagrees re-anchors alpha (the wheels are right), not kappa (slip).
 YAW_SUSPECT_SCALE = 2.0
-#: The yaw states whose covariance the adaptation inflates: alpha_dot, d (alpha too let a joint-rate update
-#: throw it by 0.1 rad on a 280 kg load; its error is re-anchored on the wheel heading instead).
-_YAW = [5, 11]
 
 
-class PoseEKF(ModelPrediction):
+class PoseEKF(ModelPrediction, GyroUpdate):
     """Pose EKF over one robot's encoders and IMU, stepped once per control period.
 
     ``params``: the robot's geometry (l1, l2, r) and, for the model prediction, its dynamics;
@@ -156,6 +155,13 @@ class PoseEKF(ModelPrediction):
         self._zero2 = np.zeros(2)
         self._zero6 = np.zeros(6)
         self._zero3 = np.zeros(3)
+        self._nu1 = np.zeros(1)
+        self._res = np.zeros(cyc.N_RESULTS)
+        self._s = s = np.zeros(cyc.N_SCALARS)  # imu_cycle's scalars: the constant ones here, the rest per step
+        s[cyc.S_VAR_ACC], s[cyc.S_VAR_ALPHA_DD] = self._var[0], self._var_alpha_dd
+        s[cyc.S_BG_WALK2], s[cyc.S_BA_WALK2] = self._var[2], self._var[3]
+        s[cyc.S_L1], s[cyc.S_L2], s[cyc.S_R], s[cyc.S_K] = self._l1, self._l2, self._r, self._k
+        s[cyc.S_COUNT], s[cyc.S_VAR_Q] = self.pivot.count, self.pivot.var
         self.record_innovations = False
         self.innovations: list[tuple[float, str, float, bool]] = []
         self._t: float | None = None
@@ -245,12 +251,17 @@ class PoseEKF(ModelPrediction):
             raise EstimatorFault("step before initialize")
         if not math.isfinite(t):
             raise EstimatorFault(f"non-finite sample time {t}")
-        phi = check_vector(joint_pos, 3, "joint_pos", t) + self._half_count
-        phid = check_vector(joint_vel, 3, "joint_vel", t)
+        if cyc.plain_vectors(joint_pos, joint_vel, joint_vel if torque is None else torque):  # the loop's case
+            phi, phid = joint_pos + self._half_count, joint_vel
+            if torque is not None:
+                self._torque = torque
+        else:  # anything else: converted, or the error that names it
+            phi = check_vector(joint_pos, 3, "joint_pos", t) + self._half_count
+            phid = check_vector(joint_vel, 3, "joint_vel", t)
         dt = t - self._t
         if not dt > 0:
             raise EstimatorFault(f"time does not increase: t = {t} s after {self._t} s")
-        if torque is not None:
+        if torque is not None and self._torque is not torque:
             self._torque = check_vector(torque, 3, "torque", t)
         nis = self._nis
         for kind in nis:
@@ -266,49 +277,37 @@ class PoseEKF(ModelPrediction):
                                  f"at t = {t} s")
         self._acc_held = acc_prev if acc_prev is not None else self._acc
         self._gyro_held = gyro_prev if gyro_prev is not None else self._gyro
-        # the pivot's motion under its reading, trapezoid: half with the rates before the prediction ...
-        self.pivot.half_step(self.kf.x, self.kf.P, self._phi_p, dt)
-        if self.prediction == "imu":
-            kf = self.kf
-            fx, fy = self._acc_held[0], self._acc_held[1]
-            if acc_prev is not None and self._torque is not None:
-                if held_t == self._t:  # taken at the start of this interval: under this interval's torque
-                    if self._acc is acc_prev:
-                        self._acc_u = self._torque
-                elif held_u is not None:  # an older reading still driving: add what the torque changed since
-                    fx, fy = self._held_force_correction(fx, fy, held_u)
-            add = 0.0
-            if self._torque is not None:
-                x = kf.x
-                c, s = math.cos(x[A]), math.sin(x[A])
-                gx, gy = fx - x[BAX], fy - x[BAY]
-                add = kernels.yaw_acceleration(x, self._phi_p, self._torque, c * gx - s * gy, s * gx + c * gy,
-                                               self._prm)
-            if self._acc_held is not self._acc_noise_of:  # a new reading drives: its own noise, drawn afresh
-                self._acc_noise_of = self._acc_held
-                P = kf.P
-                P[NAX:NAY + 1, :] = 0.0
-                P[:, NAX:NAY + 1] = 0.0
-                P[NAX, NAX] = P[NAY, NAY] = self._var[0]
-                kf.x[NAX] = kf.x[NAY] = 0.0
-            kernels.predict_imu(kf.x, kf.P, fx, fy, add, dt, self._var_alpha_dd, self._var[2], self._var[3],
-                                self._var_da * self.walk_scale, kf.F, kf.Q)
+        if self.prediction == "imu":  # the common path: prediction and both encoder updates in one compiled call
+            res = self._imu_cycle(dt, acc_prev, held_t, held_u, phi, phid)
         else:
+            res = None
+            # the pivot's motion under its reading, trapezoid: half with the rates before the prediction ...
+            self.pivot.half_step(self.kf.x, self.kf.P, self._phi_p, dt)
             self._predict_model(dt)
         if self.walk_scale > 1.0:  # the adapted walk relaxes back to the configured one
             self.walk_scale = 1.0 + (self.walk_scale - 1.0) * math.exp(-dt / self.config.walk_adaptation_decay)
-        jump = self.pivot.motion(self.kf.x, self.kf.P, self._phi_p, float(phi[2]), dt)
+        if res is None:  # ... and half with the rates after it
+            jump = self.pivot.motion(self.kf.x, self.kf.P, self._phi_p, float(phi[2]), dt)
+        else:
+            jump = float(res[cyc.R_JUMP])
         self._t_prev, self._t = self._t, float(t)
         self._phi_p = float(phi[2])
-        self._update_encoders(t, phi, phid)
+        if res is None:
+            self._update_encoders(t, phi, phid)
+        else:
+            self._after_encoders(t, res)
         self._standstill = self.standstill_detector.still(
             t, phi, None if self._gyro is None else self._gyro[2], self.kf.x[BG], self.kf.P[BG, BG])
+        touched = res is None or res[cyc.R_OK_HEAD] == 0.0  # updates after the kernel's health check
         if self._standstill:
             self._update("zupt", t, -self.kf.x[3:6], self._H_zupt, self._R_zupt)
+            touched = True
         if new_gyro:
             self._update_gyro(t)
-        self.pivot.constrain(self.kf.x, self.kf.P, jump, self.config.gate_probability)
-        self._check_health(t)
+            touched = True
+        touched = self.pivot.constrain(self.kf.x, self.kf.P, jump, self.config.gate_probability) or touched
+        if touched or res[cyc.R_HEALTHY] == 0.0:
+            self._check_health(t)
         self._estimate = self._make_estimate()
         return self._estimate
 
@@ -342,8 +341,11 @@ class PoseEKF(ModelPrediction):
     def _take_imu(self, t: float, acc, gyro) -> None:
         if acc is None or gyro is None:
             raise EstimatorFault(f"IMU sample at t = {t} s lacks {'accel' if acc is None else 'gyro'}")
-        a = check_vector(acc, 3, "imu_accel", t)
-        g = check_vector(gyro, 3, "imu_gyro", t)
+        if cyc.plain_vectors(acc, gyro, acc):
+            a, g = acc, gyro
+        else:
+            a = check_vector(acc, 3, "imu_accel", t)
+            g = check_vector(gyro, 3, "imu_gyro", t)
         self._imu_t = t
         self._acc, self._gyro = a, g
         self._acc_t, self._acc_u = t, None  # the torque the reading was taken under is known one step later
@@ -351,6 +353,10 @@ class PoseEKF(ModelPrediction):
     def _update(self, kind: str, t: float, nu: np.ndarray, H: np.ndarray, R: np.ndarray, force: bool = False) -> bool:
         """Gated update (``kernels.gated_update``); the accelerometer biases move only at standstill."""
         d2, ok = kernels.gated_update(self.kf.x, self.kf.P, nu, H, R, self.gate[kind], force, kind == "zupt")
+        self._count(kind, t, d2, ok)
+        return ok
+
+    def _count(self, kind: str, t: float, d2: float, ok: bool) -> None:
         self._nis[kind] = d2
         if self.record_innovations:
             self.innovations.append((t, kind, d2, ok))
@@ -358,80 +364,68 @@ class PoseEKF(ModelPrediction):
             self.updates[kind] += 1
         else:
             self.rejected[kind] += 1
-        return ok
+
+    def _imu_cycle(self, dt: float, acc_prev, held_t, held_u, phi: np.ndarray, phid: np.ndarray) -> np.ndarray:
+        """The IMU prediction and both encoder updates (``imu_cycle.imu_cycle``); returns its results."""
+        kf, s = self.kf, self._s
+        held = None
+        if acc_prev is not None and self._torque is not None:
+            if held_t == self._t:  # taken at the start of this interval: under this interval's torque
+                if self._acc is acc_prev:
+                    self._acc_u = self._torque
+            elif held_u is not None:  # an older reading still driving: add what the torque changed since
+                held = held_u
+        s[cyc.S_HELD] = held is not None
+        fx, fy = self._acc_held[0], self._acc_held[1]
+        s[cyc.S_DT], s[cyc.S_FX], s[cyc.S_FY] = dt, fx, fy
+        s[cyc.S_PHI_OLD], s[cyc.S_PHI_NEW], s[cyc.S_PHI_R], s[cyc.S_PHI_L] = self._phi_p, phi[2], phi[0], phi[1]
+        s[cyc.S_HAVE_TORQUE] = self._torque is not None
+        s[cyc.S_NEW_NOISE] = self._acc_held is not self._acc_noise_of  # a new reading: its noise drawn afresh
+        self._acc_noise_of = self._acc_held
+        s[cyc.S_DA_WALK2] = self._var_da * self.walk_scale
+        s[cyc.S_GATE_ENC], s[cyc.S_GATE_HEAD] = self.gate["encoders"], self.gate["heading"]
+        cyc.imu_cycle(kf.x, kf.P, kf.F, kf.Q, self._zero3 if self._torque is None else self._torque,
+                      self._zero3 if held is None else held, self._prm, s,
+                      phid, self._H_rates, self._nu3, self._R_rates, self._H_heading, self._nu1, self._R_heading,
+                      self._res)
+        return self._res
+
+    def _after_encoders(self, t: float, res: np.ndarray) -> None:
+        """``imu_cycle``'s two updates counted as ``_update`` counts them, then the heading's outcome."""
+        ok = res[cyc.R_OK_ENC] == 1.0
+        self._count("encoders", t, float(res[cyc.R_NIS_ENC]), ok)
+        if not ok:
+            self._heading_off_since = None
+            return
+        ok = res[cyc.R_OK_HEAD] == 1.0
+        self._count("heading", t, float(res[cyc.R_NIS_HEAD]), ok)
+        self._heading_outcome(t, ok, res[cyc.R_NU_HEAD])
 
     def _update_encoders(self, t: float, phi: np.ndarray, phid: np.ndarray) -> None:
-        """Joint rates, then the wheel heading (see the module docstring for slip and re-anchoring)."""
+        """Joint rates, then the wheel heading (see the module docstring for slip and re-anchoring); the
+        model prediction's path (the IMU's runs both updates in ``imu_cycle``)."""
         x = self.kf.x
         kernels.joint_rates(x, phi[2], self._l1, self._l2, self._r, self._H_rates, self._nu3, phid)
         if not self._update("encoders", t, self._nu3, self._H_rates, self._R_rates):
             self._heading_off_since = None
             return
-        nu = np.array([wrap_angle(self._wheel_heading(phi) - (x[A] - x[KAPPA] + x[EP]))])
-        if self._update("heading", t, nu, self._H_heading, self._R_heading):
-            self._heading_off_since = None
-            return
-        if self._heading_off_since is None:
-            self._heading_off_since = self._t_prev
-        if t - self._heading_off_since >= REANCHOR_AFTER - 1e-9:
+        nu = wrap_angle(self._wheel_heading(phi) - (x[A] - x[KAPPA] + x[EP]))
+        self._heading_outcome(t, self._update("heading", t, np.array([nu]), self._H_heading, self._R_heading), nu)
+
+    def _heading_outcome(self, t: float, ok: bool, nu: float) -> None:
+        """A wheel heading rejected for ``REANCHOR_AFTER`` with the rates accepted re-anchors (``nu``: its
+        residual, rad)."""
+        if self._rejected_long("_heading_off_since", t, ok):
             # slip moved kappa -- unless the gyro says the yaw prediction is wrong (the walk adapted): then alpha
             i = A if self.walk_scale > YAW_SUSPECT_SCALE else KAPPA
-            self.kf.P[i, i] += nu[0] * nu[0]
-            self._heading_off_since = None
-            self._update("heading", t, nu, self._H_heading, self._R_heading, force=True)
-
-    def _update_gyro(self, t: float) -> None:
-        """The gyro: alpha_dot + b_g. Its NIS drives the adaptation of d's walk (``_adapt_walk``). The gyro
-        does not slip: rejected for ``REANCHOR_AFTER``, it is the yaw prediction that is lost (a model that
-        is wrong), so alpha_dot's variance grows by the innovation squared and alpha_dot re-anchors on the
-        gyro -- the gate cannot starve the filter of its yaw rate. A single outlier is still rejected."""
-        x = self.kf.x
-        nu = np.array([self._gyro[2] - x[VA] - x[BG]])
-        ok = self._update("gyro", t, nu, self._H_gyro, self._R_gyro)
-        self._adapt_walk(t, self._nis["gyro"])
-        if ok:
-            self._gyro_off_since = None
-            return
-        if self._gyro_off_since is None:
-            self._gyro_off_since = self._t_prev
-        if t - self._gyro_off_since >= REANCHOR_AFTER - 1e-9:
-            self.kf.P[VA, VA] += nu[0] * nu[0]
-            self._gyro_off_since = None
-            self._update("gyro", t, nu, self._H_gyro, self._R_gyro, force=True)
-
-    def _adapt_walk(self, t: float, nis: float) -> None:
-        """Covariance matching on the gyro (Mehra 1972; Mohamed & Schwarz 1999): the gyro's NIS averaged
-        exponentially over ``walk_adaptation_window`` has expectation 1 for a consistent filter; above its
-        chi-square bound at ``gate_probability`` (the average of n_eff = (2 - w) / w readings, w the
-        averaging weight) the alpha_dot prediction is worse than the filter believes -- the model's alpha
-        row is wrong -- and the variance of d's walk is multiplied by that average, at every reading,
-        until the innovations fit (at most ``WALK_SCALE_MAX``). The step relaxes it back."""
-        cfg = self.config
-        if cfg.walk_adaptation_window <= 0:
-            return
-        dt = t - self._gyro_t if self._gyro_t is not None else self.period
-        self._gyro_t = t
-        w = round(1.0 - math.exp(-dt / cfg.walk_adaptation_window), 6)
-        if not w > 0:
-            return
-        bound = self._nis_bounds.get(w)
-        if bound is None:
-            n_eff = (2.0 - w) / w
-            bound = self._nis_bounds[w] = float(chi2.ppf(cfg.gate_probability, n_eff) / n_eff)
-        self._gyro_nis_avg += w * (nis - self._gyro_nis_avg)
-        avg = self._gyro_nis_avg
-        if avg > bound:
-            self.walk_scale = min(self.walk_scale * avg, WALK_SCALE_MAX)
-            # fading memory on the yaw states: the error the wrong model already put into alpha, alpha_dot
-            # and d is as much larger than their covariance says (P -> T P T, T = sqrt(avg) on their rows)
-            g = math.sqrt(avg)
-            P = self.kf.P
-            P[_YAW, :] *= g
-            P[:, _YAW] *= g
+            self.kf.P[i, i] += nu * nu
+            self._update("heading", t, np.array([nu]), self._H_heading, self._R_heading, force=True)
 
     # ------------------------------------------------------------------ health and output
     def _check_health(self, t: float) -> None:
         x, P = self.kf.x, self.kf.P
+        if cyc.healthy(x, P):
+            return
         if not (kernels.all_finite(x) and kernels.all_finite(P)):
             raise EstimatorFault(f"the filter diverged at t = {t} s: non-finite state or covariance")
         d = P.diagonal()
@@ -441,6 +435,8 @@ class PoseEKF(ModelPrediction):
 
     def _make_estimate(self) -> Estimate:
         x, P = self.kf.x, self.kf.P
-        return Estimate(t=self._t, pose=x[0:3].copy(), twist=x[3:6].copy(), std=np.sqrt(P.diagonal()[:6]),
-                        cov=P.copy(), gyro_bias=float(x[BG]), standstill=self._standstill, nis=dict(self._nis),
-                        rejected=dict(self.rejected), updates=dict(self.updates), accel_bias=x[7:9].copy())
+        v = np.empty(14)  # pose, twist, their std, accelerometer biases: one new array, four views
+        cyc.estimate_vectors(x, P, v)
+        return Estimate(t=self._t, pose=v[0:3], twist=v[3:6], std=v[6:12], cov=P.copy(), gyro_bias=float(x[BG]),
+                        standstill=self._standstill, nis=dict(self._nis), rejected=dict(self.rejected),
+                        updates=dict(self.updates), accel_bias=v[12:14])

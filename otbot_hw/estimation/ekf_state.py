@@ -20,6 +20,9 @@ UPDATE_KINDS = {"encoders": 3, "heading": 1, "zupt": 3, "gyro": 1, "accel": 2, "
 #: Default std of the start pose (m, m, rad): the start defines the frame. Prior std of the twist.
 INITIAL_POSE_STD = (1e-6, 1e-6, 1e-6)
 INITIAL_TWIST_STD = (0.01, 0.01, 0.01)
+#: A wheel heading that disagrees this long (s) while the joint rates agree has moved (re-anchor it); a gyro
+#: rejected this long has lost the yaw prediction (re-anchor alpha_dot on it).
+REANCHOR_AFTER = 0.02
 
 
 class EstimatorFault(RuntimeError):

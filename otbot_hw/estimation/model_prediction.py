@@ -1,7 +1,8 @@
 """The pose EKF's dynamic-model parts (``otbot_hw.estimation.ekf``): the ``model`` prediction (the
 paper's multiplier-free dynamics under the commanded torque drive the twist; the accelerometer becomes
-a measurement) and, for the ``imu`` prediction, the correction of an IMU reading held over several
-steps. A mixin of ``PoseEKF``: it works on the filter's state ``kf`` and its work arrays.
+a measurement; the ``imu`` prediction's correction of a reading held over several steps is compiled:
+``imu_cycle.held_force_correction``). A mixin of ``PoseEKF``: it works on the filter's state ``kf`` and
+its work arrays.
 """
 from __future__ import annotations
 
@@ -19,19 +20,6 @@ _FD_STEP = 1e-6
 
 class ModelPrediction:
     """The dynamic-model methods of ``PoseEKF`` (see the module docstring)."""
-
-    def _held_force_correction(self, fx: float, fy: float, u_reading: np.ndarray) -> tuple[float, float]:
-        """An IMU slower than the loop: the specific force (B'') of a reading held over several steps, plus
-        the change of the pivot acceleration the torque made since the reading, M_bar^-1 (u - u_reading)
-        from the paper's model (linear in u: only the torque difference enters, so unmodelled forces
-        acting on both cancel)."""
-        x = self.kf.x
-        du = self._torque - u_reading
-        if not du.any():
-            return fx, fy
-        dp = self._model_acceleration(x, du) - self._model_acceleration(x, self._zero3)
-        c, s = math.cos(x[A]), math.sin(x[A])
-        return fx + c * dp[0] + s * dp[1], fy - s * dp[0] + c * dp[1]
 
     def _model_acceleration(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
         """p_dd (3,) of the paper's model at filter state s and the pivot reading under u (N m); the model

@@ -45,7 +45,7 @@ class PivotQuantization:
             return 0.0
         return jump
 
-    def constrain(self, x: np.ndarray, P: np.ndarray, jump: float, gate_probability: float) -> None:
+    def constrain(self, x: np.ndarray, P: np.ndarray, jump: float, gate_probability: float) -> bool:
         """The count constraint |e_p| <= h = sqrt(3) pivot_angle_sigma (half a count), applied after the
         sample's measurements, when it is new information: the reading changed (an edge crossed slowly pins
         e_p near that edge) or the mean left the count. Then the Gaussian is truncated to [-h, h] and its
@@ -54,12 +54,13 @@ class PivotQuantization:
         at every sample -- by truncation, or by capping e_p's variance at the uniform's -- counts it again
         and shrinks every state correlated with e_p (kappa, alpha) without information (measured: pose
         NEES 10-14 on some seeds where it is 3-7 without). A mean that left the count so far that the
-        interval holds no probability (model error) re-draws e_p."""
+        interval holds no probability (model error) re-draws e_p. Returns whether it changed x and P."""
         h = self.half_width
         if jump == 0.0 and abs(x[EP]) <= h:
-            return
+            return False
         if not kernels.truncate(x, P, EP, -h, h, self.corrects, 1.0 - gate_probability):
             self.redraw(x, P)
+        return True
 
     def redraw(self, x: np.ndarray, P: np.ndarray) -> None:
         """e_p drawn afresh: zero mean, the uniform's variance, uncorrelated."""

@@ -19,12 +19,12 @@ class StandstillDetector:
 
     def __init__(self, config: EstimatorConfig):
         self.config = config
-        self._ref: np.ndarray | None = None
+        self._ref: list[float] | None = None  # the joint angles (rad) the window started at
         self._since = 0.0
 
     def reset(self, t: float, phi: np.ndarray) -> None:
         """Start watching at t (s) from the joint angles ``phi`` (3,) rad."""
-        self._ref = np.array(phi, dtype=float)
+        self._ref = [float(v) for v in phi]
         self._since = float(t)
 
     def still(self, t: float, phi: np.ndarray, gyro_z: float | None, gyro_bias: float, gyro_bias_var: float) -> bool:
@@ -32,8 +32,9 @@ class StandstillDetector:
         (rad/s, None: no IMU yet) with the estimated bias (rad/s) and its variance (rad^2/s^2)."""
         cfg = self.config
         ref = self._ref
-        if max(abs(phi[0] - ref[0]), abs(phi[1] - ref[1]), abs(phi[2] - ref[2])) > cfg.standstill_angle:
-            self._ref = phi.copy()
+        p0, p1, p2 = phi.tolist() if isinstance(phi, np.ndarray) else phi  # floats: numpy scalars are slow
+        if max(abs(p0 - ref[0]), abs(p1 - ref[1]), abs(p2 - ref[2])) > cfg.standstill_angle:
+            self._ref = [p0, p1, p2]
             self._since = t
             return False
         if t - self._since < cfg.standstill_window - 1e-9:

@@ -53,7 +53,7 @@ from numba import njit
 
 from otbot_hw.model import compiled
 from otbot_hw.model.constants import GRAVITY
-from otbot_hw.model.effect_catalog import (C_AIR, C_LIN, C_P, C_R, C_RR, COG_R, COGN_R, COGPH_R, DB_W, DZ_R, DR_L, DR_R, F_CST, G_X, G_Y, K_L, K_P, K_R,
+from otbot_hw.model.effect_catalog import (C_AIR, C_L, C_LIN, C_P, C_R, C_RR, COG_R, COGN_R, COGPH_R, DB_W, DZ_R, DR_L, DR_R, F_CST, G_X, G_Y, K_L, K_P, K_R,
                                            K_SLIP, N_CST, S_W, T_TRAC, TS_R, U_MAX_R, V_S, WIDTH_MIN_CASTER,
                                            WIDTH_MIN_PIVOT, WIDTH_MIN_WHEEL, WIDTH_PER_N_CASTER, WIDTH_PER_NM_PIVOT,
                                            WIDTH_PER_NM_WHEEL, X_C1)
@@ -153,6 +153,17 @@ def effect_force(x, tau, eff, prm, fixture):
     gen = np.empty(6)
     _effect_force_into(x, tau, eff, prm, fixture, gen, np.empty(2))
     return gen
+
+
+@njit(cache=True)
+def forces_active(eff):
+    """Whether an effect adds a generalized force or a wheel slip (False: the paper's model, or effects
+    on the drives' gain and saturation or the sensors only; ``integrators.ext_rk4_into`` then runs the
+    paper model's RK4)."""
+    return (eff[C_R] != 0.0 or eff[C_L] != 0.0 or eff[C_P] != 0.0 or eff[S_W] != 0.0 or eff[C_RR] != 0.0
+            or eff[F_CST] != 0.0 or eff[K_SLIP] != 0.0 or eff[G_X] != 0.0 or eff[G_Y] != 0.0 or eff[C_AIR] != 0.0
+            or eff[DB_W] != 0.0 or eff[DR_R] != 0.0 or eff[DR_L] != 0.0 or eff[T_TRAC] != 0.0
+            or eff[C_LIN] != 0.0 or eff[COG_R] != 0.0 or eff[COG_R + 1] != 0.0 or eff[COG_R + 2] != 0.0)
 
 
 @njit(cache=True)

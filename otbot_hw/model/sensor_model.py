@@ -28,7 +28,8 @@ from numba import njit
 from numba.extending import register_jitable
 
 from otbot_hw.model.constants import GRAVITY
-from otbot_hw.model.effect_catalog import B_AX, B_AY, B_GZ, D_IMU, D_X, D_Y, DR_R, E_R, G_X, G_Y, PSI, T_I
+from otbot_hw.model.effect_catalog import (B_AX, B_AY, B_GZ, D_IMU, D_X, D_Y, DR_R, E_R, G_X, G_Y, K_SLIP, PSI, T_I,
+                                           T_TRAC)
 from otbot_hw.model.effect_physics import actuated_torque, ext_derivative_into
 
 CHANNELS = ("joint_pos", "joint_vel", "imu_accel", "imu_gyro")
@@ -148,13 +149,21 @@ def sensor_samples(X, S, TAU, F, TAU_L, F_L, QDD, SD, eff, prm, fixture):
 
 
 @njit(cache=True)
-def stepper_readings_into(x, s, tau_state, u, f, u_last, f_last, has_last, eff, prm, fixture, out, work):
+def stepper_readings_into(x, s, tau_state, u, f, u_last, f_last, has_last, eff, prm, fixture, out, work, imu=True):
     """The sensor model (the formulas ``sensor_samples`` applies to a run) at the current sample of a
     stepped simulation, into out (5, 3) (pos, vel, acc_r, acc_l, gyro): state x, accumulated slip s (2,),
     the delivered torque reached at the end of the last interval ``tau_state``, the command u (3,) and
     force f (2,) acting now, the last interval's u_last, f_last (``has_last`` False before the first
     step); ``work`` (``WORK``,) scratch. The delivered torque: with a current-loop lag ``tau_state``
-    (continuous), else the actuated command (gain, saturation)."""
+    (continuous), else the actuated command (gain, saturation). ``imu`` False: the encoder rows only
+    (rows 2-4 left as they were), without the accelerations unless a wheel slips (its rate is read)."""
+    floor = fixture == 0
+    if not imu and not (floor and (eff[K_SLIP] != 0.0 or eff[T_TRAC] != 0.0)):
+        for i in range(2):  # no slip: the slip rates are zero (``effect_physics._effect_force_into``)
+            out[0, i] = wheel_encoder(x[3 + i], s[i], i, eff)
+            out[1, i] = wheel_encoder(x[9 + i], 0.0, i, eff)
+        out[0, 2], out[1, 2] = x[5], x[11]
+        return
     if eff[T_I] > 0.0:
         tau = tau_state
         tau_l = tau_state
@@ -165,11 +174,12 @@ def stepper_readings_into(x, s, tau_state, u, f, u_last, f_last, has_last, eff, 
     qdd, qdl, sd, sdl = work[0:6], work[6:12], work[12:14], work[14:16]
     z, dz, gen, acc, g2, slip = work[16:30], work[30:44], work[44:50], work[50:56], work[56:62], work[62:64]
     sample_motion_into(x, tau, f, eff, prm, fixture, qdd, sd, z, dz, gen, acc, g2, slip)
-    floor = fixture == 0
     for i in range(2):
         out[0, i] = wheel_encoder(x[3 + i], s[i], i, eff)
         out[1, i] = wheel_encoder(x[9 + i], sd[i], i, eff)
     out[0, 2], out[1, 2] = x[5], x[11]
+    if not imu:
+        return
     out[2, 0], out[2, 1] = imu_specific_force(x[2], x[8], qdd[0], qdd[1], qdd[2], eff, floor)
     if eff[D_IMU] > 0.0 and eff[T_I] == 0.0:  # needs_left_limit
         sample_motion_into(x, tau_l, f_l, eff, prm, fixture, qdl, sdl, z, dz, gen, acc, g2, slip)

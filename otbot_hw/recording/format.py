@@ -185,6 +185,8 @@ class Recording:
             out.append(TOPIC_ESTIMATE)
         if self.reference_p is not None:
             out.append(TOPIC_REFERENCE)
+        if self.payload_value is not None:
+            out.append(TOPIC_PAYLOAD)
         if self.events:
             out.append(TOPIC_EVENTS)
         return out
@@ -214,4 +216,7 @@ class Recording:
             if self.reference_pdd is not None:
                 m["pdd"] = self.reference_pdd[k].tolist()
             msgs[TOPIC_REFERENCE] = m
+        if self.payload_value is not None:
+            msgs[TOPIC_PAYLOAD] = {"t": float(self.t[k]), "value": self.payload_value[k].tolist(),
+                                   "std": self.payload_std[k].tolist(), "used": self.payload_used[k].tolist()}
         return msgs

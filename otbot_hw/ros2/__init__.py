@@ -1,7 +1,8 @@
 """ROS 2 bags in and out (rosbag2: MCAP storage, CDR messages, ``metadata.yaml``).
 
 * ``bag_import.import_bag``: a ROS 2 bag (folder or single ``.mcap``) → a project ``Recording``
-  (``otbot import``), by a mapping (``mapping.BagMap``; the common layout by default);
+  (``otbot import``), by a mapping (``mapping.BagMap``; the common layout by default); its parts
+  ``bag_open`` (opening, decoding), ``bag_series`` (topics to series), ``bag_time`` (stamps, grid);
 * ``bag_export.export_recording``: a project recording → a rosbag2 folder (``otbot export --ros2``);
 * ``writer.BagWriter``: the streaming, append-safe bag writer both use (and the daemon's session
   recordings with ``daemon.recording.format: ros2``).

@@ -11,6 +11,8 @@ default without ``--map``)::
       sign: [1, 1, 1]           # -1 where the robot's joint turns against the project's sign
       position: position        # field, rad
       velocity: velocity        # field, rad/s
+      stamp_tolerance: 0.001    # s: joints split over several messages (one per joint) whose stamps
+                                #    agree within this make one sample
     torque:
       topic: /joint_states      # the torque command (N m): the JointState's effort ...
       field: effort             # ... or an array field (std_msgs/msg/Float64MultiArray: data)
@@ -22,8 +24,9 @@ default without ``--map``)::
       gravity: included         # included (ROS: +g on z at rest) | removed (+g added on z of B'')
     odom: /odom                 # optional topics, read when present (what `otbot export` writes):
     truth: /truth               #   estimate (nav_msgs/Odometry), simulated truth, reference,
-    reference: /reference       #   events; null: ignore
-    events: /events
+    reference: /reference       #   events, payload estimate (std_msgs/Float64MultiArray,
+    events: /events             #   layout in messages.payload); null: ignore
+    payload: /payload
 
 Every key is optional (absent: the value above). A key the reader does not know is an error. A
 topic the map names other than these defaults must be in the bag; the default IMU and optional
@@ -56,6 +59,7 @@ class BagMap:
     joint_sign: tuple[float, float, float] = (1.0, 1.0, 1.0)
     position_field: str = "position"
     velocity_field: str = "velocity"
+    stamp_tolerance: float = 0.001
     torque_topic: str = "/joint_states"
     torque_field: str = "effort"
     torque_index: tuple[int, int, int] | None = None
@@ -67,6 +71,7 @@ class BagMap:
     truth_topic: str | None = "/truth"
     reference_topic: str | None = "/reference"
     events_topic: str | None = "/events"
+    payload_topic: str | None = "/payload"
     explicit: frozenset[str] = field(default_factory=frozenset)
     source: str = "default (config/ros2_map.yaml layout)"
 
@@ -85,13 +90,14 @@ class BagMap:
         """The mapping in the file's layout (for the recording's metadata)."""
         return {"time": self.time, "fixture": self.fixture,
                 "joints": {"topic": self.joints_topic, "names": list(self.joint_names), "sign": list(self.joint_sign),
-                           "position": self.position_field, "velocity": self.velocity_field},
+                           "position": self.position_field, "velocity": self.velocity_field,
+                           "stamp_tolerance": self.stamp_tolerance},
                 "torque": {"topic": self.torque_topic, "field": self.torque_field,
                            "index": None if self.torque_index is None else list(self.torque_index),
                            "scale": self.torque_scale},
                 "imu": {"topic": self.imu_topic, "rpy": list(self.imu_rpy), "gravity": self.imu_gravity},
                 "odom": self.odom_topic, "truth": self.truth_topic, "reference": self.reference_topic,
-                "events": self.events_topic, "source": self.source}
+                "events": self.events_topic, "payload": self.payload_topic, "source": self.source}
 
 
 def _section(src: str, name: str, data: Any, keys: tuple[str, ...]) -> dict:
@@ -133,7 +139,7 @@ def map_from_dict(data: Any, source: str = "<dict>") -> BagMap:
     """Validate a mapping; errors name the file and the key."""
     d = BagMap()
     top = _section(source, "map", data if data is not None else {},
-                   ("time", "fixture", "joints", "torque", "imu", "odom", "truth", "reference", "events"))
+                   ("time", "fixture", "joints", "torque", "imu", "odom", "truth", "reference", "events", "payload"))
     explicit: set[str] = set()
     time = top.get("time", d.time)
     if time not in ("header", "receive"):
@@ -141,7 +147,8 @@ def map_from_dict(data: Any, source: str = "<dict>") -> BagMap:
     fixture = top.get("fixture", d.fixture)
     if fixture not in FIXTURES:
         raise BagError(f"{source}: 'fixture' must be one of {', '.join(FIXTURES)}, got {fixture!r}")
-    j = _section(source, "joints", top.get("joints"), ("topic", "names", "sign", "position", "velocity"))
+    j = _section(source, "joints", top.get("joints"),
+                 ("topic", "names", "sign", "position", "velocity", "stamp_tolerance"))
     joints_topic = _topic(source, "joints.topic", j.get("topic", d.joints_topic), False)
     if "topic" in j:
         explicit.add(joints_topic)
@@ -153,6 +160,9 @@ def map_from_dict(data: Any, source: str = "<dict>") -> BagMap:
     sign = _numbers(source, "joints.sign", j.get("sign", list(d.joint_sign)), 3)
     if any(s not in (1.0, -1.0) for s in sign):
         raise BagError(f"{source}: 'joints.sign' entries must be 1 or -1, got {list(sign)}")
+    tol = j.get("stamp_tolerance", d.stamp_tolerance)
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (math.isfinite(tol) and 0 <= tol <= 1):
+        raise BagError(f"{source}: 'joints.stamp_tolerance' must be a number of seconds in [0, 1], got {tol!r}")
     t = _section(source, "torque", top.get("torque"), ("topic", "field", "index", "scale"))
     torque_topic = _topic(source, "torque.topic", t.get("topic", joints_topic), False)
     if "topic" in t:
@@ -170,18 +180,19 @@ def map_from_dict(data: Any, source: str = "<dict>") -> BagMap:
     if gravity not in ("included", "removed"):
         raise BagError(f"{source}: 'imu.gravity' must be included or removed, got {gravity!r}")
     opt = {}
-    for key in ("odom", "truth", "reference", "events"):
+    for key in ("odom", "truth", "reference", "events", "payload"):
         opt[key] = _topic(source, key, top.get(key, getattr(d, f"{key}_topic")), True)
         if opt[key] and opt[key] != getattr(d, f"{key}_topic"):
             explicit.add(opt[key])
     return BagMap(time=time, fixture=fixture, joints_topic=joints_topic, joint_names=tuple(names),
                   joint_sign=sign, position_field=_name(source, "joints.position", j.get("position", d.position_field)),
                   velocity_field=_name(source, "joints.velocity", j.get("velocity", d.velocity_field)),
+                  stamp_tolerance=float(tol),
                   torque_topic=torque_topic, torque_field=_name(source, "torque.field", t.get("field", d.torque_field)),
                   torque_index=index, torque_scale=float(scale), imu_topic=imu_topic,
                   imu_rpy=_numbers(source, "imu.rpy", i.get("rpy", list(d.imu_rpy)), 3), imu_gravity=gravity,
                   odom_topic=opt["odom"], truth_topic=opt["truth"], reference_topic=opt["reference"],
-                  events_topic=opt["events"], explicit=frozenset(explicit), source=source)
+                  events_topic=opt["events"], payload_topic=opt["payload"], explicit=frozenset(explicit), source=source)
 
 
 def load_map(path: str | Path | None) -> BagMap:

@@ -32,6 +32,10 @@ DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 TF = "tf2_msgs/msg/TFMessage"
 WRENCH = "geometry_msgs/msg/WrenchStamped"
 VECTOR3 = "geometry_msgs/msg/Vector3Stamped"
+PAYLOAD = "std_msgs/msg/Float64MultiArray"
+#: the /payload array (``payload``): rows, columns (units kg, kg m^2, m, m; x_F, y_F in B'')
+PAYLOAD_ROWS = ("value", "std", "used")
+PAYLOAD_COLUMNS = ("m_p", "I_p", "x_F", "y_F")
 
 #: event kind -> DiagnosticStatus level (OK 0, WARN 1, ERROR 2)
 EVENT_LEVELS = {"fault": 2, "estop": 2, "saturation": 1, "limit": 1, "warning": 1}
@@ -158,6 +162,33 @@ def odometry_values(msg) -> tuple[list[float], list[float], list[float]]:
     std = [math.sqrt(max(pc[0], 0)), math.sqrt(max(pc[7], 0)), math.sqrt(max(pc[35], 0)),
            math.sqrt(max(S[0, 0], 0)), math.sqrt(max(S[1, 1], 0)), math.sqrt(max(tc[5, 5], 0))]
     return [p.position.x, p.position.y, a], [float(v[0]), float(v[1]), msg.twist.twist.angular.z], std
+
+
+def payload(value, std, used):
+    """std_msgs/Float64MultiArray of the online payload estimate (``/otbot/payload``): a 3 x 4
+    row-major array, rows ``PAYLOAD_ROWS`` (the estimate, its std, what the control law uses),
+    columns ``PAYLOAD_COLUMNS`` (m_p kg, I_p kg m^2, x_F m, y_F m in B''), named by the layout's
+    dimension labels. The message has no header: its stamp is the bag's log time (the sample's t).
+    The adapter's ``state`` is not carried (its changes are on /events)."""
+    D = _T("std_msgs/msg/MultiArrayDimension")
+    layout = _T("std_msgs/msg/MultiArrayLayout")(
+        dim=[D(label=",".join(PAYLOAD_ROWS), size=3, stride=12), D(label=",".join(PAYLOAD_COLUMNS), size=4, stride=4)],
+        data_offset=0)
+    data = np.concatenate([np.asarray(v, dtype=np.float64).reshape(4) for v in (value, std, used)])
+    return _T(PAYLOAD)(layout=layout, data=data)
+
+
+def payload_values(msg) -> list[float]:
+    """The 12 numbers (value, std, used; ``payload``) of a /payload message; ValueError naming what
+    differs when its layout is not that 3 x 4 array."""
+    dims = [(d.label, int(d.size), int(d.stride)) for d in msg.layout.dim]
+    want = [(",".join(PAYLOAD_ROWS), 3, 12), (",".join(PAYLOAD_COLUMNS), 4, 4)]
+    data = np.asarray(msg.data, dtype=float)
+    off = int(msg.layout.data_offset)
+    if dims != want or len(data) < off + 12:
+        raise ValueError(f"a payload array must have the layout {want} (rows {', '.join(PAYLOAD_ROWS)}; columns "
+                         f"{', '.join(PAYLOAD_COLUMNS)}) and 12 numbers, got {dims} with {len(data) - off}")
+    return [float(x) for x in data[off:off + 12]]
 
 
 def truth_state(ns: int, q, qd):

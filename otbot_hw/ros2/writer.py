@@ -21,6 +21,10 @@ project topic         ROS 2 topic (type)                       content
 /otbot/truth          /truth (sensor_msgs/JointState)          q, qd over x, y, alpha, joints;
                       /truth/force (WrenchStamped)             fx, fy N ground frame (if any)
 /otbot/reference      /reference (MultiDOFJointTrajectory)     desired pose, velocity, accel.
+/otbot/payload        /payload (std_msgs/Float64MultiArray)    online payload estimate: 3 x 4,
+                                                               rows value, std, used; columns
+                                                               m_p, I_p, x_F, y_F (no header;
+                                                               ``messages.payload``)
 /otbot/events         /events (diagnostic_msgs/DiagnosticArray) sparse
 (pose)                /tf (tf2_msgs/TFMessage)                 odom -> platform (estimate, else
                                                                truth), platform -> chassis
@@ -46,7 +50,7 @@ from typing import Any, Iterable
 import yaml
 
 from otbot_hw.recording import (FORMAT_NAME, FORMAT_VERSION, TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS,
-                                TOPIC_IMU, TOPIC_JOINTS, TOPIC_REFERENCE, TOPIC_TRUTH, TOPICS)
+                                TOPIC_IMU, TOPIC_JOINTS, TOPIC_PAYLOAD, TOPIC_REFERENCE, TOPIC_TRUTH, TOPICS)
 from otbot_hw.ros2 import messages as M
 
 #: metadata.yaml / MCAP metadata key holding the project metadata (JSON text)
@@ -99,6 +103,8 @@ def ros_topics(topics: Iterable[str], has_force: bool = False, has_gyro_bias: bo
             out["/truth/force"] = M.WRENCH
     if TOPIC_REFERENCE in topics:
         out["/reference"] = M.MULTI_DOF
+    if TOPIC_PAYLOAD in topics:
+        out["/payload"] = M.PAYLOAD
     if TOPIC_EVENTS in topics:
         out["/events"] = M.DIAGNOSTIC_ARRAY
     if TOPIC_ESTIMATE in topics or TOPIC_TRUTH in topics:
@@ -237,6 +243,9 @@ class BagWriter:
             m = messages[TOPIC_REFERENCE]
             self._put("/reference", ns, M.reference(ns, m["p"], m["pd"], m.get("pdd")))
             self.turns.setdefault("/reference", whole_turns(m["p"][2]))
+        if "/payload" in self.types:
+            m = messages[TOPIC_PAYLOAD]
+            self._put("/payload", ns, M.payload(m["value"], m["std"], m["used"]))
         if "/tf" in self.types and pose is not None:
             self._put("/tf", ns, M.transforms(ns, pose, j["position"][2] if j else None))
         self._count += 1

@@ -168,23 +168,24 @@ class BusConfigBackend(_ConfiguredRate):
     instead of a real robot paced in real time. Every run that is not lockstep is paced by the loop
     runner (the one clock, handed down to the driver) with the drives' watchdogs as the configuration
     says (0x1006, 0x1400:05 armed by default), each SYNC's TPDOs awaited within the period. ``paced``
-    is that fact (``not lockstep``), kept for callers that still pass it: a value passed is ignored."""
+    is that fact (``not lockstep``)."""
 
     config: object  # drivers.config.RobotConfig
     imu_port: str | None = None
     lockstep: bool = False
     with_imu: bool = True
-    paced: bool = False
     name: str = "bus config"
     has_truth: bool = False
     simulated = False  # the robot that is there (a plant process in lockstep included)
     bus = True
 
-    def __post_init__(self):
-        self.paced = not self.lockstep  # watchdog arming is configuration, not a caller's choice
-
     @property
     def realtime(self) -> bool:
+        return not self.lockstep
+
+    @property
+    def paced(self) -> bool:
+        """Whether the loop paces the bus in real time (``not lockstep``); it arms nothing itself."""
         return not self.lockstep
 
     @contextmanager

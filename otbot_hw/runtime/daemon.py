@@ -289,13 +289,10 @@ class Daemon:
             self._next_server_check = now + 0.25
             if not self.server.alive and not self._stop.is_set() and self.server.failure is None:
                 self._server_failed("control socket server stopped")
-        if self.telemetry is not None and r.last_snapshot is not None:
-            from otbot_hw.runtime.telemetry import TelemetrySample
-
+        if self.telemetry is not None and r.last_snapshot is not None:  # queued; encoded on its own thread
             ref = r.last_reference
-            self.telemetry.publish(TelemetrySample.from_cycle(
-                r.last_snapshot, r.last_command if r.armed else None, r.last_estimate,
-                ref.p if ref is not None else None, self.mode, self._fault_texts), now)
+            self.telemetry.publish_cycle(r.last_snapshot, r.last_command if r.armed else None, r.last_estimate,
+                                         ref.p if ref is not None else None, self.mode, self._fault_texts, now)
 
     def _server_failed(self, text: str) -> None:
         """The control socket's server died: nobody can estop through it any more. Quick stop and

@@ -20,13 +20,25 @@ topic                  schema (encoding)           content
 
 Read-only: no capability is advertised (no client publishing, no services, no parameters), so
 the server refuses a client's ``advertise`` and ignores its message data; nothing a client sends
-reaches the robot. ``publish(sample)`` is called by the loop once per cycle; it sends at most
-``rate`` Hz (a skipped call costs one comparison), except that a changed mode or fault list goes
-out at once, and the status channel repeats every second for clients that join later.
+reaches the robot. ``publish(sample)`` (or ``publish_cycle``, from the loop's objects) is called by
+the loop once per cycle; it sends at most ``rate`` Hz (a skipped call costs a few comparisons),
+except that a changed mode or fault list goes out at once, and the status channel repeats every
+second for clients that join later.
+
+Nothing is encoded on the loop's thread: a sample that goes out is copied into one of a fixed set
+of preallocated slots and queued; the ``otbot-telemetry`` thread, woken by it, builds the messages
+(protobuf, JSON) and hands them to the server. The loop publishes after its write, so that work falls
+in the period's idle time (a thread waking at times of its own could take the interpreter, which the
+threads share, from the loop in the middle of a cycle). The queue is bounded (``queue_size``): when
+the consumer stalls, the loop takes back the oldest queued slot -- that sample is dropped and counted
+(``state.dropped``), the loop never waits.
 """
 from __future__ import annotations
 
+import collections
+import logging
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,39 +46,13 @@ from typing import Any
 import numpy as np
 
 from otbot_hw.model.angles import wrap_angle  # noqa: F401  (the one angle wrap, [-pi, pi))
-from otbot_hw.motors import MOTORS
-
-JOINT_NAMES = list(MOTORS)  # right_wheel, left_wheel, pivot
-WORLD, PLATFORM, CHASSIS, REFERENCE = "world", "platform", "chassis", "reference"
+from otbot_hw.runtime.telemetry_messages import (  # noqa: F401  (importable from here)
+    CHASSIS, JOINT_NAMES, PLATFORM, REFERENCE, WORLD, Slot, TelemetryChannels, chassis_in_platform)
 STATUS_REPEAT_S = 1.0
+#: Samples the loop may queue for the telemetry thread before the oldest is dropped (1.3 s at 50 Hz).
+QUEUE_SIZE = 64
 
-_VEC = {"type": "array", "items": {"type": "number"}}
-_SCHEMAS: dict[str, tuple[str, dict]] = {
-    "/otbot/joints": ("otbot.JointState", {"type": "object", "properties": {
-        "t": {"type": "number", "description": "loop time, s"},
-        "name": {"type": "array", "items": {"type": "string"}},
-        "position": {**_VEC, "description": "rad"}, "velocity": {**_VEC, "description": "rad/s"}}}),
-    "/otbot/torques": ("otbot.Torques", {"type": "object", "properties": {
-        "t": {"type": "number"}, "name": {"type": "array", "items": {"type": "string"}},
-        "commanded": {**_VEC, "description": "N m after the limiter"},
-        "limit": {**_VEC, "description": "N m, motors.*.max_torque"},
-        "ratio": {**_VEC, "description": "commanded / limit"},
-        "saturated": {"type": "array", "items": {"type": "boolean"}}}}),
-    "/otbot/tracking_error": ("otbot.TrackingError", {"type": "object", "properties": {
-        "t": {"type": "number"}, "x": {"type": "number", "description": "m"},
-        "y": {"type": "number", "description": "m"}, "alpha": {"type": "number", "description": "rad, wrapped"},
-        "norm": {"type": "number", "description": "m, position error"}}}),
-    "/otbot/estimate": ("otbot.Estimate", {"type": "object", "properties": {
-        "t": {"type": "number"}, "pose": {**_VEC, "description": "x, y (m), alpha (rad)"},
-        "twist": {**_VEC, "description": "m/s, m/s, rad/s"},
-        "std": {**_VEC, "description": "sigma of pose and twist, same units"},
-        "gyro_bias": {"type": "number", "description": "rad/s"}}}),
-    "/otbot/status": ("otbot.Status", {"type": "object", "properties": {
-        "t": {"type": "number"}, "mode": {"type": "string"},
-        "faults": {"type": "array", "items": {"type": "string"}},
-        "drive_states": {"type": "array", "items": {"type": "string"}}}}),
-}
-
+log = logging.getLogger(__name__)
 
 class TelemetryError(RuntimeError):
     """The telemetry server cannot start (port in use, unknown host); the message says which."""
@@ -107,15 +93,6 @@ class TelemetrySample:
                    reference=reference, mode=mode,
                    faults=tuple(snapshot.faults if faults is None else faults),
                    drive_states=tuple(snapshot.drive_states))
-
-
-def chassis_in_platform(phi_p: float, l1: float) -> tuple[tuple[float, float], float]:
-    """((x, y) m, yaw rad) of the chassis frame B' (origin at the wheel-axis midpoint M, axis 1'
-    along the heading theta = alpha - phi_p) in the platform frame B'' (origin at the pivot P).
-    The rolling constraints (``model.kinematics.constraint_jacobian``) give P = M + l1 (cos theta,
-    sin theta) in the ground frame (the pivot leads the wheel axis by l1), so M sits at
-    -l1 (cos phi_p, -sin phi_p) in B'', turned by -phi_p."""
-    return (-l1 * math.cos(phi_p), l1 * math.sin(phi_p)), -phi_p
 
 
 def parse_host_port(text: str, default_port: int = 8765) -> tuple[str, int]:
@@ -198,6 +175,8 @@ class _State:
     drive_states: tuple = ()
     published: int = 0
     skipped: int = 0
+    dropped: int = 0   # queued samples the loop took back because the telemetry thread had not sent them
+    errors: int = 0    # samples the telemetry thread failed to send
     counts: dict = field(default_factory=dict)
 
 
@@ -205,12 +184,11 @@ class TelemetryServer:
     """The Foxglove WebSocket server and its channels, on a context of its own (nothing else in
     the process publishes into it). ``limits`` (3,) N m: the motors' torque limits; ``l1`` (m):
     pivot offset (paper Table 3) for the chassis frame; ``port`` 0 picks a free port (``port``
-    attribute after start)."""
+    attribute after start); ``queue_size``: samples queued for the telemetry thread at most."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, rate: float = 50.0, limits=None,
-                 l1: float | None = None, name: str = "otbot"):
+                 l1: float | None = None, name: str = "otbot", queue_size: int = QUEUE_SIZE):
         import foxglove
-        from foxglove.channels import FrameTransformsChannel, LogChannel
 
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f"telemetry rate must be > 0 Hz, got {rate}")
@@ -222,11 +200,7 @@ class TelemetryServer:
         self.l1 = float(l1)
         self.limits = np.asarray(limits if limits is not None else [np.inf] * 3, float)
         self.context = foxglove.Context()
-        self._tf = FrameTransformsChannel("/tf", context=self.context)
-        self._log = LogChannel("/otbot/log", context=self.context)
-        self._json = {topic: foxglove.Channel(topic, context=self.context, schema=foxglove.Schema(
-            name=name_, encoding="jsonschema", data=_json_bytes(schema)), message_encoding="json")
-            for topic, (name_, schema) in _SCHEMAS.items()}
+        self.channels = TelemetryChannels(self.context, self.limits, self.l1)
         self.listener = _Listener()
         try:
             self.server = foxglove.start_server(name=name, host=host, port=port, capabilities=[], services=None,
@@ -237,88 +211,128 @@ class TelemetryServer:
         self.host = host
         self.port = self.server.port
         self.state = _State()
+        self.queue_size = int(queue_size)
+        self._queue: collections.deque = collections.deque()
+        self._free = collections.deque(Slot() for _ in range(self.queue_size + 2))
+        self._stop = threading.Event()
+        self._wake = threading.Event()  # set by each queued sample
+        self._idle = threading.Event()  # set while the telemetry thread has nothing in hand
+        self._idle.set()
+        self._thread = threading.Thread(target=self._run, name="otbot-telemetry", daemon=True)
+        self._thread.start()
 
     # -- the loop's call ---------------------------------------------------------------------
     def publish(self, sample: TelemetrySample, now: float | None = None) -> bool:
-        """Called once per loop cycle; ``now`` monotonic s. Returns whether it sent the sample."""
+        """Called once per loop cycle; ``now`` monotonic s. Returns whether it queued the sample."""
+        return self._offer(now, sample.t, sample.joint_pos, sample.joint_vel, sample.torque, sample.saturated,
+                           sample.pose, sample.twist, sample.std, sample.gyro_bias, sample.reference, sample.mode,
+                           sample.faults, sample.drive_states)
+
+    def publish_cycle(self, snapshot, command=None, estimate=None, reference=None, mode: str = "idle",
+                      faults=None, now: float | None = None) -> bool:
+        """``publish(TelemetrySample.from_cycle(...))`` without building the sample: the loop's
+        ``Snapshot``, ``Command`` (None: unarmed), estimate and desired pose (3,) are read only when
+        the sample goes out."""
+        if command is not None:
+            torque, saturated = command.commanded, command.saturated
+        else:
+            torque, saturated = _ZERO3, _UNSATURATED
+        if estimate is not None:
+            pose, twist, std, bias = estimate.pose, estimate.twist, estimate.std, estimate.gyro_bias
+        else:
+            pose = twist = std = bias = None
+        return self._offer(now, snapshot.t, snapshot.joint_pos, snapshot.joint_vel, torque, saturated, pose, twist,
+                           std, bias, reference, mode, snapshot.faults if faults is None else faults,
+                           snapshot.drive_states)
+
+    def _offer(self, now, t, joint_pos, joint_vel, torque, saturated, pose, twist, std, gyro_bias, reference, mode,
+               faults, drive_states) -> bool:
         now = time.monotonic() if now is None else now
         st = self.state
-        faults = tuple(sample.faults)
-        changed = sample.mode != st.mode or faults != st.faults or tuple(sample.drive_states) != st.drive_states
+        faults = faults if type(faults) is tuple else tuple(faults)
+        drive_states = drive_states if type(drive_states) is tuple else tuple(drive_states)
+        changed = mode != st.mode or faults != st.faults or drive_states != st.drive_states
         due = now >= st.next_due - 1e-6
         if not changed and not due:
             st.skipped += 1
             return False
-        stamp = time.time_ns()
-        if changed:
-            self._log_changes(sample, faults, stamp)
-        if changed or now - st.last_status >= STATUS_REPEAT_S:
-            self._json["/otbot/status"].log(
-                {"t": sample.t, "mode": sample.mode, "faults": [str(f) for f in faults],
-                 "drive_states": list(sample.drive_states)}, log_time=stamp)
-            st.last_status = now
-        if due:  # on a fixed grid of 1/rate, restarted after a gap
-            self._publish_cycle(sample, stamp)
+        slot = self._take_slot()
+        if slot is None:
+            return False
+        slot.t, slot.mode, slot.faults, slot.drive_states = float(t), mode, faults, drive_states
+        slot.prev_mode, slot.prev_faults, slot.changed, slot.cycle = st.mode, st.faults, changed, due
+        slot.status = changed or now - st.last_status >= STATUS_REPEAT_S
+        slot.stamp = time.time_ns()
+        if due:
+            v, has = slot.vec, slot.has
+            v[0:3], v[3:6], v[6:9] = joint_pos, joint_vel, torque
+            slot.saturated = tuple(saturated)
+            for i, (x, lo, hi) in enumerate(((pose, 9, 12), (twist, 12, 15), (std, 15, 21), (gyro_bias, 24, 25),
+                                             (reference, 21, 24))):
+                has[i] = x is not None
+                if x is not None:
+                    v[lo:hi] = x
             st.next_due = st.next_due + self.period if now - st.next_due < self.period else now + self.period
             st.published += 1
+        if changed:
+            st.mode, st.faults, st.drive_states = mode, faults, drive_states
+        if slot.status:
+            st.last_status = now
+        self._queue.append(slot)
+        self._wake.set()  # the loop calls this after its write: the encoding runs in the period's idle time
         return True
 
-    def _log_changes(self, sample: TelemetrySample, faults: tuple, stamp: int) -> None:
-        from foxglove.messages import Log, LogLevel, Timestamp
+    def _take_slot(self) -> Slot | None:
+        """A free slot, else the oldest queued one (its sample dropped); None when the telemetry thread
+        holds them all."""
+        try:
+            return self._free.pop()
+        except IndexError:
+            pass
+        self.state.dropped += 1
+        try:
+            return self._queue.popleft()
+        except IndexError:
+            return None
 
-        ts = Timestamp(stamp // 1_000_000_000, stamp % 1_000_000_000)
-        st = self.state
-        if sample.mode != st.mode:
-            self._log.log(Log(timestamp=ts, level=LogLevel.Info, name="otbot",
-                              message=f"mode {st.mode or '-'} -> {sample.mode}"), log_time=stamp)
-        for f in faults:
-            if f not in st.faults:
-                self._log.log(Log(timestamp=ts, level=LogLevel.Error, name="otbot", message=f"fault: {str(f)}"),
-                              log_time=stamp)
-        if st.faults and not faults:
-            self._log.log(Log(timestamp=ts, level=LogLevel.Info, name="otbot", message="faults cleared"),
-                          log_time=stamp)
-        st.mode, st.faults, st.drive_states = sample.mode, faults, tuple(sample.drive_states)
+    # -- the telemetry thread ----------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            self._wake.wait(1.0)
+            self._wake.clear()
+            stopping = self._stop.is_set()
+            self._drain()
+            if stopping:
+                return
 
-    def _publish_cycle(self, s: TelemetrySample, stamp: int) -> None:
-        from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
+    def _drain(self) -> None:
+        while True:
+            try:
+                slot = self._queue.popleft()
+            except IndexError:
+                return
+            self._idle.clear()
+            try:
+                self._send(slot)
+            except Exception as exc:  # noqa: BLE001 -- telemetry never takes the daemon down
+                self.state.errors += 1
+                if self.state.errors == 1:
+                    log.warning("telemetry: a sample could not be sent (%s); counting further ones", exc)
+            finally:
+                self._free.append(slot)
+                self._idle.set()
 
-        ts = Timestamp(stamp // 1_000_000_000, stamp % 1_000_000_000)
-        t = float(s.t)
+    def flush(self, timeout: float = 2.0) -> bool:
+        """Wait until every queued sample is sent (tests, shutdown); False on timeout."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if not self._queue and self._idle.is_set():
+                return True
+            time.sleep(0.002)
+        return False
 
-        def tf(parent, child, x, y, yaw):
-            return FrameTransform(timestamp=ts, parent_frame_id=parent, child_frame_id=child,
-                                  translation=Vector3(x=float(x), y=float(y), z=0.0),
-                                  rotation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
-
-        phi_p = float(s.joint_pos[2])
-        (cx, cy), cyaw = chassis_in_platform(phi_p, self.l1)
-        transforms = [tf(PLATFORM, CHASSIS, cx, cy, cyaw)]
-        if s.pose is not None:
-            transforms.append(tf(WORLD, PLATFORM, s.pose[0], s.pose[1], float(s.pose[2])))
-        if s.reference is not None:
-            transforms.append(tf(WORLD, REFERENCE, s.reference[0], s.reference[1], float(s.reference[2])))
-        self._tf.log(FrameTransforms(transforms=transforms), log_time=stamp)
-        self._json["/otbot/joints"].log({"t": t, "name": JOINT_NAMES, "position": _list(s.joint_pos),
-                                         "velocity": _list(s.joint_vel)}, log_time=stamp)
-        torque = np.asarray(s.torque, float)
-        self._json["/otbot/torques"].log(
-            {"t": t, "name": JOINT_NAMES, "commanded": _list(torque), "limit": _list(self.limits),
-             "ratio": _list(torque / self.limits), "saturated": [bool(b) for b in s.saturated]}, log_time=stamp)
-        if s.pose is not None:
-            est = {"t": t, "pose": _list(s.pose)}
-            if s.twist is not None:
-                est["twist"] = _list(s.twist)
-            if s.std is not None:
-                est["std"] = _list(s.std)
-            if s.gyro_bias is not None:
-                est["gyro_bias"] = _num(float(s.gyro_bias))
-            self._json["/otbot/estimate"].log(est, log_time=stamp)
-            if s.reference is not None:
-                ex, ey = float(s.reference[0] - s.pose[0]), float(s.reference[1] - s.pose[1])
-                self._json["/otbot/tracking_error"].log(
-                    {"t": t, "x": _num(ex), "y": _num(ey), "alpha": _num(wrap_angle(float(s.reference[2] - s.pose[2]))),
-                     "norm": _num(math.hypot(ex, ey))}, log_time=stamp)
+    def _send(self, slot: Slot) -> None:
+        self.channels.send(slot)
 
     # -- life cycle --------------------------------------------------------------------------
     @property
@@ -328,9 +342,14 @@ class TelemetryServer:
     def status(self) -> dict:
         """For the daemon's ``status`` reply: address, subscriptions, messages sent/skipped."""
         return {"url": self.url, "subscriptions": self.listener.subscriptions,
-                "published": self.state.published, "skipped": self.state.skipped}
+                "published": self.state.published, "skipped": self.state.skipped, "dropped": self.state.dropped}
 
     def close(self) -> None:
+        """Send what is queued (up to 1 s), stop the telemetry thread, then the server."""
+        self.flush(1.0)
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(2.0)
         self.server.stop()
 
     def __enter__(self) -> "TelemetryServer":
@@ -340,15 +359,5 @@ class TelemetryServer:
         self.close()
 
 
-def _num(x: float) -> float | None:
-    return x if math.isfinite(x) else None
-
-
-def _list(v) -> list[float]:
-    """Plain floats; non-finite values become None (JSON has no NaN)."""
-    return [float(x) if math.isfinite(x) else None for x in np.asarray(v, float).ravel()]
-
-
-def _json_bytes(schema: dict) -> bytes:
-    import json
-    return json.dumps(schema).encode()
+_ZERO3 = np.zeros(3)
+_UNSATURATED = (False, False, False)

@@ -18,7 +18,7 @@ from numba import njit
 
 from otbot_hw.model.compiled import FLOOR, _derivative_into
 from otbot_hw.model.effect_catalog import T_I
-from otbot_hw.model.effect_physics import actuated_torque, ext_derivative_into, lagged_torque_into
+from otbot_hw.model.effect_physics import actuated_torque, ext_derivative_into, forces_active, lagged_torque_into
 
 
 @njit(cache=True)
@@ -29,8 +29,15 @@ def rk4_zoh(x0, U, F, dt, substeps, prm, fixture=FLOOR):
     is split into ``substeps`` RK4 steps. Returns X (N+1, 12) at the interval ends.
     All work arrays are allocated once.
     """
+    X = np.empty((U.shape[0] + 1, 12))
+    rk4_zoh_into(x0, U, F, dt, substeps, prm, fixture, X)
+    return X
+
+
+@njit(cache=True, nogil=True)
+def rk4_zoh_into(x0, U, F, dt, substeps, prm, fixture, X):
+    """``rk4_zoh`` writing into caller-owned X (N+1, 12)."""
     n = U.shape[0]
-    X = np.empty((n + 1, 12))
     h = dt / substeps
     gen = np.zeros(6)
     x = np.empty(12)
@@ -61,7 +68,6 @@ def rk4_zoh(x0, U, F, dt, substeps, prm, fixture=FLOOR):
                 x[i] += (h / 6.0) * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
         for i in range(12):
             X[k + 1, i] = x[i]
-    return X
 
 
 @njit(cache=True, nogil=True)
@@ -99,6 +105,19 @@ def ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, QDD
     outputs)."""
     n = U.shape[0]
     samples = QDD.shape[0] == n + 1
+    if not samples and eff[T_I] == 0.0 and not forces_active(eff):
+        # no effect force, slip or current lag (the paper's model, or one whose effects act only on
+        # the drives' gain and saturation or the sensors): the paper's integrator on the actuated
+        # torques, the same arithmetic as the extended RK4 below, at the paper model's speed (the
+        # call through the effect layer cost the paper model's stepper half its speed)
+        UA = np.empty((n, 3))
+        for k in range(n):
+            UA[k] = actuated_torque(U[k], eff)
+            TAU[k] = UA[k]
+        rk4_zoh_into(x0, UA, F, dt, substeps, prm, fixture, X)
+        TAU[n] = UA[n - 1] if n > 0 else tau0
+        S[:] = 0.0
+        return
     # scratch allocated here, each its own array: slices of one caller-owned buffer may alias for LLVM,
     # which then keeps the RK4 loops scalar (5 % slower, measured)
     z, k1, k2, k3, k4, zs = np.empty(14), np.empty(14), np.empty(14), np.empty(14), np.empty(14), np.empty(14)

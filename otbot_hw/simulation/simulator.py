@@ -251,6 +251,7 @@ class Stepper:
         # one interval's outputs, allocated once
         self._X, self._TAU, self._S = np.empty((2, 12)), np.empty((2, 3)), np.empty((2, 2))
         self._none6, self._none2 = np.empty((0, 6)), np.empty((0, 2))
+        self._zero_f = np.zeros((1, 2))  # the force when none is given (never written)
 
     def set_params(self, params: OtbotParams) -> None:
         """Change the plant parameters (e.g. a load placed on the platform)."""
@@ -266,14 +267,26 @@ class Stepper:
 
     def step(self, u: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
         """Apply torques u (3,) N m and pivot force f (2,) N for one interval; return the new state."""
+        U, F = self.interval_inputs(u, f)
+        ext_rk4_into(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code, self._X,
+                     self._TAU, self._S, self._none6, self._none2)
+        return self.advance(U, F)
+
+    def interval_inputs(self, u: np.ndarray, f: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """One interval's torques U (1, 3) N m and force F (1, 2) N, checked (``step``)."""
         U = np.asarray(u, dtype=float).reshape(1, 3)
         if not all(map(math.isfinite, U[0].tolist())):
             raise ValueError(f"torques must be finite, got {u}")
-        F = np.zeros((1, 2)) if f is None else np.asarray(f, dtype=float).reshape(1, 2)
-        ext_rk4_into(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code, self._X,
-                     self._TAU, self._S, self._none6, self._none2)
+        return U, (self._zero_f if f is None else np.asarray(f, dtype=float).reshape(1, 2))
+
+    def advance(self, U: np.ndarray, F: np.ndarray) -> np.ndarray:
+        """Take the interval the integrator wrote into ``_X``, ``_TAU``, ``_S`` under U, F as the new
+        state (``step``; ``otbot_hw.simulation.sensing.StepperSensors.sample_and_step`` integrates in
+        the same compiled call as its readings). x is replaced, never changed in place."""
         self.x, self.tau = self._X[1].copy(), self._TAU[1].copy()
-        self.slip = self.slip + self._S[1]  # the slip rate does not depend on the slip: the steps add up
+        ds0, ds1 = self._S[1].tolist()
+        if ds0 or ds1:  # the slip rate does not depend on the slip: the steps add up (none without slip)
+            self.slip = self.slip + self._S[1]
         self.u_last, self.f_last = U[0], F[0]
         self.t += self.dt
         return self.x

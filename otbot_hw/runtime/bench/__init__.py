@@ -3,6 +3,7 @@
 * ``procedure`` — ``BenchProcedure``: per step set-up, checks, excitation, recording checks,
   identification with gates (pass / redo); then the session's identification, diagnosis, summary
 * ``steps``     — the steps (fixture, set-up), ``BenchSettings``, ``BenchError`` / ``BenchAbort``
+* ``runs``      — ``BenchRuns``: supervised runs through the loop, idle watchdogs reset; ``warm_up``
 * ``robot_fit`` — a designed excitation scaled to the robot the fixture probe shows
 * ``analysis``  — the step's identification, the geometry refit, the diagnosis of the session
 * ``summary``   — the JSON result (parameters, unloaded platform, combinations, truth and error/std)

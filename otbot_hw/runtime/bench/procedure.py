@@ -26,13 +26,10 @@ Then the session's final identification (``params.yaml`` with std), the mismatch
 (``otbot_hw.diagnose``, as ``otbot diagnose`` runs it) on the session's recordings (the unloaded
 robot's and the loaded platform's, each with its identified parameters), and the report.
 
-Its parts: ``steps`` (the steps, settings, errors), ``robot_fit`` (a designed excitation scaled to this
-robot), ``analysis`` (identification, the geometry refit, diagnosis), ``summary`` (the JSON result),
-``session`` (the folder, manifest and the robot's identity), ``checks``, ``excitation``, ``operator``.
-
-Length: ``BenchProcedure`` is the procedure's state machine (attempts, the checks before torque, the runs
-through the loop, the gates' verdict); what it delegates lives in the modules above, and cutting the
-sequence itself apart would hide the order of the steps above.
+Its parts: ``steps`` (the steps, settings, errors), ``runs`` (the supervised runs through the loop),
+``robot_fit`` (a designed excitation scaled to this robot), ``analysis`` (identification, the geometry
+refit, diagnosis), ``summary`` (the JSON result), ``session`` (the folder, manifest and the robot's
+identity), ``checks``, ``excitation``, ``operator``.
 """
 from __future__ import annotations
 
@@ -45,33 +42,27 @@ from typing import Callable
 
 import numpy as np
 
-from otbot_hw.experiment_limits import ExperimentLimits
 from otbot_hw.identification.errors import IdentificationError
 from otbot_hw.identification.experiments import ExperimentSpec
 from otbot_hw.identification.uncertainty import robot_params
-from otbot_hw.motors import MotorLimits
 from otbot_hw.params import OtbotParams
-from otbot_hw.robot import Robot, RobotError
-from otbot_hw.robot import SimulatedRobot as SimulatedBackEnd
+from otbot_hw.robot import Robot
 from otbot_hw.runtime.bench import checks as chk
 from otbot_hw.runtime.bench.analysis import diagnose_session, geometry_mismatch, identify, step_recordings
 from otbot_hw.runtime.bench.operator import NoOperator
 from otbot_hw.runtime.bench.excitation import (ExcitationController, brake_gains, predicted_margins,
                                                probe_torques, step_spec)
 from otbot_hw.runtime.bench.robot_fit import fit_excitation, scaled
+from otbot_hw.runtime.bench.runs import BenchRuns
 from otbot_hw.runtime.bench.session import SessionFolder
 from otbot_hw.runtime.bench.steps import BENCH_STEPS, BenchAbort, BenchError, BenchSettings, SimulatedRobot
 from otbot_hw.runtime.bench.summary import summary
-from otbot_hw.runtime.loop import LoopResult, LoopRunner
-from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor
-from otbot_hw.sensors import NoiseModel
+from otbot_hw.runtime.loop import LoopResult
 
 REST_TIME = 0.5       # s of the zero-torque run (and of the end of the settling run judged at rest)
 BRAKE_TIME = 1.5      # s of braking after an excitation
 PROBE_PAUSE = 0.1     # s of zero torque after the probe doublet
 SETTLE_TIME = 2.5     # s of braking after the probe
-#: EMCY codes of the drives' communication watchdogs (CiA 301): SYNC timeout, life guard / heartbeat
-WATCHDOG_CODES = (0x8100, 0x8130)
 #: prior std of the unloaded platform's mass when nobody weighs it, as a fraction of the file's value (a CAD
 #: mass may be off by tens of per cent)
 UNWEIGHED_FRACTION = 0.2
@@ -95,19 +86,17 @@ class BenchProcedure:
         self.s = settings
         self.session = session
         self.operator = operator
-        self.realtime = realtime
         self.say = progress or (lambda m: None)
         self.sim = sim
         self.metadata = dict(metadata or {})
         self.period = float(robot.period)
-        self.torque_limits = MotorLimits(np.minimum(np.asarray(settings.motor_limits.max_torque, dtype=float),
-                                                    settings.limits.torque))
         self.timing = _Timing()
+        self.runs = BenchRuns(robot, settings, session, self.timing, realtime, self.say, sim, self.metadata)
         self.result = None  # the latest SessionResult
         self.specs: dict[str, ExperimentSpec] = {}
         self.base_specs: dict[str, ExperimentSpec] = {}
         self.designs: dict[str, dict] = {}
-        self.idle_resets: list = []
+        self.idle_resets = self.runs.idle_resets
         self.notices: list[str] = []
 
     # -- the unloaded platform: what a floor run cannot tell -----------------------------------------
@@ -181,58 +170,6 @@ class BenchProcedure:
         self.session.save()
         return check
 
-    def _meta(self, step: str, kind: str, attempt: int, fixture: str, extra: dict | None = None) -> dict:
-        meta = {**self.metadata, "sample_period": self.period, "fixture": fixture, "noise": self.s.noise.to_dict(),
-                "bench": {"session": str(self.session.path), "step": step, "attempt": attempt, "run": kind,
-                          "excitation": self.s.excitation}}
-        if self.sim is not None:
-            params = (self.robot.simulated_params if isinstance(self.robot, SimulatedBackEnd)
-                      else (self.sim.loaded if BENCH_STEPS[step].loaded else self.sim.unloaded))
-            meta["params"] = params.to_dict()
-            if self.sim.effects:
-                meta["effects"] = self.sim.effects
-        meta.update(extra or {})
-        return meta
-
-    def _clear_idle_watchdogs(self) -> None:
-        """Between runs nothing commands torque (the drives are quick-stopped) and the bus rests while
-        the bench computes or waits for the operator. Wall-clock watchdogs may trip meanwhile: the
-        drives' watch of the master's heartbeat (or of SYNC, where configured) on a loaded host, said
-        by EMCY; in lockstep a node's heartbeat or TPDO, or the simulated IMU (it publishes on SYNC)
-        looks late. One SYNC shows them; such communication faults alone are then reset (and counted
-        in the result): a node or an IMU that is really gone faults again at once and fails the run's
-        drive or IMU check, as does any other fault, which is never reset."""
-        try:
-            self.robot.read()  # one SYNC: what went wrong while idle shows now (e.g. the IMU stream's watchdog)
-        except RobotError:
-            pass  # the bus is gone: the run's enable says so
-        faults = self.robot.faults
-        if faults and all(_communication(f) for f in faults):
-            self.say("[bench] communication watchdogs tripped while the bench was idle ("
-                     + "; ".join(sorted({f"{f.device}: {f.kind}" + (f" 0x{f.code:04X}" if f.code else "")
-                                         for f in faults})) + "): reset")
-            self.idle_resets.append([f.to_dict() for f in faults])
-            self.robot.fault_reset()
-
-    def _run(self, controller, cycles: int, fixture: str | None, path: Path, meta: dict,
-             feedback=None) -> LoopResult:
-        # the EKF serves the speed and free-area checks here; it may gate out the encoders for a while at
-        # a hard torque step (seen on some platform-to-chassis angles), which its std then shows: the
-        # std checks stay, the share of rejected innovations (a tracking loop's health check) does not
-        safety = dataclasses.replace(self.s.safety.within(self.s.limits, fixture or "stand"),
-                                     max_rejected_fraction=None)
-        sup = Supervisor(self.torque_limits, safety, self.period, realtime=self.realtime)
-        runner = LoopRunner(self.robot, controller, sup, feedback, path=path, metadata=meta, realtime=self.realtime)
-        t0 = time.perf_counter()
-        try:
-            self._clear_idle_watchdogs()
-            res = runner.run(cycles)
-        except RobotError as exc:  # the bus failed underneath (not a latched fault)
-            raise BenchAbort(meta["bench"]["step"], f"the robot stopped answering: {exc}") from None
-        self.timing.runs += time.perf_counter() - t0
-        self.timing.robot_time += res.stats.robot_time
-        return res
-
     # -- one step ----------------------------------------------------------------------------------
     def preflight(self, step: str, attempt: dict) -> list[chk.Check]:
         """The checks before the excitation (module docstring, 2-4); stops at the first group that fails."""
@@ -240,8 +177,8 @@ class BenchProcedure:
         n = attempt["attempt"]
         rest_path = self.session.recording_path(step, n, "rest")
         zeros = np.zeros((int(round(REST_TIME / self.period)), 3))
-        rest = self._run(ExcitationController(zeros, self.period, np.zeros((3, 3)), 0.0), len(zeros) + 1, None,
-                         rest_path, self._meta(step, "rest", n, bs.fixture))
+        rest = self.runs.run(ExcitationController(zeros, self.period, np.zeros((3, 3)), 0.0), len(zeros) + 1, None,
+                             rest_path, self.runs.meta(step, "rest", n, bs.fixture))
         attempt["check_recordings"].append(self.session.rel(rest_path))
         out = [chk.drives_check(rest)]
         if not out[0].passed:
@@ -258,8 +195,9 @@ class BenchProcedure:
         probe_u = probe_torques(bs.fixture, self.period)
         probe_path = self.session.recording_path(step, n, "probe")
         zeros = np.zeros((int(round(PROBE_PAUSE / self.period)), 3))
-        probe = self._run(ExcitationController(np.vstack([probe_u, zeros]), self.period, np.zeros((3, 3)), 0.0),
-                          len(probe_u) + len(zeros) + 1, bs.fixture, probe_path, self._meta(step, "probe", n, bs.fixture))
+        probe = self.runs.run(ExcitationController(np.vstack([probe_u, zeros]), self.period, np.zeros((3, 3)), 0.0),
+                              len(probe_u) + len(zeros) + 1, bs.fixture, probe_path,
+                              self.runs.meta(step, "probe", n, bs.fixture))
         attempt["check_recordings"].append(self.session.rel(probe_path))
         if not probe.completed:
             out.append(chk.Check("fixture", False, f"the fixture probe was stopped: {probe.fault}",
@@ -276,8 +214,8 @@ class BenchProcedure:
         settle_path = self.session.recording_path(step, n, "settle")
         gains = brake_gains(best, bs.fixture if out[-1].passed else None, self.period)
         nb = int(round(SETTLE_TIME / self.period))
-        settle = self._run(ExcitationController(np.zeros((0, 3)), self.period, gains, self.s.limits.torque, nb),
-                           nb + 1, bs.fixture, settle_path, self._meta(step, "settle", n, bs.fixture))
+        settle = self.runs.run(ExcitationController(np.zeros((0, 3)), self.period, gains, self.s.limits.torque, nb),
+                               nb + 1, bs.fixture, settle_path, self.runs.meta(step, "settle", n, bs.fixture))
         attempt["check_recordings"].append(self.session.rel(settle_path))
         if out[-1].passed:  # judged on its last REST_TIME
             k = max(0, len(settle.recording) - int(round(REST_TIME / self.period)))
@@ -326,13 +264,13 @@ class BenchProcedure:
             feedback = EkfFeedback(best, self.period, np.zeros(3))
         nb = int(round(BRAKE_TIME / self.period))
         ctrl = ExcitationController(U, self.period, brake_gains(best, bs.fixture, self.period), self.s.limits.torque, nb)
-        meta = self._meta(step, "excitation", n, bs.fixture,
-                          {"experiment": f"{step}: {spec.description}", "excitation_samples": len(U),
-                           "brake_from": len(U) * self.period})
+        meta = self.runs.meta(step, "excitation", n, bs.fixture,
+                              {"experiment": f"{step}: {spec.description}", "excitation_samples": len(U),
+                               "brake_from": len(U) * self.period})
         attempt["recording"] = self.session.rel(path)
         self.session.save()
         self.say(f"[bench] {step}: excitation ({self.s.excitation}, {spec.duration:g} s) then the brake")
-        res = self._run(ctrl, len(U) + nb + 1, bs.fixture, path, meta, feedback)
+        res = self.runs.run(ctrl, len(U) + nb + 1, bs.fixture, path, meta, feedback)
         return res, U
 
     def identify(self, step: str, recording: Path):
@@ -449,28 +387,3 @@ class BenchProcedure:
 
     def summary(self, final, diagnosis, wall: float, cpu: float) -> dict:
         return summary(self, final, diagnosis, wall, cpu)
-
-
-def _communication(f) -> bool:
-    """A fault of the bus's wall-clock watchdogs (not of a drive's power stage or its sensors)."""
-    if f.kind == "emcy":
-        return f.code in WATCHDOG_CODES
-    if f.kind == "imu":
-        return "no valid IMU sentence" in f.meaning or "no IMU sample within" in f.meaning
-    return f.kind in ("heartbeat", "stale")
-
-
-def warm_up(params: OtbotParams, period: float) -> None:
-    """Compile what the bench's runs call (the EKF's kernels, the supervisor, the brake's and the
-    predicted motion's model functions) before a bus opens: numba compiles at the first call and holds
-    the interpreter meanwhile (seconds on a cold cache), which on a live bus starves the heartbeat
-    threads (as ``runtime.tracking.warm_up`` does for tracking)."""
-    from otbot_hw.identification.experiments import PAPER_EXPERIMENTS
-    from otbot_hw.runtime.backends import DirectBackend
-    from otbot_hw.runtime.feedback import EkfFeedback
-
-    with DirectBackend(rate=1.0 / period, noise=NoiseModel.paper()).open(params) as robot:
-        ctrl = ExcitationController(np.zeros((3, 3)), period, brake_gains(params, "floor", period), 1.0, 3)
-        sup = Supervisor(MotorLimits(np.full(3, 1e9)), SafetyConfig(max_travel=10.0), period)
-        LoopRunner(robot, ctrl, sup, EkfFeedback(params, period, np.zeros(3))).run(6)
-    predicted_margins(PAPER_EXPERIMENTS["wheel"], params, ExperimentLimits(), None, None)
