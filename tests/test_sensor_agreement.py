@@ -79,3 +79,28 @@ def test_stepper_sensors_equal_batch_sensor_outputs_off_the_floor(fixture):
     want = sensor_outputs(tr, model.params, model.eff)
     for ch in got:
         np.testing.assert_allclose(got[ch], want[ch], rtol=0, atol=1e-12, err_msg=f"{fixture}: {ch}")
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_the_integrators_paper_shortcut_never_drops_an_effect(name):
+    """``ext_rk4_into`` takes the paper model's RK4 when ``forces_active`` says no effect adds a force:
+    with and without per-sample outputs (the full extended RK4) the trajectory is the same for every
+    effect entry, so an effect missing from ``forces_active`` cannot be silently dropped."""
+    from otbot_hw.model.fixtures import fixture_code
+    from otbot_hw.simulation.integrators import ext_rk4_into
+
+    values = dict(WITH.get(name, {}))
+    values[name] = VALUES[name]
+    model = fx.ExtendedModel.paper(P).with_values(values).checked()
+    U, dt = _commands(), 0.01
+    n = len(U)
+    x0 = np.zeros(12)
+    x0[9:12] = (0.5, -0.3, 0.4)  # moving, so rate-dependent laws act from the start
+    F, prm, code = np.zeros((n, 2)), model.params.as_array(), fixture_code("floor")
+    out = []
+    for rows in (0, n + 1):  # 0 rows: the shortcut is allowed; n + 1: the full RK4 with its outputs
+        X, TAU, S = np.empty((n + 1, 12)), np.empty((n + 1, 3)), np.zeros((n + 1, 2))
+        ext_rk4_into(x0, U[0].copy(), U, F, dt, 4, prm, model.eff, code, X, TAU, S,
+                     np.empty((rows, 6)), np.empty((rows, 2)))
+        out.append(X)
+    np.testing.assert_allclose(out[0], out[1], rtol=0, atol=1e-12, err_msg=name)
