@@ -29,10 +29,15 @@ class FaultReaction:
     MAX_ENABLE_CYCLES = 12
 
     def _bus_time(self, wall: float | None = None) -> float:
-        """Bus time (s): cycle * period at the last SYNC, plus the wall time elapsed since it."""
+        """Bus time (s): cycle * period at the last SYNC, plus the wall time elapsed since it; on a
+        clock that keeps no real time (lockstep) at most one period, since the next SYNC has not
+        been sent (a loaded machine's delay between SYNCs is not bus time)."""
         if wall is None:
             return self._sync_t
-        return self._sync_t + max(0.0, wall - self._sync_wall)
+        since = max(0.0, wall - self._sync_wall)
+        if not self.clock.realtime:
+            since = min(since, 0.999 * self.period)
+        return self._sync_t + since
 
     def _add_fault(self, f: Fault, at_sync: bool = False) -> None:
         """Latch ``f``; start the fault reaction: quick stop with zero torque staged and sent to every
@@ -42,8 +47,7 @@ class FaultReaction:
                 return
             self._faults.append(f)
             self._fault_t[f] = self._sync_t if at_sync else self._bus_time(f.time)
-            gap = 0.0 if at_sync else max(0.0, f.time - self._sync_wall) / self.period
-            self._fault_sync[f] = self._sync_index + gap
+            self._fault_sync[f] = self._sync_index + (self._fault_t[f] - self._sync_t) / self.period
             if self._open and self._armed:
                 self._reaction_pending = True
                 for d in self.drives:

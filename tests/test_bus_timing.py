@@ -112,11 +112,7 @@ def test_drives_stop_when_the_masters_heartbeat_stops():
 
     def scenario():
         with simulated_robot(cfg, with_imu=False, heartbeat_consumer=None) as (robot, plant):
-            def cycle():
-                robot.write([2.0, 2.0, 2.0])
-                robot.read()
-
-            _set_up(robot, cycle)
+            _set_up(robot, lambda: _one_cycle(robot))
             _undisturbed(robot, plant)
             assert all(d.node.sdo[0x1016][1].raw == (cfg.bus.master_node_id << 16 | 150) for d in robot.drives)
             assert all(d.od_value(0x6007) == 3 for d in plant.drives)  # quick stop, as configured
@@ -152,6 +148,12 @@ class Disturbed(Exception):
     """A machine stall spoiled an attempt's set-up: a watchdog fired, or the master latched a fault
     of its own, before the watchdog under test could. No measurement of that watchdog, not a failure
     of it: the attempt is run again (``_measured``)."""
+
+
+def _one_cycle(robot) -> None:
+    """One control cycle at 2 N m on every joint (a set-up's)."""
+    robot.write([2.0, 2.0, 2.0])
+    robot.read()
 
 
 def _set_up(robot, steps) -> None:
@@ -236,11 +238,7 @@ def test_drives_stop_on_sync_loss_and_on_an_rpdo_deadline_miss():
 
     def rpdo_deadline():
         with simulated_robot(cfg, with_imu=False, realtime=True) as (robot, plant):
-            def cycle():
-                robot.write([2.0, 2.0, 2.0])
-                robot.read()
-
-            _set_up(robot, cycle)
+            _set_up(robot, lambda: _one_cycle(robot))
             _undisturbed(robot, plant)
             last_rpdo = {d.name: d._last_rpdo for d in plant.drives}
             deadline = cfg.drives[0].rpdo_timeout * period

@@ -351,7 +351,7 @@ def test_fast_paths_give_the_plain_numbers():
     import dataclasses
 
     from otbot_hw.diagnose import residuals as R
-    from otbot_hw.diagnose import simulated_run as S
+    from otbot_hw.diagnose import simulated_run as SR
     from otbot_hw.model import effect_physics as phys
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.model.fixtures import fixture_code
@@ -376,14 +376,14 @@ def test_fast_paths_give_the_plain_numbers():
     for vals in ({}, {"k_slip": 0.02, "t_trac": 3.0, "k_l": 0.1, "T_i": 0.01}, {"e_r": 0.05, "dr_l": -0.03}):
         m = ExtendedModel.paper(P).with_values(vals)
         whole = R.estimate_motion(d, m, smooth_rates=False)
-        assert np.array_equal(S.encoder_state(d, m), np.concatenate([whole.q[0], whole.qd[0]]))
+        assert np.array_equal(SR.encoder_state(d, m), np.concatenate([whole.q[0], whole.qd[0]]))
     m = ExtendedModel.paper(P).with_values({"c_w": 0.2})
-    first = S.simulate_outputs(d, m)
-    again = S.simulate_outputs(d, m)
-    S._SIM_CACHE.clear()
-    fresh = S.simulate_outputs(d, m)
+    first = SR.simulate_outputs(d, m)
+    again = SR.simulate_outputs(d, m)
+    SR._SIM_CACHE.clear()
+    fresh = SR.simulate_outputs(d, m)
     assert all(np.array_equal(first[k], fresh[k]) and np.array_equal(again[k], fresh[k]) for k in fresh)
     with pytest.raises(ValueError):
         again["w_r"][0] = 0.0
     other = dataclasses.replace(d, u=d.u * 1.5)
-    assert not np.array_equal(S.simulate_outputs(other, m)["w_r"], fresh["w_r"])
+    assert not np.array_equal(SR.simulate_outputs(other, m)["w_r"], fresh["w_r"])
