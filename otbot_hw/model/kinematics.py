@@ -11,8 +11,9 @@ with numba (``register_jitable``): Python calls them as they are (numpy or symbo
 planner passes CasADi symbols to the matrix functions below, which build from them) and numba-compiled
 callers (the dynamics kernel ``otbot_hw.model.compiled``, the extended model, the EKF's kernels)
 inline them at numba-IR level (``inline="always"``: as a called function they cost the dynamics a
-third of its speed, 0.16 -> 0.22 us per evaluation, ``benchmarks/model.py``). A numba cache entry is
-invalidated by its own file only: after editing these formulas clear ``__pycache__``.
+third of its speed, 0.16 -> 0.22 us per evaluation, ``benchmarks/model.py``). numba keys a cache entry
+by its own file only; ``otbot_hw.model.kernel_cache`` keys the whole cache folder by every kernel
+source, this file included, so an edit here recompiles its callers.
 """
 from __future__ import annotations
 
