@@ -24,8 +24,6 @@ from otbot_hw.simulation.simulator import default_substeps, simulate_extended
 X0_CACHE_SIZE = 4096  # initial states kept per recording (one per combination of the entries x0 depends on)
 HEAD_TIME = 0.25  # s: the start of the record whose encoder rates fix the initial joint rates (at least 2 windows)
 REST_QUANTILE = 0.999  # chi-square quantile under which the fitted initial rates are taken as a start at rest
-NEAR_MODEL = 1e-3  # relative difference of every model entry under which the initial-rate sensitivity is reused
-REST_MARGIN = 0.5  # fraction of the rest bound under which a reused sensitivity decides a start at rest
 
 
 def encoder_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
@@ -88,19 +86,11 @@ def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
 
 @functools.lru_cache(maxsize=8)
 def _rest_bound(k: int) -> float:
-    """The chi-square ``REST_QUANTILE`` quantile with k degrees of freedom (scipy's ppf costs 50 us a call)."""
+    """The chi-square ``REST_QUANTILE`` quantile with k degrees of freedom (scipy's ppf costs 50 us a call,
+    made once per initial-state fit: once per Jacobian column)."""
     from scipy.stats import chi2
 
     return float(chi2.ppf(REST_QUANTILE, k))
-
-
-def _model_vector(model: ExtendedModel) -> np.ndarray:
-    return np.concatenate([model.params.as_array(), np.asarray(model.eff, dtype=float)])
-
-
-def _near(a: np.ndarray, b: np.ndarray) -> bool:
-    """Every entry within ``NEAR_MODEL`` relative (entries zero in one are zero in the other)."""
-    return a.shape == b.shape and bool(np.all(np.abs(a - b) <= NEAR_MODEL * np.maximum(np.abs(a), np.abs(b))))
 
 
 def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
@@ -113,24 +103,8 @@ def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
         return x_enc
     p = model.params
     x_rest = _with_rates(x_enc, np.zeros(3), data.fixture, p)
-    bound = _rest_bound(len(joints))
     try:
         base = simulate_outputs(head, model, x_rest, cached=False)
-        r = np.concatenate([(head.measured(c) - base[c]) / head.noise_sigma(c) for c in chans])
-        # a model next to the last one whose rates were fitted (a Jacobian column, a small fitter step): its
-        # sensitivity S to the initial rates is the same to ~1e-3, so a start clearly at rest under that S
-        # (statistic below REST_MARGIN of the bound) is at rest under its own S too -- the same x_rest, three
-        # head simulations fewer
-        vec = _model_vector(model)
-        last = data.memo("rest_sensitivity", dict).get("last")
-        if last is not None and _near(vec, last[0]) and np.all(np.isfinite(r)):
-            S, A = last[1], last[2]
-            try:
-                dw = np.linalg.solve(A, S.T @ r)
-            except np.linalg.LinAlgError:
-                dw = None
-            if dw is not None and float(dw @ A @ dw) < REST_MARGIN * bound:
-                return x_rest
         cols = []
         h = 1e-3  # rad/s
         for j in joints:
@@ -141,6 +115,7 @@ def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError):
         return x_enc
     S = np.column_stack(cols)
+    r = np.concatenate([(head.measured(c) - base[c]) / head.noise_sigma(c) for c in chans])
     if not (np.all(np.isfinite(S)) and np.all(np.isfinite(r))):
         return x_enc
     A = S.T @ S
@@ -148,8 +123,7 @@ def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
         dw = np.linalg.solve(A, S.T @ r)
     except np.linalg.LinAlgError:
         return x_enc
-    data.memo("rest_sensitivity", dict)["last"] = (vec, S, A)  # one assignment: safe beside the other thread
-    if float(dw @ A @ dw) < bound:
+    if float(dw @ A @ dw) < _rest_bound(len(joints)):
         return x_rest  # consistent with a start at rest
     w = np.zeros(3)
     w[joints] = dw
