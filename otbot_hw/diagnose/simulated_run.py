@@ -6,6 +6,7 @@ term, the simulated channels (kept in a small cache of recent simulations) and t
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import threading
 from collections import OrderedDict
@@ -83,9 +84,16 @@ def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     return x0.copy()
 
 
-def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
+@functools.lru_cache(maxsize=8)
+def _rest_bound(k: int) -> float:
+    """The chi-square ``REST_QUANTILE`` quantile with k degrees of freedom (scipy's ppf costs 50 us a call,
+    made once per initial-state fit: once per Jacobian column)."""
     from scipy.stats import chi2
 
+    return float(chi2.ppf(REST_QUANTILE, k))
+
+
+def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     x_enc = encoder_state(data, model)
     n = min(len(data), max(2 * data.window, int(round(HEAD_TIME / data.dt)) + 1))
     head = data.memo("x0_head", lambda: data.head(n))
@@ -115,7 +123,7 @@ def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
         dw = np.linalg.solve(A, S.T @ r)
     except np.linalg.LinAlgError:
         return x_enc
-    if float(dw @ A @ dw) < chi2.ppf(REST_QUANTILE, len(joints)):
+    if float(dw @ A @ dw) < _rest_bound(len(joints)):
         return x_rest  # consistent with a start at rest
     w = np.zeros(3)
     w[joints] = dw

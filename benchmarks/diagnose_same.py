@@ -1,0 +1,107 @@
+"""Check that a speed-up of ``diagnose()`` changes no result: save the diagnosis JSON of a fixed set of
+cases, then compare another checkout's against it (verdict, named effects, every number to 1e-6 relative).
+
+Cases: the slow and typical ones of ``benchmarks/diagnose.py`` (independent check, seed pair 0) and three
+discovery cases of ``benchmarks/diagnose_discovery.py`` (linear drag, cogging, pivot dead zone; rep 0).
+Prints the process CPU time of each diagnosis (``time.process_time``: what the load of other jobs does not
+change).
+
+    .venv/bin/python benchmarks/diagnose_same.py --recordings DIR --save before.json
+    .venv/bin/python benchmarks/diagnose_same.py --recordings DIR --compare before.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+INDEPENDENT = ["coulomb_wheels", "none", "caster+asymmetry", "traction_limit", "phantom_load"]
+DISCOVERY = ["linear_drag", "cogging", "pivot_dead_zone"]
+#: keys that measure time, not results
+TIMING = {"elapsed_s", "cpu_s", "regression_s"}
+
+
+def _strip(x):
+    """The diagnosis JSON without its timings."""
+    if isinstance(x, dict):
+        return {k: _strip(v) for k, v in x.items() if k not in TIMING}
+    if isinstance(x, (list, tuple)):
+        return [_strip(v) for v in x]
+    return x
+
+
+def diff(a, b, path="", rtol=1e-6) -> list[str]:
+    """Differences between two stripped diagnoses (numbers to ``rtol`` relative)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = [f"{path}.{k}: only in one" for k in set(a) ^ set(b)]
+        for k in set(a) & set(b):
+            out += diff(a[k], b[k], f"{path}.{k}", rtol)
+        return out
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: length {len(a)} != {len(b)}"]
+        return [d for i, (u, v) in enumerate(zip(a, b)) for d in diff(u, v, f"{path}[{i}]", rtol)]
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        if (math.isnan(a) and math.isnan(b)) or math.isclose(a, b, rel_tol=rtol, abs_tol=1e-12):
+            return []
+        return [f"{path}: {a!r} != {b!r}"]
+    return [] if a == b else [f"{path}: {a!r} != {b!r}"]
+
+
+def cases(folder: Path, which: list[str]):
+    """(label, fitting recordings, held-out, parameters, geometry) of each chosen case, recording what is missing."""
+    import diagnose_discovery as dd
+    import diagnose_independent as di
+    from otbot_hw.diagnose.data import load
+    from otbot_hw.params import nominal
+
+    for c in di.CASES:
+        if c.label in which:
+            fit, held = folder / f"{c.label}_0_fit.mcap", folder / f"{c.label}_0_heldout.mcap"
+            if not (fit.exists() and held.exists()):
+                di.make_recordings(c, 0, folder)
+            P, geometry = di.tool_inputs(c)
+            yield c.label, load([fit]), load([held]), P, geometry
+    for label in DISCOVERY:
+        if label in which:
+            fit, held = dd._record(folder, label, dd.LAWS[label][0], 0)
+            yield label, load([fit]), load([held]), nominal(), None
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--recordings", type=Path, required=True, help="folder of the recordings (made when missing)")
+    ap.add_argument("--cases", default=",".join(INDEPENDENT + DISCOVERY))
+    ap.add_argument("--save", type=Path)
+    ap.add_argument("--compare", type=Path)
+    args = ap.parse_args()
+    from otbot_hw.diagnose.diagnosis import diagnose
+
+    args.recordings.mkdir(parents=True, exist_ok=True)
+    ref = json.loads(args.compare.read_text()) if args.compare else None
+    out, bad = {}, 0
+    for label, fit, held, P, geometry in cases(args.recordings, args.cases.split(",")):
+        t = time.process_time()
+        r = diagnose(fit, P, held, geometry=geometry)
+        cpu = time.process_time() - t
+        out[label] = {"cpu_s": cpu, "result": _strip(json.loads(json.dumps(r, default=float)))}
+        msg = ""
+        if ref and label in ref:
+            d = diff(ref[label]["result"], out[label]["result"])
+            bad += bool(d)
+            msg = f" (before {ref[label]['cpu_s']:.1f} s) " + ("SAME" if not d else "DIFFERENT: " + "; ".join(d[:5]))
+        print(f"{label}: CPU {cpu:.1f} s{msg}", flush=True)
+    if args.save:
+        args.save.write_text(json.dumps(out, default=float))
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
