@@ -124,15 +124,22 @@ def test_an_emcy_stops_every_drive_and_only_the_faulty_one_is_reported(realtime)
         break
 
 
+def _reaction_to_a_fault_of_the_right_wheel(robot, drives, **pivot) -> dict:
+    """Enable, one cycle at 1 N m, the pivot drive given ``pivot``'s misbehaviour, a fault (0x2310) in
+    the right wheel's drive, four cycles: the master's reaction record."""
+    robot.enable()
+    cycle(robot, (1.0, 1.0, 1.0))
+    for name, value in pivot.items():
+        setattr(drives[2], name, value)
+    drives[0].inject_fault(0x2310)
+    for _ in range(4):
+        cycle(robot)
+    return robot.reactions[0]
+
+
 def test_an_ignored_quick_stop_is_escalated_once_and_close_brings_the_node_back():
     with independent() as (robot, drives):
-        robot.enable()
-        cycle(robot, (1.0, 1.0, 1.0))
-        drives[2].ignore_quick_stop = True
-        drives[0].inject_fault(0x2310)
-        for _ in range(4):
-            cycle(robot)
-        rec = robot.reactions[0]
+        rec = _reaction_to_a_fault_of_the_right_wheel(robot, drives, ignore_quick_stop=True)
         assert rec["escalated"] == ["pivot"] and len(robot.reactions) == 1
         # NMT STOP: the drive applied its abort connection option (quick stop) on leaving OPERATIONAL
         assert drives[2].state != ENABLED and drives[2].nmt == 0x04
@@ -308,13 +315,7 @@ def test_a_drive_confirming_at_the_last_allowed_sync_is_confirmed(timeout, delay
     """bus.reaction_timeout = N periods: a drive whose quick stop shows at reaction SYNC N is
     confirmed, one whose shows at SYNC N + 1 gets NMT STOP."""
     with independent(reaction_timeout=timeout) as (robot, drives):
-        robot.enable()
-        cycle(robot, (1.0, 1.0, 1.0))
-        drives[2].quick_stop_delay = delay
-        drives[0].inject_fault(0x2310)
-        for _ in range(4):
-            cycle(robot)
-        rec = robot.reactions[0]
+        rec = _reaction_to_a_fault_of_the_right_wheel(robot, drives, quick_stop_delay=delay)
         assert rec["escalated"] == (["pivot"] if escalated else []), rec
         assert ("pivot" in rec["confirmed"]) is not escalated
         assert drives[2].state != ENABLED

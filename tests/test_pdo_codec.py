@@ -63,16 +63,23 @@ def _maps(dev, direction):
     return [(no, pdos[no]) for no in sorted(plan.pdos)]
 
 
-def test_layouts_compile_for_every_planned_pdo():
-    r = _robot()
+def _planned_layouts(r):
+    """(device, direction, PDO number, canopen map, compiled layout) of every planned PDO of ``r``,
+    each device taken offline (its maps as planned)."""
     for dev in r.devices:
         _offline(dev, True)
         for direction in ("tx", "rx"):
             for no, m in _maps(dev, direction):
-                layout = pdo_codec.compile_map(m)
-                assert layout is not None, f"{dev.name} {direction}PDO{no}"
-                assert layout.size == pdo_bytes(m)
-                assert layout.keys == tuple((v.index, v.subindex) for v in m)
+                yield dev, direction, no, m, pdo_codec.compile_map(m)
+
+
+def test_layouts_compile_for_every_planned_pdo():
+    r = _robot()
+    for dev, direction, no, m, layout in _planned_layouts(r):
+        assert layout is not None, f"{dev.name} {direction}PDO{no}"
+        assert layout.size == pdo_bytes(m)
+        assert layout.keys == tuple((v.index, v.subindex) for v in m)
+    for dev in r.devices:
         for no, m in _maps(dev, "tx"):  # canopen's PdoMap.on_message replaced by one FastTpdo
             assert [type(cb) for cb in r.network.subscribers[m.cob_id]] == [pdo_codec.FastTpdo]
 
@@ -80,17 +87,12 @@ def test_layouts_compile_for_every_planned_pdo():
 @settings(max_examples=20, deadline=None, phases=FAST)
 @given(st.data())
 def test_decode_and_encode_match_canopen(data):
-    r = _robot()
-    for dev in r.devices:
-        _offline(dev, True)
-        for direction in ("tx", "rx"):
-            for no, m in _maps(dev, direction):
-                layout = pdo_codec.compile_map(m)
-                frame = bytearray(data.draw(st.binary(min_size=layout.size, max_size=layout.size)))
-                m.data = frame
-                assert list(layout.decode(frame)) == [mapping_var.raw for mapping_var in m]
-                values = layout.decode(frame)
-                assert layout.encode(values) == bytes(frame)
+    for _, _, _, m, layout in _planned_layouts(_robot()):
+        frame = bytearray(data.draw(st.binary(min_size=layout.size, max_size=layout.size)))
+        m.data = frame
+        assert list(layout.decode(frame)) == [mapping_var.raw for mapping_var in m]
+        values = layout.decode(frame)
+        assert layout.encode(values) == bytes(frame)
 
 
 def test_wrong_length_is_refused():
