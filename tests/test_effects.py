@@ -106,7 +106,13 @@ def test_slip_makes_encoders_count_more_than_the_wheel_rolls(params):
     assert np.max(np.abs(tr.x - ref.x)) < 1e-12  # the body moves as without slip
     s = sensor_model.sensor_outputs(tr, params, eff)
     assert np.all(s["joint_pos"][1:, :2] > tr.x[1:, 3:5])
-    assert s["joint_vel"][-1, 0] - tr.x[-1, 9] == pytest.approx(0.05 * (3.0 - params.b_w * tr.x[-1, 9]), rel=1e-9)
+    # creep k_slip times the torque passed to the ground: the command less the motor's friction and the
+    # torque that accelerates the wheel itself (I_a times its rolling acceleration)
+    acc = phys.ext_accelerations(tr.x[-1], np.array([3.0, 3.0, 0.0]), np.zeros(2), eff, params.as_array(),
+                                 compiled.FLOOR)
+    expected = 0.05 * (3.0 - params.b_w * tr.x[-1, 9] - params.I_a * acc[3])
+    assert s["joint_vel"][-1, 0] - tr.x[-1, 9] == pytest.approx(expected, rel=1e-9)
+    assert abs(params.I_a * acc[3]) > 1e-3  # the inertia term is there to be checked
 
 
 def test_imu_sensor_effects(params):

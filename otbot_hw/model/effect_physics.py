@@ -24,13 +24,17 @@ Modelling choices (documented, not hidden):
   on psi_i act the torque rho_i (tau_i - friction(phi_dot_i)) with rho_i = r / r_i, the
   wheel inertia becomes rho_i^2 I_a (one fixed-point correction of the accelerations),
   and the encoders read phi_i = rho_i psi_i.
-* Wheel slip is a quasi-static longitudinal slip law (wheel inertia neglected in the split;
-  ``slip_state``): tau_tr_i = delivered torque minus motor friction at the rolling speed.
-  Without a traction limit the contact creeps at s_dot = k_slip * tau_tr and passes tau_tr.
-  With one, the traction curve tau_g(s_dot) = t_trac tanh(s_dot / (k_slip t_trac)) (linear
-  creep k_slip at small slip, saturating at t_trac) and the wheel's balance
+* Wheel slip is a quasi-static longitudinal slip law (``slip_state``; the spin-up of the slip
+  itself is quasi-static, the wheel's rolling inertia is not neglected): tau_tr_i = delivered
+  torque minus motor friction at the rolling speed minus I_a times the wheel's rolling
+  acceleration (what turns the wheel itself; solved with the accelerations by a fixed point,
+  ``_force_accel_into``). Without a traction limit the contact creeps at s_dot = k_slip * tau_tr
+  and passes tau_tr. With one, the traction curve tau_g(s_dot) = t_trac tanh(s_dot / (k_slip
+  t_trac)) (linear creep k_slip at small slip, saturating at t_trac) and the wheel's balance
   tau_tr - b_i s_dot = tau_g give s_dot: creep below the limit, spin-up above it until the
-  motor's viscous friction takes the excess. The body is driven by tau_g; the encoders read
+  motor's viscous friction takes the excess. The body is driven by tau_g (above the limit the
+  chassis gets t_trac, not t_trac minus the wheel's own inertia torque: that was the split before,
+  and it put the spin rate I_a psi_dd / b_w off, ~0.5 rad/s at 10 rad/s^2); the encoders read
   psi_i + s_i: odometry and IMU disagree, energy is lost at the contact. Slip states s_r, s_l
   (rad) are integrated.
 * Casters: ``n_cst`` contacts at (x_ci, y_ci) in the chassis frame B' (the robot
@@ -151,7 +155,7 @@ def effect_force(x, tau, eff, prm, fixture):
     The compiled model itself adds tau and the paper's viscous friction b_w psi_dot.
     """
     gen = np.empty(6)
-    _effect_force_into(x, tau, eff, prm, fixture, gen, np.empty(2))
+    _effect_force_into(x, tau, eff, prm, fixture, gen, np.empty(2), np.zeros(2))
     return gen
 
 
@@ -167,9 +171,11 @@ def forces_active(eff):
 
 
 @njit(cache=True)
-def _effect_force_into(x, tau, eff, prm, fixture, gen, slip):
+def _effect_force_into(x, tau, eff, prm, fixture, gen, slip, inertial):
     """Write ``effect_force`` into gen (6,) and ``slip_rates`` into slip (2,) (one slip law solve
-    serves both)."""
+    serves both). inertial (2,): I_a times each wheel's rolling acceleration (N m), the torque that turns
+    the wheel itself, taken from the transmitted torque before the slip law (zeros: the first pass of
+    ``_force_accel_into``)."""
     for i in range(6):
         gen[i] = 0.0
     slip[0] = 0.0
@@ -185,9 +191,9 @@ def _effect_force_into(x, tau, eff, prm, fixture, gen, slip):
         b_i = bw + eff[DB_W] * (1.0 if i == 0 else -1.0)
         t_tr = tau[i] - b_i * w - _motor_friction(w, i, eff, prm) + cogging_torque(rho[i] * x[3 + i], i, eff)
         if slipping:
-            sigma, t_g = slip_state(t_tr, b_i, eff)
+            sigma, t_g = slip_state(t_tr - inertial[i], b_i, eff)
             slip[i] = sigma
-            motor = rho[i] * (t_g if traction else t_tr)
+            motor = rho[i] * (t_g + inertial[i] if traction else t_tr)
         else:
             motor = rho[i] * t_tr
         gen[3 + i] = motor - (tau[i] - bw * psid)
@@ -304,10 +310,33 @@ def compensated_command(x, u_task, eff, prm, fixture):
 def ext_accelerations(x, tau, f, eff, prm, fixture):
     """q_ddot (6,) of the extended model (rolling-angle coordinates) under delivered torque tau."""
     gen = np.empty(6)
-    _effect_force_into(x, tau, eff, prm, fixture, gen, np.empty(2))
     acc = np.empty(6)
-    _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, np.empty(6))
+    _force_accel_into(x, tau, f, eff, prm, fixture, gen, np.empty(2), acc, np.empty(6), np.empty(2))
     return acc
+
+
+SLIP_INERTIA_PASSES = 2  # fixed-point passes of the wheel inertia in the slip law (contraction ~I_a / (I_a + m r^2 / 2))
+
+
+@njit(cache=True)
+def _force_accel_into(x, tau, f, eff, prm, fixture, gen, slip, acc, g2, inertial):
+    """Effect force (gen), slip rates (slip) and q_ddot (acc) at state x: with wheel slip on the floor, the
+    slip law's wheel inertia torque I_a rho_i psi_dd_i from the accelerations, by ``SLIP_INERTIA_PASSES``
+    fixed-point passes (without a traction limit the body force does not depend on it: the slip rates only)."""
+    inertial[0] = 0.0
+    inertial[1] = 0.0
+    _effect_force_into(x, tau, eff, prm, fixture, gen, slip, inertial)
+    _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, g2)
+    if fixture != compiled.FLOOR or (eff[K_SLIP] == 0.0 and eff[T_TRAC] == 0.0):
+        return
+    rho = radius_ratios(eff)
+    passes = SLIP_INERTIA_PASSES if eff[T_TRAC] > 0.0 else 1
+    for _ in range(passes):
+        for i in range(2):
+            inertial[i] = prm[_IA] * rho[i] * acc[3 + i]
+        _effect_force_into(x, tau, eff, prm, fixture, gen, slip, inertial)
+        if eff[T_TRAC] > 0.0:
+            _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, g2)
 
 
 @njit(cache=True)
@@ -332,7 +361,8 @@ def _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, g2):
 
 @njit(cache=True)
 def slip_rates(x, tau, eff, prm, fixture):
-    """Slip rates (2,) rad/s of the wheel encoders relative to the rolling angles."""
+    """Slip rates (2,) rad/s of the wheel encoders relative to the rolling angles, without the wheel-inertia
+    term of the slip law (no accelerations here; ``ext_derivative_into`` gives them with it)."""
     out = np.zeros(2)
     if (eff[K_SLIP] == 0.0 and eff[T_TRAC] == 0.0) or fixture != compiled.FLOOR:
         return out
@@ -372,8 +402,7 @@ def ext_derivative_into(z, tau, f, eff, prm, fixture, dz, gen, acc, g2, slip):
     x = z[:12]
     for i in range(6):
         dz[i] = x[6 + i]
-    _effect_force_into(x, tau, eff, prm, fixture, gen, slip)
-    _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, g2)
+    _force_accel_into(x, tau, f, eff, prm, fixture, gen, slip, acc, g2, np.empty(2))
     for i in range(6):
         dz[6 + i] = acc[i]
     dz[12] = slip[0]
@@ -387,9 +416,9 @@ def ext_sample_accelerations(X, TAU, F, eff, prm, fixture):
     n = X.shape[0]
     out = np.empty((n, 6))
     gen, acc, g2, slip = np.empty(6), np.empty(6), np.empty(6), np.empty(2)
+    inertial = np.empty(2)
     for k in range(n):
-        _effect_force_into(X[k], TAU[k], eff, prm, fixture, gen, slip)
-        _accelerations_into(X[k], TAU[k], F[k], gen, eff, prm, fixture, acc, g2)
+        _force_accel_into(X[k], TAU[k], F[k], eff, prm, fixture, gen, slip, acc, g2, inertial)
         out[k] = acc
     return out
 
