@@ -158,15 +158,17 @@ def nominal_params():
 
 @pytest.mark.parametrize("tau_tr", [0.5, 2.0, 2.9, 3.5, 8.0, -6.0, 0.0])
 def test_traction_limited_slip_solves_the_wheel_balance(tau_tr):
-    """sigma solves tau_tr - b sigma = T tanh(sigma / (k T)); the ground torque never exceeds T; below the
-    limit the wheel creeps k tau, above it spins up until viscous friction takes the excess."""
+    """sigma solves tau_tr - b sigma = T y / sqrt(1 + y^2), y = sigma / (k T); the ground torque never exceeds
+    T; below the limit the wheel creeps k tau, above it spins up until viscous friction takes the excess."""
     k, T, b = 0.02, 3.0, 0.18
     eff = fx.effect_vector({"k_slip": k, "t_trac": T})
     sigma, tg = phys.slip_state(tau_tr, b, eff)
-    assert tau_tr - b * sigma == pytest.approx(T * np.tanh(sigma / (k * T)), abs=1e-9)
+    y = sigma / (k * T)
+    assert tau_tr - b * sigma == pytest.approx(T * y / np.sqrt(1 + y * y), abs=1e-9)
     assert tg == pytest.approx(tau_tr - b * sigma, abs=1e-9) and abs(tg) <= T
     if abs(tg) < 0.999 * T:
-        assert sigma == pytest.approx(k * T * np.arctanh(tg / T), rel=1e-7, abs=1e-12)  # on the traction curve
+        u = tg / T
+        assert sigma == pytest.approx(k * T * u / np.sqrt(1 - u * u), rel=1e-7, abs=1e-12)  # on the traction curve
     if abs(tau_tr) < 0.2 * T:
         assert sigma == pytest.approx(k * tau_tr, rel=0.03)  # linear creep
     if abs(tau_tr) > 2 * T:

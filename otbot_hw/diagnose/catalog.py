@@ -90,7 +90,7 @@ CATALOG: tuple[Effect, ...] = (
            "drive with large then small torques at the same speed: slip depends on torque, scale errors do not",
            ({"k_slip": 0.03}, {"k_slip": 0.06}), floor_only=True),
     Effect("traction_limit", "wheel slip with saturating traction", "floor",
-           "ground torque t_trac tanh(tau_tr / t_trac): above the traction limit the wheel spins up "
+           "ground torque t_trac y / sqrt(1 + y^2), y = slip rate / (k_slip t_trac) (magic formula, C = 1): above the traction limit the wheel spins up "
            "(slip rate k_slip tau_g + (tau_tr - tau_g) / b_w)", ("k_slip", "t_trac"),
            "wheel residuals = transmitted minus traction-limited torque at high torque",
            "IMU accelerations flatten at high wheel torque while the encoders race ahead",

@@ -27,7 +27,7 @@ u_max_r, ...   N m        torque saturation of the right/left wheel and pivot mo
 T_i            s          current-loop lag: first-order lag of the delivered torque (0 = none)
 db_w           N m s/rad  viscous asymmetry: b_right = b_w + db_w, b_left = b_w - db_w
 dr_r, dr_l     1          wheel radii: r_right = r (1 + dr_r), r_left = r (1 + dr_l) (r: the nominal radius)
-t_trac         N m        traction limit of each wheel: ground torque t_trac tanh(tau_tr / t_trac) (0 = none)
+t_trac         N m        traction limit of each wheel: ground torque t_trac y / sqrt(1 + y^2), y = slip / (k_slip t_trac) (0 = none)
 n_cst          1          number of casters (1..4) sharing the caster drag f_cst equally
 x_c1 .. y_c4   m          caster contact points in the chassis frame B' (from the robot configuration)
 c_lin          N s/m      linear drag at the pivot: F = -c_lin v (discovered law)
