@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.diagnose import catalog as cat
-from otbot_hw.diagnose.adequacy import assess
+from otbot_hw.diagnose.adequacy import assess, implausible_shifts, on_bound
 from otbot_hw.diagnose.data import DiagnosisData, check_testable
 from otbot_hw.diagnose.geometry import EffectGeometry
 from otbot_hw.diagnose.identifiability import (effect_identifiability, not_identifiable_effects,
-                                               saturation_not_identifiable)
+                                               saturation_not_identifiable, undetermined_effect_parameters)
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
@@ -210,7 +210,14 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     progress(f"[diagnose] nominal fit: {base.message} ({base.nfev} evaluations)")
     windows = locate(recordings + holdout, base.model)
     progress(f"[diagnose] located {len(windows)} flagged window(s)")
-    sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured)
+    wandered = implausible_shifts(base.values, params, base.std) + on_bound(base.values)
+    if wandered:
+        progress(f"[diagnose] the nominal fit moved {', '.join(dict.fromkeys(w['parameter'] for w in wandered))} "
+                 "implausibly")
+    # effects are screened about the file's values too: the nominal fit absorbs part of an effect into the
+    # nominal parameters (air drag under constant torques into b_w and I_c; a traction limit into I_p on its
+    # bound) and the screening about that fit, a local score test, no longer sees it
+    sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured, start)
     final = sel.final_fit
     if not geometry.casters_configured:
         final = _caster_pair(recordings, sel, final, progress)
@@ -262,6 +269,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     found = {c.effect for c in sel.accepted + sel.small} | {c.effect for g in sel.ambiguous for c in g}
     not_identifiable = adequacy.not_identifiable + not_identifiable_effects(
         identifiability, found, {n: e.title for n, e in sel.effects.items()})
+    not_identifiable += undetermined_effect_parameters(effects + [g["candidates"][0] for g in ambiguous])
     listed = {x["name"] for x in not_identifiable}
     not_identifiable += [x for x in saturation_not_identifiable(recordings, sel.effects.values(), found)
                          if x["name"] not in listed]

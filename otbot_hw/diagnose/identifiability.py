@@ -149,6 +149,33 @@ def signature_chi2(recordings, model, nominal_free: list[str], values: dict[str,
     return float(d @ d), len(r0)
 
 
+#: what to record so that a parameter of a found effect is determined (its part of the law acts)
+EFFECT_PARAMETER_RECORD = {
+    "k_slip": "wheel torques that stay below the traction limit, or ramp slowly through it (the creep slope "
+              "shows only below the limit)",
+    "t_trac": "a hard start with wheel torques above the traction limit",
+    "v_s": "slow ramps of the wheel speed through zero (stand or floor), several times",
+    "s_w": "slow ramps of the wheel speed through zero (stand or floor), several times",
+}
+
+
+def undetermined_effect_parameters(effects: list[dict]) -> list[dict]:
+    """Entries of "not identifiable from this recording" for parameters of found effects that the data do not
+    determine (std NaN in the final fit: the Fisher information of that parameter is singular -- e.g. the
+    creep slope of a traction limit under constant torques far above the limit, where the wheels spin from
+    the first sample on). ``effects``: the diagnosis's effect entries (``parameters`` {value, std}). The
+    effect is found; the value reported for that parameter is not a measurement."""
+    out = []
+    for e in effects:
+        for n, v in e["parameters"].items():
+            if v.get("std") is None:
+                out.append({"kind": "parameter", "name": n, "effect": e["name"], "value": v["value"],
+                            "why": f"{e['name']} is found, but this recording does not determine its {n} "
+                                   "(std not identifiable: its information in the data is nil)",
+                            "record": EFFECT_PARAMETER_RECORD.get(n, "a richer excitation of that effect")})
+    return out
+
+
 RANGE_MARGIN = 0.02  # of the fitting recordings' span: a held-out run beyond it is outside their range
 RANGE_CHANNELS = (("u_r", "N m"), ("u_l", "N m"), ("u_p", "N m"), ("w_r", "rad/s"), ("w_l", "rad/s"),
                   ("w_p", "rad/s"))
