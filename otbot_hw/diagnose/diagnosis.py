@@ -269,7 +269,9 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     found = {c.effect for c in sel.accepted + sel.small} | {c.effect for g in sel.ambiguous for c in g}
     not_identifiable = adequacy.not_identifiable + not_identifiable_effects(
         identifiability, found, {n: e.title for n, e in sel.effects.items()})
-    not_identifiable += undetermined_effect_parameters(effects + [g["candidates"][0] for g in ambiguous])
+    not_identifiable += undetermined_effect_parameters(
+        effects + [g["candidates"][0] for g in ambiguous],
+        {p: v for e in sel.effects.values() for p, v in e.magnitudes[0].items()})
     listed = {x["name"] for x in not_identifiable}
     not_identifiable += [x for x in saturation_not_identifiable(recordings, sel.effects.values(), found)
                          if x["name"] not in listed]

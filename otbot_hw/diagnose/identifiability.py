@@ -159,19 +159,23 @@ EFFECT_PARAMETER_RECORD = {
 }
 
 
-def undetermined_effect_parameters(effects: list[dict]) -> list[dict]:
+def undetermined_effect_parameters(effects: list[dict], typical: dict[str, float] | None = None) -> list[dict]:
     """Entries of "not identifiable from this recording" for parameters of found effects that the data do not
-    determine (std NaN in the final fit: the Fisher information of that parameter is singular -- e.g. the
-    creep slope of a traction limit under constant torques far above the limit, where the wheels spin from
-    the first sample on). ``effects``: the diagnosis's effect entries (``parameters`` {value, std}). The
-    effect is found; the value reported for that parameter is not a measurement."""
+    determine: std NaN in the final fit (the Fisher information of that parameter is singular), or a std above
+    the parameter's ``typical`` size (the catalog's smallest step: the data cannot tell that size from none)
+    -- e.g. the creep slope of a traction limit under constant torques far above the limit, where the wheels
+    spin from the first sample on. ``effects``: the diagnosis's effect entries (``parameters`` {value, std}).
+    The effect is found; the value reported for that parameter is not a measurement."""
+    typical = typical or {}
     out = []
     for e in effects:
         for n, v in e["parameters"].items():
-            if v.get("std") is None:
+            s = v.get("std")
+            if s is None or (n in typical and s > abs(typical[n])):
                 out.append({"kind": "parameter", "name": n, "effect": e["name"], "value": v["value"],
-                            "why": f"{e['name']} is found, but this recording does not determine its {n} "
-                                   "(std not identifiable: its information in the data is nil)",
+                            "why": f"{e['name']} is found, but this recording does not determine its {n} ("
+                                   + ("std not identifiable: its information in the data is nil" if s is None else
+                                      f"std {s:.3g}, above its typical size {abs(typical[n]):.3g}") + ")",
                             "record": EFFECT_PARAMETER_RECORD.get(n, "a richer excitation of that effect")})
     return out
 

@@ -133,7 +133,8 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
             nobs[(d.name, ch)] = int(fit.samples[key])
     std = {n: float(fit.std[n]) for n in names}
     if not _determined(fit.covariance):
-        std = {n: float("nan") for n in names}
+        lost = _undetermined(fit.covariance)
+        std = {n: float("nan") if lost[i] else std[n] for i, n in enumerate(names)}
     return FitResult(names=names, values=dict(fit.estimate), std=std, model=model.with_values(fit.estimate),
                      rss=rss, n_samples=nobs, nfev=fit.nfev, success=fit.optimizer_status > 0,
                      message=fit.message, sigma=sigmas, correlation=np.asarray(fit.correlation))
@@ -148,6 +149,31 @@ def _determined(cov: np.ndarray) -> bool:
     if not np.all(d > 0):
         return False
     return bool(np.linalg.cond(cov / np.outer(d, d)) < 1.0 / RANK_TOL ** 2)
+
+
+NULL_COMPONENT = 0.3  # a parameter with a larger share of a near-null direction is not determined
+
+
+def _undetermined(cov: np.ndarray) -> np.ndarray:
+    """Which free parameters the data do not determine, when ``_determined`` says not all are: a non-finite
+    or zero variance, or a share above ``NULL_COMPONENT`` of a near-null direction of the correlation matrix
+    (eigenvalue below RANK_TOL^2 of the largest). The others keep their std (a traction limit's t_trac is
+    determined to 1 mN m under constant torques far above it; its creep slope is not)."""
+    n = cov.shape[0]
+    with np.errstate(invalid="ignore"):
+        d = np.sqrt(np.abs(np.diag(cov)))
+    lost = ~(np.isfinite(d) & (d > 0))
+    ok = np.flatnonzero(~lost)
+    sub = cov[np.ix_(ok, ok)]
+    if ok.size == 0 or not np.all(np.isfinite(sub)):
+        return np.ones(n, bool)
+    w, v = np.linalg.eigh(sub / np.outer(d[ok], d[ok]))
+    null = w < RANK_TOL ** 2 * max(w.max(), 1e-300)
+    if null.any():
+        lost[ok[np.any(np.abs(v[:, null]) > NULL_COMPONENT, axis=1)]] = True
+    if not lost.any():  # determined by these tests but not by ``_determined``: keep the old answer
+        return np.ones(n, bool)
+    return lost
 
 
 # --- residual correlation: evidence and standard deviations that survive model-form error ----------
@@ -230,6 +256,5 @@ def robust_std(recordings: list[DiagnosisData], fit: FitResult) -> dict[str, flo
     except np.linalg.LinAlgError:
         return {n: float("nan") for n in names}
     cov = B @ meat @ B
-    if not _determined(cov):
-        return {n: float("nan") for n in names}
-    return {n: float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
+    lost = _undetermined(cov) if not _determined(cov) else np.zeros(len(names), bool)
+    return {n: float("nan") if lost[i] else float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
