@@ -248,15 +248,21 @@ class _Search:
             self.accepted.append(best)
         self.current = best.fit
 
-    def converge(self, c: Candidate, ref: tuple) -> Candidate:
+    def converge(self, c: Candidate, ref: tuple, nominal_from: Candidate | None = None) -> Candidate:
         """``c`` with its nested fit continued (``NESTED_NFEV`` more iterations) when it stopped on the
         budget rather than converged: before a second effect is fitted beside it, its own residual
         structure must be its own, not iterations it did not take (a traction limit stopped at kappa 46
-        "gained" 22000 BIC from an encoder scale error that then fitted to zero). Evidence recomputed."""
-        if c.fit.success:
+        "gained" 22000 BIC from an encoder scale error that then fitted to zero). Evidence recomputed.
+        ``nominal_from``: continued from that candidate's nominal values instead (a look-alike against the best:
+        both from the same place), even when it had converged."""
+        if c.fit.success and nominal_from is None:
             return c
+        start = c.fit.model
+        if nominal_from is not None:
+            start = start.with_values({n: nominal_from.fit.values[n] for n in self.current.names
+                                       if n in nominal_from.fit.values})
         try:
-            fit = refit(self.recordings, c.fit.model, c.fit.names, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
+            fit = refit(self.recordings, start, c.fit.names, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
         except FIT_FAILURES:
             return c
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
@@ -332,11 +338,11 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
                 continue
             break
         good.sort(key=lambda c: c.dbic)
-        # the best's look-alikes that stopped on the budget are converged before the data are said to tell them
-        # apart (rolling resistance stopped at kappa 2.4 "lost" by 280 BIC to wheel Coulomb friction, a model of
-        # the same shape under constant torques)
+        # the best's look-alikes are refit from the best's nominal values before the data are said to tell them
+        # apart (rolling resistance, fitted from the nominal fit, "lost" by 280 BIC to wheel Coulomb friction,
+        # fitted from the file's values: the same model under constant torques, c_rr exact from there)
         look = set(S.by_name[good[0].effect].lookalikes)
-        conv = {id(c): S.converge(c, ref) for c in good[1:]
+        conv = {id(c): S.converge(c, ref, good[0]) for c in good[1:]
                 if c.effect in look or good[0].effect in S.by_name[c.effect].lookalikes}
         cands = [conv.get(id(c), c) for c in cands]
         good = sorted((conv.get(id(c), c) for c in good), key=lambda c: c.dbic)
