@@ -226,9 +226,12 @@ def robust_std(recordings: list[DiagnosisData], fit: FitResult) -> dict[str, flo
     autocovariances M summed per (recording, channel) up to its ``bandwidth`` with Bartlett weights.
     J by forward differences of the noise-weighted residuals. NaN where the data do not determine
     the parameters. For white residuals it equals the usual estimate."""
-    names = fit.names
+    # parameters the fit itself does not determine (std NaN) stay NaN; the sandwich is taken over the others
+    # (a traction limit's creep slope that never acts gives a zero column and a singular J^T J)
+    names = [n for n in fit.names if np.isfinite(fit.std.get(n, np.nan))]
+    lost = {n: float("nan") for n in fit.names if n not in names}
     if not names:
-        return {}
+        return lost
     base = weighted_residuals(recordings, fit.model, fit.sigma)
     keys = list(base)
     cols = []
@@ -254,7 +257,8 @@ def robust_std(recordings: list[DiagnosisData], fit: FitResult) -> dict[str, flo
     try:
         B = np.linalg.inv(A)
     except np.linalg.LinAlgError:
-        return {n: float("nan") for n in names}
+        return {**lost, **{n: float("nan") for n in names}}
     cov = B @ meat @ B
-    lost = _undetermined(cov) if not _determined(cov) else np.zeros(len(names), bool)
-    return {n: float("nan") if lost[i] else float(np.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
+    gone = _undetermined(cov) if not _determined(cov) else np.zeros(len(names), bool)
+    return {**lost, **{n: float("nan") if gone[i] else float(np.sqrt(max(cov[i, i], 0.0)))
+                       for i, n in enumerate(names)}}
