@@ -213,11 +213,12 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     wandered = implausible_shifts(base.values, params, base.std) + on_bound(base.values)
     if wandered:
         progress(f"[diagnose] the nominal fit moved {', '.join(dict.fromkeys(w['parameter'] for w in wandered))} "
-                 "implausibly")
+                 "implausibly: the first nested fits start from the file's values")
     # effects are screened about the file's values too: the nominal fit absorbs part of an effect into the
     # nominal parameters (air drag under constant torques into b_w and I_c; a traction limit into I_p on its
     # bound) and the screening about that fit, a local score test, no longer sees it
-    sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured, start)
+    sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured, start,
+                 bool(wandered))
     final = sel.final_fit
     if not geometry.casters_configured:
         final = _caster_pair(recordings, sel, final, progress)

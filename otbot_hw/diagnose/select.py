@@ -104,9 +104,11 @@ def _kappa(recordings: list[DiagnosisData], fit: FitResult) -> float:
 class _Search:
     """State of one selection: the data, the base the next candidates are fitted on, what was found."""
 
-    def __init__(self, recordings, holdout, base_fit, nominal_free, progress, casters_configured, given=None):
+    def __init__(self, recordings, holdout, base_fit, nominal_free, progress, casters_configured, given=None,
+                 wandered=False):
         self.recordings, self.holdout, self.progress = recordings, holdout, progress
-        self.given = given  # the parameter file's model, when the nominal fit wandered off it (``choose``)
+        self.given = given  # the parameter file's model (``choose``)
+        self.wandered = wandered  # the nominal fit moved implausibly far from it
         self.nominal_free = nominal_free
         effects = cat.applicable({d.fixture for d in recordings}, casters_configured)
         self.effects = effects
@@ -132,6 +134,7 @@ class _Search:
         against ``beside`` (the BIC gain of the effect already in ``on``) for a second effect."""
         e = self.by_name[name]
         names = list(on.names) + [p for p in e.parameters if p not in on.names]
+        guess = self._better_start(e, on.model, guess)
         self.progress(f"[diagnose] nested fit: + {name} (start {guess})")
         try:
             fit = refit(self.recordings, on.model, names, guess=guess, max_nfev=QUICK_NFEV, tol=NESTED_TOL)
@@ -169,8 +172,13 @@ class _Search:
             # constant torques: I_p on its bound; air drag into b_w), and the screening about that fit, a local
             # score test, misses it: screened about the file's values too, the effect that explains most from
             # there is fitted from there as well when it beats everything the first screening saw
-            sf = {e: v for e, v in screen_simulation(self.recordings, self.given, self.nominal_free, self.effects,
-                                                     exclude=exclude).items() if e not in names}
+            sf_all = screen_simulation(self.recordings, self.given, self.nominal_free, self.effects, exclude=exclude)
+            if self.wandered:  # the nominal fit is implausible: the shortlist's nested fits start from the file too
+                for n in names:
+                    if n in sf_all:
+                        ss[n] = sf_all[n]
+                        starts[n] = dataclasses.replace(on, model=self.given)
+            sf = {e: v for e, v in sf_all.items() if e not in names}
             top = min(sf, key=lambda e: sf[e][0], default=None)
             best_here = min([d for d, _ in ss.values()] + [0.0])
             if top is not None and sf[top][0] < min(best_here, -SCREEN_DBIC):
@@ -248,6 +256,27 @@ class _Search:
             self.accepted.append(best)
         self.current = best.fit
 
+    def _better_start(self, e: cat.Effect, model: ExtendedModel, guess: dict) -> dict:
+        """The screening's guess or the catalog's smallest step, whichever the simulation fits better (two
+        simulations): a linear step's coefficient is a poor guess of a nonlinear parameter (a traction limit's
+        creep slope read 0.26 rad/(s N m) for a true 0.02; the fit from there stopped on its budget at kappa 46)."""
+        step = {p: e.magnitudes[0][p] for p in e.parameters if p in e.magnitudes[0]}
+        alt = {**guess, **step}
+        if not step or all(np.isclose(alt[p], guess.get(p, np.nan)) for p in step):
+            return guess
+        from otbot_hw.diagnose.refit import channel_sigmas
+
+        sig = channel_sigmas(self.recordings)
+
+        def cost(g):
+            try:
+                res = weighted_residuals(self.recordings, model.with_values(g), sig)
+            except (ValueError, ZeroDivisionError, FloatingPointError):
+                return np.inf
+            return float(sum(v @ v for v in res.values()))
+
+        return alt if cost(alt) < cost(guess) else guess
+
     def converge(self, c: Candidate, ref: tuple, nominal_from: Candidate | None = None) -> Candidate:
         """``c`` with its nested fit continued (``NESTED_NFEV`` more iterations) when it stopped on the
         budget rather than converged: before a second effect is fitted beside it, its own residual
@@ -300,7 +329,7 @@ class _Search:
 
 def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_fit: FitResult,
            nominal_free: list[str], progress=lambda msg: None, casters_configured: bool = True,
-           given: ExtendedModel | None = None) -> Selection:
+           given: ExtendedModel | None = None, wandered: bool = False) -> Selection:
     """Greedy forward selection of effects: screen, nested fits, accept by evidence, judge by physics.
 
     Each round adds the best candidate with evidence (``has_evidence``): alone, or as an ambiguous
@@ -312,8 +341,10 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
     round and kept only if an effect beside it passes both tests. The search goes on after each of
     these, up to ``MAX_ROUNDS`` rounds. ``given``: the parameter file's model: the first round also screens
     about it (the nominal fit may have absorbed an effect, and a score test about that fit is local) and fits
-    an effect from there when that screening finds it stronger."""
-    S = _Search(recordings, holdout, base_fit, nominal_free, progress, casters_configured, given)
+    an effect from there when that screening finds it stronger; ``wandered``: the nominal fit moved
+    implausibly far from the file (it absorbed an effect), and the first round's nested fits all start from
+    the file's values."""
+    S = _Search(recordings, holdout, base_fit, nominal_free, progress, casters_configured, given, wandered)
     provisional: Candidate | None = None
     ref = S.reference(S.current)
     for round_index in range(MAX_ROUNDS):
