@@ -121,6 +121,79 @@ class _Probe:
         setattr(obj, attr, timed)
 
 
+class _Sampler:
+    """A whole-process profile: every ``interval`` s, each other thread's Python stack
+    (``sys._current_frames``) weighted by the CPU time that thread used since the previous sample
+    (its ``pthread_getcpuclockid`` clock), so a thread blocked in a wait weighs nothing. Written as
+    folded stacks (``thread;outer;...;inner weight_us``: flamegraph.pl / speedscope) and a text
+    summary per thread (inclusive and own CPU per function)."""
+
+    def __init__(self, interval: float = 0.0005):
+        self.interval = interval
+        self.folded: dict[tuple, float] = {}
+        self._stop = threading.Event()
+        self._th = threading.Thread(target=self._run, name="sampler", daemon=True)
+
+    def start(self):
+        self._th.start()
+
+    def stop(self):
+        self._stop.set()
+        self._th.join()
+
+    def _run(self):
+        me = threading.get_ident()
+        last: dict[int, float] = {}
+        while not self._stop.wait(self.interval):
+            names = {t.ident: t.name for t in threading.enumerate()}
+            for ident, frame in sys._current_frames().items():
+                if ident == me:
+                    continue
+                try:
+                    c = time.clock_gettime(time.pthread_getcpuclockid(ident))
+                except (OSError, AttributeError):
+                    continue
+                d, last[ident] = c - last.get(ident, c), c
+                if d <= 0:
+                    continue
+                stack = []
+                while frame is not None:
+                    co = frame.f_code
+                    fn = co.co_filename.replace(str(ROOT) + "/", "")
+                    if "site-packages/" in fn:
+                        fn = fn.split("site-packages/", 1)[1]
+                    stack.append(f"{co.co_qualname if hasattr(co, 'co_qualname') else co.co_name} ({fn})")
+                    frame = frame.f_back
+                name = names.get(ident, str(ident))
+                key = (name, *reversed(stack))
+                self.folded[key] = self.folded.get(key, 0.0) + d
+
+    def write(self, path: Path, cycles: int) -> None:
+        path.write_text("".join(f"{';'.join(k).replace(' ', '_')} {v * 1e6:.0f}\n"
+                                for k, v in sorted(self.folded.items())))
+        by_thread: dict[str, float] = {}
+        incl: dict[tuple, float] = {}
+        own: dict[tuple, float] = {}
+        for key, v in self.folded.items():
+            th = key[0]
+            by_thread[th] = by_thread.get(th, 0.0) + v
+            for fn in set(key[1:]):
+                incl[(th, fn)] = incl.get((th, fn), 0.0) + v
+            own[(th, key[-1])] = own.get((th, key[-1]), 0.0) + v
+        out = [f"Whole-process CPU profile (sampled every {self.interval * 1e3:g} ms, each thread's stack weighted "
+               f"by its CPU time since the last sample), us of CPU per control cycle ({cycles} cycles)\n"]
+        for th, tot in sorted(by_thread.items(), key=lambda x: -x[1]):
+            if tot / cycles < 2e-6:
+                continue
+            out.append(f"\n== thread {th}: {tot / cycles * 1e6:.1f} us per cycle\n  inclusive:\n")
+            rows = sorted(((v, fn) for (t, fn), v in incl.items() if t == th), reverse=True)[:30]
+            out += [f"    {v / cycles * 1e6:8.1f}  {fn}\n" for v, fn in rows]
+            out.append("  own:\n")
+            rows = sorted(((v, fn) for (t, fn), v in own.items() if t == th), reverse=True)[:20]
+            out += [f"    {v / cycles * 1e6:8.1f}  {fn}\n" for v, fn in rows]
+        path.with_suffix(".txt").write_text("".join(out))
+
+
 def _thread_cpu() -> dict[str, float]:
     """CPU seconds per live thread of this process, by name (same names summed)."""
     out: dict[str, float] = {}
@@ -135,7 +208,8 @@ def _thread_cpu() -> dict[str, float]:
     return out
 
 
-def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, cprofile: Path | None = None) -> dict:
+def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, cprofile: Path | None = None,
+        sample: Path | None = None) -> dict:
     from otbot_hw.cli import build_parser
     from otbot_hw.cli.daemon import prepare
     from otbot_hw.runtime.daemon_process import local_config
@@ -191,6 +265,22 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
 
         prof_box["c"] = cProfile.Profile()
         _loop_call(daemon, prof_box["c"].enable)
+        plant = getattr(robot, "plant", None)
+        if plant is not None:  # the plant's receive thread too: enabled from inside it, at its next frame
+            prof_box["plant"] = cProfile.Profile()
+            net, notify = plant.network, plant.network.notify
+
+            def notify_once(*a):
+                del net.notify  # back to the class's method
+                prof_box["plant"].enable()
+                prof_box["plant_thread"] = threading.get_ident()
+                return notify(*a)
+
+            net.notify = notify_once
+    sampler = None
+    if sample is not None:
+        sampler = _Sampler()
+        sampler.start()
     cpu0 = _thread_cpu()
     st0 = _request(sock, "status")
     probe.active = True
@@ -204,6 +294,9 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     probe.active = False
     wall = time.monotonic() - t0
     st = _request(sock, "status")
+    if sampler is not None:
+        sampler.stop()
+        sampler.write(sample, max(1, st["loop"]["cycles"] - st0["loop"]["cycles"]))
     cpu1 = _thread_cpu()
     if profile is not None:
         p = prof_box["p"]
@@ -214,13 +307,17 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
         import pstats
 
         _loop_call(daemon, prof_box["c"].disable)
-        out = io.StringIO()
-        stats = pstats.Stats(prof_box["c"], stream=out)
-        out.write(f"cProfile of the loop thread, {rate:g} Hz, {wall:.0f} s (CPU time per function; profiling "
-                  f"itself slows each call)\n")
-        stats.sort_stats("tottime").print_stats(40)
-        stats.sort_stats("cumulative").print_stats(40)
-        cprofile.write_text(out.getvalue().replace(str(ROOT) + "/", ""))
+        for key, what, dest in (("c", "the loop thread", cprofile),
+                                ("plant", "the plant's CAN receive thread", cprofile.with_suffix(".plant.txt"))):
+            if key not in prof_box:
+                continue
+            out = io.StringIO()
+            stats = pstats.Stats(prof_box[key], stream=out)
+            out.write(f"cProfile of {what}, {rate:g} Hz, {wall:.0f} s (wall time per function, waits included; "
+                      f"profiling itself slows each call)\n")
+            stats.sort_stats("tottime").print_stats(40)
+            stats.sort_stats("cumulative").print_stats(50)
+            dest.write_text(out.getvalue().replace(str(ROOT) + "/", ""))
     load = os.getloadavg()[0]
     _request(sock, "shutdown")
     th.join(30)
@@ -257,13 +354,15 @@ def main(argv=None) -> int:
     ap.add_argument("--profile", type=Path, default=None, help="write a pyinstrument text profile of the loop thread")
     ap.add_argument("--cprofile", type=Path, default=None,
                     help="write a cProfile table (by own time, then cumulative) of the loop thread")
+    ap.add_argument("--sample", type=Path, default=None,
+                    help="write a whole-process CPU profile, every thread (FILE: folded stacks; FILE.txt: summary)")
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     load0 = os.getloadavg()[0]
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
-        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile)
+        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.sample)
     row["label"] = a.label
     row["load_before"] = load0  # 1-min load average at the start; "load": at the window's end
     if a.json:
