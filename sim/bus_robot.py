@@ -157,6 +157,9 @@ class SimulatedBusRobot(ImuLockstep, CanopenRobot, SimulatedRobot):
 
     def truth_force(self) -> np.ndarray:
         """External pivot force (2,) N, ground frame, held from the last read's SYNC on."""
+        f = self.plant.sync_f  # (as ``truth``: the latest SYNC's, no lock to wait for)
+        if f is not None:
+            return np.array(f, dtype=float)
         with self.plant.lock:
             return np.array(self.plant.truth.f[-1], dtype=float) if self.plant.truth.f else np.zeros(2)
 

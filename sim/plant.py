@@ -113,9 +113,11 @@ class Plant:
         self.syncs = 0
         self.malformed_sync = 0
         self.truth = TruthLog()
-        #: the state (12,) at the latest SYNC, set before its TPDOs go out and never changed after
-        #: (``SimulatedBusRobot.truth`` reads it without the lock); None until a SYNC after a set-up
+        #: the state (12,) and pivot force (2,) N at the latest SYNC, set before its TPDOs go out and
+        #: never changed after (``SimulatedBusRobot.truth``/``truth_force`` read them without the
+        #: lock); None until a SYNC after a set-up
         self.sync_x: np.ndarray | None = None
+        self.sync_f: np.ndarray | None = None
         self.lock = threading.Lock()
         self.bus_gate = bus_gate
         self.injector = injector
@@ -274,7 +276,7 @@ class Plant:
                 setattr(st, attr, getattr(old, attr) * (0.0 if attr == "tau" else 1.0))
         st.t = old.t
         self.stepper = st
-        self.sync_x = None  # the robot was moved: the truth is the new stepper's until the next SYNC
+        self.sync_x = self.sync_f = None  # the robot was moved: the truth is the new stepper's until the next SYNC
         self.sensors = StepperSensors(st, self.period)
         self.fixture = fixture
 
@@ -329,8 +331,8 @@ class Plant:
             self.injector.on_sync(self)
         u = np.array([d.joint_torque() for d in self.drives])
         x = self.stepper.x.copy()
-        self.sync_x = x
         f = self.forces.at(self.t + 1e-9) if (self.forces is not None and self.started) else np.zeros(2)
+        self.sync_x, self.sync_f = x, f
         if self.imu is not None and imu_due(sync_index, self.period, self.imu_rate):
             acc, gyro = self.imu_reading(x, u, f)
             self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)
