@@ -72,6 +72,8 @@ class SimulatedNode:
         self._rpdo_pending: dict[int, bytes] = {}
         self._rpdo_hooked: set[int] = set()
         self._layouts: dict[int, pdo_codec.PdoLayout | None] = {}  # id(PdoMap) -> its compiled frame
+        self._rpdo_maps: list = []  # the RPDO maps, and the TPDO maps with their layouts (set by _reload_pdos)
+        self._tpdo_maps: list = []
         self.silent = False
         self.drop_tpdos = False
         self.malformed = 0  # frames addressed to this node that were ignored (wrong length)
@@ -244,6 +246,8 @@ class SimulatedNode:
                 self._rpdo_hooked.add(no)
         self._layouts = {id(m): _layout(m) for maps in (self.node.tpdo.map, self.node.rpdo.map)
                          for m in maps.values()}
+        self._rpdo_maps = list(self.node.rpdo.map.values())
+        self._tpdo_maps = [(m, self._layouts[id(m)]) for m in self.node.tpdo.map.values()]
         self._pdo_dirty = False
 
     def _on_foreign(self, can_id: int, data: bytes, timestamp: float) -> None:
@@ -294,10 +298,12 @@ class SimulatedNode:
             if not self.operational:
                 self._rpdo_pending.clear()
                 return
-            for m in self.node.rpdo.map.values():
-                data = self._rpdo_pending.pop(m.cob_id, None) if m.enabled else None
-                if data is not None:
-                    self._apply_rpdo(m, data)
+            pending = self._rpdo_pending
+            if pending:
+                for m in self._rpdo_maps:
+                    data = pending.pop(m.cob_id, None) if m.enabled else None
+                    if data is not None:
+                        self._apply_rpdo(m, data)
             self.on_sync()
 
     def on_sync_received(self) -> None:
@@ -314,12 +320,11 @@ class SimulatedNode:
             if not self.operational or self.silent:
                 return
             self._sync_count += 1
-            for m in self.node.tpdo.map.values():
+            for m, layout in self._tpdo_maps:
                 tt = m.trans_type
                 if not m.enabled or tt is None or tt > 240:
                     continue
                 if tt == 0 or self._sync_count % tt == 0:
-                    layout = self._layouts.get(id(m))
                     try:
                         if layout is None:
                             raise struct.error
