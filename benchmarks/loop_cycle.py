@@ -17,14 +17,17 @@ their sum (the master's cycle work excluding the wait for frames). Cycles withou
 first, unpowered ones) are left out. Sections of it, timed the same way: the EKF step, the
 supervisor's check, the recording's loop side, the limiter, the loop's timing bookkeeping and the
 CAN sends (SYNC and RPDOs: python-can's virtual bus copies each frame for its receivers, which a
-real bus's send does not; *work less virtual-bus sends* takes them out cycle by cycle). Besides, per thread of the process, CPU time per cycle over the
-window: the master's CAN notifier (which decodes the TPDOs: the rest of the master's work), the
+real bus's send does not; *work less virtual-bus sends* takes them out cycle by cycle). The plant's
+SYNC handler (the simulated drives' latch and TPDOs, the IMU sample, the model step), CPU per SYNC.
+Besides, per thread of the process, CPU time per cycle over the window, and their sum (the
+interpreter's whole load per cycle: in process, one lock runs one thread at a time): the master's CAN notifier (which decodes the TPDOs: the rest of the master's work), the
 plant's (the simulated drives: not the master's), heartbeats, telemetry, ...; and the loop's own
 timing from ``status`` (period, overruns: wall time, distorted by the machine's load).
 
 ``--profile FILE``: pyinstrument on the loop thread over the window (text: wall time, call tree);
-``--cprofile FILE``: cProfile on the loop thread (CPU time per function); either slows the cycle,
-so the timing of a profiled run is not representative.
+``--cprofile FILE``: cProfile on the loop thread, and in ``FILE.plant.txt`` on the plant's CAN receive
+thread (wall time per function, waits included); either slows the cycle, so the timing of a
+profiled run is not representative.
 """
 from __future__ import annotations
 
@@ -121,79 +124,6 @@ class _Probe:
         setattr(obj, attr, timed)
 
 
-class _Sampler:
-    """A whole-process profile: every ``interval`` s, each other thread's Python stack
-    (``sys._current_frames``) weighted by the CPU time that thread used since the previous sample
-    (its ``pthread_getcpuclockid`` clock), so a thread blocked in a wait weighs nothing. Written as
-    folded stacks (``thread;outer;...;inner weight_us``: flamegraph.pl / speedscope) and a text
-    summary per thread (inclusive and own CPU per function)."""
-
-    def __init__(self, interval: float = 0.0005):
-        self.interval = interval
-        self.folded: dict[tuple, float] = {}
-        self._stop = threading.Event()
-        self._th = threading.Thread(target=self._run, name="sampler", daemon=True)
-
-    def start(self):
-        self._th.start()
-
-    def stop(self):
-        self._stop.set()
-        self._th.join()
-
-    def _run(self):
-        me = threading.get_ident()
-        last: dict[int, float] = {}
-        while not self._stop.wait(self.interval):
-            names = {t.ident: t.name for t in threading.enumerate()}
-            for ident, frame in sys._current_frames().items():
-                if ident == me:
-                    continue
-                try:
-                    c = time.clock_gettime(time.pthread_getcpuclockid(ident))
-                except (OSError, AttributeError):
-                    continue
-                d, last[ident] = c - last.get(ident, c), c
-                if d <= 0:
-                    continue
-                stack = []
-                while frame is not None:
-                    co = frame.f_code
-                    fn = co.co_filename.replace(str(ROOT) + "/", "")
-                    if "site-packages/" in fn:
-                        fn = fn.split("site-packages/", 1)[1]
-                    stack.append(f"{co.co_qualname if hasattr(co, 'co_qualname') else co.co_name} ({fn})")
-                    frame = frame.f_back
-                name = names.get(ident, str(ident))
-                key = (name, *reversed(stack))
-                self.folded[key] = self.folded.get(key, 0.0) + d
-
-    def write(self, path: Path, cycles: int) -> None:
-        path.write_text("".join(f"{';'.join(k).replace(' ', '_')} {v * 1e6:.0f}\n"
-                                for k, v in sorted(self.folded.items())))
-        by_thread: dict[str, float] = {}
-        incl: dict[tuple, float] = {}
-        own: dict[tuple, float] = {}
-        for key, v in self.folded.items():
-            th = key[0]
-            by_thread[th] = by_thread.get(th, 0.0) + v
-            for fn in set(key[1:]):
-                incl[(th, fn)] = incl.get((th, fn), 0.0) + v
-            own[(th, key[-1])] = own.get((th, key[-1]), 0.0) + v
-        out = [f"Whole-process CPU profile (sampled every {self.interval * 1e3:g} ms, each thread's stack weighted "
-               f"by its CPU time since the last sample), us of CPU per control cycle ({cycles} cycles)\n"]
-        for th, tot in sorted(by_thread.items(), key=lambda x: -x[1]):
-            if tot / cycles < 2e-6:
-                continue
-            out.append(f"\n== thread {th}: {tot / cycles * 1e6:.1f} us per cycle\n  inclusive:\n")
-            rows = sorted(((v, fn) for (t, fn), v in incl.items() if t == th), reverse=True)[:30]
-            out += [f"    {v / cycles * 1e6:8.1f}  {fn}\n" for v, fn in rows]
-            out.append("  own:\n")
-            rows = sorted(((v, fn) for (t, fn), v in own.items() if t == th), reverse=True)[:20]
-            out += [f"    {v / cycles * 1e6:8.1f}  {fn}\n" for v, fn in rows]
-        path.with_suffix(".txt").write_text("".join(out))
-
-
 def _thread_cpu() -> dict[str, float]:
     """CPU seconds per live thread of this process, by name (same names summed)."""
     out: dict[str, float] = {}
@@ -208,8 +138,7 @@ def _thread_cpu() -> dict[str, float]:
     return out
 
 
-def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, cprofile: Path | None = None,
-        sample: Path | None = None) -> dict:
+def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, cprofile: Path | None = None) -> dict:
     from otbot_hw.cli import build_parser
     from otbot_hw.cli.daemon import prepare
     from otbot_hw.runtime.daemon_process import local_config
@@ -253,6 +182,21 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     if daemon.telemetry is not None:  # after the cycle (the daemon's _after_cycle), not in read -> write
         name = "publish_cycle" if hasattr(daemon.telemetry, "publish_cycle") else "publish"  # (code before: publish)
         probe.section(daemon.telemetry, name, "telemetry publish (after the write)")
+    plant_sync, plant_k = np.full(n, np.nan), [0]  # the plant's SYNC handler (simulated drives + model step)
+    plant = getattr(robot, "plant", None)
+    if plant is not None and hasattr(plant, "_on_sync"):
+        handler, subs = plant._on_sync, plant.network.subscribers.get(0x80, [])
+
+        def timed_sync(*a):
+            t0 = time.thread_time()
+            try:
+                return handler(*a)
+            finally:
+                if probe.active and plant_k[0] < n:
+                    plant_sync[plant_k[0]] = time.thread_time() - t0
+                    plant_k[0] += 1
+
+        subs[:] = [timed_sync if cb == handler else cb for cb in subs]
     _request(sock, "enable")
     time.sleep(1.0)  # the hold settles
     notifier_threads = set()
@@ -277,10 +221,6 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
                 return notify(*a)
 
             net.notify = notify_once
-    sampler = None
-    if sample is not None:
-        sampler = _Sampler()
-        sampler.start()
     cpu0 = _thread_cpu()
     st0 = _request(sock, "status")
     probe.active = True
@@ -294,9 +234,6 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     probe.active = False
     wall = time.monotonic() - t0
     st = _request(sock, "status")
-    if sampler is not None:
-        sampler.stop()
-        sampler.write(sample, max(1, st["loop"]["cycles"] - st0["loop"]["cycles"]))
     cpu1 = _thread_cpu()
     if profile is not None:
         p = prof_box["p"]
@@ -337,6 +274,8 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
             "work_p50_us": us(w, 50), "work_p99_us": us(w, 99), "work_max_us": us(w, 100),
             "work_less_sends_p50_us": us(w - sends, 50), "work_less_sends_p99_us": us(w - sends, 99),
             "master_rx_us_per_cycle": master_rx * 1e6,
+            "plant_sync_p50_us": us(plant_sync[:plant_k[0]], 50), "plant_sync_p99_us": us(plant_sync[:plant_k[0]], 99),
+            "process_us_per_cycle": sum(v for k2, v in per.items() if k2 != main_name) * 1e6,
             "sections_p50_p99_us": {name: (us(acc[0][:k], 50), us(acc[0][:k], 99))
                                     for name, acc in probe.sections.items()},
             "threads_us_per_cycle": {k2: round(v * 1e6, 1) for k2, v in sorted(others.items(), key=lambda x: -x[1])
@@ -354,15 +293,13 @@ def main(argv=None) -> int:
     ap.add_argument("--profile", type=Path, default=None, help="write a pyinstrument text profile of the loop thread")
     ap.add_argument("--cprofile", type=Path, default=None,
                     help="write a cProfile table (by own time, then cumulative) of the loop thread")
-    ap.add_argument("--sample", type=Path, default=None,
-                    help="write a whole-process CPU profile, every thread (FILE: folded stacks; FILE.txt: summary)")
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     load0 = os.getloadavg()[0]
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
-        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.sample)
+        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile)
     row["label"] = a.label
     row["load_before"] = load0  # 1-min load average at the start; "load": at the window's end
     if a.json:
@@ -380,6 +317,10 @@ def main(argv=None) -> int:
           f"{row['load_before']:.1f}, {row['load']:.1f} |")
     print("\nloop-thread sections, CPU p50 / p99 (us): " + ", ".join(
         f"{k}: {v[0]:.0f} / {v[1]:.0f}" for k, v in row["sections_p50_p99_us"].items()))
+    print(f"\nplant SYNC handler (simulated drives, IMU, model step) CPU p50 / p99: {row['plant_sync_p50_us']:.0f} / "
+          f"{row['plant_sync_p99_us']:.0f} us; all threads but the benchmark's own: "
+          f"{row['process_us_per_cycle']:.0f} us of CPU per cycle ({row['rate']:g} Hz: "
+          f"{1e6 / row['rate']:.0f} us period)")
     print("\nother threads, CPU us per cycle: "
           + ", ".join(f"{k}: {v}" for k, v in row["threads_us_per_cycle"].items()))
     if row["fault"]:

@@ -73,8 +73,10 @@ class GatedBus(can.BusABC):
             self.inner.send(msg, timeout)
 
     def _recv_internal(self, timeout):
-        msg = self.inner.recv(timeout)
-        return (None if self.is_cut else msg), False  # (filters: this bus's, applied by BusABC.recv)
+        # the inner bus's own receive, not its BusABC.recv loop: the filters are this bus's (set on it,
+        # applied by its BusABC.recv), the inner one has none
+        msg, _ = self.inner._recv_internal(timeout)
+        return (None if self.is_cut else msg), False
 
     def shutdown(self) -> None:
         super().shutdown()
