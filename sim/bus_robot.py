@@ -34,6 +34,14 @@ class SimVirtualBus(VirtualBus):
     ``channel`` / ``is_rx`` set as ``VirtualBus.send`` does; frames, their content and order are
     those of ``VirtualBus``."""
 
+    def _copy(self, msg: can.Message, timestamp: float, bus_queue) -> can.Message:
+        return can.Message(timestamp=timestamp, arbitration_id=msg.arbitration_id,
+                           is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+                           is_error_frame=msg.is_error_frame, channel=self.channel_id, dlc=msg.dlc,
+                           data=bytearray(msg.data), is_fd=msg.is_fd, is_rx=bus_queue is not self.queue,
+                           bitrate_switch=msg.bitrate_switch, error_state_indicator=msg.error_state_indicator,
+                           check=False)
+
     def send(self, msg: can.Message, timeout=None) -> None:
         self._check_if_open()
         timestamp = msg.timestamp if self.preserve_timestamps else time.time()
@@ -41,18 +49,31 @@ class SimVirtualBus(VirtualBus):
         for bus_queue in self.channel:
             if bus_queue is self.queue and not self.receive_own_messages:
                 continue
-            copy = can.Message(timestamp=timestamp, arbitration_id=msg.arbitration_id,
-                               is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
-                               is_error_frame=msg.is_error_frame, channel=self.channel_id, dlc=msg.dlc,
-                               data=bytearray(msg.data), is_fd=msg.is_fd, is_rx=bus_queue is not self.queue,
-                               bitrate_switch=msg.bitrate_switch, error_state_indicator=msg.error_state_indicator,
-                               check=False)
             try:
-                bus_queue.put(copy, block=True, timeout=timeout)
+                bus_queue.put(self._copy(msg, timestamp, bus_queue), block=True, timeout=timeout)
             except queue.Full:
                 all_sent = False
         if not all_sent:
             raise can.CanOperationError("Could not send message to one or more recipients")
+
+    def send_many(self, msgs: list, timeout=None) -> None:
+        """``send`` of several frames, in order, back to back: each receiver's queue takes them under
+        one lock with one wake-up of its reader (not one per frame). Bounded receive queues: one
+        ``send`` each."""
+        if any(q.maxsize > 0 for q in self.channel):
+            for msg in msgs:
+                self.send(msg, timeout)
+            return
+        self._check_if_open()
+        now = time.time()
+        for bus_queue in self.channel:
+            if bus_queue is self.queue and not self.receive_own_messages:
+                continue
+            copies = [self._copy(m, m.timestamp if self.preserve_timestamps else now, bus_queue) for m in msgs]
+            with bus_queue.mutex:
+                bus_queue.queue.extend(copies)
+                bus_queue.unfinished_tasks += len(copies)
+                bus_queue.not_empty.notify()
 
 
 class GatedBus(can.BusABC):
@@ -71,6 +92,17 @@ class GatedBus(can.BusABC):
     def send(self, msg: can.Message, timeout=None) -> None:
         if not self.is_cut:
             self.inner.send(msg, timeout)
+
+    def send_many(self, msgs: list, timeout=None) -> None:
+        """Several frames in order (the inner bus's ``send_many`` where it has one)."""
+        if self.is_cut:
+            return
+        many = getattr(self.inner, "send_many", None)
+        if many is not None:
+            many(msgs, timeout)
+        else:
+            for msg in msgs:
+                self.inner.send(msg, timeout)
 
     def _recv_internal(self, timeout):
         # the inner bus's own receive, not its BusABC.recv loop: the filters are this bus's (set on it,

@@ -1,6 +1,6 @@
 """The simulated bus's fast paths change no frame: ``sim.bus_robot.SimVirtualBus`` (a frame per
-receiver built field by field, not deep-copied) and the simulated slaves' precompiled PDO frames
-(``sim.canopen_slaves.node``) put on the bus, in the same order, the bytes python-can's
+receiver built field by field, not deep-copied; a SYNC's TPDOs queued with one wake-up) and the
+simulated slaves' precompiled PDO frames (``sim.canopen_slaves.node``) put on the bus, in the same order, the bytes python-can's
 ``VirtualBus`` and canopen's per-variable PDO path put there; the bench's BLF bus log still sees
 every frame of the master's bus.
 
@@ -23,6 +23,7 @@ from can.interfaces.virtual import VirtualBus
 
 import sim.bus_robot as bus_robot
 import sim.canopen_slaves.node as node_mod
+import sim.plant as plant_mod
 from drivers.config import load_robot_config
 from otbot_hw.runtime.bench.buslog import BusLog
 from otbot_hw.sensors import NoiseModel
@@ -44,6 +45,8 @@ def _run(monkeypatch, fast: bool, blf=None) -> tuple[list, dict, int]:
         if not fast:
             m.setattr(bus_robot, "SimVirtualBus", VirtualBus)
             m.setattr(node_mod, "_layout", lambda pdo_map: None)
+            m.setattr(plant_mod.Plant, "_send_frames",  # canopen's send, one frame at a time
+                      lambda self, frames: [self.network.send_message(cob, data) for cob, data in frames])
         hexid = uuid.uuid4().hex
         m.setattr(bus_robot.uuid, "uuid4", lambda: uuid.UUID(hexid))
         sniffer = VirtualBus(channel=f"otbot-sim-{hexid[:12]}")
@@ -113,6 +116,14 @@ def test_sim_virtual_bus_gives_each_receiver_its_own_frame():
         for r in (a, b):
             assert bytes(r.data) == b"\x01\x02\x03\x04" and r.arbitration_id == 0x201 and r.is_rx
             assert r.channel == ch and r.dlc == 4 and not r.is_extended_id
+        batch = [can.Message(arbitration_id=0x181 + i, data=[i] * (i % 9), is_extended_id=False) for i in range(7)]
+        tx.send_many(batch)
+        for r in (rx1, rx2):
+            got = [r.recv(1) for _ in batch]
+            assert [(g.arbitration_id, bytes(g.data), g.dlc) for g in got] == \
+                [(b.arbitration_id, bytes(b.data), b.dlc) for b in batch]
+            assert all(g is not b and g.is_rx and g.channel == ch for g, b in zip(got, batch))
+            assert r.recv(0) is None
         tx.shutdown()
         with pytest.raises(can.CanOperationError):
             tx.send(msg)

@@ -312,8 +312,9 @@ class SimulatedNode:
     def on_sync(self) -> None:
         """Hook: per-SYNC device dynamics (after the RPDOs are applied)."""
 
-    def send_tpdos(self) -> None:
-        """At SYNC (after ``latch`` and the plant's update of the values): transmit due TPDOs."""
+    def send_tpdos(self, out: list | None = None) -> None:
+        """At SYNC (after ``latch`` and the plant's update of the values): transmit due TPDOs; with
+        ``out``, append them to it as (COB-ID, data) instead, for the caller to send (in that order)."""
         with self.lock:
             if self._pdo_dirty:
                 self._reload_pdos()
@@ -335,5 +336,8 @@ class SimulatedNode:
                         for v in m.map:
                             pdo_put(v, self.values.get((v.index, v.subindex), 0))
                     if not self.drop_tpdos:
-                        m.transmit()
+                        if out is None:
+                            m.transmit()
+                        else:
+                            out.append((m.cob_id, m.data))
                         self.tpdos_sent += 1
