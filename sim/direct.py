@@ -118,8 +118,8 @@ class DirectSimRobot(SimulatedRobot):
         self._all_enabled = all(s == ENABLED for s in self._states)
 
     def read(self) -> Snapshot:
-        u = self.applied_torque()
-        t_model = self.t_plant
+        u = self._u if self._all_enabled else self.applied_torque()
+        t_model = self._plant_k * self.period  # t_plant
         f = self.forces.at(t_model + 1e-9) if (self.forces is not None and self._started) else self._zero_f
         noise = self.noise
         acc = gyro = imu_t = None
@@ -158,7 +158,8 @@ class DirectSimRobot(SimulatedRobot):
         return snap
 
     def _apply(self, torques: list[float]) -> np.ndarray:
-        self._refuse_unless_writable(self._faults, self._all_enabled)
+        if self._faults or not self._all_enabled:
+            self._refuse_unless_writable(self._faults, self._all_enabled)
         cmd = np.array(torques, dtype=float)
         if self.torque_step:
             cmd = np.round(cmd / self.torque_step) * self.torque_step
