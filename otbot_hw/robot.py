@@ -144,6 +144,12 @@ class Robot(abc.ABC):
     close_report: tuple[str, ...] | list[str] = ()
     #: The clock the back end's own multi-cycle sequences tick (``otbot_hw.clock``; None: it has none)
     clock = None
+    #: The back end's timing, declared (ros2_control: the hardware says what it is, the controller manager
+    #: owns the clock): True when it advances a simulated plant in lockstep with ``read()`` (nothing runs
+    #: in real time: a loop runs its cycles back to back, ``otbot_hw.clock.Unpaced``); False for hardware
+    #: or a plant paced in real time (the loop paces it, ``Pacer``). The loop asks it (``clock.paced``)
+    #: unless its caller chooses.
+    lockstep: bool = False
 
     def use_clock(self, clock) -> None:
         """The runtime's clock (``otbot_hw.clock``), handed down by the loop that drives this robot:

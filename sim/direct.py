@@ -52,8 +52,11 @@ class DirectSimRobot(SimulatedRobot):
     are floored to (None: exact); ``rate_step``: resolution (3,) rad/s the rates are rounded to (None:
     exact); ``limits``: motor torque limits (None: no clamp);
     ``torque_step`` N m: the drives' torque resolution (None: exact); ``forces``: pivot forces.
-    It is its own ``plant`` (``SimulatedRobot``); no operator channel.
+    It is its own ``plant`` (``SimulatedRobot``); no operator channel. Lockstep: nothing runs in real
+    time (``Robot.lockstep``).
     """
+
+    lockstep = True
 
     def __init__(self, plant=None, period: float = 0.001, x0=None, fixture: str = "floor",
                  noise: NoiseModel | None = None, seed: int | None = 0, imu_rate: float | None = 100.0,
