@@ -30,8 +30,10 @@ def sample_and_step_into(x, s, tau, u, f, u_last, f_last, has_last, eff, buf, fi
     """``stepper_readings_into`` at the current sample under u (3,), f (2,) into the readings of ``buf``
     (``Stepper._buf``), then one interval of ``ext_rk4_into`` under them into its X, TAU, S: a loop
     sample's sensors and model step in one compiled call (each call from Python costs about 70 ns per
-    argument: the constant arrays are one). Returns 0 (nothing done) when u is not finite, else 1, or
-    2 when a wheel slipped in the interval."""
+    argument: the constant arrays are one). Returns 0 (nothing done) when u is not 3 finite numbers or f
+    not 2, else 1, or 2 when a wheel slipped in the interval."""
+    if u.shape[0] != 3 or f.shape[0] != 2:
+        return 0
     for i in range(3):
         if not math.isfinite(u[i]):
             return 0
@@ -47,6 +49,9 @@ def sample_and_step_into(x, s, tau, u, f, u_last, f_last, has_last, eff, buf, fi
     ext_rk4_into(x, tau, U, F, dt, substeps, prm, eff, fixture, buf[BUF_X:BUF_TAU].reshape((2, 12)),
                  buf[BUF_TAU:BUF_S].reshape((2, 3)), S, buf[:0].reshape((0, 6)), buf[:0].reshape((0, 2)))
     return 2 if (S[1, 0] != 0.0 or S[1, 1] != 0.0) else 1
+
+
+_F64 = np.dtype(np.float64)
 
 
 class StepperSensors:
@@ -104,12 +109,12 @@ class StepperSensors:
         then ``stepper.step(u, f)``, in one compiled call: encoder angles, rates (3,) each, IMU specific
         force and rate (3,) each or None (sample-time values, before the step)."""
         st = self.stepper
-        if type(u) is not np.ndarray or u.dtype != np.float64 or u.shape != (3,):  # once per cycle: plain checks
-            u = np.asarray(u, dtype=float).reshape(3)
+        if type(u) is not np.ndarray or u.dtype is not _F64 or u.ndim != 1:  # once per cycle: cheap checks
+            u = np.asarray(u, dtype=float).reshape(-1)                      # (the lengths: compiled)
         if f is None:
             f = self._zero2
-        elif type(f) is not np.ndarray or f.dtype != np.float64 or f.shape != (2,):
-            f = np.asarray(f, dtype=float).reshape(2)
+        elif type(f) is not np.ndarray or f.dtype is not _F64 or f.ndim != 1:
+            f = np.asarray(f, dtype=float).reshape(-1)
         imu = imu or self.latency > 0
         u_last = st.u_last
         if u_last is None:
@@ -118,8 +123,8 @@ class StepperSensors:
         else:
             done = sample_and_step_into(st.x, st.slip, st.tau, u, f, u_last, st.f_last, True, st.eff, st._buf,
                                         st._code, imu, st.dt, st._substeps)
-        if not done:
-            raise ValueError(f"torques must be finite, got {u}")
+        if done <= 0:
+            raise ValueError(f"torques must be 3 finite numbers and the force 2, got {u}, {f}")
         o = self._out.copy()
         st.advance(u, f, done == 2)
         self._last = None
