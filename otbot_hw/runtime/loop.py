@@ -91,8 +91,8 @@ class LoopRunner(LoopTiming, LoopRecording, LoopPower):
     None for open loop) and ``supervisor``.
 
     ``path``: MCAP recording to stream (None: in memory only); ``metadata``: extra recording metadata;
-    ``realtime``: pace against the wall clock (None: as the robot declares, ``otbot_hw.clock.paced``); ``progress(text)``: called about every
-    ``progress_every`` s of robot time; ``stop_at_end``: quick-stop after the last cycle;
+    ``realtime``: pace against the wall clock (None: as the robot declares, ``otbot_hw.clock.paced``);
+    ``progress(text)``: called about every ``progress_every`` s of robot time; ``stop_at_end``: quick-stop after the last cycle;
     ``record_reference``: record ``/otbot/reference`` (NaN while no controller gives one); default:
     when the first command comes with a reference.
 

@@ -28,7 +28,8 @@ def run_torques(robot: Robot, torques, limits: MotorLimits | None = None, safety
     ``limits``: motor limits of the supervisor (default: none); ``safety``: its checks (default
     ``SafetyConfig()``); ``path``: MCAP recording; ``realtime``: pace against the wall clock (None: as the
     robot declares, ``otbot_hw.clock.paced``: a real bus is paced); ``progress(text)``: about every
-    second of robot time; ``feedback``: an estimator to run alongside (recorded on ``/otbot/estimate``), None for none."""
+    second of robot time; ``feedback``: an estimator to run alongside (recorded on ``/otbot/estimate``),
+    None for none."""
     torques = np.asarray(torques, dtype=float).reshape(-1, 3)
     period = robot.period
     realtime = paced(robot, realtime)
