@@ -3,7 +3,9 @@
 ``tests/data/direct_reference.npz`` holds ``sim.direct.DirectSimRobot``'s outputs on 1500 samples of four
 effect settings (paper model; drive and sensor effects; friction forces; slip with a current lag and an
 IMU latency), with limits, quantization, noise, a pivot force, a quick stop, and parameters and effects
-changed mid-run, as main at 31ef067 computed them (``tests/data/make_direct_reference.py``)."""
+changed mid-run, as main at 31ef067 computed them (``tests/data/make_direct_reference.py``) -- but for the
+``slip_lag`` encoder positions and rates, regenerated with issue 20's slip law (the wheel's rolling inertia in
+the torque split changes the slip rate by k_slip I_a psi_dd; every other array bit-identical)."""
 from __future__ import annotations
 
 import sys
