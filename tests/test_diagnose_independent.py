@@ -62,3 +62,26 @@ def test_not_identifiable_counts_as_right_only_when_the_fisher_criterion_at_the_
     assert not independent.score(case, r, shown)["right"]  # the recording could reveal it: a miss
     assert not independent.score(case, {**r, "not_identifiable": []}, hidden)["right"]  # nothing said
     assert not independent.score(case, {**r, "model_adequate": False}, hidden)["right"]
+
+
+def test_an_undetermined_parameter_counts_only_when_the_fisher_criterion_agrees_and_small_names(independent):
+    """Scoring of the family study: a found traction limit whose creep slope the diagnosis says this recording
+    does not determine is right when a 20 % change of that slope at the truth does not show (per-parameter
+    Fisher criterion), wrong when it does; a "detected, small" effect with right values is named."""
+    case = independent.BY_LABEL["traction_limit"]
+    r = {"effects": [{"name": "traction_limit", "parameters": {"k_slip": {"value": 1e-4}, "t_trac": {"value": 3.0}}}],
+         "ambiguous": [], "model_adequate": True,
+         "not_identifiable": [{"kind": "parameter", "name": "k_slip", "effect": "traction_limit"},
+                              {"kind": "range", "name": "/tmp/x_heldout.mcap"}]}
+    fisher = {"traction_limit": {"identifiable": True, "parameters": {"k_slip": {"identifiable": False},
+                                                                      "t_trac": {"identifiable": True}}}}
+    assert independent.score(case, r, fisher)["right"]
+    seen = {"traction_limit": {"identifiable": True, "parameters": {"k_slip": {"identifiable": True}}}}
+    assert not independent.score(case, r, seen)["right"]  # the run does show the slope: a miss
+    assert not independent.score(case, {**r, "not_identifiable": []}, fisher)["right"]  # nothing said
+    air = independent.magnitude_case("air_drag", 0.5)
+    small = {"effects": [], "ambiguous": [], "model_adequate": True, "not_identifiable": [],
+             "detected_small": [{"name": "air_drag", "parameters": {"c_air": {"value": 9.86}}}]}
+    assert independent.score(air, small)["right"]
+    small["detected_small"][0]["parameters"]["c_air"]["value"] = 5.0
+    assert not independent.score(air, small)["right"]

@@ -57,3 +57,30 @@ def test_a_traction_limit_under_constant_torques_is_named_and_its_creep_slope_no
     assert entry["parameters"]["t_trac"]["std"] is not None  # determined, while the creep slope is not
     slope = [x for x in r["not_identifiable"] if x["kind"] == "parameter" and x["name"] == "k_slip"]
     assert slope and slope[0]["effect"] == "traction_limit" and "below the traction limit" in slope[0]["record"]
+
+
+def test_only_the_parameter_without_information_loses_its_std():
+    """A fit whose covariance is singular in one direction: the parameters spanning it get std NaN, the others
+    keep theirs (before, one undetermined creep slope made every std of the fit NaN, t_trac's included)."""
+    from otbot_hw.diagnose.refit import _determined, _undetermined
+
+    cov = np.diag([4.0, 1e-6, 0.0])  # the third: no variance at all (a zero Jacobian column)
+    assert not _determined(cov)
+    assert list(_undetermined(cov)) == [False, False, True]
+    c = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 2.0]])  # the first two only together
+    assert list(_undetermined(c)) == [True, True, False]
+    nan = np.diag([1.0, np.nan, 1.0])
+    assert list(_undetermined(nan)) == [False, True, False]
+
+
+def test_undetermined_parameters_of_a_found_effect_are_not_identifiable_with_what_to_record():
+    from otbot_hw.diagnose.identifiability import undetermined_effect_parameters
+
+    effects = [{"name": "traction_limit", "parameters": {"k_slip": {"value": 1e-4, "std": None},
+                                                         "t_trac": {"value": 3.0, "std": 0.001}}},
+               {"name": "air_drag", "parameters": {"c_air": {"value": 10.0, "std": 20.0}}},
+               {"name": "imu_bias", "parameters": {"b_gz": {"value": 0.005, "std": 0.0005}}}]
+    out = undetermined_effect_parameters(effects, {"k_slip": 0.02, "t_trac": 3.0, "c_air": 15.0, "b_gz": 0.005})
+    assert [(x["effect"], x["name"]) for x in out] == [("traction_limit", "k_slip"), ("air_drag", "c_air")]
+    assert all(x["kind"] == "parameter" and x["record"] and x["why"] for x in out)
+    assert "below the traction limit" in out[0]["record"] and "typical size 15" in out[1]["why"]
