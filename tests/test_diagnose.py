@@ -370,7 +370,7 @@ def test_fast_paths_give_the_plain_numbers():
             for a, b in zip((X, TAU, S), integrators.ext_rk4_zoh(np.zeros(12), np.full(3, 0.1), U, F, 0.01, 3, prm, m.eff, c)):
                 assert np.array_equal(a, b)
             assert np.array_equal(QDD, phys.ext_sample_accelerations(X, TAU, Ff, m.eff, prm, c))
-            assert np.array_equal(SD, phys.slip_rate_samples(X, TAU, m.eff, prm, c))
+            assert np.array_equal(SD, phys.slip_rate_samples(X, TAU, Ff, m.eff, prm, c))
             assert np.any(SD != 0) == ("k_slip" in vals and fixture == "floor")
     d = from_recording(concealed_recording(P, {"k_slip": 0.02}, "multisine", 2.0, seed=4), "slip")
     for vals in ({}, {"k_slip": 0.02, "t_trac": 3.0, "k_l": 0.1, "T_i": 0.01}, {"e_r": 0.05, "dr_l": -0.03}):

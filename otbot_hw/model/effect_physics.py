@@ -360,27 +360,22 @@ def _accelerations_into(x, tau, f, gen, eff, prm, fixture, acc, g2):
 
 
 @njit(cache=True)
-def slip_rates(x, tau, eff, prm, fixture):
-    """Slip rates (2,) rad/s of the wheel encoders relative to the rolling angles, without the wheel-inertia
-    term of the slip law (no accelerations here; ``ext_derivative_into`` gives them with it)."""
+def slip_rates(x, tau, f, eff, prm, fixture):
+    """Slip rates (2,) rad/s of the wheel encoders relative to the rolling angles at state x under delivered
+    torque tau and force f (the slip law with the wheel's rolling inertia, as the integrator steps it)."""
     out = np.zeros(2)
     if (eff[K_SLIP] == 0.0 and eff[T_TRAC] == 0.0) or fixture != compiled.FLOOR:
         return out
-    rho = radius_ratios(eff)
-    for i in range(2):
-        w = rho[i] * x[9 + i]
-        b_i = prm[_BW] + eff[DB_W] * (1.0 if i == 0 else -1.0)
-        t_tr = tau[i] - b_i * w - _motor_friction(w, i, eff, prm) + cogging_torque(rho[i] * x[3 + i], i, eff)
-        out[i] = slip_state(t_tr, b_i, eff)[0]
+    _force_accel_into(x, tau, f, eff, prm, fixture, np.empty(6), out, np.empty(6), np.empty(6), np.empty(2))
     return out
 
 
 @njit(cache=True, nogil=True)
-def slip_rate_samples(X, TAU, eff, prm, fixture):
-    """Slip rates (N, 2) rad/s at each sample from states X (N, 12) and delivered torques TAU (N, 3)."""
+def slip_rate_samples(X, TAU, F, eff, prm, fixture):
+    """Slip rates (N, 2) rad/s at each sample from states X (N, 12), delivered torques TAU (N, 3), forces F."""
     out = np.empty((X.shape[0], 2))
     for k in range(X.shape[0]):
-        out[k] = slip_rates(X[k], TAU[k], eff, prm, fixture)
+        out[k] = slip_rates(X[k], TAU[k], F[k], eff, prm, fixture)
     return out
 
 
