@@ -290,8 +290,9 @@ class _Search:
         if nominal_from is not None:
             start = start.with_values({n: nominal_from.fit.values[n] for n in self.current.names
                                        if n in nominal_from.fit.values})
-        try:
-            fit = refit(self.recordings, start, c.fit.names, max_nfev=NESTED_NFEV, tol=NESTED_TOL)
+        try:  # from the best's nominal values a quick look's budget: the look-alike is then a step away
+            fit = refit(self.recordings, start, c.fit.names, max_nfev=QUICK_NFEV if nominal_from else NESTED_NFEV,
+                        tol=NESTED_TOL)
         except FIT_FAILURES:
             return c
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
