@@ -305,26 +305,26 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
 
     def holding(fit, involved_in):
         """``fit()`` (which frees ``free_nuisance``); when it raises ``NotIdentifiableError`` naming free nuisance
-        parameters (``involved_in(exc)``), the fewest of them held (each alone, then all) that let it run."""
-        while True:
-            try:
-                return fit()
-            except NotIdentifiableError as exc:
-                involved = involved_in(exc)
-                if not involved:
-                    raise
-                for cand in [[n] for n in involved] + ([involved] if len(involved) > 1 else []):
-                    saved = list(free_nuisance)
-                    free_nuisance[:] = [n for n in saved if n not in cand]
-                    try:
-                        out = fit()
-                    except NotIdentifiableError:
-                        continue
-                    finally:
-                        free_nuisance[:] = saved
-                    hold(cand, exc)
-                    return out
+        parameters (``involved_in(exc)``), the fewest of them held (each alone, then all) that let it run; else
+        the first error."""
+        try:
+            return fit()
+        except NotIdentifiableError as exc:
+            involved = involved_in(exc)
+            if not involved:
                 raise
+            for cand in [[n] for n in involved] + ([involved] if len(involved) > 1 else []):
+                saved = list(free_nuisance)
+                free_nuisance[:] = [n for n in saved if n not in cand]
+                try:
+                    out = fit()
+                except NotIdentifiableError:
+                    continue
+                finally:
+                    free_nuisance[:] = saved
+                hold(cand, exc)
+                return out
+            raise
 
     naive_std: dict[str, float] = {}
     experiments_all: list = []
