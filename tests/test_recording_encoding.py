@@ -61,6 +61,7 @@ def _write(cls, path, n=300):
             w.write_sample(s)
             if k % 50 == 3:
                 w.write_event(s[TOPIC_COMMAND]["t"], "note", f"event {k}", value=ODD[k % len(ODD)])
+    return w._direct  # the writer framed the samples itself (not the mcap library's add_message)
 
 
 def _bits(x):
@@ -80,7 +81,7 @@ def _messages(path):
 def test_framed_samples_are_the_old_files_byte_for_byte(tmp_path):
     old, new = tmp_path / "old.mcap", tmp_path / "new.mcap"
     _write(OldWriter, old)
-    _write(RecordingWriter, new)
+    assert _write(RecordingWriter, new)
     assert new.read_bytes() == old.read_bytes()
     a, b = _messages(old), _messages(new)
     assert a == b and len(b) == 300 * 7 + 6  # same topics, times, sequences, values bit for bit
