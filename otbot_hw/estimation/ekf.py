@@ -53,7 +53,8 @@ rejected one is counted and not applied:
 * ``zupt`` (3): twist = 0 at a standstill (``standstill``: joints and gyro still).
 * ``gyro`` (1): alpha_dot + b_g, at every new IMU reading. ``accel`` (2): the accelerometer as a
   measurement (``model`` prediction only).
-* ``fix`` (3): an absolute pose with its covariance (``PoseEKF.fix``), alpha residual wrapped.
+* ``fix`` (3): an absolute pose with its covariance (``PoseEKF.fix``), alpha residual wrapped; the third
+  rejected in a row re-anchors the pose on it (``FIX_REANCHOR_AFTER``: the gate must not starve the filter).
 
 alpha stays continuous (never wrapped to +-pi, like the recordings); every angle *residual* is wrapped.
 Biases: the gyro z bias is estimated (the wheel heading and joint rates observe it while moving, the
@@ -317,7 +318,8 @@ class PoseEKF(ModelPrediction, GyroUpdate):
     def fix(self, t: float, pose, cov) -> bool:
         """Absolute pose fix (landmark, motion capture) at the current step's time: pose (3,) x, y (m),
         alpha (rad, any branch: the residual is wrapped), cov (3, 3) m^2, rad^2. Returns whether the gate
-        accepted it."""
+        accepted it (False for the one that re-anchors after ``FIX_REANCHOR_AFTER`` rejections: it is
+        applied, and counted as rejected and as an update)."""
         if self._t is None:
             raise EstimatorFault("fix before initialize")
         if abs(t - self._t) > 1e-9 * max(1.0, abs(t)):
