@@ -434,7 +434,7 @@ class PoseEKF(ModelPrediction, GyroUpdate):
         the yaw prediction right now (its averaged NIS above its bound, ``_adapt_walk``: the model is wrong,
         the wheels are right), then alpha; after a fix re-anchored alpha, kappa. The adapted walk itself
         (``walk_scale``) was the test before: it stays up for seconds after the gyro's average crossed its
-        bound, which gyro noise alone does (about one 30 s run in three), and a slip burst in those seconds
+        bound, which gyro noise alone does (5 of 20 nominal bus corridors), and a slip burst in those seconds
         re-anchored alpha on the wheel heading the burst had moved -- 67 mrad off for good, every fix
         rejected after it (docs/estimation.md, "Slip bursts and absolute fixes in the loop")."""
         if self._rejected_long("_heading_off_since", t, ok):
