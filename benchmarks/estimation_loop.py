@@ -25,7 +25,8 @@ reference), the EKF's gate counts, NEES of pose + twist (6 dof) from the filter'
 time. Extras: ``--sweep`` the unmodelled-alpha_dd random walk against a plant with unmodelled pivot
 friction and torque-gain errors; ``--pivot-counts`` the direct 1 kHz corridor with a finer pivot encoder.
 
-    nice -n 10 python benchmarks/estimation_loop.py [--seeds 20 | --seed-list 4,15] [--backends ...] [--scenarios ...] [--plants ...]
+    nice -n 10 python benchmarks/estimation_loop.py [--seeds 20 | --seed-list 4,15] [--backends ...]
+        [--scenarios ...] [--plants ...]
         [--sweep SEEDS] [--pivot SEEDS] [--workers 1] [--json] > loop.json
     python benchmarks/estimation_loop.py --markdown loop*.json [--plot DIR] [--save MERGED.json]
                                           # tables (runs merged), plots, the merged result
