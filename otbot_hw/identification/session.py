@@ -21,6 +21,9 @@ others contradict), the session falls back to propagation and says so.
 Parameters a session does not estimate keep ``params_start``'s values; their std (from
 ``params_start.std``, e.g. a parameter file of an earlier session) and ``known_std``
 (the parameters taken for granted: l1, l2, r, m_p0, x_F0, y_F0) are propagated too.
+
+Length: one procedure, ``identify_session``; the chain, its joint fits and the nuisance hold (closures
+that update the chain's estimates and covariance) share its state, and the result class is what it returns.
 """
 from __future__ import annotations
 
