@@ -25,7 +25,8 @@ reference), the EKF's gate counts, NEES of pose + twist (6 dof) from the filter'
 time. Extras: ``--sweep`` the unmodelled-alpha_dd random walk against a plant with unmodelled pivot
 friction and torque-gain errors; ``--pivot-counts`` the direct 1 kHz corridor with a finer pivot encoder.
 
-    nice -n 10 python benchmarks/estimation_loop.py [--seeds 20] [--backends ...] [--scenarios ...] [--plants ...]
+    nice -n 10 python benchmarks/estimation_loop.py [--seeds 20 | --seed-list 4,15] [--backends ...]
+        [--scenarios ...] [--plants ...]
         [--sweep SEEDS] [--pivot SEEDS] [--workers 1] [--json] > loop.json
     python benchmarks/estimation_loop.py --markdown loop*.json [--plot DIR] [--save MERGED.json]
                                           # tables (runs merged), plots, the merged result
@@ -189,7 +190,8 @@ def _job(args):
                 "pivot_counts": args[5].get("pivot_counts")}
 
 
-def jobs_main(seeds: int, truth_seeds: int, backends, scenarios, plants) -> list:
+def jobs_main(seeds: int, truth_seeds: int, backends, scenarios, plants, seed_list=None) -> list:
+    """The main runs; ``seed_list``: these EKF seeds instead of 0 .. seeds - 1 (one seed looked at alone)."""
     jobs = []
     for be in backends:
         for sc in scenarios:
@@ -198,7 +200,7 @@ def jobs_main(seeds: int, truth_seeds: int, backends, scenarios, plants) -> list
                     continue  # bursts: corridor and figure-8 on the 1 kHz and the bus back ends
                 fbs = ("truth", "ekf") if pl == "nominal" else ("ekf",)
                 for fb in fbs:
-                    for seed in range(truth_seeds if fb == "truth" else seeds):
+                    for seed in (range(truth_seeds) if fb == "truth" else seed_list or range(seeds)):
                         jobs.append((be, sc, pl, fb, seed, {}))
     return jobs
 
@@ -428,6 +430,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=20, help="seeds of every EKF case (default 20)")
     ap.add_argument("--truth-seeds", type=int, default=3, help="seeds of every truth-feedback case (default 3)")
+    ap.add_argument("--seed-list", default=None, metavar="N,N,...",
+                    help="only these EKF seeds (e.g. 4: one seed looked at alone; replaces --seeds)")
     ap.add_argument("--backends", default=",".join(BACKENDS))
     ap.add_argument("--scenarios", default=",".join(SCENARIOS))
     ap.add_argument("--plants", default=",".join(PLANTS))
@@ -457,10 +461,18 @@ def main(argv=None) -> int:
             args.save.write_text(json.dumps({"rows": rows}))
         print(markdown({"rows": rows}))
         return 0
+    seed_list = None
+    if args.seed_list is not None:
+        try:
+            seed_list = [int(v) for v in args.seed_list.split(",")]
+        except ValueError:
+            ap.error(f"--seed-list: comma-separated whole numbers, got {args.seed_list!r}")
+        if any(v < 0 for v in seed_list):
+            ap.error(f"--seed-list: seeds are >= 0, got {args.seed_list!r}")
     jobs = []
     if not args.no_main:
         jobs += jobs_main(args.seeds, args.truth_seeds, args.backends.split(","), args.scenarios.split(","),
-                          args.plants.split(","))
+                          args.plants.split(","), seed_list)
     if args.sweep:
         jobs += jobs_sweep(args.sweep)
     if args.pivot:

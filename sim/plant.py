@@ -62,12 +62,29 @@ OPERATOR_HELP = "fixture floor|stand|locked, load KG@X,Y[,I], unload, status"
 
 @dataclass
 class TruthLog:
-    """Ground truth of the plant per started SYNC: t (s), x (12,), u (3,) N m, f (2,) N."""
+    """Ground truth of the plant per started SYNC: t (s), x (12,), u (3,) N m, f (2,) N — the
+    latest ones: a plant behind a daemon runs for hours, so once the lists hold ``2 * keep``
+    entries the oldest ``keep`` are dropped (``dropped`` counts them: entry i is the plant's
+    started SYNC ``dropped + i``). Shorter runs keep all of theirs."""
 
     t: list = field(default_factory=list)
     x: list = field(default_factory=list)
     u: list = field(default_factory=list)
     f: list = field(default_factory=list)
+    keep: int = 20000
+    dropped: int = 0
+
+    def append(self, t: float, x, u, f) -> None:
+        """One started SYNC's truth (the oldest half dropped when the log is full)."""
+        self.t.append(t)
+        self.x.append(x)
+        self.u.append(u)
+        self.f.append(f)
+        if len(self.t) >= 2 * self.keep:
+            n = len(self.t) - self.keep
+            for rows in (self.t, self.x, self.u, self.f):  # the newest rows ([-1]) are never touched
+                del rows[:n]
+            self.dropped += n
 
 
 class Plant:
@@ -362,10 +379,7 @@ class Plant:
             self.encoder.send_tpdos(frames)
         self._send_frames(frames)
         if self.started:
-            self.truth.t.append(self.t)
-            self.truth.x.append(x)
-            self.truth.u.append(u)
-            self.truth.f.append(f)
+            self.truth.append(self.t, x, u, f)
             self.stepper.step(u, f)
             self.k += 1
         elif all(d.state == "OPERATION ENABLED" for d in self.drives):

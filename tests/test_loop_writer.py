@@ -127,3 +127,49 @@ def test_a_realtime_loop_writes_each_sample_after_its_command_in_file_order():
     ts = [c[1] for c in log if c[0] in ("sample", "event")]
     assert ts == sorted(ts)  # events after the sample of their time, as inline
     assert "event" in kinds and runner._pending_sample is None
+
+
+def test_the_overrun_event_goes_out_after_the_cycles_command_and_sample():
+    """The overrun event said at the start of a streak (between the read and the write) reaches the
+    writer after that cycle's command and sample — never between a read and its write — in time
+    order with the samples and the other events, and nothing is left behind."""
+    import time
+
+    import numpy as np
+
+    from otbot_hw.motors import load_motor_limits
+    from otbot_hw.params import nominal
+    from otbot_hw.runtime import LoopRunner, OpenLoopTorques, SafetyConfig, Supervisor
+    from sim.direct import DirectSimRobot
+
+    log = []
+    limits = load_motor_limits()
+    robot = DirectSimRobot(nominal(), period=0.01, imu_rate=None, limits=limits)
+    real_read, real_write = robot.read, robot.write
+    n_reads = [0]
+
+    def read():
+        n_reads[0] += 1
+        if n_reads[0] in (5, 9):  # two overrun streaks of one cycle each
+            time.sleep(0.03)
+        log.append(("read",))
+        return real_read()
+
+    robot.read = read
+    robot.write = lambda u: (log.append(("write",)), real_write(u))[1]
+    w = _Writer()
+    w._log = lambda *call: log.append(call)
+    sup = Supervisor(limits, SafetyConfig(overrun_factor=1.5, max_consecutive_overruns=5), 0.01, realtime=True)
+    runner = LoopRunner(robot, OpenLoopTorques(np.zeros((1, 3)), 0.01), sup, realtime=True, keep_samples=False,
+                        recorder=lambda meta, topics: w, record_after_write=True)
+    res = runner.run(12)
+    assert res.completed and res.stats.overruns >= 2
+    kinds = [c[0] for c in log]
+    overruns = [c for c in log if c[0] == "event" and c[2] == "overrun"]
+    assert len(overruns) == sum(1 for e in runner.events if e["kind"] == "overrun") >= 2
+    for ev in overruns:  # after its cycle's command and sample, not between the read and the write
+        k = log.index(ev)
+        i = max(j for j in range(k) if kinds[j] == "read")
+        assert kinds[i:k] == ["read", "write", "sample"] and log[k - 1] == ("sample", ev[1])
+    ts = [c[1] for c in log if c[0] in ("sample", "event")]
+    assert ts == sorted(ts) and runner._deferred_events == [] and kinds[-1] == "close"

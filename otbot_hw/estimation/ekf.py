@@ -53,7 +53,8 @@ rejected one is counted and not applied:
 * ``zupt`` (3): twist = 0 at a standstill (``standstill``: joints and gyro still).
 * ``gyro`` (1): alpha_dot + b_g, at every new IMU reading. ``accel`` (2): the accelerometer as a
   measurement (``model`` prediction only).
-* ``fix`` (3): an absolute pose with its covariance (``PoseEKF.fix``), alpha residual wrapped.
+* ``fix`` (3): an absolute pose with its covariance (``PoseEKF.fix``), alpha residual wrapped; the third
+  rejected in a row re-anchors the pose on it (``FIX_REANCHOR_AFTER``: the gate must not starve the filter).
 
 alpha stays continuous (never wrapped to +-pi, like the recordings); every angle *residual* is wrapped.
 Biases: the gyro z bias is estimated (the wheel heading and joint rates observe it while moving, the
@@ -94,9 +95,9 @@ from otbot_hw.estimation.standstill import StandstillDetector
 from otbot_hw.model.angles import wrap_angle  # noqa: F401  (the one angle wrap; importable from here)
 from otbot_hw.params import OtbotParams
 
-#: While the adapted walk variance is above this multiple of the configured one, the yaw prediction is
-#: suspect: a wheel heading that disagrees re-anchors alpha (the wheels are right), not kappa (slip).
-YAW_SUSPECT_SCALE = 2.0
+#: This many absolute fixes rejected in a row: the state, not the fixes, is wrong (the gate would reject
+#: every later one too); the last of them re-anchors the pose on itself.
+FIX_REANCHOR_AFTER = 3
 
 
 class PoseEKF(ModelPrediction, GyroUpdate):
@@ -214,7 +215,10 @@ class PoseEKF(ModelPrediction, GyroUpdate):
         self._standstill = False
         self._heading_off_since = None  # since when the wheel heading disagrees (rates accepted)
         self._gyro_off_since = None     # since when the gyro is rejected
+        self._kappa_suspect = False     # a fix re-anchored alpha since the wheel heading last agreed
+        self._fixes_rejected = 0        # absolute fixes rejected in a row
         self._gyro_nis_avg = 1.0        # the gyro's NIS averaged over walk_adaptation_window (expectation 1)
+        self._gyro_disagrees = False    # that average is above its bound (the walk adapting)
         self._gyro_t = None             # time of the last gyro update
         self.walk_scale = 1.0           # factor on the variance of d's walk (adaptation, >= 1)
         self._t_prev = float(t)
@@ -314,7 +318,8 @@ class PoseEKF(ModelPrediction, GyroUpdate):
     def fix(self, t: float, pose, cov) -> bool:
         """Absolute pose fix (landmark, motion capture) at the current step's time: pose (3,) x, y (m),
         alpha (rad, any branch: the residual is wrapped), cov (3, 3) m^2, rad^2. Returns whether the gate
-        accepted it."""
+        accepted it (False for the one that re-anchors after ``FIX_REANCHOR_AFTER`` rejections: it is
+        applied, and counted as rejected and as an update)."""
         if self._t is None:
             raise EstimatorFault("fix before initialize")
         if abs(t - self._t) > 1e-9 * max(1.0, abs(t)):
@@ -329,6 +334,17 @@ class PoseEKF(ModelPrediction, GyroUpdate):
         nu = z - self.kf.x[:3]
         nu[2] = wrap_angle(nu[2])
         ok = self._update("fix", t, nu, self._H_fix, Rf)
+        self._fixes_rejected = 0 if ok else self._fixes_rejected + 1
+        if self._fixes_rejected >= FIX_REANCHOR_AFTER:
+            # the gate starves the filter: every fix is "an outlier" because the state is off (a wrong
+            # re-anchoring, a slip the gate let through). The pose's variance grows by the innovation squared
+            # and it re-anchors on the fix; the wheel heading that then disagrees moves kappa, not alpha back
+            P = self.kf.P
+            for i in (X, Y, A):
+                P[i, i] += nu[i] * nu[i]
+            self._update("fix", t, nu, self._H_fix, Rf, force=True)
+            self._fixes_rejected = 0
+            self._kappa_suspect = True
         self._check_health(t)
         self._estimate = self._make_estimate()
         return ok
@@ -414,12 +430,20 @@ class PoseEKF(ModelPrediction, GyroUpdate):
 
     def _heading_outcome(self, t: float, ok: bool, nu: float) -> None:
         """A wheel heading rejected for ``REANCHOR_AFTER`` with the rates accepted re-anchors (``nu``: its
-        residual, rad)."""
+        residual, rad). Which state moves: kappa (slip moved the constant) -- unless the gyro disagrees with
+        the yaw prediction right now (its averaged NIS above its bound, ``_adapt_walk``: the model is wrong,
+        the wheels are right), then alpha; after a fix re-anchored alpha, kappa. The adapted walk itself
+        (``walk_scale``) was the test before: it stays up for seconds after the gyro's average crossed its
+        bound, which gyro noise alone does (5 of 20 nominal bus corridors), and a slip burst in those seconds
+        re-anchored alpha on the wheel heading the burst had moved -- 67 mrad off for good, every fix
+        rejected after it (docs/estimation.md, "Slip bursts and absolute fixes in the loop")."""
         if self._rejected_long("_heading_off_since", t, ok):
-            # slip moved kappa -- unless the gyro says the yaw prediction is wrong (the walk adapted): then alpha
-            i = A if self.walk_scale > YAW_SUSPECT_SCALE else KAPPA
+            i = A if self._gyro_disagrees and not self._kappa_suspect else KAPPA
             self.kf.P[i, i] += nu * nu
             self._update("heading", t, np.array([nu]), self._H_heading, self._R_heading, force=True)
+            self._kappa_suspect = False
+        elif ok:
+            self._kappa_suspect = False
 
     # ------------------------------------------------------------------ health and output
     def _check_health(self, t: float) -> None:

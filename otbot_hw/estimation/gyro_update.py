@@ -73,6 +73,7 @@ class GyroUpdate:
             bound = self._nis_bounds[w] = float(chi2.ppf(cfg.gate_probability, n_eff) / n_eff)
         self._gyro_nis_avg += w * (nis - self._gyro_nis_avg)
         avg = self._gyro_nis_avg
+        self._gyro_disagrees = avg > bound
         if avg > bound:
             self.walk_scale = min(self.walk_scale * avg, WALK_SCALE_MAX)
             # fading memory on the yaw states: the error the wrong model already put into alpha, alpha_dot

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -14,6 +15,15 @@ import numpy as np
 from otbot_hw.recording.format import (
     FORMAT_NAME, FORMAT_VERSION, FRAMES, PROFILE, SAMPLE_TOPICS, TOPIC_COMMAND, TOPIC_EVENTS, TOPICS, UNITS,
     Recording)
+
+
+# An MCAP Message record as the mcap library writes it unchunked: opcode 0x05, record length (u64),
+# channel id (u16), sequence (u32), log time and publish time (u64 ns), then the data.
+_MESSAGE_HEADER = struct.Struct("<BQHIQQ")
+_MESSAGE_FIXED = _MESSAGE_HEADER.size - 9  # record length = this + len(data)
+# json.dumps's own encoder (C, floats by their repr, NaN/Infinity written as today) without the
+# circular-reference bookkeeping a sample's flat dicts do not need: the same text
+_encode = json.JSONEncoder(check_circular=False).encode
 
 
 def _encode_metadata(meta: dict[str, Any]) -> dict[str, str]:
@@ -49,6 +59,13 @@ class RecordingWriter:
                                                data=json.dumps(schema).encode())
             self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
                                                                   schema_id=sid)
+        self._sample_channels = [(tp, ch) for tp, ch in self._channels.items() if tp in SAMPLE_TOPICS]
+        self._sample_set = frozenset(tp for tp, _ in self._sample_channels)
+        # samples are framed here and written in one call (what add_message would write, byte for
+        # byte); the summary's statistics are the mcap writer's own, kept up to date per sample
+        self._stats = getattr(self._writer, "_Writer__statistics", None)
+        self._direct = (self._stats is not None and not getattr(self._writer, "_Writer__enable_data_crcs", True)
+                        and getattr(self._writer, "_Writer__chunk_builder", True) is None)
         self._count = 0
         self._last_t: float | None = None
         self._flush_every = max(1, int(flush_every))
@@ -58,7 +75,7 @@ class RecordingWriter:
     def write_sample(self, messages: dict[str, dict[str, Any]]) -> None:
         """Write one sample: ``{topic: payload}`` for the command and every registered per-sample
         topic (``SAMPLE_TOPICS``); sparse topics go through ``write_event``."""
-        missing = {tp for tp in self._channels if tp in SAMPLE_TOPICS} - set(messages)
+        missing = self._sample_set.difference(messages)
         if missing:
             raise ValueError(f"sample {self._count} lacks topic(s) {sorted(missing)}")
         t = messages[TOPIC_COMMAND]["t"]
@@ -66,17 +83,37 @@ class RecordingWriter:
             raise ValueError(f"sample {self._count}: time must be finite and >= 0, got {t}")
         if self._last_t is not None and not t > self._last_t:
             raise ValueError(f"sample {self._count}: time {t} s does not increase (previous {self._last_t} s)")
-        sample_topics = [tp for tp in self._channels if tp in SAMPLE_TOPICS]
-        for topic in sample_topics:
+        chans = self._sample_channels
+        for topic, _ in chans:
             if messages[topic].get("t") != t:
                 raise ValueError(f"sample {self._count}: {topic} has t = {messages[topic].get('t')!r}, but "
                                  f"{TOPIC_COMMAND} has t = {t}: all topics of a sample share its time")
         self._last_t = t
         stamp = int(round(t * 1e9))
-        for topic in sample_topics:
-            data = json.dumps(messages[topic], allow_nan=True).encode()
-            self._writer.add_message(channel_id=self._channels[topic], log_time=stamp, publish_time=stamp,
-                                     data=data, sequence=self._count)
+        seq = self._count
+        if not self._direct:
+            for topic, ch in chans:
+                self._writer.add_message(channel_id=ch, log_time=stamp, publish_time=stamp,
+                                         data=_encode(messages[topic]).encode(), sequence=seq)
+        else:
+            parts = []
+            pack = _MESSAGE_HEADER.pack
+            for topic, ch in chans:
+                data = _encode(messages[topic]).encode()
+                parts.append(pack(0x05, _MESSAGE_FIXED + len(data), ch, seq, stamp, stamp))
+                parts.append(data)
+            self._file.write(b"".join(parts))
+            st = self._stats
+            if st.message_count == 0:
+                st.message_start_time = stamp
+            elif stamp < st.message_start_time:
+                st.message_start_time = stamp
+            if stamp > st.message_end_time:
+                st.message_end_time = stamp
+            counts = st.channel_message_counts
+            for _, ch in chans:
+                counts[ch] += 1
+            st.message_count += len(chans)
         self._count += 1
         if self._count % self._flush_every == 0:
             self.flush()

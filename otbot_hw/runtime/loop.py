@@ -185,7 +185,7 @@ class LoopRunner(LoopTiming, LoopRecording, LoopPower):
         Returns False once a fault has stopped the loop (with ``continue_after_fault`` the cycles go on
         reading and recording; commands wait for ``reset()`` and ``enable()``)."""
         ok = self._cycle(last)
-        if self._pending_sample is not None:  # the command is out: the sample's turn
+        if self._pending_sample is not None or self._deferred_events:  # the command is out: the sample's turn
             self._write_pending()
         w = self.writer
         if w is not None and w.__class__ is BackgroundWriter:  # the command is out: the writer's turn

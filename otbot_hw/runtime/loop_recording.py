@@ -166,6 +166,7 @@ class LoopRecording:
         self.record_after_write = (recorder is not None and self.realtime) if record_after_write is None \
             else bool(record_after_write)
         self._pending_sample: dict | None = None
+        self._deferred_events: list = []  # events said before this cycle's sample, written after it
         self.writer: RecordingWriter | None = None
         self.events: list[dict] = [] if self.keep_samples else deque(maxlen=1000)  # a daemon: the recent ones
         self._cols = _Columns()
@@ -287,11 +288,18 @@ class LoopRecording:
         else:
             self.writer.write_sample(msg)
 
-    def event(self, t: float, kind: str, text: str) -> None:
-        """Record a sparse ``/otbot/events`` message (mode, fault, saturation, note)."""
+    def event(self, t: float, kind: str, text: str, defer: bool = False) -> None:
+        """Record a sparse ``/otbot/events`` message (mode, fault, saturation, note). ``defer``: in a
+        loop that writes its sample after the command (``record_after_write``), write it to the file
+        after this cycle's sample instead of now, between the read and the write (the overrun event
+        at the start of a streak: its encoding and the event's flush left the cycle's timed work);
+        any event said before that goes out after it, in order."""
         self.events.append({"t": float(t), "kind": kind, "text": text})
         if self.writer is not None:
-            if self._pending_sample is not None:  # the sample of this cycle first, as it happened
+            if defer and self.record_after_write:
+                self._deferred_events.append((t, kind, text))
+                return
+            if self._pending_sample is not None or self._deferred_events:  # what happened before, first
                 self._write_pending()
             self.writer.write_event(t, kind, text)
 
@@ -304,6 +312,11 @@ class LoopRecording:
         msg, self._pending_sample = self._pending_sample, None
         if msg is not None and self.writer is not None:
             self.writer.write_sample(msg)
+        if self._deferred_events:
+            deferred, self._deferred_events = self._deferred_events, []
+            if self.writer is not None:
+                for t, kind, text in deferred:
+                    self.writer.write_event(t, kind, text)
 
     def close(self) -> None:
         if self.writer is not None:

@@ -136,7 +136,8 @@ class LoopTiming:
         if wall_period > self.supervisor.config.overrun_factor * self.period:
             self.overruns += 1
             if not self._overrunning and self.realtime and not self.keep_samples:  # a streak starts: say when
-                self.event(self.t, "overrun", f"period {wall_period * 1e3:.2f} ms (target {self.period * 1e3:.2f} ms)")
+                self.event(self.t, "overrun", f"period {wall_period * 1e3:.2f} ms (target {self.period * 1e3:.2f} ms)",
+                           defer=True)  # written after the cycle's command (record_after_write)
             self._overrunning = True
         else:
             self._overrunning = False
