@@ -55,6 +55,8 @@ SIGMA_ENC_RATE = 0.01  # rad/s
 #: tested in tests/test_diagnose_independent.py
 H_MAX = 5e-3
 H_MAX_SHARP = 1e-3
+#: widths of a nearly hard sign (SHARP, CASTER_EPS) within which the sharp step is taken (tanh(20): 1 - 1e-17)
+SHARP_MARGIN = 20.0
 
 
 def load_params(path: Path = ROOT / "config" / "otbot.yaml") -> dict[str, float]:
@@ -133,8 +135,8 @@ class Otbot:
         self.radii = (self.p["r"] * (1 + w.radius_change[0]), self.p["r"] * (1 + w.radius_change[1]))
         self.n_lag = 3 if w.lag > 0 else 0
         self.reference = reference
-        sharp = w.coulomb_w or w.coulomb_p or w.stribeck[0] or w.c_rr or w.caster_drag
-        self.h_max = (H_MAX_SHARP if sharp else H_MAX) if h_max is None else h_max
+        self.sharp = bool(w.coulomb_w or w.coulomb_p or w.stribeck[0] or w.c_rr or w.caster_drag)
+        self.h_max = (H_MAX_SHARP if self.sharp else H_MAX) if h_max is None else h_max
         self._sigma_guess = [0.0, 0.0]
 
     # -- kinematics of points of the chassis (B' coordinates c) and of the platform (B'' coordinates c)
@@ -427,9 +429,38 @@ class Otbot:
     def state_size(self) -> int:
         return 12 + self.n_lag + (2 if self.slip else 0)
 
-    def _rk4(self, z, ud, t0, t1):
+    def _sharp_points(self, z) -> list[tuple[np.ndarray, float]]:
+        """The arguments of the nearly hard signs at state z, each with its width: wheel and pivot rates (rad/s;
+        Coulomb, Stribeck, rolling resistance) and caster contact velocities (m/s)."""
+        e, qd = self.w, z[6:12]
+        out = []
+        if e.coulomb_w or e.stribeck[0] or e.c_rr:
+            out += [(qd[3:4], SHARP), (qd[4:5], SHARP)]
+        if e.coulomb_p:
+            out.append((qd[5:6], SHARP))
+        if e.caster_drag:
+            th, thd = z[2] - z[5], qd[2] - qd[5]
+            for c in e.casters:
+                out.append((qd[:2] + thd * (_rot(th + np.pi / 2) @ np.asarray(c, float)), CASTER_EPS))
+        return out
+
+    def _step(self, z, ud, dt) -> float:
+        """RK4 step for the interval from z: h_max (the sharp step) while a nearly hard sign's argument comes
+        within SHARP_MARGIN widths of zero on the straight line from z to its Euler prediction z + dt z_dot,
+        the smooth step H_MAX (at most h_max... dt) otherwise."""
+        if self.h_max >= H_MAX or not self.sharp:
+            return self.h_max
+        z1 = z + dt * self.rhs(z, ud)
+        for (a, wd), (b, _) in zip(self._sharp_points(z), self._sharp_points(z1)):
+            d = b - a
+            s = 0.0 if not d.any() else min(max(-(a @ d) / (d @ d), 0.0), 1.0)
+            if np.linalg.norm(a + s * d) < SHARP_MARGIN * wd:
+                return self.h_max
+        return H_MAX
+
+    def _rk4(self, z, ud, t0, t1, h_max=None):
         """Classical RK4 from t0 to t1 under the delivered command ud, in equal steps of at most h_max."""
-        m = max(1, int(math.ceil((t1 - t0) / self.h_max - 1e-9)))
+        m = max(1, int(math.ceil((t1 - t0) / (h_max or self.h_max) - 1e-9)))
         h = (t1 - t0) / m
         for _ in range(m):
             k1 = self.rhs(z, ud)
@@ -470,11 +501,12 @@ class Otbot:
                 sols.append(sol.sol)
             elif split:  # the state at t0 + (1 - frac) dt is an IMU sample instant minus the latency
                 tm = t0 + (1.0 - frac) * dt
-                zm = self._rk4(z, ud, t0, tm)
+                h = self._step(z, ud, dt)
+                zm = self._rk4(z, ud, t0, tm, h)
                 sols.append(zm)
-                z = self._rk4(zm, ud, tm, t1)
+                z = self._rk4(zm, ud, tm, t1, h)
             else:
-                z = self._rk4(z, ud, t0, t1)
+                z = self._rk4(z, ud, t0, t1, self._step(z, ud, dt))
             Z.append(z.copy())
         Z = np.array(Z)
         t = np.arange(n + 1) * dt
