@@ -8,8 +8,12 @@ sensors or recording writer), to make recordings the diagnosis has never seen.
   alpha_dot - phi_p_dot, platform alpha_dot, wheels), the velocity-product term from the
   centripetal accelerations of B and F, the three rolling constraints from the velocities of
   the wheel centres C_r, C_l (rolling with each wheel's own radius) and of the axle midpoint
-  M (no side slip). Integrated by scipy's adaptive RK45 (rtol 1e-8), restarted on every
-  zero-order-hold interval.
+  M (no side slip). Integrated by classical RK4 on every zero-order-hold interval in steps of
+  5 ms, 0.5 ms on intervals where the argument of a nearly hard sign (wheel or pivot rate, caster
+  velocity) comes within 20 of its widths of zero; the system in scalar form solved by LAPACK.
+  ``reference=True``: the same physics assembled from the body Jacobians (matrix form) by scipy's
+  adaptive RK45 (rtol 1e-8) restarted on every interval, Brent's method for the slip split -- about
+  10x slower; the default differs from it by < 1e-3 of the sensor noise (docs/diagnose.md).
 * **Effects**, each in this file's own form: Coulomb friction with a nearly hard sign
   (tanh(w / 0.005 rad/s)); Stribeck excess s exp(-(w/v_s)^2) with that sign; rolling resistance
   as a force c_rr N at each wheel's contact, N = (m_c + m_p) g / 2; caster drag as forces at the
@@ -17,7 +21,7 @@ sensors or recording writer), to make recordings the diagnosis has never seen.
   the traction torque T_max x / sqrt(1 + x^2), x = sigma / (k T_max) (sigma: wheel spin over
   rolling rate; linear creep sigma = k tau_g for small torques, saturating at T_max), the spin
   rate solved from the wheel's torque balance traction(sigma) = tau - friction(spin) - I_a psi_dd
-  at every evaluation, iterated with the 9x9 solve (quasi-static: the creep settles within
+  at every evaluation (Newton's method from the previous root, bracketed), iterated with the 9x9 solve (quasi-static: the creep settles within
   k I_a ~ 0.3 ms), the slip angles integrated; floor slope as
   gravity on both centres of mass; quadratic air drag at the pivot; per-motor gain and hard
   saturation, a first-order current lag as three integrated states; unequal wheel radii in the
@@ -54,7 +58,7 @@ SIGMA_ENC_RATE = 0.01  # rad/s
 #: them); the error against the reference (RK45, rtol 1e-8): docs/diagnose.md "Detection across excitations",
 #: tested in tests/test_diagnose_independent.py
 H_MAX = 5e-3
-H_MAX_SHARP = 1e-3
+H_MAX_SHARP = 5e-4
 #: widths of a nearly hard sign (SHARP, CASTER_EPS) within which the sharp step is taken (tanh(20): 1 - 1e-17)
 SHARP_MARGIN = 20.0
 
