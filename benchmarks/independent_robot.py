@@ -609,6 +609,62 @@ def smooth_torques(duration: float, dt: float, seed: int) -> np.ndarray:
     return out
 
 
+def reference_twist(duration: float, dt: float, seed: int) -> np.ndarray:
+    """A random smooth platform twist (N, 3) to track, in the platform frame B'': v_x, v_y (m/s) and the yaw
+    rate (rad/s), each a sum of four sines 0.05-0.4 Hz with peaks 0.3 m/s, 0.3 m/s and 0.5 rad/s, faded in over
+    the first 0.5 s (from rest)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(round(duration / dt))) * dt
+    out = np.empty((len(t), 3))
+    for j, peak in enumerate((0.3, 0.3, 0.5)):
+        s = sum(rng.uniform(0.3, 1.0) * np.sin(2 * np.pi * f * t + rng.uniform(0, 6.3)) for f in rng.uniform(0.05, 0.4, 4))
+        out[:, j] = peak * s / max(np.max(np.abs(s)), 1e-9)
+    return out * np.minimum(t / 0.5, 1.0)[:, None]
+
+
+class TwistController:
+    """A velocity loop as a user would write it, no dynamic model (computed-torque-free): the platform twist
+    measured from the noisy encoder rates by the nominal kinematics, nu = (omega_r, omega_l, phi_p_dot) ->
+    v'' = J(phi_p) nu (u_x = r (omega_r + omega_l) / 2, theta_dot = r (omega_r - omega_l) / (2 l2), u_y =
+    l1 theta_dot in B', turned by -phi_p; yaw rate theta_dot + phi_p_dot), a PI on its error -- a wrench
+    F = K_p e + K_i int e at P in B'' (N, N, N m; the integral is a PD on the pose error by odometry) --
+    applied through the transpose of the kinematic map, tau = J^T F, clipped to +-8, +-8, +-4 N m."""
+
+    KP = np.array([800.0, 800.0, 40.0])  # N/(m/s), N/(m/s), N m/(rad/s)
+    KI = np.array([1600.0, 1600.0, 80.0])  # N/m, N/m, N m/rad
+    LIMIT = np.array([8.0, 8.0, 4.0])  # N m
+
+    def __init__(self, p: dict, reference: np.ndarray, dt: float, rate_noise: np.ndarray):
+        self.p, self.ref, self.dt, self.noise = p, reference, dt, rate_noise
+        self.integral = np.zeros(3)
+
+    def jacobian(self, phi_p: float) -> np.ndarray:
+        r, l1, l2 = self.p["r"], self.p["l1"], self.p["l2"]
+        chassis = np.array([[r / 2, r / 2], [l1 * r / (2 * l2), -l1 * r / (2 * l2)]])
+        J = np.zeros((3, 3))
+        J[:2, :2] = _rot(-phi_p) @ chassis
+        J[2] = (r / (2 * l2), -r / (2 * l2), 1.0)
+        return J
+
+    def __call__(self, k: int, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
+        J = self.jacobian(pos[2])
+        err = self.ref[k] - J @ (vel + self.noise[k])
+        self.integral += err * self.dt
+        return np.clip(J.T @ (self.KP * err + self.KI * self.integral), -self.LIMIT, self.LIMIT)
+
+
+def closed_loop(robot: Otbot, duration: float, dt: float, seed: int, p_controller: dict | None = None):
+    """A closed-loop run: the robot tracking ``reference_twist(seed)`` with ``TwistController`` (nominal
+    parameters ``p_controller``, default the parameter file) on the encoder rates it records (the same noise).
+    Returns the commands (N, 3) and the noisy sensors (``Otbot.sensors``, IMU noise from seed + 1000)."""
+    n = int(round(duration / dt))
+    noise = SIGMA_ENC_RATE * np.random.default_rng(seed + 2000).standard_normal((n + 1, 3))
+    ctl = TwistController(p_controller or load_params(), reference_twist(duration, dt, seed), dt, noise)
+    U = np.zeros((n, 3))
+    run = robot.run(U, dt, controller=ctl)
+    return U, robot.sensors(run, np.random.default_rng(seed + 1000), enc_noise=noise)
+
+
 def write_mcap(path: Path, dt: float, U: np.ndarray, sens: dict, fixture: str = "floor") -> None:
     """The documented format with the plain mcap writer (docs/recording-format.md §1-5): command, joints, IMU,
     metadata format, format_version, sample_period, fixture, source only (no truth)."""
