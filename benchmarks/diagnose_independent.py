@@ -397,7 +397,12 @@ def main() -> int:
                          "there are skipped, rows of other versions ignored)")
     ap.add_argument("--doc", action="store_true", help="with --families: write the table into docs/diagnose.md")
     ap.add_argument("--table-only", action="store_true", help="with --families: only the table from --jsonl")
+    ap.add_argument("--sim-check", type=int, default=0, metavar="N",
+                    help="only compare the default integration of the independent simulator with the reference "
+                         "(RK45 rtol 1e-8) on N cases (CPU time, differences in sensor sigmas) and exit")
     args = ap.parse_args()
+    if args.sim_check:
+        return sim_check(args.sim_check)
     if args.families:
         return families_main(args)
     chosen = [c for c in CASES if not args.cases or c.label in args.cases.split(",")]
@@ -703,6 +708,60 @@ def families_main(args) -> int:
         else:
             text += "\n" + block + "\n"
         doc.write_text(text)
+    return 0
+
+
+#: (case, family) pairs of ``--sim-check``: every kind of term of the independent simulator (sharp signs, slip,
+#: traction curve, lag, latency, casters, saturation, slope) under every family
+SIM_CHECK = (("coulomb_wheels", "chirp"), ("wheel_slip", "prbs"), ("traction_limit", "multisine"),
+             ("current_lag", "constant"), ("caster_configured", "piecewise_long"), ("imu_latency", "closed_loop"),
+             ("stribeck_wheels", "prbs"), ("torque_saturation", "piecewise_short"), ("floor_slope", "chirp"),
+             ("coulomb_pivot", "closed_loop"), ("rolling_resistance", "piecewise_slow"), ("imu_bias", "multisine"))
+
+
+def _simulate(case: Case, family: str, rep: int, reference: bool) -> tuple[list[dict], float]:
+    """Sensor signals of the fitting and held-out recordings of ``case`` (``make_recordings`` without the
+    files), by the reference or the default integration, and the CPU time it took."""
+    import diagnose_calibration as dc
+
+    world, p = world_of(case, ir.load_params())
+    fit_seed, held_seed = seeds(rep)
+    c0 = time.process_time()
+    robot = ir.Otbot(p, world, reference=reference)
+    if family == "closed_loop":
+        U, fit = ir.closed_loop(robot, DURATION, DT, fit_seed)
+    else:
+        U = dc.excitation(family, DURATION, DT, fit_seed) if family != "piecewise" else \
+            ir.piecewise_torques(DURATION, DT, fit_seed)
+        fit = robot.sensors(robot.run(U, DT), np.random.default_rng(fit_seed + 1000))
+    robot = ir.Otbot(p, world, reference=reference)
+    held = robot.sensors(robot.run(ir.smooth_torques(DURATION, DT, held_seed), DT),
+                         np.random.default_rng(held_seed + 1000))
+    return [fit, held], time.process_time() - c0
+
+
+def sim_check(n: int) -> int:
+    """The default integration against the reference (RK45 rtol 1e-8) on the first ``n`` of ``SIM_CHECK``
+    (10 s fitting + 10 s held-out recording each, seed pair 0): CPU time of each and the largest difference of
+    the recorded signals, same noise draws, in units of the sensor noise (IMU: SIGMA_IMU; encoder rates:
+    SIGMA_ENC_RATE; encoder angles -- noise-free here -- in counts of a 4096*4*10-count encoder)."""
+    count = 2 * np.pi / (4096 * 4 * 10)
+    print("| case | family | reference CPU (s) | default CPU (s) | speed-up | max IMU diff (sigma) | "
+          "max encoder rate diff (sigma) | max encoder angle diff (counts) |")
+    print("|---|---|---|---|---|---|---|---|")
+    tr, tf, worst = 0.0, 0.0, [0.0, 0.0, 0.0]
+    for label, family in SIM_CHECK[:n]:
+        case = BY_LABEL[label]
+        ref, t_ref = _simulate(case, family, 0, True)
+        fast, t_fast = _simulate(case, family, 0, False)
+        d = [max(max(np.abs(a[k] - b[k]).max() for k in ("acc", "gyro")) for a, b in zip(ref, fast)) / ir.SIGMA_IMU,
+             max(np.abs(a["vel"] - b["vel"]).max() for a, b in zip(ref, fast)) / ir.SIGMA_ENC_RATE,
+             max(np.abs(a["pos"] - b["pos"]).max() for a, b in zip(ref, fast)) / count]
+        worst = [max(w, x) for w, x in zip(worst, d)]
+        tr, tf = tr + t_ref, tf + t_fast
+        print(f"| {label} | {family} | {t_ref:.2f} | {t_fast:.2f} | {t_ref / t_fast:.1f} | {d[0]:.1e} | {d[1]:.1e} | "
+              f"{d[2]:.1e} |", flush=True)
+    print(f"| **all** | | {tr:.1f} | {tf:.1f} | {tr / tf:.1f} | {worst[0]:.1e} | {worst[1]:.1e} | {worst[2]:.1e} |")
     return 0
 
 
