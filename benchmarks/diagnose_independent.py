@@ -680,7 +680,8 @@ def families_main(args) -> int:
             print(f"[families] estimate: {estimate(sample, len(todo))}", file=sys.stderr, flush=True)
             if todo:
                 run_batch(todo)
-    rows = [r for r in rows if r["family"] in fams and r["case"] in labels]
+    rows = [r for r in rows if r["family"] in fams and r["case"] in labels and r["magnitude"] in mags
+            and r["rep"] < args.seeds]
     lines = family_table(rows, fams, labels)
     print("\n".join(lines))
     if args.doc:
