@@ -18,6 +18,13 @@ Writes the block between the INDEPENDENT markers of docs/diagnose.md, the JSON r
 (``--recordings DIR``) keeps the recordings for ``benchmarks/diagnose.py``.
 
     .venv/bin/python benchmarks/diagnose_independent.py [--workers 2] [--seeds 3] [--cases a,b,...]
+
+``--families all`` (or a list): every catalog effect at two magnitudes x excitation family (open-loop
+families of benchmarks/diagnose_calibration.py and ``closed_loop``, the independent robot's own velocity
+loop) x seed pair, resumable from ``docs/diagnose_families.jsonl`` by code version (``families_main``).
+``--sim-check N``: the simulator's default integration against its RK45 reference (``sim_check``).
+
+    nice .venv/bin/python benchmarks/diagnose_independent.py --families all --seeds 3 --workers 2 --doc
 """
 from __future__ import annotations
 
