@@ -622,7 +622,11 @@ def families_main(args) -> int:
               f"{', '.join(MORE_FAMILIES)})", file=sys.stderr)
         return 2
     labels = [c for c in FAMILY_CASES if not args.cases or c in args.cases.split(",")]
-    mags = [float(x) for x in args.magnitudes.split(",")]
+    try:
+        mags = [float(x) for x in args.magnitudes.split(",")]
+    except ValueError:
+        print(f"error: --magnitudes {args.magnitudes!r}: comma-separated numbers expected", file=sys.stderr)
+        return 2
     out = Path(args.jsonl)
     version = code_hash()
     rows, other = _load_rows(out, version)
