@@ -612,8 +612,9 @@ def families_main(args) -> int:
     run appended to ``--jsonl`` as it comes, keyed by (family, case, magnitude, seed pair) and the code hash
     (``code_hash``; rows of this version already there are skipped, rows of other versions ignored -- said
     when it happens). Run order: seed pair, magnitude, case, family (an interrupted study covers every family
-    evenly). The first runs (two per worker) are a timed sample: the estimate of the whole study is printed
-    from the later half of them (or from rows of this version already there) before the rest starts. The family x effect table
+    evenly). First a timed sample, three runs per worker spread evenly over the plan: the estimate of the
+    whole study is printed from them (each worker's first left out; or from rows of this version already
+    there) before the rest starts. The family x effect table
     is printed and (``--doc``) written between the FAMILIES markers of docs/diagnose.md."""
     fams = list(ALL_FAMILIES) if args.families == "all" else args.families.split(",")
     unknown = [f for f in fams if f not in ALL_FAMILIES + MORE_FAMILIES + ("piecewise",)]
@@ -684,10 +685,11 @@ def families_main(args) -> int:
                 return got
 
             sample = [r for r in rows if "total_s" in r]
-            if len(sample) < 2 * args.workers:  # a timed sample first: the study's first runs, two per worker,
-                first = run_batch(todo[:2 * args.workers])  # the first of each worker (numba compilation,
-                sample += first[len(first) // 2:] or first  # the held-out recording's cache) left out
-                todo = todo[2 * args.workers:]
+            if len(sample) < 2 * args.workers:  # a timed sample first: three runs per worker spread evenly over
+                pick = sorted({int(i) for i in np.linspace(0, len(todo) - 1, 3 * args.workers)})  # the plan
+                first = run_batch([todo[i] for i in pick])  # (effects, families); the first of each worker
+                sample += first[args.workers:] or first  # (numba compilation, caches) left out
+                todo = [t for i, t in enumerate(todo) if i not in set(pick)]
             print(f"[families] estimate: {estimate(sample, len(todo))}", file=sys.stderr, flush=True)
             if todo:
                 run_batch(todo)
