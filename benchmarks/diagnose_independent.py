@@ -192,8 +192,8 @@ def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATI
                     family: str = "piecewise", heldout_cache: Path | None = None) -> list[Path]:
     """Fitting (piecewise-constant torques, an excitation ``family`` of benchmarks/diagnose_calibration.py, or
     ``closed_loop``: ``independent_robot.closed_loop``, the robot tracking a random twist with its own PI loop
-    on its noisy encoder rates) and held-out (smooth torques) recordings of one case. ``heldout_cache``: a folder where the held-out
-    recording (the same for every family) is kept and reused."""
+    on its noisy encoder rates) and held-out (smooth torques) recordings of one case. ``heldout_cache``: a
+    folder where the held-out recording (the same for every family) is kept and reused."""
     world, p = world_of(case, ir.load_params())
     paths = []
     for kind, seed in zip(("piecewise", "smooth"), seeds(rep)):
@@ -680,7 +680,8 @@ def families_main(args) -> int:
                     print(f"[families {n_done}/{total} {el / 60:5.1f} min, ~{el / n_done * (total - n_done) / 60:.0f} "
                           f"min left] {fam} {lab} x{m:g} #{rep}: " + ("ERROR " + r["error"] if "error" in r else
                           f"{'RIGHT' if r['right'] else 'wrong'}  {_reported(r)}  {_errors(r)}  (sim "
-                          f"{r.get('sim_cpu_s', r['sim_s']):.1f} s, diagnose {r.get('diagnose_cpu_s') or 0:.1f} s CPU)"),
+                          f"{r.get('sim_cpu_s', r['sim_s']):.1f} s, diagnose "
+                          f"{r.get('diagnose_cpu_s') or 0:.1f} s CPU)"),
                           file=sys.stderr, flush=True)
                 return got
 

@@ -13,7 +13,8 @@ sensors or recording writer), to make recordings the diagnosis has never seen.
   velocity) comes within 20 of its widths of zero; the system in scalar form solved by LAPACK.
   ``reference=True``: the same physics assembled from the body Jacobians (matrix form) by scipy's
   adaptive RK45 (rtol 1e-8) restarted on every interval, Brent's method for the slip split -- about
-  10x slower; the default differs from it by < 1e-3 of the sensor noise (docs/diagnose.md).
+  10x slower; the default's recorded signals differ from it by < 2e-3 of the sensor noise
+  (docs/diagnose.md).
 * **Effects**, each in this file's own form: Coulomb friction with a nearly hard sign
   (tanh(w / 0.005 rad/s)); Stribeck excess s exp(-(w/v_s)^2) with that sign; rolling resistance
   as a force c_rr N at each wheel's contact, N = (m_c + m_p) g / 2; caster drag as forces at the
@@ -21,8 +22,9 @@ sensors or recording writer), to make recordings the diagnosis has never seen.
   the traction torque T_max x / sqrt(1 + x^2), x = sigma / (k T_max) (sigma: wheel spin over
   rolling rate; linear creep sigma = k tau_g for small torques, saturating at T_max), the spin
   rate solved from the wheel's torque balance traction(sigma) = tau - friction(spin) - I_a psi_dd
-  at every evaluation (Newton's method from the previous root, bracketed), iterated with the 9x9 solve (quasi-static: the creep settles within
-  k I_a ~ 0.3 ms), the slip angles integrated; floor slope as
+  at every evaluation (Newton's method from the previous root, bracketed), iterated with the 9x9
+  solve (quasi-static: the creep settles within k I_a ~ 0.3 ms), the slip angles integrated; floor
+  slope as
   gravity on both centres of mass; quadratic air drag at the pivot; per-motor gain and hard
   saturation, a first-order current lag as three integrated states; unequal wheel radii in the
   constraints; viscous asymmetry of the wheels.
@@ -128,11 +130,11 @@ class Otbot:
     """The true robot: parameters ``p`` and effects ``w``; states q (6), q_dot (6) [+ lag torques (3)]
     [+ slip rates (2), slip angles (2)]; wheel coordinates are rolling angles (= wheel angles without slip)."""
 
-    def __init__(self, p: dict, w: World, reference: bool = False, h_max: float = None):
+    def __init__(self, p: dict, w: World, reference: bool = False, h_max: float | None = None):
         """``reference``: the slow reference integration (Lagrange's 9x9 system assembled from the body Jacobians,
         scipy RK45 at rtol 1e-8 restarted on every sample, Brent's method for the slip split); default: the same
         equations in scalar form (``accelerations_fast``) by classical RK4 with steps of at most ``h_max``
-        (default ``H_MAX``, ``H_MAX_SHARP`` with a nearly hard sign or slip), see ``run``."""
+        (default ``H_MAX_SHARP`` on the intervals near a nearly hard sign, ``H_MAX`` elsewhere), see ``run``."""
         self.p = {**p, **w.params}
         self.w = w
         self.slip = w.slip_k > 0 or np.isfinite(w.slip_tmax)
@@ -449,9 +451,9 @@ class Otbot:
         return out
 
     def _step(self, z, ud, dt) -> float:
-        """RK4 step for the interval from z: h_max (the sharp step) while a nearly hard sign's argument comes
+        """RK4 step for the interval from z: h_max (the sharp step) when a nearly hard sign's argument comes
         within SHARP_MARGIN widths of zero on the straight line from z to its Euler prediction z + dt z_dot,
-        the smooth step H_MAX (at most h_max... dt) otherwise."""
+        H_MAX otherwise (always h_max in a world without a sharp sign or with h_max >= H_MAX)."""
         if self.h_max >= H_MAX or not self.sharp:
             return self.h_max
         z1 = z + dt * self.rhs(z, ud)
@@ -617,7 +619,8 @@ def reference_twist(duration: float, dt: float, seed: int) -> np.ndarray:
     t = np.arange(int(round(duration / dt))) * dt
     out = np.empty((len(t), 3))
     for j, peak in enumerate((0.3, 0.3, 0.5)):
-        s = sum(rng.uniform(0.3, 1.0) * np.sin(2 * np.pi * f * t + rng.uniform(0, 6.3)) for f in rng.uniform(0.05, 0.4, 4))
+        s = sum(rng.uniform(0.3, 1.0) * np.sin(2 * np.pi * f * t + rng.uniform(0, 6.3))
+                for f in rng.uniform(0.05, 0.4, 4))
         out[:, j] = peak * s / max(np.max(np.abs(s)), 1e-9)
     return out * np.minimum(t / 0.5, 1.0)[:, None]
 
