@@ -66,14 +66,28 @@ def honesty_table(trials: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def trial(item: dict) -> dict:
+    """``study.session_trial``; a session whose identification raises (``IdentificationError``, e.g. a
+    parameter the joint fit finds not identifiable) is a failed session with that reason, no estimates."""
+    from otbot_hw.identification.errors import IdentificationError
+    from otbot_hw.identification.study import session_trial
+
+    try:
+        return session_trial(item)
+    except IdentificationError as exc:
+        return {"seed": int(item["seed"]), "passed": False, "error": f"{type(exc).__name__}: {exc}",
+                "verdicts": {}, "reasons": [f"raised {type(exc).__name__}: {exc}"], "params": {}}
+
+
 def gates_table(sets: dict[str, list[dict]]) -> str:
     lines = ["| session | sessions passed | " + " | ".join(f"{s} passed" for s in ("wheel", "pivot", "chassis", "platform"))
-             + " |", "|---|---|---|---|---|---|"]
+             + " | sessions that raised |", "|---|---|---|---|---|---|---|"]
     for label, trials in sets.items():
         row = f"| {label} | {100 * np.mean([t['passed'] for t in trials]):.0f} % |"
         for s in ("wheel", "pivot", "chassis", "platform"):
             v = [t["verdicts"].get(s) == "pass" for t in trials]
             row += f" {100 * np.mean(v):.0f} % |"
+        row += f" {sum('error' in t for t in trials)} of {len(trials)} |"
         lines.append(row)
     return "\n".join(lines)
 
@@ -100,7 +114,7 @@ def margins_table(paper: list[dict], designed: list[dict]) -> str:
         for s in ("chassis", "platform"):
             row = f"| {label} | {s} |"
             for k in keys:
-                v = [t["margins"][s][k] for t in trials]
+                v = [t["margins"][s][k] for t in trials if "margins" in t]
                 row += f" {np.max(v):.2f} |"
             lines.append(row)
     return "\n".join(lines)
@@ -109,8 +123,8 @@ def margins_table(paper: list[dict], designed: list[dict]) -> str:
 def time_table(sets: dict[str, list[dict]], design_time: float) -> str:
     lines = ["| session | wall time: mean | wall time: max | CPU time: mean | CPU time: max |", "|---|---|---|---|---|"]
     for label, trials in sets.items():
-        w = np.array([t["wall_time"] for t in trials])
-        c = np.array([t["cpu_time"] for t in trials])
+        w = np.array([t["wall_time"] for t in trials if "wall_time" in t])
+        c = np.array([t["cpu_time"] for t in trials if "cpu_time" in t])
         lines.append(f"| {label} | {w.mean():.2f} s | {w.max():.2f} s | {c.mean():.2f} s | {c.max():.2f} s |")
     if design_time > 0:
         lines.append(f"| designing both excitations (once) | {design_time:.1f} s | | | |")
@@ -189,7 +203,6 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from otbot_hw.identification.design import design_excitation
-    from otbot_hw.identification.study import session_trial
     from otbot_hw.params import nominal
 
     seeds = range(args.seeds)
@@ -217,7 +230,7 @@ def main(argv=None) -> int:
     for label, item in runs:
         out = []
         for s in seeds:
-            out.append(session_trial({**item, "seed": s}))
+            out.append(trial({**item, "seed": s}))
             if (s + 1) % 10 == 0:
                 print(f"[{label}] {s + 1}/{len(seeds)} seeds", flush=True)
         sets[label] = out

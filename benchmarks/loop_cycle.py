@@ -17,14 +17,17 @@ their sum (the master's cycle work excluding the wait for frames). Cycles withou
 first, unpowered ones) are left out. Sections of it, timed the same way: the EKF step, the
 supervisor's check, the recording's loop side, the limiter, the loop's timing bookkeeping and the
 CAN sends (SYNC and RPDOs: python-can's virtual bus copies each frame for its receivers, which a
-real bus's send does not; *work less virtual-bus sends* takes them out cycle by cycle). Besides, per thread of the process, CPU time per cycle over the
-window: the master's CAN notifier (which decodes the TPDOs: the rest of the master's work), the
+real bus's send does not; *work less virtual-bus sends* takes them out cycle by cycle). The plant's
+SYNC handler (the simulated drives' latch and TPDOs, the IMU sample, the model step), CPU per SYNC.
+Besides, per thread of the process, CPU time per cycle over the window, and their sum (the
+interpreter's whole load per cycle: in process, one lock runs one thread at a time): the master's CAN notifier (which decodes the TPDOs: the rest of the master's work), the
 plant's (the simulated drives: not the master's), heartbeats, telemetry, ...; and the loop's own
 timing from ``status`` (period, overruns: wall time, distorted by the machine's load).
 
 ``--profile FILE``: pyinstrument on the loop thread over the window (text: wall time, call tree);
-``--cprofile FILE``: cProfile on the loop thread (CPU time per function); either slows the cycle,
-so the timing of a profiled run is not representative.
+``--cprofile FILE``: cProfile on the loop thread, and in ``FILE.plant.txt`` on the plant's CAN receive
+thread (wall time per function, waits included); either slows the cycle, so the timing of a
+profiled run is not representative.
 """
 from __future__ import annotations
 
@@ -179,6 +182,21 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     if daemon.telemetry is not None:  # after the cycle (the daemon's _after_cycle), not in read -> write
         name = "publish_cycle" if hasattr(daemon.telemetry, "publish_cycle") else "publish"  # (code before: publish)
         probe.section(daemon.telemetry, name, "telemetry publish (after the write)")
+    plant_sync, plant_k = np.full(n, np.nan), [0]  # the plant's SYNC handler (simulated drives + model step)
+    plant = getattr(robot, "plant", None)
+    if plant is not None and hasattr(plant, "_on_sync"):
+        handler, subs = plant._on_sync, plant.network.subscribers.get(0x80, [])
+
+        def timed_sync(*a):
+            t0 = time.thread_time()
+            try:
+                return handler(*a)
+            finally:
+                if probe.active and plant_k[0] < n:
+                    plant_sync[plant_k[0]] = time.thread_time() - t0
+                    plant_k[0] += 1
+
+        subs[:] = [timed_sync if cb == handler else cb for cb in subs]
     _request(sock, "enable")
     time.sleep(1.0)  # the hold settles
     notifier_threads = set()
@@ -191,6 +209,18 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
 
         prof_box["c"] = cProfile.Profile()
         _loop_call(daemon, prof_box["c"].enable)
+        plant = getattr(robot, "plant", None)
+        if plant is not None:  # the plant's receive thread too: enabled from inside it, at its next frame
+            prof_box["plant"] = cProfile.Profile()
+            net, notify = plant.network, plant.network.notify
+
+            def notify_once(*a):
+                del net.notify  # back to the class's method
+                prof_box["plant"].enable()
+                prof_box["plant_thread"] = threading.get_ident()
+                return notify(*a)
+
+            net.notify = notify_once
     cpu0 = _thread_cpu()
     st0 = _request(sock, "status")
     probe.active = True
@@ -214,13 +244,17 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
         import pstats
 
         _loop_call(daemon, prof_box["c"].disable)
-        out = io.StringIO()
-        stats = pstats.Stats(prof_box["c"], stream=out)
-        out.write(f"cProfile of the loop thread, {rate:g} Hz, {wall:.0f} s (CPU time per function; profiling "
-                  f"itself slows each call)\n")
-        stats.sort_stats("tottime").print_stats(40)
-        stats.sort_stats("cumulative").print_stats(40)
-        cprofile.write_text(out.getvalue().replace(str(ROOT) + "/", ""))
+        for key, what, dest in (("c", "the loop thread", cprofile),
+                                ("plant", "the plant's CAN receive thread", cprofile.with_suffix(".plant.txt"))):
+            if key not in prof_box:
+                continue
+            out = io.StringIO()
+            stats = pstats.Stats(prof_box[key], stream=out)
+            out.write(f"cProfile of {what}, {rate:g} Hz, {wall:.0f} s (wall time per function, waits included; "
+                      f"profiling itself slows each call)\n")
+            stats.sort_stats("tottime").print_stats(40)
+            stats.sort_stats("cumulative").print_stats(50)
+            dest.write_text(out.getvalue().replace(str(ROOT) + "/", ""))
     load = os.getloadavg()[0]
     _request(sock, "shutdown")
     th.join(30)
@@ -240,6 +274,8 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
             "work_p50_us": us(w, 50), "work_p99_us": us(w, 99), "work_max_us": us(w, 100),
             "work_less_sends_p50_us": us(w - sends, 50), "work_less_sends_p99_us": us(w - sends, 99),
             "master_rx_us_per_cycle": master_rx * 1e6,
+            "plant_sync_p50_us": us(plant_sync[:plant_k[0]], 50), "plant_sync_p99_us": us(plant_sync[:plant_k[0]], 99),
+            "process_us_per_cycle": sum(v for k2, v in per.items() if k2 != main_name) * 1e6,
             "sections_p50_p99_us": {name: (us(acc[0][:k], 50), us(acc[0][:k], 99))
                                     for name, acc in probe.sections.items()},
             "threads_us_per_cycle": {k2: round(v * 1e6, 1) for k2, v in sorted(others.items(), key=lambda x: -x[1])
@@ -281,6 +317,10 @@ def main(argv=None) -> int:
           f"{row['load_before']:.1f}, {row['load']:.1f} |")
     print("\nloop-thread sections, CPU p50 / p99 (us): " + ", ".join(
         f"{k}: {v[0]:.0f} / {v[1]:.0f}" for k, v in row["sections_p50_p99_us"].items()))
+    print(f"\nplant SYNC handler (simulated drives, IMU, model step) CPU p50 / p99: {row['plant_sync_p50_us']:.0f} / "
+          f"{row['plant_sync_p99_us']:.0f} us; all threads but the benchmark's own: "
+          f"{row['process_us_per_cycle']:.0f} us of CPU per cycle ({row['rate']:g} Hz: "
+          f"{1e6 / row['rate']:.0f} us period)")
     print("\nother threads, CPU us per cycle: "
           + ", ".join(f"{k}: {v}" for k, v in row["threads_us_per_cycle"].items()))
     if row["fault"]:

@@ -1,6 +1,7 @@
 """The one clock of a control loop (ros2_control's controller manager owns it the same way).
 
-The runtime owns the clock: ``LoopRunner`` makes one (``clock_for(period, realtime)``) and hands it
+The runtime owns the clock: ``LoopRunner`` makes one (``clock_for(period, paced(robot))``: real time
+unless the back end declares it runs in lockstep with a simulated plant, ``Robot.lockstep``) and hands it
 to its robot (``Robot.use_clock``), so that the robot's own multi-cycle sequences (a CANopen
 driver's enable, fault reaction and fault reset, which run SYNCs of their own) tick the same clock
 as the loop's cycles; no driver sleeps to pace. Defined here, in the library's lowest layer
@@ -75,6 +76,13 @@ class Pacer(Unpaced):
         delay = t - time.monotonic()
         if delay > 0:
             time.sleep(delay)
+
+
+def paced(robot, realtime: bool | None = None) -> bool:
+    """Whether a loop over ``robot`` runs in real time: ``realtime`` when the caller chooses (a test that
+    paces a simulation), else what the back end declares (``otbot_hw.robot.Robot.lockstep``: a lockstep
+    simulation runs unpaced, hardware and a plant paced in real time are paced)."""
+    return (not robot.lockstep) if realtime is None else bool(realtime)
 
 
 def clock_for(period: float, realtime: bool) -> Unpaced:

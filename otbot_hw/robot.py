@@ -31,6 +31,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+#: ``Command.saturated`` when no limit cut the request (shared, read-only: most cycles)
+_NO_SATURATION = np.zeros(3, bool)
+_NO_SATURATION.flags.writeable = False
+_NOT_SATURATED = [False, False, False]
+
 #: Kinds of fault, by where they were detected.
 FAULT_KINDS = ("emcy", "statusword", "heartbeat", "stale", "nmt", "boot", "config", "imu", "bus")
 
@@ -70,7 +75,7 @@ class RobotFault(RobotError):
     """The robot is in a fault state: torques cannot be applied until the fault is reset."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class Snapshot:
     """Everything read at one SYNC.
 
@@ -93,15 +98,31 @@ class Snapshot:
     drive_states: tuple[str, ...] = ()
     faults: tuple[Fault, ...] = ()
 
+    def __init__(self, t, cycle, host_time, joint_pos, joint_vel, joint_torque, imu_accel=None, imu_gyro=None,
+                 imu_time=None, drive_states=(), faults=()):
+        # one per cycle on every back end: the fields written straight into the instance's dict (the
+        # frozen dataclass's generated __init__ sets each through object.__setattr__, 2.1 against 0.6 us)
+        d = self.__dict__
+        d["t"], d["cycle"], d["host_time"] = t, cycle, host_time
+        d["joint_pos"], d["joint_vel"], d["joint_torque"] = joint_pos, joint_vel, joint_torque
+        d["imu_accel"], d["imu_gyro"], d["imu_time"] = imu_accel, imu_gyro, imu_time
+        d["drive_states"], d["faults"] = drive_states, faults
 
-@dataclass(frozen=True)
+
+@dataclass(frozen=True, init=False)
 class Command:
     """What ``write`` did: requested (3,) N m, commanded (3,) N m after limit clamping and the
     drives' per-mille quantization, saturated (3,) bool: a limit cut the request."""
 
     requested: np.ndarray
     commanded: np.ndarray
-    saturated: np.ndarray = field(default_factory=lambda: np.zeros(3, bool))
+    saturated: np.ndarray | None = None
+
+    def __init__(self, requested, commanded, saturated=None):
+        # one per cycle: written straight into the instance's dict, like ``Snapshot``
+        d = self.__dict__
+        d["requested"], d["commanded"] = requested, commanded
+        d["saturated"] = np.zeros(3, bool) if saturated is None else saturated
 
 
 class Robot(abc.ABC):
@@ -123,6 +144,12 @@ class Robot(abc.ABC):
     close_report: tuple[str, ...] | list[str] = ()
     #: The clock the back end's own multi-cycle sequences tick (``otbot_hw.clock``; None: it has none)
     clock = None
+    #: The back end's timing, declared (ros2_control: the hardware says what it is, the controller manager
+    #: owns the clock): True when it advances a simulated plant in lockstep with ``read()`` (nothing runs
+    #: in real time: a loop runs its cycles back to back, ``otbot_hw.clock.Unpaced``); False for hardware
+    #: or a plant paced in real time (the loop paces it, ``Pacer``). The loop asks it (``clock.paced``)
+    #: unless its caller chooses.
+    lockstep: bool = False
 
     def use_clock(self, clock) -> None:
         """The runtime's clock (``otbot_hw.clock``), handed down by the loop that drives this robot:
@@ -143,7 +170,7 @@ class Robot(abc.ABC):
             raise ValueError(f"torques must be 3 finite numbers (tau_r, tau_l, tau_p) N m, got {torques!r}")
         m = self.max_torque
         if m is None:  # plain floats: this runs every cycle
-            clamped, sat = ul, [False, False, False]
+            clamped, sat = ul, _NOT_SATURATED
         else:
             clamped = [min(max(v, -lim), lim) for v, lim in zip(ul, m)]
             sat = [a != b for a, b in zip(clamped, ul)]
@@ -151,7 +178,7 @@ class Robot(abc.ABC):
         q = self.torque_quantum
         if q is not None:
             sat = [s or abs(c - a) > 0.5 * dq + 1e-12 for s, c, a, dq in zip(sat, commanded.tolist(), clamped, q)]
-        return Command(requested=u, commanded=commanded, saturated=np.array(sat, dtype=bool))
+        return Command(u, commanded, _NO_SATURATION if sat == _NOT_SATURATED else np.array(sat, dtype=bool))
 
     @abc.abstractmethod
     def _apply(self, torques: list[float]) -> np.ndarray:

@@ -52,8 +52,11 @@ class DirectSimRobot(SimulatedRobot):
     are floored to (None: exact); ``rate_step``: resolution (3,) rad/s the rates are rounded to (None:
     exact); ``limits``: motor torque limits (None: no clamp);
     ``torque_step`` N m: the drives' torque resolution (None: exact); ``forces``: pivot forces.
-    It is its own ``plant`` (``SimulatedRobot``); no operator channel.
+    It is its own ``plant`` (``SimulatedRobot``); no operator channel. Lockstep: nothing runs in real
+    time (``Robot.lockstep``).
     """
+
+    lockstep = True
 
     def __init__(self, plant=None, period: float = 0.001, x0=None, fixture: str = "floor",
                  noise: NoiseModel | None = None, seed: int | None = 0, imu_rate: float | None = 100.0,
@@ -118,8 +121,8 @@ class DirectSimRobot(SimulatedRobot):
         self._all_enabled = all(s == ENABLED for s in self._states)
 
     def read(self) -> Snapshot:
-        u = self.applied_torque()
-        t_model = self.t_plant
+        u = self._u if self._all_enabled else self.applied_torque()
+        t_model = self._plant_k * self.period  # t_plant
         f = self.forces.at(t_model + 1e-9) if (self.forces is not None and self._started) else self._zero_f
         noise = self.noise
         acc = gyro = imu_t = None
@@ -158,7 +161,8 @@ class DirectSimRobot(SimulatedRobot):
         return snap
 
     def _apply(self, torques: list[float]) -> np.ndarray:
-        self._refuse_unless_writable(self._faults, self._all_enabled)
+        if self._faults or not self._all_enabled:
+            self._refuse_unless_writable(self._faults, self._all_enabled)
         cmd = np.array(torques, dtype=float)
         if self.torque_step:
             cmd = np.round(cmd / self.torque_step) * self.torque_step

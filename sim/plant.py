@@ -39,6 +39,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import can
 import canopen
 import numpy as np
 
@@ -113,6 +114,11 @@ class Plant:
         self.syncs = 0
         self.malformed_sync = 0
         self.truth = TruthLog()
+        #: the state (12,) and pivot force (2,) N at the latest SYNC, set before its TPDOs go out and
+        #: never changed after (``SimulatedBusRobot.truth``/``truth_force`` read them without the
+        #: lock); None until a SYNC after a set-up
+        self.sync_x: np.ndarray | None = None
+        self.sync_f: np.ndarray | None = None
         self.lock = threading.Lock()
         self.bus_gate = bus_gate
         self.injector = injector
@@ -271,6 +277,7 @@ class Plant:
                 setattr(st, attr, getattr(old, attr) * (0.0 if attr == "tau" else 1.0))
         st.t = old.t
         self.stepper = st
+        self.sync_x = self.sync_f = None  # the robot was moved: the truth is the new stepper's until the next SYNC
         self.sensors = StepperSensors(st, self.period)
         self.fixture = fixture
 
@@ -302,6 +309,17 @@ class Plant:
         gyro = gyro + self.noise.gyro * self.rng.standard_normal(3)
         return acc, gyro
 
+    def _send_frames(self, frames: list) -> None:
+        """Put this SYNC's TPDOs ((COB-ID, data), in order) on the bus: at once where the bus takes
+        several frames in one call (``sim.bus_robot.SimVirtualBus.send_many``: the master's receive
+        thread woken once, not per frame), else one ``send_message`` each."""
+        send_many = getattr(self.network.bus, "send_many", None)
+        if send_many is not None and frames:
+            send_many([can.Message(arbitration_id=cob, data=data, is_extended_id=cob > 0x7FF) for cob, data in frames])
+            return
+        for cob, data in frames:
+            self.network.send_message(cob, data)
+
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
         if len(data) > 1:
             self.malformed_sync += 1
@@ -326,6 +344,7 @@ class Plant:
         u = np.array([d.joint_torque() for d in self.drives])
         x = self.stepper.x.copy()
         f = self.forces.at(self.t + 1e-9) if (self.forces is not None and self.started) else np.zeros(2)
+        self.sync_x, self.sync_f = x, f
         if self.imu is not None and imu_due(sync_index, self.period, self.imu_rate):
             acc, gyro = self.imu_reading(x, u, f)
             self.imu.publish(self.mounting.T @ acc, self.mounting.T @ gyro)
@@ -334,12 +353,14 @@ class Plant:
         pos, vel = self.sensors.joints(u)
         rate_noise = self.noise.enc_rate * self.rng.standard_normal(3) if self.noise.enc_rate else np.zeros(3)
         angle_noise = self.noise.enc_angle * self.rng.standard_normal(3) if self.noise.enc_angle else np.zeros(3)
+        frames: list = []
         for j, d in enumerate(self.drives):
             d.sample(pos[j] + angle_noise[j], vel[j] + rate_noise[j])
-            d.send_tpdos()
+            d.send_tpdos(frames)
         if self.encoder is not None:
             self.encoder.sample(pos[2] + angle_noise[2])
-            self.encoder.send_tpdos()
+            self.encoder.send_tpdos(frames)
+        self._send_frames(frames)
         if self.started:
             self.truth.t.append(self.t)
             self.truth.x.append(x)

@@ -109,6 +109,10 @@ class ScheduledRobot(SimulatedRobot):
     def clock(self):
         return self.robot.clock
 
+    @property
+    def lockstep(self) -> bool:
+        return self.robot.lockstep
+
     def use_clock(self, clock) -> None:
         self.robot.use_clock(clock)  # the inner robot's own sequences tick the loop's clock
 

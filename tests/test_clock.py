@@ -58,6 +58,32 @@ def test_the_loop_owns_the_clock_and_hands_it_to_its_robot():
     assert inner.clock is runner.clock
 
 
+def test_the_loop_asks_the_back_end_whether_it_runs_in_real_time():
+    """Unless its caller chooses, the loop paces what the back end declares real time (``Robot.lockstep``
+    False: hardware, a plant paced in real time) and runs a lockstep simulation back to back."""
+    from sim.bus_robot import simulated_robot
+
+    limits = load_motor_limits()
+
+    def runner(robot, **kw):
+        return LoopRunner(robot, OpenLoopTorques(np.zeros((1, 3)), P), Supervisor(limits, SafetyConfig(), P), **kw)
+
+    direct = DirectSimRobot(nominal(), period=P, imu_rate=None)
+    assert direct.lockstep and type(runner(direct).clock) is Unpaced
+    assert type(runner(ScheduledRobot(direct, lambda: None)).clock) is Unpaced  # a wrapper says what it wraps
+    assert type(runner(direct, realtime=True).clock) is Pacer  # the caller's choice: a simulation paced
+
+    class Hardware(DirectSimRobot):  # a back end that declares real time
+        lockstep = False
+
+    hw = runner(Hardware(nominal(), period=P, imu_rate=None))
+    assert type(hw.clock) is Pacer and hw.realtime
+    cfg = load_robot_config().relaxed(1.0)
+    for realtime in (False, True):
+        with simulated_robot(cfg, with_imu=False, realtime=realtime) as (robot, _):
+            assert robot.lockstep is (not realtime) and runner(robot).clock.realtime is realtime
+
+
 class _Watched(Pacer):
     """A pacer that records each sequence tick with the driver's last SYNC time at the call."""
 

@@ -90,10 +90,11 @@ class EkfFeedback:
         return {"updates": dict(self._last.updates), "rejected": dict(self._last.rejected)}
 
     def _record(self, est, snapshot: Snapshot) -> StateEstimate:
+        # the Estimate's vectors and counts are its own (new arrays and dicts per estimate, never
+        # changed after): taken as they are, no copies per cycle
         self._last = est
-        return StateEstimate(float(est.t), np.asarray(est.pose, dtype=float), np.asarray(est.twist, dtype=float),
-                             np.asarray(est.std, dtype=float)[:6], float(snapshot.joint_pos[2]),
-                             float(est.gyro_bias), dict(est.rejected), dict(est.updates))
+        return StateEstimate(est.t, est.pose, est.twist, est.std[:6], float(snapshot.joint_pos[2]), est.gyro_bias,
+                             est.rejected, est.updates)
 
     def start(self, snapshot: Snapshot, robot: Robot) -> StateEstimate:
         self._imu_time = snapshot.imu_time

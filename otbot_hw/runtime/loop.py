@@ -19,7 +19,8 @@ fault) holds every sample up to and including the one that showed the fault. At 
 the robot is quick-stopped too (zero torque, drives in QUICK STOP ACTIVE).
 
 Timing: the loop owns the clock (``otbot_hw.clock``) and hands it to the robot, whose own
-multi-cycle sequences (a driver's enable, fault reaction) tick it too: ``realtime=True`` paces the
+multi-cycle sequences (a driver's enable, fault reaction) tick it too. Real time or not is the back
+end's declaration (``Robot.lockstep``; a caller's ``realtime`` overrides it): real time paces the
 reads at the period against the wall clock (``Pacer``: a real bus); otherwise cycles run back to
 back (``Unpaced``: lockstep simulation, faster than real time). Either way the
 loop measures each cycle's wall-clock period (between the snapshots' host times, i.e. the SYNCs)
@@ -49,7 +50,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from otbot_hw.clock import clock_for
+from otbot_hw.clock import clock_for, paced
 from otbot_hw.control.computed_torque import TaskState
 from otbot_hw.recording import Recording
 from otbot_hw.robot import Robot, RobotError, SimulatedRobot, Snapshot
@@ -90,8 +91,8 @@ class LoopRunner(LoopTiming, LoopRecording, LoopPower):
     None for open loop) and ``supervisor``.
 
     ``path``: MCAP recording to stream (None: in memory only); ``metadata``: extra recording metadata;
-    ``realtime``: pace against the wall clock; ``progress(text)``: called about every
-    ``progress_every`` s of robot time; ``stop_at_end``: quick-stop after the last cycle;
+    ``realtime``: pace against the wall clock (None: as the robot declares, ``otbot_hw.clock.paced``);
+    ``progress(text)``: called about every ``progress_every`` s of robot time; ``stop_at_end``: quick-stop after the last cycle;
     ``record_reference``: record ``/otbot/reference`` (NaN while no controller gives one); default:
     when the first command comes with a reference.
 
@@ -101,7 +102,7 @@ class LoopRunner(LoopTiming, LoopRecording, LoopPower):
     """
 
     def __init__(self, robot: Robot, controller: Controller | None, supervisor: Supervisor, feedback=None,
-                 path: str | Path | None = None, metadata: dict | None = None, realtime: bool = False,
+                 path: str | Path | None = None, metadata: dict | None = None, realtime: bool | None = None,
                  progress: Callable[[str], None] | None = None, progress_every: float = 1.0,
                  stop_at_end: bool = True, record_reference: bool | None = None, keep_samples: bool = True,
                  continue_after_fault: bool = False, recorder: Callable[[dict, list], Any] | None = None,
@@ -111,7 +112,7 @@ class LoopRunner(LoopTiming, LoopRecording, LoopPower):
         self.supervisor = supervisor
         self.feedback = feedback
         self.metadata = dict(metadata or {})
-        self.realtime = realtime
+        self.realtime = paced(robot, realtime)
         self.progress = progress
         self.progress_every = progress_every
         self.stop_at_end = stop_at_end
@@ -132,7 +133,7 @@ class LoopRunner(LoopTiming, LoopRecording, LoopPower):
         self._truth_force = robot.truth_force if isinstance(robot, SimulatedRobot) else None  # the pivot force
         self._t_last_read = None  # host time of the last read (s; None: the next period is not a loop period)
         # the one clock: this loop's cycles and the robot's own multi-cycle sequences tick it
-        self.clock = clock_for(self.period, realtime)
+        self.clock = clock_for(self.period, self.realtime)
         robot.use_clock(self.clock)
         self._next_progress = progress_every
         self._total = None

@@ -12,6 +12,7 @@ from typing import Callable
 
 import numpy as np
 
+from otbot_hw.clock import paced
 from otbot_hw.motors import MotorLimits
 from otbot_hw.robot import Robot
 from otbot_hw.runtime.controllers import OpenLoopTorques
@@ -20,16 +21,18 @@ from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor
 
 
 def run_torques(robot: Robot, torques, limits: MotorLimits | None = None, safety: SafetyConfig | None = None,
-                path: str | Path | None = None, metadata: dict | None = None, realtime: bool = False,
+                path: str | Path | None = None, metadata: dict | None = None, realtime: bool | None = None,
                 progress: Callable[[str], None] | None = None, feedback=None) -> LoopResult:
     """Enable ``robot``, apply ``torques`` (N, 3) N m one per period, record N + 1 samples, quick-stop.
 
     ``limits``: motor limits of the supervisor (default: none); ``safety``: its checks (default
-    ``SafetyConfig()``); ``path``: MCAP recording; ``realtime``: pace against the wall clock (a real
-    bus); ``progress(text)``: about every second of robot time; ``feedback``: an estimator to run
-    alongside (recorded on ``/otbot/estimate``), None for none."""
+    ``SafetyConfig()``); ``path``: MCAP recording; ``realtime``: pace against the wall clock (None: as the
+    robot declares, ``otbot_hw.clock.paced``: a real bus is paced); ``progress(text)``: about every
+    second of robot time; ``feedback``: an estimator to run alongside (recorded on ``/otbot/estimate``),
+    None for none."""
     torques = np.asarray(torques, dtype=float).reshape(-1, 3)
     period = robot.period
+    realtime = paced(robot, realtime)
     sup = Supervisor(limits if limits is not None else MotorLimits(np.full(3, np.inf)), safety, period,
                      realtime=realtime)
     meta = {"sample_period": period, **(metadata or {})}

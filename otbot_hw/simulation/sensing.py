@@ -20,18 +20,38 @@ import numpy as np
 from numba import njit
 
 from otbot_hw.model.effect_catalog import D_IMU
-from otbot_hw.model.sensor_model import WORK, delay_held, stepper_readings_into
+from otbot_hw.model.sensor_model import delay_held, stepper_readings_into
 from otbot_hw.simulation.integrators import ext_rk4_into
+from otbot_hw.simulation.simulator import BUF_F, BUF_OUT, BUF_PRM, BUF_S, BUF_TAU, BUF_U, BUF_WORK, BUF_X
 
 
 @njit(cache=True, nogil=True)
-def sample_and_step_into(x, s, tau, U, F, u_last, f_last, has_last, eff, prm, fixture, out, work, imu, dt, substeps,
-                         X, TAU, S, none6, none2):
-    """``stepper_readings_into`` at the current sample under U[0], F[0] into out, then one interval of
-    ``ext_rk4_into`` under U (1, 3), F (1, 2) into X, TAU, S: a loop sample's sensors and model step in
-    one compiled call (each call from Python costs about 70 ns per argument)."""
-    stepper_readings_into(x, s, tau, U[0], F[0], u_last, f_last, has_last, eff, prm, fixture, out, work, imu)
-    ext_rk4_into(x, tau, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, none6, none2)
+def sample_and_step_into(x, s, tau, u, f, u_last, f_last, has_last, eff, buf, fixture, imu, dt, substeps):
+    """``stepper_readings_into`` at the current sample under u (3,), f (2,) into the readings of ``buf``
+    (``Stepper._buf``), then one interval of ``ext_rk4_into`` under them into its X, TAU, S: a loop
+    sample's sensors and model step in one compiled call (each call from Python costs about 70 ns per
+    argument: the constant arrays are one). Returns 0 (nothing done) when u is not 3 finite numbers or f
+    not 2, else 1, or 2 when a wheel slipped in the interval."""
+    if u.shape[0] != 3 or f.shape[0] != 2:
+        return 0
+    for i in range(3):
+        if not math.isfinite(u[i]):
+            return 0
+    U = buf[BUF_U:BUF_F].reshape((1, 3))
+    F = buf[BUF_F:BUF_PRM].reshape((1, 2))
+    for i in range(3):
+        U[0, i] = u[i]
+    F[0, 0], F[0, 1] = f[0], f[1]
+    prm = buf[BUF_PRM:]
+    stepper_readings_into(x, s, tau, u, f, u_last, f_last, has_last, eff, prm, fixture,
+                          buf[BUF_OUT:BUF_WORK].reshape((5, 3)), buf[BUF_WORK:BUF_U], imu)
+    S = buf[BUF_S:BUF_OUT].reshape((2, 2))
+    ext_rk4_into(x, tau, U, F, dt, substeps, prm, eff, fixture, buf[BUF_X:BUF_TAU].reshape((2, 12)),
+                 buf[BUF_TAU:BUF_S].reshape((2, 3)), S, buf[:0].reshape((0, 6)), buf[:0].reshape((0, 2)))
+    return 2 if (S[1, 0] != 0.0 or S[1, 1] != 0.0) else 1
+
+
+_F64 = np.dtype(np.float64)
 
 
 class StepperSensors:
@@ -44,7 +64,8 @@ class StepperSensors:
         n = int(math.ceil(self.latency / self.period)) + 2 if self.latency > 0 else 0
         self._history: deque = deque(maxlen=max(n, 2))
         self._last = None  # (sample key, readings) of the last read
-        self._out, self._work, self._zero2 = np.empty((5, 3)), np.empty(WORK), np.zeros(2)
+        b = stepper._buf  # the readings and the scratch of the fused call live in the stepper's buffer
+        self._out, self._work, self._zero2 = b[BUF_OUT:BUF_WORK].reshape(5, 3), b[BUF_WORK:BUF_U], np.zeros(2)
 
     @property
     def eff(self) -> np.ndarray:
@@ -88,16 +109,28 @@ class StepperSensors:
         then ``stepper.step(u, f)``, in one compiled call: encoder angles, rates (3,) each, IMU specific
         force and rate (3,) each or None (sample-time values, before the step)."""
         st = self.stepper
-        U, F = st.interval_inputs(u, f)
-        has_last = st.u_last is not None
+        if type(u) is not np.ndarray or u.dtype is not _F64 or u.ndim != 1:  # once per cycle: cheap checks
+            u = np.asarray(u, dtype=float).reshape(-1)                      # (the lengths: compiled)
+        if f is None:
+            f = self._zero2
+        elif type(f) is not np.ndarray or f.dtype is not _F64 or f.ndim != 1:
+            f = np.asarray(f, dtype=float).reshape(-1)
         imu = imu or self.latency > 0
-        sample_and_step_into(st.x, st.slip, st.tau, U, F, st.u_last if has_last else U[0],
-                             st.f_last if has_last else F[0], has_last, st.eff, st._prm, st._code, self._out,
-                             self._work, imu, st.dt, st._substeps, st._X, st._TAU, st._S, st._none6, st._none2)
+        u_last = st.u_last
+        if u_last is None:
+            done = sample_and_step_into(st.x, st.slip, st.tau, u, f, u, f, False, st.eff, st._buf, st._code, imu,
+                                        st.dt, st._substeps)
+        else:
+            done = sample_and_step_into(st.x, st.slip, st.tau, u, f, u_last, st.f_last, True, st.eff, st._buf,
+                                        st._code, imu, st.dt, st._substeps)
+        if done <= 0:
+            raise ValueError(f"torques must be 3 finite numbers and the force 2, got {u}, {f}")
         o = self._out.copy()
-        st.advance(U, F)
+        st.advance(u, f, done == 2)
         self._last = None
-        acc, gyro = self._imu_out(t, o) if imu else (None, None)
+        if not imu:
+            return o[0], o[1], None, None
+        acc, gyro = self._imu_out(t, o)
         return o[0], o[1], acc, gyro
 
     def _imu_out(self, t: float, o: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -28,12 +28,25 @@ from otbot_hw.model.dynamics import forward_dynamics
 from otbot_hw.model.effect_catalog import EFFECT_INDEX, N_EFFECT, effect_vector
 from otbot_hw.model.effect_physics import actuated_torque
 from otbot_hw.model.fixtures import fixture_code, held_chassis_accelerations
+from otbot_hw.model.sensor_model import WORK
 from otbot_hw.params import OtbotParams
 from otbot_hw.simulation.integrators import ext_rk4_into, ext_rk4_zoh_samples, rk4_zoh
 
 T_I_INDEX = EFFECT_INDEX["T_i"]
 
 MAX_STEP = 2.5e-3  # s, largest RK4 step of the fast path
+
+#: Layout of ``Stepper._buf`` (float64): one interval's X (2, 12), TAU (2, 3), S (2, 2); the sensor
+#: readings (5, 3) and the sensor model's scratch (``WORK``) of ``StepperSensors``; the interval's
+#: command (1, 3) and force (1, 2); then the parameters (``OtbotParams.as_array``) to the end
+BUF_X = 0
+BUF_TAU = BUF_X + 24
+BUF_S = BUF_TAU + 6
+BUF_OUT = BUF_S + 4
+BUF_WORK = BUF_OUT + 15
+BUF_U = BUF_WORK + WORK
+BUF_F = BUF_U + 3
+BUF_PRM = BUF_F + 2
 
 
 @dataclass(frozen=True)
@@ -246,17 +259,34 @@ class Stepper:
         self.u_last: np.ndarray | None = None
         self.f_last: np.ndarray | None = None
         self._code = fixture_code(fixture)
-        self._prm = params.as_array()
         self._substeps = substeps or default_substeps(dt, fixture)
-        # one interval's outputs, allocated once
-        self._X, self._TAU, self._S = np.empty((2, 12)), np.empty((2, 3)), np.empty((2, 2))
+        # one interval's outputs, the sensor model's scratch and the parameters: one buffer allocated
+        # once (``BUF_*``), so that the fused compiled call of ``StepperSensors.sample_and_step`` takes
+        # one argument for them (numba's call costs about 70 ns per argument); these are views of it
+        prm = params.as_array()
+        self._buf = np.zeros(BUF_PRM + len(prm))
+        self._buf[BUF_PRM:] = prm
+        b = self._buf
+        self._X, self._TAU, self._S = (b[BUF_X:BUF_TAU].reshape(2, 12), b[BUF_TAU:BUF_S].reshape(2, 3),
+                                       b[BUF_S:BUF_OUT].reshape(2, 2))
+        self._x1, self._tau1, self._s1 = self._X[1], self._TAU[1], self._S[1]
+        self._prm_view = b[BUF_PRM:]
         self._none6, self._none2 = np.empty((0, 6)), np.empty((0, 2))
         self._zero_f = np.zeros((1, 2))  # the force when none is given (never written)
+
+    @property
+    def _prm(self) -> np.ndarray:
+        """The parameters as the compiled model takes them (``OtbotParams.as_array``), in ``_buf``."""
+        return self._prm_view
+
+    @_prm.setter
+    def _prm(self, value) -> None:  # sim.load_schedule assigns it
+        self._prm_view[:] = value
 
     def set_params(self, params: OtbotParams) -> None:
         """Change the plant parameters (e.g. a load placed on the platform)."""
         self.params = params
-        self._prm = params.as_array()
+        self._prm = params.as_array()  # copied into _buf
 
     def delivered_torque(self, u: np.ndarray) -> np.ndarray:
         """Torque (3,) N m the drives deliver at the current sample with command u acting: with a
@@ -270,7 +300,7 @@ class Stepper:
         U, F = self.interval_inputs(u, f)
         ext_rk4_into(self.x, self.tau, U, F, self.dt, self._substeps, self._prm, self.eff, self._code, self._X,
                      self._TAU, self._S, self._none6, self._none2)
-        return self.advance(U, F)
+        return self.advance(U[0], F[0])
 
     def interval_inputs(self, u: np.ndarray, f: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """One interval's torques U (1, 3) N m and force F (1, 2) N, checked (``step``)."""
@@ -279,15 +309,18 @@ class Stepper:
             raise ValueError(f"torques must be finite, got {u}")
         return U, (self._zero_f if f is None else np.asarray(f, dtype=float).reshape(1, 2))
 
-    def advance(self, U: np.ndarray, F: np.ndarray) -> np.ndarray:
-        """Take the interval the integrator wrote into ``_X``, ``_TAU``, ``_S`` under U, F as the new
-        state (``step``; ``otbot_hw.simulation.sensing.StepperSensors.sample_and_step`` integrates in
-        the same compiled call as its readings). x is replaced, never changed in place."""
-        self.x, self.tau = self._X[1].copy(), self._TAU[1].copy()
-        ds0, ds1 = self._S[1].tolist()
-        if ds0 or ds1:  # the slip rate does not depend on the slip: the steps add up (none without slip)
-            self.slip = self.slip + self._S[1]
-        self.u_last, self.f_last = U[0], F[0]
+    def advance(self, u: np.ndarray, f: np.ndarray, slipped: bool | None = None) -> np.ndarray:
+        """Take the interval the integrator wrote into ``_X``, ``_TAU``, ``_S`` under u (3,), f (2,) as
+        the new state (``step``; ``otbot_hw.simulation.sensing.StepperSensors.sample_and_step`` integrates
+        in the same compiled call as its readings, which says whether a wheel ``slipped``). x is
+        replaced, never changed in place."""
+        self.x, self.tau = self._x1.copy(), self._tau1.copy()
+        if slipped is None:
+            ds0, ds1 = self._s1.tolist()
+            slipped = bool(ds0 or ds1)
+        if slipped:  # the slip rate does not depend on the slip: the steps add up (none without slip)
+            self.slip = self.slip + self._s1
+        self.u_last, self.f_last = u, f
         self.t += self.dt
         return self.x
 

@@ -2,6 +2,12 @@
 machine with boot-up and heartbeat, PDO mapping configured by the master over SDO, synchronous RPDOs
 applied and TPDOs sent when the plant calls ``latch()`` / ``send_tpdos()`` on every SYNC, EMCY.
 The drive and the encoder (``drive``, ``encoder``) build on it.
+
+The PDO frames the master mapped are packed and unpacked with one precompiled struct each
+(``drivers.pdo_codec``, compiled whenever the mapping changes) instead of canopen's per-variable
+Python; a layout one struct cannot express, an object with limits (canopen warns when a value
+exceeds them) or a value the struct refuses (a float for an integer object: canopen truncates it)
+takes canopen's per-variable path, so the frames are those canopen would build.
 """
 from __future__ import annotations
 
@@ -12,6 +18,7 @@ from pathlib import Path
 import canopen
 from canopen.sdo import SdoAbortedError
 
+from drivers import pdo_codec
 from drivers.device import pdo_get, pdo_put
 from drivers.mapping import has_object
 
@@ -27,6 +34,14 @@ SYNC_LOSS_CYCLES = 1.5
 def wrap_int32(v: int) -> int:
     """Two's-complement wrap of an integer into INTEGER32."""
     return (v + 2 ** 31) % INT32 - 2 ** 31
+
+
+def _layout(pdo_map) -> pdo_codec.PdoLayout | None:
+    """The precompiled frame of a PDO map, or None (canopen's per-variable path): a layout one struct
+    cannot express, or an object with limits (canopen's encoding warns beyond them)."""
+    if any(v.od.min is not None or v.od.max is not None for v in pdo_map.map):
+        return None
+    return pdo_codec.compile_map(pdo_map)
 
 
 class SimulatedNode:
@@ -56,6 +71,9 @@ class SimulatedNode:
         self._sync_count = 0
         self._rpdo_pending: dict[int, bytes] = {}
         self._rpdo_hooked: set[int] = set()
+        self._layouts: dict[int, pdo_codec.PdoLayout | None] = {}  # id(PdoMap) -> its compiled frame
+        self._rpdo_maps: list = []  # the RPDO maps, and the TPDO maps with their layouts (set by _reload_pdos)
+        self._tpdo_maps: list = []
         self.silent = False
         self.drop_tpdos = False
         self.malformed = 0  # frames addressed to this node that were ignored (wrong length)
@@ -226,6 +244,10 @@ class SimulatedNode:
             if no not in self._rpdo_hooked:
                 m.add_callback(self._on_rpdo)
                 self._rpdo_hooked.add(no)
+        self._layouts = {id(m): _layout(m) for maps in (self.node.tpdo.map, self.node.rpdo.map)
+                         for m in maps.values()}
+        self._rpdo_maps = list(self.node.rpdo.map.values())
+        self._tpdo_maps = [(m, self._layouts[id(m)]) for m in self.node.tpdo.map.values()]
         self._pdo_dirty = False
 
     def _on_foreign(self, can_id: int, data: bytes, timestamp: float) -> None:
@@ -250,7 +272,11 @@ class SimulatedNode:
 
     def _apply_rpdo(self, pdo_map, data: bytes) -> None:
         pdo_map.data = bytearray(data)
-        values = {(v.index, v.subindex): pdo_get(v) for v in pdo_map.map}
+        layout = self._layouts.get(id(pdo_map))
+        if layout is not None:  # (the frame's length was checked on receipt)
+            values = dict(zip(layout.keys, layout.struct.unpack(data)))
+        else:
+            values = {(v.index, v.subindex): pdo_get(v) for v in pdo_map.map}
         for (index, sub), value in values.items():
             if (index, sub) in self.values:
                 self.on_sdo_write(index, sub, value)
@@ -272,10 +298,12 @@ class SimulatedNode:
             if not self.operational:
                 self._rpdo_pending.clear()
                 return
-            for m in self.node.rpdo.map.values():
-                data = self._rpdo_pending.pop(m.cob_id, None) if m.enabled else None
-                if data is not None:
-                    self._apply_rpdo(m, data)
+            pending = self._rpdo_pending
+            if pending:
+                for m in self._rpdo_maps:
+                    data = pending.pop(m.cob_id, None) if m.enabled else None
+                    if data is not None:
+                        self._apply_rpdo(m, data)
             self.on_sync()
 
     def on_sync_received(self) -> None:
@@ -284,22 +312,32 @@ class SimulatedNode:
     def on_sync(self) -> None:
         """Hook: per-SYNC device dynamics (after the RPDOs are applied)."""
 
-    def send_tpdos(self) -> None:
-        """At SYNC (after ``latch`` and the plant's update of the values): transmit due TPDOs."""
+    def send_tpdos(self, out: list | None = None) -> None:
+        """At SYNC (after ``latch`` and the plant's update of the values): transmit due TPDOs; with
+        ``out``, append them to it as (COB-ID, data) instead, for the caller to send (in that order)."""
         with self.lock:
             if self._pdo_dirty:
                 self._reload_pdos()
             if not self.operational or self.silent:
                 return
             self._sync_count += 1
-            for m in self.node.tpdo.map.values():
+            for m, layout in self._tpdo_maps:
                 tt = m.trans_type
                 if not m.enabled or tt is None or tt > 240:
                     continue
                 if tt == 0 or self._sync_count % tt == 0:
-                    m.data = bytearray((m.length + 7) // 8)
-                    for v in m.map:
-                        pdo_put(v, self.values.get((v.index, v.subindex), 0))
+                    try:
+                        if layout is None:
+                            raise struct.error
+                        get = self.values.get
+                        m.data = bytearray(layout.struct.pack(*[get(k, 0) for k in layout.keys]))
+                    except struct.error:  # canopen's path: int() of floats, limits, its errors
+                        m.data = bytearray((m.length + 7) // 8)
+                        for v in m.map:
+                            pdo_put(v, self.values.get((v.index, v.subindex), 0))
                     if not self.drop_tpdos:
-                        m.transmit()
+                        if out is None:
+                            m.transmit()
+                        else:
+                            out.append((m.cob_id, m.data))
                         self.tpdos_sent += 1
