@@ -36,7 +36,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from otbot_hw.identification.uncertainty import SESSION_PARAMS  # noqa: E402
+from otbot_hw.identification.uncertainty import NUISANCE_PARAMS, SESSION_PARAMS  # noqa: E402
 
 HOW = (("naive", "chained", "naive_std"), ("propagated", "chained", "propagated_std"), ("joint", "value", "std"))
 
@@ -53,7 +53,7 @@ def honesty_table(trials: list[dict]) -> str:
     lines = ["| parameter | truth range | " + " | ".join(f"{h}: within 3 sigma | {h}: mean sigma | {h}: RMS of error/sigma"
                                                      for h, _, _ in HOW) + " |",
              "|---|---|" + "---|" * (3 * len(HOW))]
-    for n in SESSION_PARAMS:
+    for n in SESSION_PARAMS + NUISANCE_PARAMS:  # (the nuisance x_F0, y_F0: the sessions that estimated them)
         truth = column(trials, n, "truth")
         if not len(truth):
             continue

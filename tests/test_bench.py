@@ -370,3 +370,19 @@ def test_a_robot_beyond_the_designs_prior_gets_the_excitation_fitted_to_it(tmp_p
     assert 0.7 < fitted["value"] < 0.9 and "the designed torques scaled by" in fitted["message"]
     assert max(abs(v) for v in d["error_sigma"].values()) < 3.0, d["error_sigma"]
     assert json.loads((tmp_path / "s" / "session.json").read_text())["excitation_scale"]["chassis"] == fitted["value"]
+
+
+def test_the_files_own_robot_completes_its_unloaded_platform_centre_estimated_at_zero(tmp_path, otbot_cli):
+    """The default simulated robot is the file's (x_F0 = y_F0 = 0): main 31ef067 stopped it at the platform
+    step with exit 2, "y_F0 not identifiable" (a std of 0.3 mm compared with an estimate of ~0 m). It completes,
+    the centre estimated within its sigma, with no notice about it."""
+    rc, out, err = _bench(otbot_cli, "--yes", "--json", "--no-diagnose", "--steps", "chassis,platform",
+                          "--session", str(tmp_path / "s"))
+    assert rc == 0, err
+    d = json.loads(out)
+    assert d["passed"] and not d["notices"]
+    up = d["unloaded_platform"]
+    for n in ("x_F0", "y_F0"):
+        assert up[n]["source"].startswith("estimated") and 0 < up[n]["std"] < 0.002
+        assert abs(up[n]["value"]) < 3 * up[n]["std"]
+    assert max(abs(v) for v in d["error_sigma"].values()) < 3.0, d["error_sigma"]

@@ -249,3 +249,36 @@ def test_an_unweighed_platform_leaves_the_total_mass_identified_and_the_split_ho
     load = res.combination({"m_p": 1.0, "m_p0": -1.0})
     assert abs(tot["value"] - (truth.m_c + truth.m_p)) < 3 * tot["std"] and tot["std"] < 0.5
     assert abs(load["value"] - 40.0) < 3 * load["std"] and load["std"] < 0.5
+
+
+def test_robot_3_of_bench_accuracy_finishes_with_honest_sigma():
+    """bench_accuracy robot 3 keeps the file's unloaded platform (x_F0 = y_F0 = 0): its session raised
+    "y_F0 not identifiable" (std compared with an estimate of ~0); it finishes, the centre within its sigma."""
+    unloaded, loaded, _ = perturbed_robot(3)
+    res = identify_session(simulate_session(unloaded, loaded, 3), nominal())
+    assert res.passed, res.reasons
+    assert {"x_F0", "y_F0"} <= set(res.estimated) and not res.notices
+    z = res.error_sigma()
+    assert set(z) == set(SESSION_PARAMS) | {"x_F0", "y_F0"}
+    assert max(abs(v) for v in z.values()) < 3.0, z
+    assert abs(res.values["y_F0"]) < 3 * res.std["y_F0"] < 0.01
+
+
+def test_a_nuisance_the_floor_run_cannot_determine_is_held_with_a_notice():
+    """A floor run sees only the total mass m_c + m_p0: asked to estimate m_p0 as a nuisance too, the session
+    holds it at the file's value with a notice, carries its std into m_c's, and estimates the platform's
+    centre (3 cm off the file) as before; taken as exact it says so."""
+    p = nominal()
+    truth = p.replace(x_F=0.02, m_c=p.m_c * 1.1)
+    recs = {"chassis": [simulate_experiment("chassis", truth, seed=5)]}
+    res = identify_session(recs, p, nuisance=("x_F0", "y_F0", "m_p0"), known_std={"m_p0": 2.0})
+    assert res.passed, res.reasons
+    assert "m_p0" not in res.estimated and {"x_F0", "y_F0"} <= set(res.estimated)
+    assert len(res.notices) == 1 and res.notices[0].startswith("m_p0 not identifiable from these recordings")
+    assert "std carried" in res.notices[0] and res.to_dict()["notices"] == res.notices
+    assert res.values["m_p0"] == p.m_p and res.std["m_p0"] == 2.0
+    assert 1.5 < res.std["m_c"] < 3.0  # the platform's 2 kg moves m_c one for one
+    assert max(abs(v) for v in res.error_sigma().values()) < 3.0
+    exact = identify_session(recs, p, nuisance=("x_F0", "y_F0", "m_p0"))
+    assert "taken as exact" in exact.notices[0] and exact.std["m_p0"] == 0.0
+    assert exact.values["x_F0"] == pytest.approx(0.02, abs=0.002)

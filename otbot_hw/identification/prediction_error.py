@@ -52,7 +52,7 @@ TYPICAL_SCALE: dict[str, float] = {
     "m_p": 10.0, "I_p": 0.1, "x_F": 0.05, "y_F": 0.05, "I_a": 1e-3, "b_w": 0.01, "b_p": 0.01,
 }
 
-PRACTICAL_STD = 10.0  # std above this many times max(|value|, typical scale): not identifiable in practice
+PRACTICAL_STD = 10.0  # std above this many times max(|value|, the fit's scale of it): not identifiable in practice
 
 
 def _unidentifiable_message(groups: list[list[str]], experiments, explain) -> tuple[str, list[str]]:
@@ -250,7 +250,10 @@ def fit_parameters(model, experiments: Sequence, free: Sequence[str], base: Any,
                     reasons.append(f"{key}: residual RMS is {ratio[key]:.2f} x the noise sigma {sig_used[key]:.3g} "
                                    f"(limit {lim:.2f}): a local minimum or a model that misses physics")
     if check_identifiability and not groups:
-        typical = np.array([max(abs(z[i]), TYPICAL_SCALE.get(n, 0.0)) for i, n in enumerate(free)])
+        # against the parameter's own magnitude, never the estimate alone: a centre of mass at 0 m has a std
+        # of a millimetre that is a good estimate, not a loose one (``sc``: the fit's scale of each parameter,
+        # ``scale`` or ``TYPICAL_SCALE``; session names such as y_F0 are not in ``TYPICAL_SCALE``)
+        typical = np.maximum(np.abs(z), sc)
         loose = [n for i, n in enumerate(free) if not std[i] <= PRACTICAL_STD * typical[i]]
         if loose:
             groups = [loose]

@@ -32,7 +32,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from otbot_hw.identification.errors import IdentificationError
+from otbot_hw.identification.errors import IdentificationError, NotIdentifiableError
 from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, STEPS, ExperimentSpec
 from otbot_hw.identification.gates import GateLimits, StepGates, check_fit, check_step
 from otbot_hw.identification.fit_result import FitResult
@@ -90,7 +90,9 @@ class SessionResult:
     covariance: joint covariance of the estimated parameters (and of the uncertain
     known ones); std: one standard deviation per symbol (0 for exact ones);
     chained / chained_std: the steps' estimates and their propagated std (before the
-    joint fit); naive_std: each step's own std (earlier steps taken as exact).
+    joint fit); naive_std: each step's own std (earlier steps taken as exact); notices: what
+    the session did that the caller should know and that does not fail it (a nuisance
+    parameter these recordings cannot determine, held at the file's value).
     """
 
     steps: dict[str, SessionStep]
@@ -105,6 +107,7 @@ class SessionResult:
     joint: FitResult | None = None
     truth: dict[str, float] | None = None
     reasons: list[str] = field(default_factory=list)
+    notices: list[str] = field(default_factory=list)
     wall_time: float = 0.0
     cpu_time: float = 0.0
 
@@ -166,6 +169,7 @@ class SessionResult:
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "passed": self.passed, "method": self.method, "reasons": list(self.reasons),
+            "notices": list(self.notices),
             "steps": {s: st.to_dict() for s, st in self.steps.items()},
             "parameters": {n: {k: _num(v) for k, v in d.items()} for n, d in self.parameters().items()},
             "correlation": {"names": list(self.covariance.names),
@@ -249,6 +253,9 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
         nuisance: parameters taken for granted that the joint fit estimates too once the chassis step's
         floor run is in (default the unloaded platform's centre of mass x_F0, y_F0: a file whose values
         are off would otherwise leave every floor run unexplained); their std then comes from the data.
+        A nuisance parameter the recordings cannot determine (``NotIdentifiableError`` of the chassis
+        step or of a joint fit naming it) is held at ``params_start``'s value instead, its ``known_std``
+        carried into the others' std, and ``notices`` says so.
     A step that does not converge stops the chain (later steps are not fitted); its gates and
     the session's ``reasons`` say why. Raises ``IdentificationError`` for bad input.
     """
@@ -273,6 +280,52 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
     cov = JointCovariance(list(carried), np.diag([carried[n] ** 2 for n in carried]))
     steps: dict[str, SessionStep] = {}
     reasons: list[str] = []
+    notices: list[str] = []
+
+    def hold(names: list[str], exc: NotIdentifiableError) -> None:
+        """Nuisance ``names`` held at the file's values, their std carried (the session goes on)."""
+        nonlocal cov
+        for n in names:
+            free_nuisance.remove(n)
+            chained[n] = values[n]
+            s = float((known_std or {}).get(n, 0.0))
+            if s > 0:
+                carried[n] = s
+            if s > 0 and n not in cov.names:
+                k = len(cov.names)
+                m = np.zeros((k + 1, k + 1))
+                m[:k, :k], m[k, k] = cov.matrix, s * s
+                cov = JointCovariance(cov.names + [n], m)
+        held = ", ".join(f"{n} = {values[n]:.4g}" + (f" +- {carried[n]:.2g}" if n in carried else "")
+                         + f" {SESSION_UNITS[n]}" for n in names)
+        notices.append(f"{', '.join(names)} not identifiable from these recordings ({exc}); held at the parameter "
+                       f"file's value ({held}) "
+                       + ("with its std carried into the other parameters' std" if any(n in carried for n in names)
+                          else "taken as exact (no std given for it)"))
+
+    def holding(fit, involved_in):
+        """``fit()`` (which frees ``free_nuisance``); when it raises ``NotIdentifiableError`` naming free nuisance
+        parameters (``involved_in(exc)``), the fewest of them held (each alone, then all) that let it run; else
+        the first error."""
+        try:
+            return fit()
+        except NotIdentifiableError as exc:
+            involved = involved_in(exc)
+            if not involved:
+                raise
+            for cand in [[n] for n in involved] + ([involved] if len(involved) > 1 else []):
+                saved = list(free_nuisance)
+                free_nuisance[:] = [n for n in saved if n not in cand]
+                try:
+                    out = fit()
+                except NotIdentifiableError:
+                    continue
+                finally:
+                    free_nuisance[:] = saved
+                hold(cand, exc)
+                return out
+            raise
+
     naive_std: dict[str, float] = {}
     experiments_all: list = []
     loaded_names: list[str] = []
@@ -281,11 +334,16 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
     for step in order:
         spec = (specs or {}).get(step) or PAPER_EXPERIMENTS[step]
         base = robot_params(chained, params_start, loaded=step in LOADED_STEPS)
-        extra = ()
-        if step == "chassis" and free_nuisance:  # the unloaded platform's inertia moves with its centre (J_p0)
-            extra = tuple(n[:-1] for n in free_nuisance if n.endswith("0")) + ("I_p",)
-        res = identify_step(step, recordings_by_step[step], base, guess=(guesses or {}).get(step),
-                            global_start=global_start, spec=spec, extra_free=extra)
+
+        def fit_step():
+            extra = ()
+            if step == "chassis" and free_nuisance:  # the unloaded platform's inertia moves with its centre (J_p0)
+                extra = tuple(n[:-1] for n in free_nuisance if n.endswith("0")) + ("I_p",)
+            return identify_step(step, recordings_by_step[step], base, guess=(guesses or {}).get(step),
+                                 global_start=global_start, spec=spec, extra_free=extra)
+
+        res = holding(fit_step, lambda exc: [n for n in free_nuisance if step == "chassis" and n.endswith("0")
+                                             and n[:-1] in exc.parameters])
         if not res.converged and method == "propagate":
             # (the joint method goes on: a step fitted with the earlier steps' estimates held exact may miss
             # the noise floor by a little because of their errors; the joint fit below judges it)
@@ -314,7 +372,14 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
         if "chassis" in steps:
             estimated += free_nuisance
         start = {**chained, **(joint.estimate if joint is not None else {}), **st.estimate}
-        joint = joint_fit(model, experiments_all, estimated, start, params_start.radius)
+
+        def fit_joint():
+            held = [n for n in nuisance if n not in free_nuisance]
+            return joint_fit(model, experiments_all, [n for n in estimated if n not in held],
+                             {**start, **{n: values[n] for n in held}}, params_start.radius)
+
+        joint = holding(fit_joint, lambda exc: [n for n in free_nuisance if n in exc.parameters])
+        free = [n for n in free if n in joint.names]  # (a nuisance held above is no longer fitted)
         st.joint = joint
         st.gates = check_fit(step, joint, experiments_all, model, params=free, only=mine, limits=gate_limits,
                              reasons=[f"the recordings of steps {', '.join(steps)} cannot be explained by one "
@@ -344,5 +409,6 @@ def identify_session(recordings_by_step: Mapping[str, Sequence], params_start: O
         reasons.append(f"the session's estimates are not physical: {exc}")
     return SessionResult(steps=steps, method=used, values=values, covariance=cov, chained=chained,
                          chained_std=chained_std, naive_std=naive_std, template=params_start, estimated=estimated,
-                         joint=joint, truth=_truth(steps), reasons=reasons, wall_time=time.perf_counter() - t0,
+                         joint=joint, truth=_truth(steps), reasons=reasons, notices=notices,
+                         wall_time=time.perf_counter() - t0,
                          cpu_time=time.process_time() - c0)

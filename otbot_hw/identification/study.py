@@ -24,7 +24,7 @@ import numpy as np
 from otbot_hw.experiment_limits import ExperimentLimits, motion_margins
 from otbot_hw.identification.design import RobotSpread
 from otbot_hw.identification.experiments import PAPER_EXPERIMENTS, STEPS, ExperimentSpec, simulate_experiment
-from otbot_hw.identification.uncertainty import LOADED_STEPS, SESSION_PARAMS
+from otbot_hw.identification.uncertainty import LOADED_STEPS, NUISANCE_PARAMS, SESSION_PARAMS
 from otbot_hw.params import OtbotParams, nominal
 
 
@@ -99,8 +99,9 @@ def session_trial(item: Mapping[str, Any]) -> dict[str, Any]:
 
     item: seed, method ("joint" / "propagate"), specs (per step, optional), spread (optional),
     limits (``ExperimentLimits``, for ``margins``: the floor runs' peaks on the true robot as fractions of them).
-    Returns seed, passed, verdicts per step, reasons, wall/cpu time, truth, load and per parameter
-    the final value/std, the chained value and its naive (step-alone) and propagated std.
+    Returns seed, passed, verdicts per step, reasons, notices, wall/cpu time, truth, load and per parameter
+    (the session's and the nuisance x_F0, y_F0 when estimated) the final value/std, the chained value and its
+    naive (step-alone) and propagated std.
     """
     from otbot_hw.identification.session import identify_session
 
@@ -111,7 +112,7 @@ def session_trial(item: Mapping[str, Any]) -> dict[str, Any]:
     truth = res.truth or {}
     std = res.std
     params = {}
-    for n in SESSION_PARAMS:
+    for n in SESSION_PARAMS + NUISANCE_PARAMS:
         if n not in res.estimated:
             continue
         params[n] = {"truth": truth.get(n), "value": res.values[n], "std": std[n], "chained": res.chained[n],
@@ -121,5 +122,5 @@ def session_trial(item: Mapping[str, Any]) -> dict[str, Any]:
                for s, r in recs.items() if PAPER_EXPERIMENTS[s].fixture == "floor"}
     return {"seed": seed, "passed": res.passed, "method": res.method, "load": load, "margins": margins,
             "verdicts": {s: st.gates.verdict for s, st in res.steps.items()},
-            "reasons": res.reasons + [r for st in res.steps.values() for r in st.gates.reasons],
+            "reasons": res.reasons + [r for st in res.steps.values() for r in st.gates.reasons], "notices": res.notices,
             "wall_time": res.wall_time, "cpu_time": res.cpu_time, "params": params}

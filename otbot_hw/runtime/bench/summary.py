@@ -84,7 +84,7 @@ def summary(proc, final, diagnosis, wall: float, cpu: float) -> dict:
     out["combinations"] = {"m_c+m_p0": final.combination({"m_c": 1.0, "m_p0": 1.0})}
     if "platform" in final.steps:
         out["combinations"]["m_p-m_p0"] = final.combination({"m_p": 1.0, "m_p0": -1.0})
-    out["notices"] = proc.notices + notices
+    out["notices"] = proc.notices + notices + list(final.notices)  # (e.g. a nuisance held at the file's value)
     if proc.sim is not None:
         truth = proc.sim.truth()
         out["truth"] = {n: truth[n] for n in SESSION_PARAMS}
