@@ -18,7 +18,8 @@ recordings come from generators the diagnosis's rules were not tuned on:
   0.4-1.2 s +-8 N m -- the case of issue 20 --, ``piecewise_slow`` 1-3 s +-6 N m), ``multisine``
   (5 random sines 0.1-2 Hz per motor), ``prbs`` (+-A switched at random on a 50-200 ms clock),
   ``chirp`` (0.05 Hz up to 1-4 Hz), ``closed_loop`` (``otbot track corridor`` / ``corridor-smooth``,
-  no external forces);
+  no external forces), ``closed_loop_independent`` (the independent robot tracking a random platform
+  twist with its own PI loop on its noisy encoder rates, torques through J^T, no model: 3-30 s, 100-200 Hz);
 * **lengths** 1-60 s and **rates** 100-1000 Hz (at most 3000 samples per recording -- 2000 from the
   independent simulator, whose adaptive RK45 per interval is slow -- so that the study fits the
   machine: a 30 s run is recorded at 100 Hz, a 1000 Hz run is 1-3 s long; longer records are in
@@ -54,9 +55,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 PLAN_FAMILIES = ("constant", "piecewise_short", "piecewise_long", "piecewise_slow", "multisine", "prbs", "chirp",
                  "closed_loop")
 #: the recording paths added after it (``plan_paths``: indices from PATH_INDEX[family]): daemon sessions
-#: (velocity sessions with EKF feedback, in real time) and the simulated CAN bus (open-loop excitations
-#: of the other families played through the CANopen drivers)
-PATH_INDEX = {"daemon": 10000, "sim_bus": 20000}
+#: (velocity sessions with EKF feedback, in real time), the simulated CAN bus (open-loop excitations
+#: of the other families played through the CANopen drivers) and the independent robot's own closed loop
+#: (``independent_robot.closed_loop``: a PI on its noisy encoder-measured twist, no model)
+PATH_INDEX = {"daemon": 10000, "sim_bus": 20000, "closed_loop_independent": 30000}
 FAMILIES = PLAN_FAMILIES + tuple(PATH_INDEX)
 OPEN_LOOP = ("constant", "piecewise_short", "piecewise_long", "piecewise_slow", "multisine", "prbs", "chirp")
 MAX_SAMPLES = 3000
@@ -153,6 +155,11 @@ def plan_paths(per_family: int, seed0: int = 0) -> list[Spec]:
         fixture = str(rng.choice(("floor", "floor", "stand", "locked")))
         out.append(Spec(k, "bus", "sim_bus", float(rng.choice((1.0, 3.0, 10.0))), float(rng.choice((100.0, 200.0))),
                         fixture, int(seed0 + k), OPEN_LOOP[i % len(OPEN_LOOP)]))
+    rng = np.random.default_rng(20261127 + seed0)  # its own stream: the specs above stay as they were
+    for i in range(per_family):
+        k = PATH_INDEX["closed_loop_independent"] + i
+        duration, rate = ((3.0, 100.0), (3.0, 200.0), (10.0, 100.0), (10.0, 200.0), (30.0, 100.0))[int(rng.integers(5))]
+        out.append(Spec(k, "independent", "closed_loop_independent", duration, rate, "floor", int(seed0 + k)))
     return out
 
 
@@ -269,6 +276,12 @@ def record(spec: Spec, folder: Path) -> Path:
         res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900)
         if not path.exists():
             raise RuntimeError(f"otbot track failed: {res.stderr.strip().splitlines()[-1:]}")
+        return path
+    if spec.family == "closed_loop_independent":
+        import independent_robot as ir
+
+        U, sens = ir.closed_loop(ir.Otbot(ir.load_params(), ir.World()), spec.duration, dt, spec.seed)
+        ir.write_mcap(path, dt, U, sens, spec.fixture)
         return path
     U = excitation(spec.family, spec.duration, dt, spec.seed, spec.fixture)
     if spec.simulator == "independent":

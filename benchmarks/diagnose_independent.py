@@ -21,6 +21,13 @@ Writes the block between the INDEPENDENT markers of docs/diagnose.md, the JSON r
 (``--recordings DIR``) keeps the recordings for ``benchmarks/diagnose.py``.
 
     .venv/bin/python benchmarks/diagnose_independent.py [--workers 2] [--seeds 3] [--cases a,b,...]
+
+``--families all`` (or a list): every catalog effect at two magnitudes x excitation family (open-loop
+families of benchmarks/diagnose_calibration.py and ``closed_loop``, the independent robot's own velocity
+loop) x seed pair, resumable from ``docs/diagnose_families.jsonl`` by code version (``families_main``).
+``--sim-check N``: the simulator's default integration against its RK45 reference (``sim_check``).
+
+    nice .venv/bin/python benchmarks/diagnose_independent.py --families all --seeds 3 --workers 2 --doc
 """
 from __future__ import annotations
 
@@ -186,9 +193,10 @@ def seeds(rep: int) -> tuple[int, int]:
 
 def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATION,
                     family: str = "piecewise", heldout_cache: Path | None = None) -> list[Path]:
-    """Fitting (piecewise-constant torques, or an excitation ``family`` of benchmarks/diagnose_calibration.py)
-    and held-out (smooth torques) recordings of one case. ``heldout_cache``: a folder where the held-out
-    recording (the same for every family) is kept and reused."""
+    """Fitting (piecewise-constant torques, an excitation ``family`` of benchmarks/diagnose_calibration.py, or
+    ``closed_loop``: ``independent_robot.closed_loop``, the robot tracking a random twist with its own PI loop
+    on its noisy encoder rates) and held-out (smooth torques) recordings of one case. ``heldout_cache``: a
+    folder where the held-out recording (the same for every family) is kept and reused."""
     world, p = world_of(case, ir.load_params())
     paths = []
     for kind, seed in zip(("piecewise", "smooth"), seeds(rep)):
@@ -198,7 +206,10 @@ def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATI
             if path.exists():
                 paths.append(path)
                 continue
-        if kind == "piecewise" and family != "piecewise":
+        if kind == "piecewise" and family == "closed_loop":  # the robot tracking a twist with its own PI loop
+            U, sens = ir.closed_loop(ir.Otbot(p, world), duration, DT, seed)
+            ir.write_mcap(path, DT, U, sens)
+        elif kind == "piecewise" and family != "piecewise":
             import diagnose_calibration as dc
 
             U = dc.excitation(family, duration, DT, seed)
@@ -321,7 +332,7 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
     from otbot_hw.recording import read_recording
 
     case = BY_LABEL[case] if isinstance(case, str) else case
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(keep) if keep else Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
@@ -329,7 +340,7 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
         if not (keep and duration == DURATION and family == "piecewise" and all(p.exists() for p in paths)):
             paths = make_recordings(case, rep, folder, duration, family, heldout_cache)  # kept ones are reused
         assert read_recording(paths[0]).truth_q is None
-        t_sim = time.perf_counter() - t0
+        t_sim, c_sim = time.perf_counter() - t0, time.process_time() - c0
         P, geometry = tool_inputs(case)
         fit_data = load(paths[:1])
         r = diagnose(fit_data, P, load(paths[1:]), geometry=geometry)
@@ -354,7 +365,7 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
             "not_identifiable": [x["name"] for x in r.get("not_identifiable", []) if x.get("kind") == "effect"],
             "not_identifiable_parameters": [f"{x.get('effect', 'nominal')}.{x['name']}" for x in
                                             r.get("not_identifiable", []) if x.get("kind") == "parameter"],
-            "total_s": time.perf_counter() - t0}
+            "sim_cpu_s": c_sim, "total_s": time.perf_counter() - t0, "total_cpu_s": time.process_time() - c0}
 
 
 def _reported(r: dict) -> str:
@@ -414,14 +425,21 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "docs" / "diagnose_independent.json"), help="JSON results file")
     ap.add_argument("--no-doc", action="store_true", help="do not rewrite docs/diagnose.md")
     ap.add_argument("--families", default="", help="comma-separated excitation families of the fitting run "
-                    "(benchmarks/diagnose_calibration.py FAMILIES but closed_loop): a family x effect table instead")
+                    "(benchmarks/diagnose_calibration.py's open-loop ones and closed_loop: the independent robot's "
+                    "own velocity loop) or 'all': a family x effect table instead")
     ap.add_argument("--magnitudes", default="1,0.5", help="with --families: effect sizes relative to the cases' "
                     "(default 1,0.5)")
     ap.add_argument("--jsonl", default=str(ROOT / "docs" / "diagnose_families.jsonl"),
-                    help="with --families: JSON lines, appended as results come (rows already there are skipped)")
+                    help="with --families: JSON lines, appended as results come (rows of this code version already "
+                         "there are skipped, rows of other versions ignored)")
     ap.add_argument("--doc", action="store_true", help="with --families: write the table into docs/diagnose.md")
     ap.add_argument("--table-only", action="store_true", help="with --families: only the table from --jsonl")
+    ap.add_argument("--sim-check", type=int, default=0, metavar="N",
+                    help="only compare the default integration of the independent simulator with the reference "
+                         "(RK45 rtol 1e-8) on N cases (CPU time, differences in sensor sigmas) and exit")
     args = ap.parse_args()
+    if args.sim_check:
+        return sim_check(args.sim_check)
     if args.families:
         return families_main(args)
     chosen = [c for c in CASES if not args.cases or c.label in args.cases.split(",")]
@@ -508,26 +526,61 @@ def magnitude_case(label: str, f: float) -> Case:
 
 
 HELDOUT_CACHE = Path(tempfile.gettempdir()) / "otbot-diagnose-families-heldout"
+#: ``--families all``: the paper's constant torques, random piecewise-constant (0.4-1.2 s holds, +-8 N m), multisine,
+#: PRBS, chirp (benchmarks/diagnose_calibration.py) and the independent robot's own closed loop
+#: (``independent_robot.closed_loop``): 22 effects x 2 magnitudes x 6 families x 3 seed pairs = 792 runs
+ALL_FAMILIES = ("constant", "piecewise_long", "multisine", "prbs", "chirp", "closed_loop")
+#: the other hold ranges, by name only: piecewise_short is the fitting run of the study without --families
+#: (every case, 3 seed pairs); piecewise_slow adds 1-3 s holds
+MORE_FAMILIES = ("piecewise_short", "piecewise_slow")
 
 
-def run_family_case(label: str, f: float, rep: int, family: str) -> dict:
-    HELDOUT_CACHE.mkdir(exist_ok=True)
-    r = run_case(magnitude_case(label, f), rep, None, DURATION, family, fisher=True, heldout_cache=HELDOUT_CACHE)
-    r.update(case=label, magnitude=f)
+def code_hash() -> str:
+    """12 hex digits over what a study row depends on: the diagnosis (otbot_hw/diagnose/*.py), the independent
+    simulator, the excitation families and, from this file, the cases, their magnitudes, the recording and
+    the scoring. Rows of another hash are from another code version and are not mixed into a table."""
+    import hashlib
+    import inspect
+
+    import diagnose_calibration as dc
+
+    h = hashlib.sha256()
+    for path in sorted((ROOT / "otbot_hw" / "diagnose").glob("*.py")) + [ROOT / "benchmarks" / "independent_robot.py"]:
+        h.update(path.name.encode() + b"\0" + path.read_bytes())
+    for fn in (dc.excitation, make_recordings, run_case, score, _zero_tolerance, truth_fisher, _scale, magnitude_case):
+        h.update(inspect.getsource(fn).encode())
+    h.update(repr([(c.label, c.kind, c.world, c.truth, c.file, c.casters, c.imu_position) for c in CASES]).encode())
+    h.update(repr((DURATION, DT, TOLERANCE)).encode())
+    return h.hexdigest()[:12]
+
+
+def run_family_case(label: str, f: float, rep: int, family: str, version: str = "") -> dict:
+    """One run of the family study; the held-out recording (the same for every family) cached per code
+    ``version`` (a cache of an older simulator is not reused)."""
+    cache = HELDOUT_CACHE / (version or "unversioned")
+    cache.mkdir(parents=True, exist_ok=True)
+    r = run_case(magnitude_case(label, f), rep, None, DURATION, family, fisher=True, heldout_cache=cache)
+    r.update(case=label, magnitude=f, hash=version)
     return r
 
 
+def _truth_ni(r: dict) -> list[str]:
+    """True effects of a row the diagnosis called "not identifiable from this recording"."""
+    return [e for e in r.get("truth", {}) if e in set(r.get("not_identifiable") or [])]
+
+
 def family_table(rows: list[dict], fams: list[str], labels: list[str]) -> list[str]:
-    """Family x effect table: right / runs per cell (both magnitudes, every seed pair), "n.i." counts of
-    runs the Fisher criterion at the truth says this recording cannot reveal."""
+    """Family x effect table: right / runs per cell (both magnitudes, every seed pair); "n.i. k": k of those
+    runs answered "not identifiable from this recording" for the true effect (right only where the Fisher
+    criterion at the truth agrees; listed in ``ni_table``); the last rows: per family % right and runs."""
     ok = [r for r in rows if "error" not in r]
     lines = ["| effect | " + " | ".join(fams) + " |", "|---|" + "---|" * len(fams)]
     for lab in labels:
         cells = []
         for f in fams:
             rs = [r for r in ok if r["case"] == lab and r["family"] == f]
-            ni = sum(not all(v["identifiable"] for v in (r["fisher"] or {}).values()) for r in rs)
-            cells.append(f"{sum(r['right'] for r in rs)}/{len(rs)}" + (f" ({ni} n.i.)" if ni else "") if rs else "-")
+            ni = sum(bool(_truth_ni(r)) for r in rs)
+            cells.append(f"{sum(r['right'] for r in rs)}/{len(rs)}" + (f" (n.i. {ni})" if ni else "") if rs else "-")
         lines.append(f"| {lab} | " + " | ".join(cells) + " |")
     cells = []
     for f in fams:
@@ -535,57 +588,228 @@ def family_table(rows: list[dict], fams: list[str], labels: list[str]) -> list[s
         cells.append(f"**{100 * sum(r['right'] for r in rs) / len(rs):.0f} %** ({sum(r['right'] for r in rs)}/{len(rs)})"
                      if rs else "-")
     lines.append("| **all effects** | " + " | ".join(cells) + " |")
+    failed = [sum("error" in r and r["family"] == f for r in rows) for f in fams]
+    if any(failed):
+        lines.append("| failed runs | " + " | ".join(str(x) for x in failed) + " |")
     return lines
+
+
+def ni_table(rows: list[dict]) -> list[str]:
+    """Every "not identifiable from this recording" verdict for a true effect, with the Fisher criterion at the
+    truth (signature chi^2 / needed) and whether it scored right."""
+    ni = [r for r in rows if "error" not in r and _truth_ni(r)]
+    if not ni:
+        return ["No run answered \"not identifiable from this recording\" for its true effect."]
+    out = ["| family | effect | magnitude | seed pair | Fisher chi^2 at the truth / needed | right |",
+           "|---|---|---|---|---|---|"]
+    for r in sorted(ni, key=lambda r: (r["family"], r["case"], r["magnitude"], r["rep"])):
+        for e in _truth_ni(r):
+            fi = (r.get("fisher") or {}).get(e, {})
+            out.append(f"| {r['family']} | {r['case']} | x{r['magnitude']:g} | {r['rep']} | "
+                       f"{fi.get('chi2', float('nan')):.3g} / {fi.get('needed', float('nan')):.3g} | "
+                       f"{'yes' if r['right'] else 'no'} |")
+    return out
+
+
+def miss_lines(rows: list[dict]) -> list[str]:
+    """The confusion of the wrong runs: per family and effect, what was reported instead (counts)."""
+    from collections import Counter
+
+    wrong = [r for r in rows if "error" not in r and not r["right"]]
+    out = []
+    for (fam, lab) in sorted({(r["family"], r["case"]) for r in wrong}):
+        c = Counter(f"{_reported(r)} [{_errors(r)}]" for r in wrong if r["family"] == fam and r["case"] == lab)
+        out.append(f"* {fam} / {lab}: " + "; ".join(f"{k}" + (f" (x{n})" if n > 1 else "") for k, n in c.items()))
+    return out
+
+
+def _load_rows(path: Path, version: str) -> tuple[list[dict], dict]:
+    """Rows of ``path`` made by code ``version``, and the counts of rows of other versions (ignored)."""
+    from collections import Counter
+
+    rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
+    other = Counter(r.get("hash") or "none" for r in rows if r.get("hash") != version)
+    mine: dict[tuple, dict] = {}  # one row per key: the last, a failed run replaced by a later success
+    for r in rows:
+        key = (r["family"], r["case"], r["magnitude"], r["rep"])
+        if r.get("hash") == version and ("error" not in r or "error" in mine.get(key, {"error": 1})):
+            mine[key] = r
+    return list(mine.values()), dict(other)
 
 
 def families_main(args) -> int:
     """Every catalog effect (``FAMILY_CASES``) at each magnitude x excitation family x seed pair, one row per
-    run appended to ``--jsonl`` as it comes (rows already there are skipped; run order: seed pair, magnitude,
-    case, family -- an interrupted study covers every family evenly); the family x effect table
-    printed and (``--doc``) written between the FAMILIES markers of docs/diagnose.md."""
-    fams = args.families.split(",")
+    run appended to ``--jsonl`` as it comes, keyed by (family, case, magnitude, seed pair) and the code hash
+    (``code_hash``; rows of this version already there are skipped, rows of other versions ignored -- said
+    when it happens). Run order: seed pair, magnitude, case, family (an interrupted study covers every family
+    evenly). First a timed sample, three runs per worker spread evenly over the plan: the estimate of the
+    whole study is printed from them (each worker's first left out; or from rows of this version already
+    there) before the rest starts. The family x effect table
+    is printed and (``--doc``) written between the FAMILIES markers of docs/diagnose.md."""
+    fams = list(ALL_FAMILIES) if args.families == "all" else args.families.split(",")
+    unknown = [f for f in fams if f not in ALL_FAMILIES + MORE_FAMILIES + ("piecewise",)]
+    if unknown:
+        print(f"error: unknown excitation family {', '.join(unknown)} (known: all = {', '.join(ALL_FAMILIES)}; "
+              f"{', '.join(MORE_FAMILIES)})", file=sys.stderr)
+        return 2
     labels = [c for c in FAMILY_CASES if not args.cases or c in args.cases.split(",")]
-    mags = [float(x) for x in args.magnitudes.split(",")]
+    try:
+        mags = [float(x) for x in args.magnitudes.split(",")]
+    except ValueError:
+        print(f"error: --magnitudes {args.magnitudes!r}: comma-separated numbers expected", file=sys.stderr)
+        return 2
     out = Path(args.jsonl)
-    rows = [json.loads(x) for x in out.read_text().splitlines() if x.strip()] if out.exists() else []
-    done = {(r["case"], r["magnitude"], r["family"], r["rep"]) for r in rows}
+    version = code_hash()
+    rows, other = _load_rows(out, version)
+    if other:
+        print(f"[families] code version {version}: ignoring {sum(other.values())} rows of {out.name} from other "
+              f"versions ({', '.join(f'{k}: {v}' for k, v in sorted(other.items()))})", file=sys.stderr, flush=True)
+    done = {(r["family"], r["case"], r["magnitude"], r["rep"]) for r in rows if "error" not in r}  # failed: again
+    if not args.table_only:
+        rows = [r for r in rows if "error" not in r]
     todo = [(lab, m, fam, rep) for rep in range(args.seeds) for m in mags for lab in labels for fam in fams
-            if (lab, m, fam, rep) not in done]
+            if (fam, lab, m, rep) not in done]
+    t0 = time.perf_counter()
+    total = len(todo)
+
+    def estimate(sample: list[dict], left: int) -> str:
+        ok = [r for r in sample if "total_s" in r]
+        if not ok:
+            return "no timed run yet"
+        wall = float(np.median([r["total_s"] for r in ok]))
+        cpu = float(np.median([r.get("total_cpu_s") or r["total_s"] for r in ok]))
+        sim = float(np.median([r.get("sim_cpu_s") or r["sim_s"] for r in ok]))
+        return (f"{len(ok)} timed runs: median {wall:.1f} s wall, {cpu:.1f} s CPU per run (simulation {sim:.1f} s "
+                f"CPU); {left} runs left on {args.workers} worker(s): ~{left * wall / args.workers / 60:.0f} min at "
+                f"this load, ~{left * cpu / args.workers / 60:.0f} min on quiet cores")
+
+    print(f"[families] code version {version}: {len(labels)} effects x {len(mags)} magnitudes x {len(fams)} families "
+          f"x {args.seeds} seed pairs = {len(labels) * len(mags) * len(fams) * args.seeds} runs, {len(rows)} done, "
+          f"{total} to run", file=sys.stderr, flush=True)
     if not args.table_only and todo:
+        n_done = 0
         with ProcessPoolExecutor(max_workers=args.workers) as ex, open(out, "a") as fh:
-            futs = {ex.submit(run_family_case, lab, m, rep, fam): (lab, m, fam, rep) for lab, m, fam, rep in todo}
-            for fut in as_completed(futs):
-                lab, m, fam, rep = futs[fut]
-                try:
-                    r = fut.result()
-                except Exception as exc:  # noqa: BLE001 - reported, the others go on
-                    r = {"case": lab, "magnitude": m, "rep": rep, "family": fam, "error": repr(exc), "kind": "effect"}
-                rows.append(r)
-                fh.write(json.dumps(r, default=float) + "\n")
-                fh.flush()
-                print(f"[families] {fam} {lab} x{m:g} #{rep}: " + ("ERROR " + r["error"] if "error" in r else
-                      f"{'RIGHT' if r['right'] else 'wrong'}  {_reported(r)}  {_errors(r)}  "
-                      f"fisher {r['fisher']}  ({r['diagnose_s']:.1f} s)"), file=sys.stderr, flush=True)
-    rows = [r for r in rows if r["family"] in fams and r["case"] in labels]
+            def run_batch(batch):
+                nonlocal n_done
+                futs = {ex.submit(run_family_case, lab, m, rep, fam, version): (lab, m, fam, rep)
+                        for lab, m, fam, rep in batch}
+                got = []
+                for fut in as_completed(futs):
+                    lab, m, fam, rep = futs[fut]
+                    try:
+                        r = fut.result()
+                    except Exception as exc:  # noqa: BLE001 - reported, the others go on
+                        r = {"case": lab, "magnitude": m, "rep": rep, "family": fam, "error": repr(exc),
+                             "kind": "effect", "hash": version}
+                    rows.append(r)
+                    got.append(r)
+                    fh.write(json.dumps(r, default=float) + "\n")
+                    fh.flush()
+                    n_done += 1
+                    el = time.perf_counter() - t0
+                    print(f"[families {n_done}/{total} {el / 60:5.1f} min, ~{el / n_done * (total - n_done) / 60:.0f} "
+                          f"min left] {fam} {lab} x{m:g} #{rep}: " + ("ERROR " + r["error"] if "error" in r else
+                          f"{'RIGHT' if r['right'] else 'wrong'}  {_reported(r)}  {_errors(r)}  (sim "
+                          f"{r.get('sim_cpu_s', r['sim_s']):.1f} s, diagnose "
+                          f"{r.get('diagnose_cpu_s') or 0:.1f} s CPU)"),
+                          file=sys.stderr, flush=True)
+                return got
+
+            sample = [r for r in rows if "total_s" in r]
+            if len(sample) < 2 * args.workers:  # a timed sample first: three runs per worker spread evenly over
+                pick = sorted({int(i) for i in np.linspace(0, len(todo) - 1, 3 * args.workers)})  # the plan
+                first = run_batch([todo[i] for i in pick])  # (effects, families); the first of each worker
+                sample += first[args.workers:] or first  # (numba compilation, caches) left out
+                todo = [t for i, t in enumerate(todo) if i not in set(pick)]
+            print(f"[families] estimate: {estimate(sample, len(todo))}", file=sys.stderr, flush=True)
+            if todo:
+                run_batch(todo)
+    rows = [r for r in rows if r["family"] in fams and r["case"] in labels and r["magnitude"] in mags
+            and r["rep"] < args.seeds]
     lines = family_table(rows, fams, labels)
     print("\n".join(lines))
     if args.doc:
         ok = [r for r in rows if "error" not in r]
-        head = [f"{len(rows)} runs ({len(rows) - len(ok)} failed): {len(labels)} effects x magnitudes "
-                f"{', '.join(f'{m:g}' for m in mags)} x families {', '.join(fams)} x seed pairs "
-                f"{', '.join(str(x) for x in sorted({r['rep'] for r in rows}))} (see the text for which ran). "
-                f"Slowest diagnosis {max((r['diagnose_s'] for r in ok), default=float('nan')):.1f} s (wall, "
-                "machine shared).", ""]
+        reps = sorted({r["rep"] for r in rows})
+        cpu = [r["total_cpu_s"] for r in ok if r.get("total_cpu_s")]
+        head = [f"{len(rows)} runs ({len(rows) - len(ok)} failed) of code version `{version}` "
+                f"(`code_hash()`: otbot_hw/diagnose, the independent simulator, the cases and scoring): "
+                f"{len(labels)} effects x magnitudes {', '.join(f'{m:g}' for m in mags)} x families "
+                f"{', '.join(fams)} x seed pairs {', '.join(str(x) for x in reps)}"
+                + (f"; {sum(other.values())} rows of other code versions in the JSON lines ignored" if other else "")
+                + f". Right overall: {sum(r['right'] for r in ok)}/{len(ok)}. Slowest diagnosis "
+                f"{max((r['diagnose_s'] for r in ok), default=float('nan')):.1f} s (wall, machine shared)"
+                + (f"; median CPU per run {np.median(cpu):.1f} s (simulation "
+                   f"{np.median([r['sim_cpu_s'] for r in ok if r.get('sim_cpu_s') is not None]):.1f} s)" if cpu else "")
+                + ".", ""]
+        tail = ["", "\"Not identifiable from this recording\" verdicts for the true effect:", ""] + ni_table(rows)
+        miss = miss_lines(rows)
+        tail += ["", "Wrong runs, what was reported instead (errors of the true effect's parameters):", ""] + \
+            (miss or ["* none"])
         doc = ROOT / "docs" / "diagnose.md"
         text = doc.read_text()
         begin, end = "<!-- FAMILIES:BEGIN (written by benchmarks/diagnose_independent.py --families) -->", \
             "<!-- FAMILIES:END -->"
-        block = begin + "\n\n" + "\n".join(head + lines) + "\n\n" + end
+        block = begin + "\n\n" + "\n".join(head + lines + tail) + "\n\n" + end
         if begin in text:
             text = text[:text.index(begin)] + block + text[text.index(end) + len(end):]
         else:
             text += "\n" + block + "\n"
         doc.write_text(text)
+    return 0
+
+
+#: (case, family) pairs of ``--sim-check``: every kind of term of the independent simulator (sharp signs, slip,
+#: traction curve, lag, latency, casters, saturation, slope) under every family
+SIM_CHECK = (("coulomb_wheels", "chirp"), ("wheel_slip", "prbs"), ("traction_limit", "multisine"),
+             ("current_lag", "constant"), ("caster_configured", "piecewise_long"), ("imu_latency", "closed_loop"),
+             ("stribeck_wheels", "prbs"), ("torque_saturation", "piecewise_short"), ("floor_slope", "chirp"),
+             ("coulomb_pivot", "closed_loop"), ("rolling_resistance", "piecewise_slow"), ("imu_bias", "multisine"))
+
+
+def _simulate(case: Case, family: str, rep: int, reference: bool) -> tuple[list[dict], float]:
+    """Sensor signals of the fitting and held-out recordings of ``case`` (``make_recordings`` without the
+    files), by the reference or the default integration, and the CPU time it took."""
+    import diagnose_calibration as dc
+
+    world, p = world_of(case, ir.load_params())
+    fit_seed, held_seed = seeds(rep)
+    c0 = time.process_time()
+    robot = ir.Otbot(p, world, reference=reference)
+    if family == "closed_loop":
+        U, fit = ir.closed_loop(robot, DURATION, DT, fit_seed)
+    else:
+        U = dc.excitation(family, DURATION, DT, fit_seed) if family != "piecewise" else \
+            ir.piecewise_torques(DURATION, DT, fit_seed)
+        fit = robot.sensors(robot.run(U, DT), np.random.default_rng(fit_seed + 1000))
+    robot = ir.Otbot(p, world, reference=reference)
+    held = robot.sensors(robot.run(ir.smooth_torques(DURATION, DT, held_seed), DT),
+                         np.random.default_rng(held_seed + 1000))
+    return [fit, held], time.process_time() - c0
+
+
+def sim_check(n: int) -> int:
+    """The default integration against the reference (RK45 rtol 1e-8) on the first ``n`` of ``SIM_CHECK``
+    (10 s fitting + 10 s held-out recording each, seed pair 0): CPU time of each and the largest difference of
+    the recorded signals, same noise draws, in units of the sensor noise (IMU: SIGMA_IMU; encoder rates:
+    SIGMA_ENC_RATE; encoder angles -- noise-free here -- in counts of a 4096*4*10-count encoder)."""
+    count = 2 * np.pi / (4096 * 4 * 10)
+    print("| case | family | reference CPU (s) | default CPU (s) | speed-up | max IMU diff (sigma) | "
+          "max encoder rate diff (sigma) | max encoder angle diff (counts) |")
+    print("|---|---|---|---|---|---|---|---|")
+    tr, tf, worst = 0.0, 0.0, [0.0, 0.0, 0.0]
+    for label, family in SIM_CHECK[:n]:
+        case = BY_LABEL[label]
+        ref, t_ref = _simulate(case, family, 0, True)
+        fast, t_fast = _simulate(case, family, 0, False)
+        d = [max(max(np.abs(a[k] - b[k]).max() for k in ("acc", "gyro")) for a, b in zip(ref, fast)) / ir.SIGMA_IMU,
+             max(np.abs(a["vel"] - b["vel"]).max() for a, b in zip(ref, fast)) / ir.SIGMA_ENC_RATE,
+             max(np.abs(a["pos"] - b["pos"]).max() for a, b in zip(ref, fast)) / count]
+        worst = [max(w, x) for w, x in zip(worst, d)]
+        tr, tf = tr + t_ref, tf + t_fast
+        print(f"| {label} | {family} | {t_ref:.2f} | {t_fast:.2f} | {t_ref / t_fast:.1f} | {d[0]:.1e} | {d[1]:.1e} | "
+              f"{d[2]:.1e} |", flush=True)
+    print(f"| **all** | | {tr:.1f} | {tf:.1f} | {tr / tf:.1f} | {worst[0]:.1e} | {worst[1]:.1e} | {worst[2]:.1e} |")
     return 0
 
 

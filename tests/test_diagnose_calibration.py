@@ -38,7 +38,8 @@ def test_issue_20_clean_case_is_clean_and_its_cause_is_the_initial_pivot_rate(ca
 @pytest.mark.parametrize("spec", [("project", "multisine", 2.0, 200.0, "stand", 3),
                                   ("project", "prbs", 2.0, 100.0, "locked", 4),
                                   ("independent", "chirp", 2.0, 100.0, "floor", 5),
-                                  ("bus", "sim_bus", 1.0, 100.0, "floor", 6, "prbs")])
+                                  ("bus", "sim_bus", 1.0, 100.0, "floor", 6, "prbs"),
+                                  ("independent", "closed_loop_independent", 3.0, 200.0, "floor", 7)])
 def test_clean_recordings_of_other_families_fixtures_and_rates_find_nothing(calibration, spec):
     row = calibration.run_one(calibration.Spec(0, *spec))
     assert row["outcome"] == "clean", row

@@ -28,9 +28,64 @@ def test_independent_simulator_is_independent_and_agrees_with_the_papers_model(i
     assert "otbot_hw" not in source.split('"""', 2)[2]  # nothing imported from the project
     ir = independent.ir
     U = ir.piecewise_torques(1.5, 0.01, 3)
-    run = ir.Otbot(ir.load_params(), ir.World()).run(U, 0.01)
+    run = ir.Otbot(ir.load_params(), ir.World(), reference=True).run(U, 0.01)
     ref = simulate(nominal(), U, 0.01, method="reference")
     assert np.max(np.abs(run["Z"][:, :12] - ref.x)) < 1e-9
+
+
+@pytest.mark.parametrize("world, family", [
+    ({"coulomb_w": 0.3, "coulomb_p": 0.3, "caster_drag": 6.0, "casters": ((0.35, 0.12), (0.35, -0.12))}, "chirp"),
+    ({"slip_k": 0.02, "slip_tmax": 3.0, "stribeck": (0.4, 0.5)}, "prbs"),
+    ({"lag": 0.03, "imu_latency": 0.025, "imu_position": (0.08, -0.04), "slope": (0.03, -0.02)}, "piecewise_long"),
+])
+def test_fast_integration_matches_the_rk45_reference_well_below_the_sensor_noise(independent, world, family):
+    """The default integration (scalar rhs, RK4 at 5 ms / 0.5 ms near a sharp sign, Newton slip split) against
+    the reference (matrix rhs, RK45 rtol 1e-8, Brent): the recorded signals, same noise draws, differ by less
+    than 1 % of the sensor noise (IMU, encoder rates) and 0.1 count of a 4096*4*10-count encoder (angles)."""
+    import diagnose_calibration as dc
+
+    ir = independent.ir
+    U = dc.excitation(family, 1.5, 0.01, 5)
+    out = []
+    for reference in (True, False):
+        robot = ir.Otbot(ir.load_params(), ir.World(**world), reference=reference)
+        out.append(robot.sensors(robot.run(U, 0.01), np.random.default_rng(1)))
+    ref, fast = out
+    assert max(np.abs(ref[k] - fast[k]).max() for k in ("acc", "gyro")) < 0.01 * ir.SIGMA_IMU
+    assert np.abs(ref["vel"] - fast["vel"]).max() < 0.01 * ir.SIGMA_ENC_RATE
+    assert np.abs(ref["pos"] - fast["pos"]).max() < 0.1 * 2 * np.pi / (4096 * 4 * 10)
+
+
+def test_closed_loop_tracks_its_reference_on_the_encoder_rates_it_records(independent):
+    """The independent closed loop: the PI on the encoder-measured twist tracks the reference, its command at
+    every sample is the law applied to the recorded (noisy) encoder reading, and so depends on the noise."""
+    ir = independent.ir
+    p = ir.load_params()
+    U, sens = ir.closed_loop(ir.Otbot(p, ir.World()), 3.0, 0.01, 7)
+    ref = ir.reference_twist(3.0, 0.01, 7)
+    law = ir.TwistController(p, ref, 0.01, np.zeros((len(U) + 1, 3)))
+    twist = np.array([law.jacobian(pos[2]) @ v for pos, v in zip(sens["pos"], sens["vel"])])
+    assert np.sqrt(np.mean((twist[:-1] - ref) ** 2)) < 0.5 * np.sqrt(np.mean(ref ** 2))  # tracks
+    again = np.array([law(k, sens["pos"][k], sens["vel"][k]) for k in range(len(U))])
+    assert np.allclose(again, U, atol=1e-9)  # the recorded rates are what the loop saw
+    U2, _ = ir.closed_loop(ir.Otbot(p, ir.World()), 3.0, 0.01, 8)
+    assert not np.allclose(U2, U, atol=0.05)  # another seed: another reference and noise, other torques
+
+
+def test_family_study_rows_of_another_code_version_are_ignored(independent, tmp_path, monkeypatch):
+    rows = [{"family": "prbs", "case": "imu_bias", "magnitude": 1.0, "rep": 0, "hash": "old", "right": False},
+            {"family": "prbs", "case": "imu_bias", "magnitude": 1.0, "rep": 0, "hash": "new", "error": "x"},
+            {"family": "prbs", "case": "imu_bias", "magnitude": 1.0, "rep": 0, "hash": "new", "right": True},
+            {"family": "prbs", "case": "gain_left", "magnitude": 1.0, "rep": 0, "right": True}]
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(__import__("json").dumps(r) + "\n" for r in rows))
+    mine, other = independent._load_rows(path, "new")
+    assert mine == [rows[2]]  # the later success replaces the failed run; other versions left out
+    assert other == {"old": 1, "none": 1}
+    before = independent.code_hash()
+    changed = independent.magnitude_case("imu_bias", 0.5)  # a case whose effect size changed: another version
+    monkeypatch.setattr(independent, "CASES", [changed if c.label == "imu_bias" else c for c in independent.CASES])
+    assert independent.code_hash() != before
 
 
 def test_small_gyro_bias_is_named_by_its_heading_drift(independent):
