@@ -11,6 +11,9 @@
    Before a name is given, the best candidate's catalog look-alikes get a nested fit too. The
    search goes on after an accepted effect, an ambiguous group or a small detection, up to
    ``MAX_ROUNDS`` rounds (``choose``).
+
+Length: one search (``_Search``) whose rounds, look-alike checks, convergence and pair tries share its
+state (the fits so far, the reference, progress); the rules and the screening are modules of their own.
 """
 from __future__ import annotations
 
