@@ -3,6 +3,10 @@ in ``otbot_hw.model.effect_catalog`` on top of the paper's dynamics (``otbot_hw.
 through its ``gen`` hook), and the derivative of the extended state z = (x, slip angles) that the
 integrators of ``otbot_hw.simulation.integrators`` advance. All zeros = the paper's model.
 
+Length: the effects' force, actuator and slip laws and the derivative that solves them together (the
+slip split's fixed point with the accelerations) are one compiled kernel; about half the lines are the
+modelling choices stated below.
+
 Modelling choices (documented, not hidden):
 
 * Signs are smoothed, sgn(w) ~ tanh(w / width) and the caster's direction
