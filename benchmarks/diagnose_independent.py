@@ -303,7 +303,7 @@ def _indistinguishable(err: float | None, fisher_param: dict | None) -> bool:
     (err / TOLERANCE)^2 x that (linear in the parameter), below the need -- the recording cannot tell the
     estimate from the truth, so 20 % is finer than it can resolve (a 3 mrad/s gyro bias in 10 s at the
     paper's 13.7 mrad/s noise: std 0.45 mrad/s, 15 %). Beyond 20 % only where a 20 % change does not show."""
-    if err is None or not fisher_param:
+    if err is None or not fisher_param or "chi2" not in fisher_param:
         return False
     return bool((err / TOLERANCE) ** 2 * fisher_param["chi2"] < fisher_param["needed"])
 
