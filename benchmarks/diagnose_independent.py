@@ -15,7 +15,9 @@ and the model is judged adequate. "Detected, small" names an effect too (left ou
 not mattering on these runs); a parameter the diagnosis says this recording does not determine
 counts as right when the Fisher criterion at the truth agrees (``truth_fisher``), and so does an
 effect it says is not identifiable; a parameter of an effect of several parameters also counts as
-right beyond 20 % when that criterion cannot tell its estimate from the truth (``_indistinguishable``). A clean run is right when nothing is named; a
+right beyond 20 % when that criterion cannot tell its estimate from the truth (``_indistinguishable``),
+and an effect named in its nested form -- without the parameters that criterion says the recording
+cannot reveal (wheel slip for a traction limit never reached) -- counts when the rest are right. A clean run is right when nothing is named; a
 wrong-parameter-file run when the tool says "model inadequate" and names nothing.
 
 Writes the block between the INDEPENDENT markers of docs/diagnose.md, the JSON results and
@@ -262,9 +264,13 @@ def score(case: Case, r: dict, fisher: dict | None = None) -> dict:
                                                        if eff in catalog_effect(e).lookalikes}
         ok_group = in_group is not None and all(x == eff or x in look or x in case.truth for x in in_group)
         present = eff in named or ok_group or eff in small
+        nested = None if present else _nested_form(eff, params, named, (fisher or {}).get(eff))
+        present = present or nested is not None
         errs = {}
         for k, v in params.items():
-            got = est.get(eff, {}).get(k)
+            if nested is not None and k not in est.get(nested, {}):
+                continue  # the part the recording cannot reveal (``_nested_form``)
+            got = est.get(nested or eff, {}).get(k)
             if got is None:
                 errs[k] = None
             elif v != 0:
@@ -285,6 +291,8 @@ def score(case: Case, r: dict, fisher: dict | None = None) -> dict:
         if fisher is not None and not fisher[eff]["identifiable"] and not present:
             found[eff] = eff in {x["name"] for x in r.get("not_identifiable", []) if x.get("kind") == "effect"}
     truth_names = set(case.truth)
+    truth_names |= {n for eff, ps in case.truth.items() if found.get(eff)
+                    for n in [_nested_form(eff, ps, named, (fisher or {}).get(eff))] if n}
     extra = [n for n in named if n not in truth_names]
     extra += [",".join(g) for g in groups if not (set(g) & truth_names)]
     adequate = bool(r["model_adequate"])
@@ -295,6 +303,22 @@ def score(case: Case, r: dict, fisher: dict | None = None) -> dict:
     else:
         right = adequate and all(found.values()) and not extra
     return {"right": right, "found": found, "errors": errors, "extra": extra, "estimate": est}
+
+
+def _nested_form(eff: str, params: dict, named: list[str], fisher: dict | None) -> str | None:
+    """A named effect that is the true effect ``eff`` with the parameters this recording cannot reveal left
+    out (its parameters a subset of ``eff``'s; every left-out one not identifiable by the Fisher criterion
+    at the truth, ``fisher``): a traction limit at 3 N m under constant wheel torques of 1 N m is pure creep,
+    and "wheel slip" with the creep slope is the answer the recording allows. None if there is none."""
+    from otbot_hw.diagnose.catalog import effect as catalog_effect
+
+    per_param = (fisher or {}).get("parameters", {})
+    for n in named:
+        mine = set(catalog_effect(n).parameters)
+        if n != eff and mine < set(params) and all(per_param.get(k, {}).get("identifiable") is False
+                                                   for k in set(params) - mine):
+            return n
+    return None
 
 
 def _indistinguishable(err: float | None, fisher_param: dict | None) -> bool:
@@ -560,7 +584,8 @@ def code_hash() -> str:
     h = hashlib.sha256()
     for path in sorted((ROOT / "otbot_hw" / "diagnose").glob("*.py")) + [ROOT / "benchmarks" / "independent_robot.py"]:
         h.update(path.name.encode() + b"\0" + path.read_bytes())
-    for fn in (dc.excitation, make_recordings, run_case, score, _indistinguishable, _zero_tolerance, truth_fisher,
+    for fn in (dc.excitation, make_recordings, run_case, score, _nested_form, _indistinguishable, _zero_tolerance,
+               truth_fisher,
                _scale, magnitude_case):
         h.update(inspect.getsource(fn).encode())
     h.update(repr([(c.label, c.kind, c.world, c.truth, c.file, c.casters, c.imu_position) for c in CASES]).encode())

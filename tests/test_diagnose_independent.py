@@ -163,3 +163,24 @@ def test_a_parameter_beyond_20_percent_counts_only_when_the_fisher_criterion_can
     assert not independent.score(case, r, fisher(40.0))["right"]  # the recording resolves 20 %: a miss
     r["effects"][0]["parameters"]["b_gz"]["value"] = 0.0  # -100 %: (5)^2 x 1.7 = 42 > 18.7, the error shows
     assert not independent.score(case, r, fisher(1.7))["right"]
+
+
+def test_a_traction_limit_never_reached_counts_as_wheel_slip_only_when_the_limit_does_not_show(independent):
+    """Constant wheel torques of ~1 N m under a 3 N m traction limit: the recording shows pure creep and "wheel
+    slip" with the creep slope is the answer it allows -- right when a 20 % change of t_trac at the truth does
+    not show, wrong when it does or when the slope is off."""
+    case = independent.BY_LABEL["traction_limit"]
+    r = {"effects": [{"name": "wheel_slip", "parameters": {"k_slip": {"value": 0.0201}}}], "ambiguous": [],
+         "model_adequate": True, "not_identifiable": []}
+
+    def fisher(t_trac_shows):
+        return {"traction_limit": {"identifiable": True, "chi2": 420.0, "needed": 27.4, "parameters": {
+            "k_slip": {"chi2": 21.7, "needed": 18.7, "identifiable": True},
+            "t_trac": {"chi2": 40.0 if t_trac_shows else 0.32, "needed": 18.7, "identifiable": t_trac_shows}}}}
+
+    s = independent.score(case, r, fisher(False))
+    assert s["right"] and s["extra"] == [] and s["errors"]["traction_limit"] == {"k_slip": pytest.approx(0.005)}
+    assert not independent.score(case, r, fisher(True))["right"]  # the limit acts: naming slip alone is a miss
+    assert not independent.score(case, r)["right"]
+    r["effects"][0]["parameters"]["k_slip"]["value"] = 0.03
+    assert not independent.score(case, r, fisher(False))["right"]
