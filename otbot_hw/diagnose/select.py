@@ -366,6 +366,14 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             for lead in ambiguous_group(min(good, key=lambda c: c.dbic), good):
                 cands += S.lookalikes(lead, cands, on, ref, exclude)
             good = [c for c in cands if has_evidence(c)]
+        fit_only = [c for c in cands if fitting_evidence(c)]
+        if not good and fit_only:
+            # the best explains the fitting data but predicts the held-out runs worse: its look-alikes may explain
+            # both (a wheel friction asymmetry stands in for a wheel gain at one constant torque; the held-out
+            # run's other torques tell them apart -- the gain was never fitted)
+            exclude = S.used | ({provisional.effect} if provisional else set())
+            cands += S.lookalikes(min(fit_only, key=lambda c: c.dbic), cands, on, ref, exclude)
+            good = [c for c in cands if has_evidence(c)]
         if not good:
             # the first round's best explains the fitting data but predicts the held-out runs worse: a
             # second effect it cannot stand in for may be at work
