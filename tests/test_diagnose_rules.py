@@ -270,3 +270,33 @@ def test_a_held_out_run_beyond_the_fitting_runs_range_is_told_apart_and_saturati
     sat = ident.saturation_not_identifiable(fit, applicable({"floor"}), {"saturation_right"})
     assert {s["name"] for s in sat} == {"torque_saturation", "saturation_left", "saturation_pivot"}
     assert "(2 N m)" in next(s["why"] for s in sat if s["name"] == "saturation_pivot")
+
+
+def test_a_parameter_on_its_bound_is_undetermined_when_held_at_the_files_value_the_fit_is_barely_worse(monkeypatch):
+    """The likelihood-ratio form of the bound rule: I_c on its bound with std 0.33 kg m^2 (the file's 1.3 is
+    4 std away, linearized at the bound) is not evidence of a wrong model when refitting with I_c held at 1.3
+    costs less than BOUND_SIGMAS^2 of chi2 (a traction limit under closed-loop torques: 7.3); it is when the
+    rise is larger."""
+    from types import SimpleNamespace
+
+    from otbot_hw.diagnose import identifiability as ident
+
+    model = ExtendedModel.paper(P)
+    final = SimpleNamespace(names=["m_c", "I_c"], values={"m_c": 100.0, "I_c": 1e-9}, std={"m_c": 2.0, "I_c": 0.33},
+                            model=model, rss={("fit", "a_x"): 1000.0, ("fit", "g_z"): 232.0})
+    on = adequacy.on_bound(final.values)
+    assert ident.undetermined_on_bound(on, final.std, {"I_c": P.I_c}) == []  # the std alone: determined
+    seen = []
+
+    def held_fit(rise):
+        def fake(recordings, m, names, **kw):
+            seen.append((m.get("I_c"), list(names)))
+            return SimpleNamespace(rss={("fit", "a_x"): 1000.0 + rise, ("fit", "g_z"): 232.0})
+        return fake
+
+    monkeypatch.setattr(adequacy, "refit", held_fit(7.3))
+    u = adequacy._profile_undetermined([], final, on[0], P.I_c)
+    assert u["parameter"] == "I_c" and u["chi2_rise"] == pytest.approx(7.3) and "otbot identify chassis" in u["record"]
+    assert seen == [(pytest.approx(P.I_c), ["m_c"])]  # held at the file's value, the others refit
+    monkeypatch.setattr(adequacy, "refit", held_fit(12.0))
+    assert adequacy._profile_undetermined([], final, on[0], P.I_c) is None

@@ -25,7 +25,9 @@ final model is judged three ways before any effect is named:
    the test more conservative;
 2. **bounds**: no free parameter (nominal or effect) may sit on a bound of its physical range -- unless
    it is a nominal parameter the data do not determine (its std NaN, or the file's value within
-   ``identifiability.BOUND_SIGMAS`` std of the bound): then it is "not identifiable from this
+   ``identifiability.BOUND_SIGMAS`` std of the bound, or -- the likelihood-ratio form, for a std
+   linearized at the bound -- held at the file's value the fit is less than ``BOUND_SIGMAS`` ** 2 of
+   chi2 worse): then it is "not identifiable from this
    recording" (``not_identifiable``, with what to record), not evidence of a wrong model;
 3. **plausibility**: the refit nominal parameters stay near the file's values -- relative
    change below ``RELATIVE_SHIFT`` (masses, inertias, frictions), centre-of-mass offsets within
@@ -43,8 +45,9 @@ import numpy as np
 from scipy.stats import norm
 
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.identifiability import outside_range, undetermined_on_bound
-from otbot_hw.diagnose.refit import FitResult, channel_sigmas, weighted_residuals
+from otbot_hw.diagnose.identifiability import (BOUND_SIGMAS, PARAMETER_RECORD, outside_range,
+                                                undetermined_on_bound)
+from otbot_hw.diagnose.refit import FitResult, channel_sigmas, refit, weighted_residuals
 from otbot_hw.model.effects import parameter_bounds
 from otbot_hw.params import OtbotParams
 
@@ -56,6 +59,7 @@ SEGMENTS = 4  # equal parts of a record tested on their own besides the whole
 MIN_SEGMENT = 100  # samples: shortest part tested on its own
 MIN_TEST = 20  # samples: shortest record tested at all
 BOUND_FRACTION = 1e-3  # of the bounded range: closer than this to a bound = on it
+PROFILE_NFEV = 60  # evaluations of the refit with a parameter on a bound held at the file's value
 RELATIVE_SHIFT = {"m_c": 0.3, "I_c": 0.6, "I_p": 0.6, "I_a": 0.6, "b_w": 1.0, "b_p": 1.0}
 OFFSET_SHIFT = {"x_B": 0.1, "y_B": 0.1}  # m
 #: parameters the diagnosis takes as known, by fixture: the suspects when nothing else moved
@@ -204,6 +208,31 @@ def implausible_shifts(values: dict[str, float], given: OtbotParams, std: dict[s
     return out
 
 
+def _profile_undetermined(recordings: list[DiagnosisData], final: FitResult, b: dict, file_value: float) -> dict | None:
+    """The likelihood-ratio form of ``undetermined_on_bound`` for a nominal parameter on a bound whose std
+    says it is determined: held at the file's value, the others refit from the final fit, the weighted RSS
+    rises by less than ``BOUND_SIGMAS`` ** 2 (noise units) -> the data do not tell the bound from the file's
+    value (the std, linearized at the bound, overstates what they say: a traction limit under closed-loop
+    torques, I_c 0 +- 0.33 kg m^2 at the bound, the file's 1.3 only 7 units of chi2 worse). The entry as
+    ``undetermined_on_bound``'s, or None."""
+    n = b["parameter"]
+    others = [m for m in final.names if m != n]
+    held = refit(recordings, final.model.with_values({n: file_value}), others, max_nfev=PROFILE_NFEV)
+    rise = sum(held.rss.values()) - sum(final.rss.values())
+    if not rise < BOUND_SIGMAS ** 2:
+        return None
+    return {**b, "kind": "parameter", "name": n, "std": _finite_or_none(final.std.get(n)), "file": file_value,
+            "chi2_rise": float(rise),
+            "why": f"on its {b['side']} bound, but held at the file's {file_value:.4g} (the others refit) the fit is "
+                   f"only {max(rise, 0.0):.3g} (chi2, noise units) worse, below {BOUND_SIGMAS ** 2:g}: the data do "
+                   "not determine it",
+            "record": PARAMETER_RECORD.get(n, "a richer excitation")}
+
+
+def _finite_or_none(v):
+    return float(v) if v is not None and np.isfinite(v) else None
+
+
 def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final: FitResult,
            given: OtbotParams) -> Adequacy:
     """Judge the final model (see module doc)."""
@@ -232,6 +261,10 @@ def assess(recordings: list[DiagnosisData], holdout: list[DiagnosisData], final:
     undetermined = undetermined_on_bound(bound, final.std, {n: float(getattr(given, n)) for n in final.values
                                                             if hasattr(given, n)})
     bound = [b for b in bound if b["parameter"] not in {u["parameter"] for u in undetermined}]
+    profiled = [u for u in (_profile_undetermined(recordings, final, b, float(getattr(given, b["parameter"])))
+                            for b in bound if hasattr(given, b["parameter"])) if u]
+    undetermined += profiled
+    bound = [b for b in bound if b["parameter"] not in {u["parameter"] for u in profiled}]
     moved = implausible_shifts({n: v for n, v in final.values.items() if hasattr(given, n)}, given, final.std)
     adequate = not (channels or bound or moved)
     suspects: list[str] = []

@@ -360,7 +360,19 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             good = [c for c in cands if has_evidence(c)]
         if good:
             exclude = S.used | ({provisional.effect} if provisional else set())
-            cands += S.lookalikes(min(good, key=lambda c: c.dbic), cands, on, ref, exclude)
+            # the look-alikes of the best and of those tied with it (each would be named in its group): gain_right
+            # tied with saturation_right to 1e-5 BIC, and only the latter's look-alikes were fitted -- a left-wheel
+            # gain under constant torques went unfitted, named as right and pivot gains beside a rescaled chassis
+            for lead in ambiguous_group(min(good, key=lambda c: c.dbic), good):
+                cands += S.lookalikes(lead, cands, on, ref, exclude)
+            good = [c for c in cands if has_evidence(c)]
+        fit_only = [c for c in cands if fitting_evidence(c)]
+        if not good and fit_only:
+            # the best explains the fitting data but predicts the held-out runs worse: its look-alikes may explain
+            # both (a wheel friction asymmetry stands in for a wheel gain at one constant torque; the held-out
+            # run's other torques tell them apart -- the gain was never fitted)
+            exclude = S.used | ({provisional.effect} if provisional else set())
+            cands += S.lookalikes(min(fit_only, key=lambda c: c.dbic), cands, on, ref, exclude)
             good = [c for c in cands if has_evidence(c)]
         if not good:
             # the first round's best explains the fitting data but predicts the held-out runs worse: a
