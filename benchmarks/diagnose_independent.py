@@ -40,6 +40,7 @@ import os
 import sys
 import tempfile
 import time
+import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -194,6 +195,12 @@ def seeds(rep: int) -> tuple[int, int]:
     return 31 + 2 * rep, 32 + 2 * rep
 
 
+def family_noise_seed(family: str, seed: int) -> list[int]:
+    """The fitting run's noise seed: its own per excitation family (a family's name folded in), so that the
+    families' misses are not one noise draw seen five times (they shared seed + 1000 until 2026-11-26)."""
+    return [seed + 1000, zlib.crc32(family.encode())]
+
+
 def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATION,
                     family: str = "piecewise", heldout_cache: Path | None = None) -> list[Path]:
     """Fitting (piecewise-constant torques, an excitation ``family`` of benchmarks/diagnose_calibration.py, or
@@ -210,14 +217,15 @@ def make_recordings(case: Case, rep: int, folder: Path, duration: float = DURATI
                 paths.append(path)
                 continue
         if kind == "piecewise" and family == "closed_loop":  # the robot tracking a twist with its own PI loop
-            U, sens = ir.closed_loop(ir.Otbot(p, world), duration, DT, seed)
+            U, sens = ir.closed_loop(ir.Otbot(p, world), duration, DT, seed, noise_seed=family_noise_seed(family, seed))
             ir.write_mcap(path, DT, U, sens)
         elif kind == "piecewise" and family != "piecewise":
             import diagnose_calibration as dc
 
             U = dc.excitation(family, duration, DT, seed)
             robot = ir.Otbot(p, world)
-            ir.write_mcap(path, DT, U, robot.sensors(robot.run(U, DT), np.random.default_rng(seed + 1000)))
+            ir.write_mcap(path, DT, U, robot.sensors(robot.run(U, DT),
+                                                     np.random.default_rng(family_noise_seed(family, seed))))
         elif kind == "smooth" and heldout_cache is not None:  # complete files only in the cache
             part = path.with_name(path.stem + f".{os.getpid()}.part.mcap")
             ir.record(part, world, kind, seed, duration, DT, params=p)
@@ -573,7 +581,8 @@ MORE_FAMILIES = ("piecewise_short", "piecewise_slow")
 
 
 def code_hash() -> str:
-    """12 hex digits over what a study row depends on: the diagnosis (otbot_hw/diagnose/*.py), the independent
+    """12 hex digits over what a study row depends on: the diagnosis and the model it fits (otbot_hw/diagnose/*.py,
+    otbot_hw/model/*.py), the independent
     simulator, the excitation families and, from this file, the cases, their magnitudes, the recording and
     the scoring. Rows of another hash are from another code version and are not mixed into a table."""
     import hashlib
@@ -582,9 +591,10 @@ def code_hash() -> str:
     import diagnose_calibration as dc
 
     h = hashlib.sha256()
-    for path in sorted((ROOT / "otbot_hw" / "diagnose").glob("*.py")) + [ROOT / "benchmarks" / "independent_robot.py"]:
+    sources = sorted((ROOT / "otbot_hw" / "diagnose").glob("*.py")) + sorted((ROOT / "otbot_hw" / "model").glob("*.py"))
+    for path in sources + [ROOT / "benchmarks" / "independent_robot.py"]:
         h.update(path.name.encode() + b"\0" + path.read_bytes())
-    for fn in (dc.excitation, make_recordings, run_case, score, _nested_form, _indistinguishable, _zero_tolerance,
+    for fn in (dc.excitation, family_noise_seed, make_recordings, run_case, score, _nested_form, _indistinguishable, _zero_tolerance,
                truth_fisher,
                _scale, magnitude_case):
         h.update(inspect.getsource(fn).encode())

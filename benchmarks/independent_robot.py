@@ -656,16 +656,21 @@ class TwistController:
         return np.clip(J.T @ (self.KP * err + self.KI * self.integral), -self.LIMIT, self.LIMIT)
 
 
-def closed_loop(robot: Otbot, duration: float, dt: float, seed: int, p_controller: dict | None = None):
+def closed_loop(robot: Otbot, duration: float, dt: float, seed: int, p_controller: dict | None = None,
+                noise_seed=None):
     """A closed-loop run: the robot tracking ``reference_twist(seed)`` with ``TwistController`` (nominal
     parameters ``p_controller``, default the parameter file) on the encoder rates it records (the same noise).
-    Returns the commands (N, 3) and the noisy sensors (``Otbot.sensors``, IMU noise from seed + 1000)."""
+    Returns the commands (N, 3) and the noisy sensors (``Otbot.sensors``). The noise draws come from
+    ``noise_seed`` (anything ``numpy.random.default_rng`` takes) when given, else IMU seed + 1000 and encoder
+    rates seed + 2000."""
     n = int(round(duration / dt))
-    noise = SIGMA_ENC_RATE * np.random.default_rng(seed + 2000).standard_normal((n + 1, 3))
+    enc_rng = np.random.default_rng(seed + 2000 if noise_seed is None else [2000, *np.atleast_1d(noise_seed)])
+    noise = SIGMA_ENC_RATE * enc_rng.standard_normal((n + 1, 3))
     ctl = TwistController(p_controller or load_params(), reference_twist(duration, dt, seed), dt, noise)
     U = np.zeros((n, 3))
     run = robot.run(U, dt, controller=ctl)
-    return U, robot.sensors(run, np.random.default_rng(seed + 1000), enc_noise=noise)
+    imu_rng = np.random.default_rng(seed + 1000 if noise_seed is None else noise_seed)
+    return U, robot.sensors(run, imu_rng, enc_noise=noise)
 
 
 def write_mcap(path: Path, dt: float, U: np.ndarray, sens: dict, fixture: str = "floor") -> None:
