@@ -155,6 +155,31 @@ def _caster_pair(recordings, sel, final, progress):
     return final
 
 
+def _refine_shape(recordings, sel, final, progress):
+    """Found effects with a shape parameter (``catalog.SHAPE_REFINEMENTS``: the traction curve's knee): refit with
+    it free, started from its catalog form (0), and keep it when it gains its BIC evidence (1 more parameter);
+    the effect entry then reports it with the others."""
+    names = [c.effect for c in sel.accepted] + [g[0].effect for g in sel.ambiguous]
+    for eff, (param, evidence) in cat.SHAPE_REFINEMENTS.items():
+        if eff not in names or param in final.names:
+            continue
+        fit = refit(recordings, final.model, list(final.names) + [param], max_nfev=FINAL_NFEV)
+        n = sum(fit.n_samples.values())
+        gain = (sum(fit.rss.values()) - sum(final.rss.values())) + np.log(max(n, 2))
+        progress(f"[diagnose] {eff} with its {param} free: {param} = {fit.values[param]:.3g}, dBIC {gain:.1f}")
+        if gain < -evidence:
+            e = sel.effects[eff]
+            sel.effects[eff] = dataclasses.replace(e, parameters=tuple(e.parameters) + (param,))
+            for c in list(sel.accepted) + [g[0] for g in sel.ambiguous]:
+                if c.effect == eff:
+                    pars = sel.effects[eff].parameters
+                    c.significance = significance(eff, {k: fit.values[k] for k in pars},
+                                                  {k: fit.std.get(k, float("nan")) for k in pars}, fit.model,
+                                                  recordings)
+            final = fit
+    return final
+
+
 def _small_needed(recordings, holdout, params, sel, final, progress):
     """Effects with evidence listed as detected but small (``significance``: they do not matter by what they
     do on these runs) are left out of the model -- unless the model without them is inadequate and with them
@@ -234,6 +259,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
             progress(f"[diagnose] final fit from the file's nominal values fits better: {alt.message} "
                      f"({alt.nfev} evaluations)")
             final = alt
+        final = _refine_shape(recordings, sel, final, progress)
     final = _small_needed(recordings, holdout, params, sel, final, progress)
     # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
     std = dict(final.std)

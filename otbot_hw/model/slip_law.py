@@ -6,20 +6,19 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from otbot_hw.model.effect_catalog import C_TRAC, K_SLIP, T_TRAC
+from otbot_hw.model.effect_catalog import DC_TRAC, K_SLIP, T_TRAC
 
 K_SLIP_MIN = 1e-4  # rad/(s N m): creep of the traction curve when k_slip = 0 (rigid up to the limit)
 #: knee exponents c of the traction curve (``traction_curve``) that stand for known curve forms
-KNEE_MAGIC = 2.0  # Pacejka's magic formula with C = 1 (the default, c_trac = 0)
-KNEE_TANH = 2.7  # ~ t_trac tanh(y): within 1.7 % of t_trac everywhere (same creep slope and limit)
+KNEE_MAGIC = 2.0  # Pacejka's magic formula with C = 1 (the default, dc_trac = 0)
+DC_TRAC_TANH = 0.7  # dc_trac of ~ t_trac tanh(y): c = 2.7, within 1.7 % of t_trac everywhere (same creep slope, limit)
 
 
 @njit(cache=True)
 def knee_exponent(eff):
-    """Knee exponent c of the traction curve from the effect vector: c_trac, 0 = 2 (the magic formula),
-    at least 1 (a softer knee is no longer a limit reached at finite slip)."""
-    c = eff[C_TRAC]
-    return KNEE_MAGIC if c <= 0.0 else max(c, 1.0)
+    """Knee exponent c = 2 + dc_trac of the traction curve from the effect vector (dc_trac = 0: the magic
+    formula), at least 1 (a softer knee is no longer a limit reached at finite slip)."""
+    return max(KNEE_MAGIC + eff[DC_TRAC], 1.0)
 
 
 @njit(cache=True)
@@ -49,7 +48,7 @@ def slip_state(tau_tr, b_i, eff):
     lo, hi = min(0.0, tau_tr / b), max(0.0, tau_tr / b)
     s = min(max(kk * tau_tr, lo), hi) if abs(tau_tr) < T else (tau_tr - np.sign(tau_tr) * T) / b
     for _ in range(60):
-        if c == KNEE_MAGIC:  # the magic formula in closed form (bit for bit the curve before c_trac)
+        if c == KNEE_MAGIC:  # the magic formula in closed form (bit for bit the curve before dc_trac)
             y = s / (kk * T)
             q = 1.0 / np.sqrt(1.0 + y * y)
             tg = T * y * q
