@@ -411,6 +411,7 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
     worst = min(hb, key=lambda ch: hb[ch]["fit_percent"]) if hb else None
     return {"case": case.label, "kind": case.kind, "rep": rep, "seeds": list(seeds(rep)), "family": family,
             "traction_curve": case.world.get("traction_curve", "magic"),
+            "shape_refinements": r.get("shape_refinements", []),
             "description": case.description, "truth": case.truth,
             "named": [e["name"] for e in r["effects"]],
             "ambiguous": [[c["name"] for c in g["candidates"]] for g in r["ambiguous"]],

@@ -158,8 +158,10 @@ def _caster_pair(recordings, sel, final, progress):
 def _refine_shape(recordings, sel, final, progress):
     """Found effects with a shape parameter (``catalog.SHAPE_REFINEMENTS``: the traction curve's knee): refit with
     it free, started from its catalog form (0), and keep it when it gains its BIC evidence (1 more parameter);
-    the effect entry then reports it with the others."""
+    the effect entry then reports it with the others. Returns (final fit, what was tried: {effect, parameter,
+    value, std, delta_bic, kept})."""
     names = [c.effect for c in sel.accepted] + [g[0].effect for g in sel.ambiguous]
+    tried = []
     for eff, (param, evidence) in cat.SHAPE_REFINEMENTS.items():
         if eff not in names or param in final.names:
             continue
@@ -167,6 +169,10 @@ def _refine_shape(recordings, sel, final, progress):
         n = sum(fit.n_samples.values())
         gain = (sum(fit.rss.values()) - sum(final.rss.values())) + np.log(max(n, 2))
         progress(f"[diagnose] {eff} with its {param} free: {param} = {fit.values[param]:.3g}, dBIC {gain:.1f}")
+        std = fit.std.get(param, float("nan"))
+        tried.append({"effect": eff, "parameter": param, "value": float(fit.values[param]),
+                      "std": float(std) if np.isfinite(std) else None, "delta_bic": float(gain),
+                      "kept": bool(gain < -evidence)})
         if gain < -evidence:
             e = sel.effects[eff]
             sel.effects[eff] = dataclasses.replace(e, parameters=tuple(e.parameters) + (param,))
@@ -177,7 +183,7 @@ def _refine_shape(recordings, sel, final, progress):
                                                   {k: fit.std.get(k, float("nan")) for k in pars}, fit.model,
                                                   recordings)
             final = fit
-    return final
+    return final, tried
 
 
 def _small_needed(recordings, holdout, params, sel, final, progress):
@@ -245,6 +251,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured, start,
                  bool(wandered))
     final = sel.final_fit
+    shape_tried = []
     if not geometry.casters_configured:
         final = _caster_pair(recordings, sel, final, progress)
     if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
@@ -259,7 +266,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
             progress(f"[diagnose] final fit from the file's nominal values fits better: {alt.message} "
                      f"({alt.nfev} evaluations)")
             final = alt
-        final = _refine_shape(recordings, sel, final, progress)
+        final, shape_tried = _refine_shape(recordings, sel, final, progress)
     final = _small_needed(recordings, holdout, params, sel, final, progress)
     # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
     std = dict(final.std)
@@ -359,6 +366,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         "fit_after": fit_after,
         "nominal_shift": shift,
         "std_inflation": inflation,
+        "shape_refinements": shape_tried,
         "screening": [{"equation_residual_delta_bic": dict(sorted(s.single.items(), key=lambda kv: kv[1])),
                        "greedy_selection": s.selected,
                        "simulation_score_delta_bic": dict(sorted(ss.items(), key=lambda kv: kv[1]))}
