@@ -88,7 +88,7 @@ def test_undetermined_parameters_of_a_found_effect_are_not_identifiable_with_wha
 
 def test_a_tanh_traction_curve_is_named_with_its_creep_slope_and_knee():
     """The traction knee is a modelling assumption: a robot whose tyres saturate as T tanh(y) (the project's
-    simulator with dc_trac = 0.7, tanh to 1.7 % of T) under random piecewise-constant torques above and below a
+    simulator with kn_trac = 1, T tanh y) under random piecewise-constant torques above and below a
     3 N m limit. With the catalog's magic-formula knee alone the fit reads k_slip 0.011 (-45 %: the data see
     the knee, not the creep slope); the knee refinement (``catalog.SHAPE_REFINEMENTS``) is kept and k_slip,
     t_trac and the knee come out right."""
@@ -99,7 +99,7 @@ def test_a_tanh_traction_curve_is_named_with_its_creep_slope_and_knee():
     from otbot_hw.simulation.runs import extended_recording
 
     P = nominal()
-    model = fx.ExtendedModel(P, fx.effect_vector()).with_values({"k_slip": 0.02, "t_trac": 3.0, "dc_trac": 0.7})
+    model = fx.ExtendedModel(P, fx.effect_vector()).with_values({"k_slip": 0.02, "t_trac": 3.0, "kn_trac": 1.0})
     rng = np.random.default_rng(1)
     U = np.repeat(rng.uniform(-8, 8, (13, 3)) * [1, 1, 0.3], 50, axis=0)[:600]
     rec = extended_recording(model, U, 0.01, NoiseModel.paper(), seed=1, fixture="floor")
@@ -109,6 +109,6 @@ def test_a_tanh_traction_curve_is_named_with_its_creep_slope_and_knee():
     got = r["effects"][0]["parameters"]
     assert got["k_slip"]["value"] == pytest.approx(0.02, rel=0.2)
     assert got["t_trac"]["value"] == pytest.approx(3.0, rel=0.2)
-    assert got["dc_trac"]["value"] == pytest.approx(0.7, abs=0.3)
+    assert got["kn_trac"]["value"] == pytest.approx(1.0, abs=0.3)
     (tried,) = r["shape_refinements"]
-    assert tried["parameter"] == "dc_trac" and tried["kept"] and tried["delta_bic"] < -10
+    assert tried["parameter"] == "kn_trac" and tried["kept"] and tried["delta_bic"] < -10

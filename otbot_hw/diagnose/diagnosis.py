@@ -30,7 +30,7 @@ from otbot_hw.diagnose.identifiability import (effect_identifiability, not_ident
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
-from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC
+from otbot_hw.diagnose.rules import ACCEPT_DBIC, AMBIGUOUS_DBIC
 from otbot_hw.diagnose.select import choose, free_nominal
 from otbot_hw.diagnose.significance import significance
 from otbot_hw.json_output import json_safe
@@ -155,11 +155,13 @@ def _caster_pair(recordings, sel, final, progress):
     return final
 
 
-def _refine_shape(recordings, sel, final, progress):
+def _refine_shape(recordings, sel, final, start, progress):
     """Found effects with a shape parameter (``catalog.SHAPE_REFINEMENTS``: the traction curve's knee): refit with
     it free, started from its catalog form (0), and keep it when it gains its BIC evidence (1 more parameter);
-    the effect entry then reports it with the others. Returns (final fit, what was tried: {effect, parameter,
-    value, std, delta_bic, kept})."""
+    the effect entry then reports it with the others. An effect accepted beside it before (the selection fitted
+    the catalog's shape: a look-alike took up part of the knee's misfit -- encoder scale and wheel radii beside
+    a tanh traction curve) is then refit away and dropped when it no longer gains ``ACCEPT_DBIC``. Returns
+    (final fit, what was tried: {effect, parameter, value, std, delta_bic, kept, dropped})."""
     names = [c.effect for c in sel.accepted] + [g[0].effect for g in sel.ambiguous]
     tried = []
     for eff, (param, evidence) in cat.SHAPE_REFINEMENTS.items():
@@ -183,6 +185,20 @@ def _refine_shape(recordings, sel, final, progress):
                                                   {k: fit.std.get(k, float("nan")) for k in pars}, fit.model,
                                                   recordings)
             final = fit
+            tried[-1]["dropped"] = []
+            for c in reversed([c for c in sel.accepted if c.effect != eff]):
+                out = [p for p in sel.effects[c.effect].parameters
+                       if p in final.names and p not in sel.effects[eff].parameters]
+                if not out:
+                    continue
+                without = refit(recordings, final.model.with_values({p: start.get(p) for p in out}),
+                                [n for n in final.names if n not in out], max_nfev=FINAL_NFEV)
+                loss = (sum(without.rss.values()) - sum(final.rss.values())) - len(out) * np.log(max(n, 2))
+                progress(f"[diagnose] {c.effect} beside {eff} with its {param}: dBIC {loss:.1f} to keep it")
+                if loss < ACCEPT_DBIC:
+                    sel.accepted.remove(c)
+                    tried[-1]["dropped"].append(c.effect)
+                    final = without
     return final, tried
 
 
@@ -266,7 +282,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
             progress(f"[diagnose] final fit from the file's nominal values fits better: {alt.message} "
                      f"({alt.nfev} evaluations)")
             final = alt
-        final, shape_tried = _refine_shape(recordings, sel, final, progress)
+        final, shape_tried = _refine_shape(recordings, sel, final, start, progress)
     final = _small_needed(recordings, holdout, params, sel, final, progress)
     # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
     std = dict(final.std)
