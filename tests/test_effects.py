@@ -188,7 +188,7 @@ def test_the_traction_knee_default_is_the_magic_formula_and_stays_last_in_the_ef
     assert ec.EFFECT_INDEX["t_trac"] == ec.T_TRAC == 21 and ec.EFFECT_INDEX["cogph_p"] == ec.KN_TRAC - 1
     assert "kn_trac" not in ec.DISCOVERED_PARAMS and "cogph_p" in ec.DISCOVERED_PARAMS
     assert fx.effect_vector()[ec.KN_TRAC] == 0.0
-    for bad in (-3.5, 3.01):
+    for bad in (-3.5, 5.01):
         with pytest.raises(ValueError, match="kn_trac"):
             fx.effect_vector({"kn_trac": bad})
     k, T = 0.02, 3.0

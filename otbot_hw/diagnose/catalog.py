@@ -203,11 +203,11 @@ def effect(name: str) -> Effect:
 
 
 #: shape parameters refined after an effect is found (``diagnosis._refine_shape``): effect -> (parameter, the BIC
-#: gain it must bring, 1 more parameter). The traction curve's knee (kn_trac: 0 the magic formula, 1 tanh, 3 a hard
+#: gain it must bring (1 more parameter), start values tried in turn until one gains it). The traction curve's knee (kn_trac: 0 the magic formula, 1 tanh, 3 a hard
 #: clip) is a modelling assumption -- real tyres and other simulators have other knees,
 #: and fitted with the wrong one the data see the knee, not the creep slope (k_slip -45 % .. +58 %) -- but on a
 #: recording that hardly reaches the limit it is not identifiable, so it is fitted only when the data ask for it.
-SHAPE_REFINEMENTS: dict[str, tuple[str, float]] = {"traction_limit": ("kn_trac", 10.0)}
+SHAPE_REFINEMENTS: dict[str, tuple[str, float, tuple[float, ...]]] = {"traction_limit": ("kn_trac", 10.0, (0.0, 3.0))}
 
 #: parameters of the caster position, fitted with the drag when the robot configuration has no casters
 CASTER_POSITION_PARAMS = ("x_c1", "y_c1")

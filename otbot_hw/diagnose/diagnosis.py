@@ -157,19 +157,23 @@ def _caster_pair(recordings, sel, final, progress):
 
 def _refine_shape(recordings, sel, final, start, progress):
     """Found effects with a shape parameter (``catalog.SHAPE_REFINEMENTS``: the traction curve's knee): refit with
-    it free, started from its catalog form (0), and keep it when it gains its BIC evidence (1 more parameter);
+    it free, started from its catalog form (0, else from the catalog's other starts), and keep it when it gains its BIC evidence (1 more parameter);
     the effect entry then reports it with the others. An effect accepted beside it before (the selection fitted
     the catalog's shape: a look-alike took up part of the knee's misfit -- encoder scale and wheel radii beside
     a tanh traction curve) is then refit away and dropped when it no longer gains ``ACCEPT_DBIC``. Returns
     (final fit, what was tried: {effect, parameter, value, std, delta_bic, kept, dropped})."""
     names = [c.effect for c in sel.accepted] + [g[0].effect for g in sel.ambiguous]
     tried = []
-    for eff, (param, evidence) in cat.SHAPE_REFINEMENTS.items():
+    for eff, (param, evidence, starts) in cat.SHAPE_REFINEMENTS.items():
         if eff not in names or param in final.names:
             continue
-        fit = refit(recordings, final.model, list(final.names) + [param], max_nfev=FINAL_NFEV)
-        n = sum(fit.n_samples.values())
-        gain = (sum(fit.rss.values()) - sum(final.rss.values())) + np.log(max(n, 2))
+        n = sum(fit_n for fit_n in final.n_samples.values())
+        for x0 in starts:  # the catalog's form first; another start only when it gains nothing (a knee far
+            fit = refit(recordings, final.model.with_values({param: x0}), list(final.names) + [param],
+                        max_nfev=FINAL_NFEV)  # from it: the fit from 0 stalled before a hard clip)
+            gain = (sum(fit.rss.values()) - sum(final.rss.values())) + np.log(max(n, 2))
+            if gain < -evidence:
+                break
         progress(f"[diagnose] {eff} with its {param} free: {param} = {fit.values[param]:.3g}, dBIC {gain:.1f}")
         std = fit.std.get(param, float("nan"))
         tried.append({"effect": eff, "parameter": param, "value": float(fit.values[param]),

@@ -29,7 +29,7 @@ db_w           N m s/rad  viscous asymmetry: b_right = b_w + db_w, b_left = b_w 
 dr_r, dr_l     1          wheel radii: r_right = r (1 + dr_r), r_left = r (1 + dr_l) (r: the nominal radius)
 t_trac         N m        traction limit of each wheel: ground torque t_trac tanh(h(y)), y = slip / (k_slip t_trac), creep
                           slope 1 / k_slip (0 = none; the knee h: kn_trac, ``slip_law``)
-kn_trac        1          knee of the traction curve (with t_trac), -3..3: 0 = magic formula C = 1, y / sqrt(1 + y^2)
+kn_trac        1          knee of the traction curve (with t_trac), -3..5: 0 = magic formula C = 1, y / sqrt(1 + y^2)
                           (h = asinh); 1 = tanh y (h = y); 3 = a hard clip (h = atanh); < 0 softer than the magic formula
 n_cst          1          number of casters (1..4) sharing the caster drag f_cst equally
 x_c1 .. y_c4   m          caster contact points in the chassis frame B' (from the robot configuration)
@@ -73,7 +73,8 @@ WIDTH_MIN_CASTER = 1e-3  # m/s
 CASTER_POSITION = (0.15, 0.0)  # m, default single caster contact in the chassis frame B'
 MAX_CASTERS = 4
 MAX_COGN = 64  # cogging cycles per turn, at most
-KN_TRAC_BOUNDS = (-3.0, 3.0)  # knee of the traction curve: 0 magic formula, 1 tanh, 3 a hard clip, < 0 softer
+KN_TRAC_BOUNDS = (-3.0, 5.0)  # knee of the traction curve: 0 magic formula, 1 tanh, 3 a hard clip, < 0 softer, > 3
+# reaching the limit before y = 1 (the clip inside the bounds: a fit on a bound is judged inadequate)
 
 _MOTORS = (("r", "right wheel motor"), ("l", "left wheel motor"), ("p", "pivot motor"))
 #: (name, unit, lower bound, upper bound, description)

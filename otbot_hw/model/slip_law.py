@@ -66,7 +66,7 @@ def _knee(s, k, T, kn):
     """(ground torque N m, its slope d tau_g / d s N m s/rad) of the traction curve T tanh(h(y)), y = s / (k T):
     h(y) = asinh(a y) / a, a = sqrt(1 - kn) for kn < 1 (kn = 0: tanh(asinh y) = y / sqrt(1 + y^2), the magic
     formula; kn < 0 softer), h = y at kn = 1 (tanh), h = atanh(a y) / a, a = sqrt((kn - 1) / 2) for kn > 1
-    (harder; kn = 3: tanh(atanh y) = y up to |y| = 1, a hard clip). h(y) = y - (1 - kn) y^3 / 6 + ... on both
+    (harder; kn = 3: tanh(atanh y) = y up to |y| = 1, a hard clip; above 3 the limit is reached before |y| = 1). h(y) = y - (1 - kn) y^3 / 6 + ... on both
     sides: the curve is smooth in kn, h'(0) = 1 (creep slope 1 / k for every knee)."""
     y = s / (k * T)
     if kn < 1.0:
