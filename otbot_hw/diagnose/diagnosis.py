@@ -157,8 +157,8 @@ def _caster_pair(recordings, sel, final, progress):
 
 def _refine_shape(recordings, sel, final, start, progress):
     """Found effects with a shape parameter (``catalog.SHAPE_REFINEMENTS``: the traction curve's knee): refit with
-    it free, started from its catalog form (0, else from the catalog's other starts), and keep it when it gains its BIC evidence (1 more parameter);
-    the effect entry then reports it with the others. An effect accepted beside it before (the selection fitted
+    it free, started from its catalog form (0; from the catalog's other starts while none gains), and keep it when
+    it gains its BIC evidence (1 more parameter); the effect entry then reports it with the others. An effect accepted beside it before (the selection fitted
     the catalog's shape: a look-alike took up part of the knee's misfit -- encoder scale and wheel radii beside
     a tanh traction curve) is then refit away and dropped when it no longer gains ``ACCEPT_DBIC``. Returns
     (final fit, what was tried: {effect, parameter, value, std, delta_bic, kept, dropped})."""
@@ -167,11 +167,14 @@ def _refine_shape(recordings, sel, final, start, progress):
     for eff, (param, evidence, starts) in cat.SHAPE_REFINEMENTS.items():
         if eff not in names or param in final.names:
             continue
-        n = sum(fit_n for fit_n in final.n_samples.values())
+        n = sum(final.n_samples.values())
+        fit, gain = None, np.inf
         for x0 in starts:  # the catalog's form first; another start only when it gains nothing (a knee far
-            fit = refit(recordings, final.model.with_values({param: x0}), list(final.names) + [param],
-                        max_nfev=FINAL_NFEV)  # from it: the fit from 0 stalled before a hard clip)
-            gain = (sum(fit.rss.values()) - sum(final.rss.values())) + np.log(max(n, 2))
+            f = refit(recordings, final.model.with_values({param: x0}), list(final.names) + [param],
+                      max_nfev=FINAL_NFEV)  # from it: the fit from 0 stalled before a hard clip); the best kept
+            g = (sum(f.rss.values()) - sum(final.rss.values())) + np.log(max(n, 2))
+            if g < gain:
+                fit, gain = f, g
             if gain < -evidence:
                 break
         progress(f"[diagnose] {eff} with its {param} free: {param} = {fit.values[param]:.3g}, dBIC {gain:.1f}")
