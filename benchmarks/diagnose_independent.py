@@ -42,7 +42,7 @@ import tempfile
 import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -165,6 +165,20 @@ CASES = [
     Case("wrong_l1", "wrong", "file says l1 = 0.28 m, the robot has 0.25 m", {}, {}, file={"l1": 0.28}),
 ]
 BY_LABEL = {c.label: c for c in CASES}
+
+
+TRACTION_CURVES = ("magic", "tanh", "clip")  # ``independent_robot.World.traction_curve``
+
+
+def with_traction_curve(case: Case, curve: str = "magic") -> Case:
+    """The case with the independent robot's traction curve ``curve`` (``--traction-curve``; the same creep
+    slope and limit, another knee) where the case has a traction limit; other cases unchanged."""
+    if curve not in TRACTION_CURVES:
+        raise ValueError(f"unknown traction curve {curve!r} (known: {', '.join(TRACTION_CURVES)})")
+    if curve == "magic" or "slip_tmax" not in case.world:
+        return case
+    return replace(case, world={**case.world, "traction_curve": curve},
+                   description=case.description + f" ({curve} traction curve)")
 
 
 def world_of(case: Case, base: dict) -> tuple[ir.World, dict]:
@@ -368,15 +382,17 @@ def truth_fisher(case: Case, fit_data, P, geometry) -> dict[str, dict]:
 
 
 def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration: float = DURATION,
-             family: str = "piecewise", fisher: bool = False, heldout_cache: Path | None = None) -> dict:
+             family: str = "piecewise", fisher: bool = False, heldout_cache: Path | None = None,
+             traction_curve: str = "magic") -> dict:
     """Simulate, write, load and diagnose one case on seed pair ``rep`` (recordings of ``duration`` s; the
     fitting run under the excitation ``family``); ``fisher``: also the Fisher criterion at the truth
-    (``truth_fisher``), which scores a "not identifiable" answer."""
+    (``truth_fisher``), which scores a "not identifiable" answer; ``traction_curve``: the independent
+    robot's traction knee in a traction case (``with_traction_curve``)."""
     from otbot_hw.diagnose.data import load
     from otbot_hw.diagnose.diagnosis import diagnose
     from otbot_hw.recording import read_recording
 
-    case = BY_LABEL[case] if isinstance(case, str) else case
+    case = with_traction_curve(BY_LABEL[case] if isinstance(case, str) else case, traction_curve)
     t0, c0 = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(keep) if keep else Path(tmp)
@@ -394,6 +410,8 @@ def run_case(case: Case | str, rep: int = 0, keep: Path | None = None, duration:
     hb, ha = r["fit_before"]["heldout"], r["fit_after"]["heldout"]
     worst = min(hb, key=lambda ch: hb[ch]["fit_percent"]) if hb else None
     return {"case": case.label, "kind": case.kind, "rep": rep, "seeds": list(seeds(rep)), "family": family,
+            "traction_curve": case.world.get("traction_curve", "magic"),
+            "shape_refinements": r.get("shape_refinements", []),
             "description": case.description, "truth": case.truth,
             "named": [e["name"] for e in r["effects"]],
             "ambiguous": [[c["name"] for c in g["candidates"]] for g in r["ambiguous"]],
@@ -479,10 +497,17 @@ def main() -> int:
                          "there are skipped, rows of other versions ignored)")
     ap.add_argument("--doc", action="store_true", help="with --families: write the table into docs/diagnose.md")
     ap.add_argument("--table-only", action="store_true", help="with --families: only the table from --jsonl")
+    ap.add_argument("--traction-curve", default="magic", metavar="magic|tanh|clip",
+                    help="knee of the independent robot's traction curve in the traction cases (same creep slope "
+                         "and limit): magic (its own, the default), tanh, clip (a hard clip); in the code hash")
     ap.add_argument("--sim-check", type=int, default=0, metavar="N",
                     help="only compare the default integration of the independent simulator with the reference "
                          "(RK45 rtol 1e-8) on N cases (CPU time, differences in sensor sigmas) and exit")
     args = ap.parse_args()
+    if args.traction_curve not in TRACTION_CURVES:
+        print(f"error: --traction-curve {args.traction_curve!r}: one of {', '.join(TRACTION_CURVES)} expected",
+              file=sys.stderr)
+        return 2
     if args.sim_check:
         return sim_check(args.sim_check)
     if args.families:
@@ -491,7 +516,7 @@ def main() -> int:
     t0 = time.perf_counter()
     rows = []
     with ProcessPoolExecutor(max_workers=args.workers) as ex:
-        futs = {ex.submit(run_case, c.label, rep, args.recordings): (c.label, rep)
+        futs = {ex.submit(run_case, c.label, rep, args.recordings, traction_curve=args.traction_curve): (c.label, rep)
                 for rep in range(args.seeds) for c in chosen}
         for f in as_completed(futs):
             try:
@@ -580,11 +605,12 @@ ALL_FAMILIES = ("constant", "piecewise_long", "multisine", "prbs", "chirp", "clo
 MORE_FAMILIES = ("piecewise_short", "piecewise_slow")
 
 
-def code_hash() -> str:
+def code_hash(traction_curve: str = "magic") -> str:
     """12 hex digits over what a study row depends on: the diagnosis and the model it fits (otbot_hw/diagnose/*.py,
     otbot_hw/model/*.py), the independent
-    simulator, the excitation families and, from this file, the cases, their magnitudes, the recording and
-    the scoring. Rows of another hash are from another code version and are not mixed into a table."""
+    simulator (and its traction curve, ``--traction-curve``), the excitation families and, from this file, the
+    cases, their magnitudes, the recording and the scoring. Rows of another hash are from another code version
+    and are not mixed into a table."""
     import hashlib
     import inspect
 
@@ -594,21 +620,25 @@ def code_hash() -> str:
     sources = sorted((ROOT / "otbot_hw" / "diagnose").glob("*.py")) + sorted((ROOT / "otbot_hw" / "model").glob("*.py"))
     for path in sources + [ROOT / "benchmarks" / "independent_robot.py"]:
         h.update(path.name.encode() + b"\0" + path.read_bytes())
-    for fn in (dc.excitation, family_noise_seed, make_recordings, run_case, score, _nested_form, _indistinguishable, _zero_tolerance,
+    for fn in (dc.excitation, family_noise_seed, make_recordings, run_case, with_traction_curve, score, _nested_form, _indistinguishable, _zero_tolerance,
                truth_fisher,
                _scale, magnitude_case):
         h.update(inspect.getsource(fn).encode())
     h.update(repr([(c.label, c.kind, c.world, c.truth, c.file, c.casters, c.imu_position) for c in CASES]).encode())
     h.update(repr((DURATION, DT, TOLERANCE)).encode())
+    if traction_curve != "magic":  # the default keeps the hash of the study rows written before the option
+        h.update(f"traction_curve={traction_curve}".encode())
     return h.hexdigest()[:12]
 
 
-def run_family_case(label: str, f: float, rep: int, family: str, version: str = "") -> dict:
+def run_family_case(label: str, f: float, rep: int, family: str, version: str = "",
+                    traction_curve: str = "magic") -> dict:
     """One run of the family study; the held-out recording (the same for every family) cached per code
     ``version`` (a cache of an older simulator is not reused)."""
     cache = HELDOUT_CACHE / (version or "unversioned")
     cache.mkdir(parents=True, exist_ok=True)
-    r = run_case(magnitude_case(label, f), rep, None, DURATION, family, fisher=True, heldout_cache=cache)
+    r = run_case(magnitude_case(label, f), rep, None, DURATION, family, fisher=True, heldout_cache=cache,
+                 traction_curve=traction_curve)
     r.update(case=label, magnitude=f, hash=version)
     return r
 
@@ -708,7 +738,7 @@ def families_main(args) -> int:
         print(f"error: --magnitudes {args.magnitudes!r}: comma-separated numbers expected", file=sys.stderr)
         return 2
     out = Path(args.jsonl)
-    version = code_hash()
+    version = code_hash(args.traction_curve)
     rows, other = _load_rows(out, version)
     if other:
         print(f"[families] code version {version}: ignoring {sum(other.values())} rows of {out.name} from other "
@@ -740,7 +770,7 @@ def families_main(args) -> int:
         with ProcessPoolExecutor(max_workers=args.workers) as ex, open(out, "a") as fh:
             def run_batch(batch):
                 nonlocal n_done
-                futs = {ex.submit(run_family_case, lab, m, rep, fam, version): (lab, m, fam, rep)
+                futs = {ex.submit(run_family_case, lab, m, rep, fam, version, args.traction_curve): (lab, m, fam, rep)
                         for lab, m, fam, rep in batch}
                 got = []
                 for fut in as_completed(futs):

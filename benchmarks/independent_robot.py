@@ -94,6 +94,9 @@ class World:
     caster_drag: float = 0.0  # N, shared equally by the casters
     slip_k: float = 0.0  # rad/(s N m): creep rate per traction torque
     slip_tmax: float = np.inf  # N m: traction limit per wheel
+    #: knee of the traction curve (same creep slope 1 / slip_k and limit slip_tmax): "magic" x / sqrt(1 + x^2)
+    #: (Pacejka, C = 1), "tanh" tanh x, "clip" a hard clip max(-1, min(x, 1))
+    traction_curve: str = "magic"
     slope: tuple[float, float] = (0.0, 0.0)  # m/s^2, ground frame
     c_air: float = 0.0  # N s^2/m^2
     gain: tuple[float, float, float] = (0.0, 0.0, 0.0)  # delivered = (1 + k) command
@@ -111,6 +114,20 @@ class World:
     lin_drag: float = 0.0  # N s/m: linear drag force -c v at the pivot
     cogging: tuple[float, int] = (0.0, 1)  # (amplitude N m, cycles per turn): -A sin(n phi_r) on the right wheel
     pivot_deadzone: float = 0.0  # N m: the pivot drive delivers nothing below it, u - d sgn(u) above
+
+
+def _knee(curve: str, x: float) -> tuple[float, float]:
+    """(traction / limit, its slope in x) of the traction curve ``curve`` (``World.traction_curve``) at
+    x = sigma / (k T); every curve has slope 1 at x = 0 and limit 1."""
+    if curve == "magic":
+        r = 1.0 + x * x
+        return x / math.sqrt(r), 1.0 / (r * math.sqrt(r))
+    if curve == "tanh":
+        t = math.tanh(x)
+        return t, 1.0 - t * t
+    if curve == "clip":
+        return (x, 1.0) if abs(x) < 1.0 else (math.copysign(1.0, x), 0.0)
+    raise ValueError(f"unknown traction curve {curve!r} (magic, tanh, clip)")
 
 
 def _solve(K: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -175,7 +192,7 @@ class Otbot:
         if not np.isfinite(T):
             return sigma / k
         x = sigma / (k * T) if k > 0 else sigma * 1e6
-        return T * x / np.sqrt(1 + x * x)
+        return T * _knee(self.w.traction_curve, x)[0]
 
     def delivered(self, u):
         """Torque the drives settle to for command u (gain, then each motor's saturation)."""
@@ -289,9 +306,13 @@ class Otbot:
         k, T = self.w.slip_k, self.w.slip_tmax
         inv_k = 1.0 / k if k > 0 else 1e6
         finite = np.isfinite(T)
+        curve = self.w.traction_curve
 
         def g(s):
             f, df = self._friction_fast(i, rolling_rate + s)
+            if finite and curve != "magic":
+                v, dv = _knee(curve, s * inv_k / T)
+                return rhs_torque - f - T * v, -df - inv_k * dv
             if finite:
                 x = s * inv_k / T
                 r = 1.0 + x * x

@@ -177,6 +177,58 @@ def test_traction_limited_slip_solves_the_wheel_balance(tau_tr):
     assert phys.slip_state(tau_tr, b, fx.effect_vector({"k_slip": k})) == pytest.approx((k * tau_tr, tau_tr))
 
 
+def test_the_traction_knee_default_is_the_magic_formula_and_stays_last_in_the_effect_vector():
+    """kn_trac absent/0 takes the closed form T y / sqrt(1 + y^2) (the curve before the knee parameter, bit for
+    bit); the general form tanh(asinh y) agrees with it; kn_trac is the last entry (no saved index moves), not
+    a discovered law, and bounded."""
+    from otbot_hw.model import effect_catalog as ec
+    from otbot_hw.model import slip_law
+
+    assert ec.EFFECT_PARAM_NAMES[-1] == "kn_trac" and ec.KN_TRAC == ec.N_EFFECT - 1
+    assert ec.EFFECT_INDEX["t_trac"] == ec.T_TRAC == 21 and ec.EFFECT_INDEX["cogph_p"] == ec.KN_TRAC - 1
+    assert "kn_trac" not in ec.DISCOVERED_PARAMS and "cogph_p" in ec.DISCOVERED_PARAMS
+    assert fx.effect_vector()[ec.KN_TRAC] == 0.0
+    for bad in (-3.5, 5.01):
+        with pytest.raises(ValueError, match="kn_trac"):
+            fx.effect_vector({"kn_trac": bad})
+    k, T = 0.02, 3.0
+    for s in (-3.0, -0.05, 0.0, 0.01, 0.06, 0.5, 40.0):
+        y = s / (k * T)
+        assert slip_law.traction_curve(s, k, T) == T * y / np.sqrt(1.0 + y * y)  # exact: the closed form
+        assert slip_law._knee(s, k, T, 1e-300)[0] == pytest.approx(T * y / np.sqrt(1.0 + y * y), rel=1e-13,
+                                                                  abs=1e-300)  # the general form
+
+
+@pytest.mark.parametrize("kn", [-2.0, 0.5, 1.0, 1.7, 3.0])
+@pytest.mark.parametrize("tau_tr", [0.3, 2.5, 2.95, 8.0, -6.0])
+def test_every_traction_knee_keeps_the_creep_slope_and_the_limit(kn, tau_tr):
+    """sigma solves the wheel balance on the curve T tanh(h(y)); |tau_g| <= T; the creep slope is k whatever the
+    knee (small torques creep k tau); far above the limit the excess goes to viscous friction; the curve's
+    slope is the one Newton uses; kn = 1 is T tanh y and kn = 3 the hard clip, exactly."""
+    from otbot_hw.model import slip_law
+
+    k, T, b = 0.02, 3.0, 0.18
+    eff = fx.effect_vector({"k_slip": k, "t_trac": T, "kn_trac": kn})
+    sigma, tg = phys.slip_state(tau_tr, b, eff)
+    assert tau_tr - b * sigma == pytest.approx(slip_law.traction_curve(sigma, k, T, kn), abs=1e-9)
+    assert tg == pytest.approx(tau_tr - b * sigma, abs=1e-9) and abs(tg) <= T
+    if abs(tau_tr) < 0.15 * T:
+        assert sigma == pytest.approx(k * tau_tr, rel=0.05)
+    if abs(tau_tr) > 2 * T:
+        assert sigma == pytest.approx((tau_tr - np.sign(tau_tr) * T) / b, rel=0.05)
+    s = np.linspace(-0.3, 0.3, 3001)
+    curve = np.array([slip_law.traction_curve(x, k, T, kn) for x in s])
+    slope = np.array([slip_law._knee(x, k, T, kn)[1] for x in s])
+    smooth = np.abs(np.abs(s / (k * T)) - 1.0) > 0.01  # (the clip's kink)
+    assert np.allclose(np.gradient(curve, s)[1:-1][smooth[1:-1]], slope[1:-1][smooth[1:-1]], rtol=2e-2, atol=0.2)
+    assert slope[1500] == pytest.approx(1.0 / k)  # creep slope at zero slip
+    assert np.all(np.abs(curve) <= T) and abs(curve[-1]) > 0.85 * T
+    if kn == 1.0:
+        assert np.allclose(curve, T * np.tanh(s / (k * T)), rtol=1e-12, atol=1e-12)
+    if kn == 3.0:
+        assert np.allclose(curve, T * np.clip(s / (k * T), -1, 1), rtol=1e-9, atol=1e-9)
+
+
 def test_saturated_traction_limits_the_body_and_races_the_encoders(params):
     U = np.tile([8.0, 8.0, 0.0], (60, 1))
     lim = fx.effect_vector({"k_slip": 0.02, "t_trac": 3.0})

@@ -90,7 +90,8 @@ CATALOG: tuple[Effect, ...] = (
            "drive with large then small torques at the same speed: slip depends on torque, scale errors do not",
            ({"k_slip": 0.03}, {"k_slip": 0.06}), floor_only=True),
     Effect("traction_limit", "wheel slip with saturating traction", "floor",
-           "ground torque t_trac y / sqrt(1 + y^2), y = slip rate / (k_slip t_trac) (magic formula, C = 1): above the traction limit the wheel spins up "
+           "ground torque t_trac tanh(h(y)), y = slip rate / (k_slip t_trac), knee kn_trac (0: the magic formula, C = 1, "
+           "t_trac y / sqrt(1 + y^2); 1 tanh; 3 a hard clip; fitted when the data ask for it, SHAPE_REFINEMENTS): above the traction limit the wheel spins up "
            "(slip rate k_slip tau_g + (tau_tr - tau_g) / b_w)", ("k_slip", "t_trac"),
            "wheel residuals = transmitted minus traction-limited torque at high torque",
            "IMU accelerations flatten at high wheel torque while the encoders race ahead",
@@ -200,6 +201,13 @@ def effect(name: str) -> Effect:
     except KeyError:
         raise KeyError(f"unknown effect '{name}' (catalog: {', '.join(BY_NAME)})") from None
 
+
+#: shape parameters refined after an effect is found (``diagnosis._refine_shape``): effect -> (parameter, the BIC
+#: gain it must bring (1 more parameter), start values tried in turn until one gains it). The traction curve's knee (kn_trac: 0 the magic formula, 1 tanh, 3 a hard
+#: clip) is a modelling assumption -- real tyres and other simulators have other knees,
+#: and fitted with the wrong one the data see the knee, not the creep slope (k_slip -45 % .. +58 %) -- but on a
+#: recording that hardly reaches the limit it is not identifiable, so it is fitted only when the data ask for it.
+SHAPE_REFINEMENTS: dict[str, tuple[str, float, tuple[float, ...]]] = {"traction_limit": ("kn_trac", 10.0, (0.0, 3.0))}
 
 #: parameters of the caster position, fitted with the drag when the robot configuration has no casters
 CASTER_POSITION_PARAMS = ("x_c1", "y_c1")

@@ -30,7 +30,7 @@ from otbot_hw.diagnose.identifiability import (effect_identifiability, not_ident
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
-from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC
+from otbot_hw.diagnose.rules import ACCEPT_DBIC, AMBIGUOUS_DBIC
 from otbot_hw.diagnose.select import choose, free_nominal
 from otbot_hw.diagnose.significance import significance
 from otbot_hw.json_output import json_safe
@@ -155,6 +155,60 @@ def _caster_pair(recordings, sel, final, progress):
     return final
 
 
+def _refine_shape(recordings, sel, final, start, progress):
+    """Found effects with a shape parameter (``catalog.SHAPE_REFINEMENTS``: the traction curve's knee): refit with
+    it free, started from its catalog form (0; from the catalog's other starts while none gains), and keep it when
+    it gains its BIC evidence (1 more parameter); the effect entry then reports it with the others. An effect accepted beside it before (the selection fitted
+    the catalog's shape: a look-alike took up part of the knee's misfit -- encoder scale and wheel radii beside
+    a tanh traction curve) is then refit away and dropped when it no longer gains ``ACCEPT_DBIC``. Returns
+    (final fit, what was tried: {effect, parameter, value, std, delta_bic, kept, dropped})."""
+    names = [c.effect for c in sel.accepted] + [g[0].effect for g in sel.ambiguous]
+    tried = []
+    for eff, (param, evidence, starts) in cat.SHAPE_REFINEMENTS.items():
+        if eff not in names or param in final.names:
+            continue
+        n = sum(final.n_samples.values())
+        fit, gain = None, np.inf
+        for x0 in starts:  # the catalog's form first; another start only when it gains nothing (a knee far
+            f = refit(recordings, final.model.with_values({param: x0}), list(final.names) + [param],
+                      max_nfev=FINAL_NFEV)  # from it: the fit from 0 stalled before a hard clip); the best kept
+            g = (sum(f.rss.values()) - sum(final.rss.values())) + np.log(max(n, 2))
+            if g < gain:
+                fit, gain = f, g
+            if gain < -evidence:
+                break
+        progress(f"[diagnose] {eff} with its {param} free: {param} = {fit.values[param]:.3g}, dBIC {gain:.1f}")
+        std = fit.std.get(param, float("nan"))
+        tried.append({"effect": eff, "parameter": param, "value": float(fit.values[param]),
+                      "std": float(std) if np.isfinite(std) else None, "delta_bic": float(gain),
+                      "kept": bool(gain < -evidence)})
+        if gain < -evidence:
+            e = sel.effects[eff]
+            sel.effects[eff] = dataclasses.replace(e, parameters=tuple(e.parameters) + (param,))
+            for c in list(sel.accepted) + [g[0] for g in sel.ambiguous]:
+                if c.effect == eff:
+                    pars = sel.effects[eff].parameters
+                    c.significance = significance(eff, {k: fit.values[k] for k in pars},
+                                                  {k: fit.std.get(k, float("nan")) for k in pars}, fit.model,
+                                                  recordings)
+            final = fit
+            tried[-1]["dropped"] = []
+            for c in reversed([c for c in sel.accepted if c.effect != eff]):
+                out = [p for p in sel.effects[c.effect].parameters
+                       if p in final.names and p not in sel.effects[eff].parameters]
+                if not out:
+                    continue
+                without = refit(recordings, final.model.with_values({p: start.get(p) for p in out}),
+                                [n for n in final.names if n not in out], max_nfev=FINAL_NFEV)
+                loss = (sum(without.rss.values()) - sum(final.rss.values())) - len(out) * np.log(max(n, 2))
+                progress(f"[diagnose] {c.effect} beside {eff} with its {param}: dBIC {loss:.1f} to keep it")
+                if loss < ACCEPT_DBIC:
+                    sel.accepted.remove(c)
+                    tried[-1]["dropped"].append(c.effect)
+                    final = without
+    return final, tried
+
+
 def _small_needed(recordings, holdout, params, sel, final, progress):
     """Effects with evidence listed as detected but small (``significance``: they do not matter by what they
     do on these runs) are left out of the model -- unless the model without them is inadequate and with them
@@ -220,6 +274,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured, start,
                  bool(wandered))
     final = sel.final_fit
+    shape_tried = []
     if not geometry.casters_configured:
         final = _caster_pair(recordings, sel, final, progress)
     if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
@@ -234,6 +289,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
             progress(f"[diagnose] final fit from the file's nominal values fits better: {alt.message} "
                      f"({alt.nfev} evaluations)")
             final = alt
+        final, shape_tried = _refine_shape(recordings, sel, final, start, progress)
     final = _small_needed(recordings, holdout, params, sel, final, progress)
     # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
     std = dict(final.std)
@@ -333,6 +389,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         "fit_after": fit_after,
         "nominal_shift": shift,
         "std_inflation": inflation,
+        "shape_refinements": shape_tried,
         "screening": [{"equation_residual_delta_bic": dict(sorted(s.single.items(), key=lambda kv: kv[1])),
                        "greedy_selection": s.selected,
                        "simulation_score_delta_bic": dict(sorted(ss.items(), key=lambda kv: kv[1]))}

@@ -27,7 +27,10 @@ u_max_r, ...   N m        torque saturation of the right/left wheel and pivot mo
 T_i            s          current-loop lag: first-order lag of the delivered torque (0 = none)
 db_w           N m s/rad  viscous asymmetry: b_right = b_w + db_w, b_left = b_w - db_w
 dr_r, dr_l     1          wheel radii: r_right = r (1 + dr_r), r_left = r (1 + dr_l) (r: the nominal radius)
-t_trac         N m        traction limit of each wheel: ground torque t_trac y / sqrt(1 + y^2), y = slip / (k_slip t_trac) (0 = none)
+t_trac         N m        traction limit of each wheel: ground torque t_trac tanh(h(y)), y = slip / (k_slip t_trac), creep
+                          slope 1 / k_slip (0 = none; the knee h: kn_trac, ``slip_law``)
+kn_trac        1          knee of the traction curve (with t_trac), -3..5: 0 = magic formula C = 1, y / sqrt(1 + y^2)
+                          (h = asinh); 1 = tanh y (h = y); 3 = a hard clip (h = atanh); < 0 softer than the magic formula
 n_cst          1          number of casters (1..4) sharing the caster drag f_cst equally
 x_c1 .. y_c4   m          caster contact points in the chassis frame B' (from the robot configuration)
 c_lin          N s/m      linear drag at the pivot: F = -c_lin v (discovered law)
@@ -58,7 +61,7 @@ __all__ = [
     'D_IMU', 'D_X', 'D_Y', 'EFFECT_BOUNDS', 'EFFECT_INDEX', 'EFFECT_PARAMS', 'EFFECT_PARAM_NAMES',
     'EFFECT_UNITS', 'E_L', 'E_R', 'F_CST', 'GEOMETRY_PARAMS', 'G_X', 'G_Y', 'K_L', 'K_P', 'K_R', 'K_SLIP',
     'MAX_CASTERS', 'N_CST', 'N_EFFECT', 'PSI', 'S_W', 'TIED_PARAMS', 'T_I', 'T_TRAC', 'U_MAX_L', 'U_MAX_P',
-    'U_MAX_R', 'V_S', 'C_LIN', 'DZ_R', 'TS_R', 'COG_R', 'COGN_R', 'COGPH_R', 'DISCOVERED_PARAMS', 'MAX_COGN', 'WIDTH_MIN_CASTER', 'WIDTH_MIN_PIVOT', 'WIDTH_MIN_WHEEL', 'WIDTH_PER_NM_PIVOT',
+    'U_MAX_R', 'V_S', 'C_LIN', 'DZ_R', 'TS_R', 'COG_R', 'COGN_R', 'COGPH_R', 'KN_TRAC', 'KN_TRAC_BOUNDS', 'DISCOVERED_PARAMS', 'MAX_COGN', 'WIDTH_MIN_CASTER', 'WIDTH_MIN_PIVOT', 'WIDTH_MIN_WHEEL', 'WIDTH_PER_NM_PIVOT',
     'WIDTH_PER_NM_WHEEL', 'WIDTH_PER_N_CASTER', 'X_C1', 'effect_vector', 'parameter_bounds', 'parameter_unit']
 
 WIDTH_PER_NM_PIVOT = 0.005  # rad/s per N m of friction level: smoothed sign width at the pivot motor
@@ -70,6 +73,8 @@ WIDTH_MIN_CASTER = 1e-3  # m/s
 CASTER_POSITION = (0.15, 0.0)  # m, default single caster contact in the chassis frame B'
 MAX_CASTERS = 4
 MAX_COGN = 64  # cogging cycles per turn, at most
+KN_TRAC_BOUNDS = (-3.0, 5.0)  # knee of the traction curve: 0 magic formula, 1 tanh, 3 a hard clip, < 0 softer, > 3
+# reaching the limit before y = 1 (the clip inside the bounds: a fit on a bound is judged inadequate)
 
 _MOTORS = (("r", "right wheel motor"), ("l", "left wheel motor"), ("p", "pivot motor"))
 #: (name, unit, lower bound, upper bound, description)
@@ -114,7 +119,10 @@ EFFECT_PARAMS: tuple[tuple[str, str, float, float, str], ...] = (
   + tuple((f"ts_{j}", "N m", 0.0, 100.0, f"soft torque limit ts tanh(u / ts), {m} (0 = none)") for j, m in _MOTORS) \
   + tuple((f"cog_{j}", "N m", -10.0, 10.0, f"cogging amplitude, {m}") for j, m in _MOTORS) \
   + tuple((f"cogn_{j}", "1/turn", 0.0, float(MAX_COGN), f"cogging cycles per turn, {m}") for j, m in _MOTORS) \
-  + tuple((f"cogph_{j}", "rad", -10.0, 10.0, f"cogging phase, {m}") for j, m in _MOTORS)
+  + tuple((f"cogph_{j}", "rad", -10.0, 10.0, f"cogging phase, {m}") for j, m in _MOTORS) + (
+    # appended last so that no earlier index moves (saved effect vectors and models keep their meaning)
+    ("kn_trac", "1", *KN_TRAC_BOUNDS, "traction curve knee: 0 magic formula, 1 tanh, 3 hard clip, < 0 softer"),
+)
 EFFECT_PARAM_NAMES: tuple[str, ...] = tuple(p[0] for p in EFFECT_PARAMS)
 EFFECT_INDEX: dict[str, int] = {n: i for i, n in enumerate(EFFECT_PARAM_NAMES)}
 EFFECT_UNITS: dict[str, str] = {p[0]: p[1] for p in EFFECT_PARAMS}
@@ -129,8 +137,9 @@ TS_R = DZ_R + 3  # ts_r, ts_l, ts_p
 COG_R = TS_R + 3  # cog_r, cog_l, cog_p
 COGN_R = COG_R + 3
 COGPH_R = COGN_R + 3
+KN_TRAC = COGPH_R + 3  # knee of the traction curve (catalog, after the discovered laws)
 #: the entries of the laws beyond the catalog (``otbot_hw.diagnose.discover``): all zero = none
-DISCOVERED_PARAMS: tuple[str, ...] = EFFECT_PARAM_NAMES[C_LIN:]
+DISCOVERED_PARAMS: tuple[str, ...] = EFFECT_PARAM_NAMES[C_LIN:KN_TRAC]
 #: effect entries that describe where things are, not an effect (active only with their effect)
 GEOMETRY_PARAMS: tuple[str, ...] = ("n_cst",) + tuple(n for n in EFFECT_PARAM_NAMES if n[1:3] == "_c" and n[3:].isdigit())
 
@@ -153,6 +162,9 @@ def effect_vector(values: dict[str, float] | None = None) -> np.ndarray:
             raise ValueError(f"{EFFECT_PARAM_NAMES[i]} must be in (-0.5, 0.5), got {eff[i]}")
     if eff[N_CST] not in range(1, MAX_CASTERS + 1):
         raise ValueError(f"n_cst must be a whole number of casters 1..{MAX_CASTERS}, got {eff[N_CST]}")
+    if not KN_TRAC_BOUNDS[0] <= eff[KN_TRAC] <= KN_TRAC_BOUNDS[1]:
+        raise ValueError(f"kn_trac (traction curve knee: 0 magic formula, 1 tanh, 3 hard clip) must be in "
+                         f"[{KN_TRAC_BOUNDS[0]:g}, {KN_TRAC_BOUNDS[1]:g}], got {eff[KN_TRAC]}")
     for j in range(3):
         n = eff[COGN_R + j]
         if n != round(n) or not 0 <= n <= MAX_COGN or (eff[COG_R + j] != 0.0 and n == 0):

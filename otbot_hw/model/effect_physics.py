@@ -33,8 +33,10 @@ Modelling choices (documented, not hidden):
   torque minus motor friction at the rolling speed minus I_a times the wheel's rolling
   acceleration (what turns the wheel itself; solved with the accelerations by a fixed point,
   ``_force_accel_into``). Without a traction limit the contact creeps at s_dot = k_slip * tau_tr
-  and passes tau_tr. With one, the traction curve tau_g(s_dot) = t_trac y / sqrt(1 + y^2), y = s_dot / (k_slip
-  t_trac) (the magic formula with C = 1, ``slip_law``) (linear creep k_slip at small slip, saturating at t_trac) and the wheel's balance
+  and passes tau_tr. With one, the traction curve tau_g(s_dot) = t_trac tanh(h(y)), y = s_dot / (k_slip t_trac),
+  knee kn_trac (0: h = asinh, the magic formula with C = 1, t_trac y / sqrt(1 + y^2); 1: tanh; 3: a hard clip;
+  ``slip_law``)
+  (linear creep k_slip at small slip, saturating at t_trac) and the wheel's balance
   tau_tr - b_i s_dot = tau_g give s_dot: creep below the limit, spin-up above it until the
   motor's viscous friction takes the excess. The body is driven by tau_g (above the limit the
   chassis gets t_trac, not t_trac minus the wheel's own inertia torque: that was the split before,
