@@ -202,7 +202,7 @@ def effect(name: str) -> Effect:
         raise KeyError(f"unknown effect '{name}' (catalog: {', '.join(BY_NAME)})") from None
 
 
-#: shape parameters refined after an effect is found (``diagnosis._refine_shape``): effect -> (parameter, the BIC
+#: shape parameters refined after an effect is found (``refinements.refine_shape``): effect -> (parameter, the BIC
 #: gain it must bring (1 more parameter), start values tried in turn until one gains it). The traction curve's knee (kn_trac: 0 the magic formula, 1 tanh, 3 a hard
 #: clip) is a modelling assumption -- real tyres and other simulators have other knees,
 #: and fitted with the wrong one the data see the knee, not the creep slope (k_slip -45 % .. +58 %) -- but on a

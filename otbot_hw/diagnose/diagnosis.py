@@ -28,17 +28,16 @@ from otbot_hw.diagnose.geometry import EffectGeometry
 from otbot_hw.diagnose.identifiability import (effect_identifiability, not_identifiable_effects,
                                                saturation_not_identifiable, undetermined_effect_parameters)
 from otbot_hw.diagnose.locate import locate, summarize
+from otbot_hw.diagnose.refinements import caster_pair, refine_shape
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
-from otbot_hw.diagnose.rules import ACCEPT_DBIC, AMBIGUOUS_DBIC
+from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC, FINAL_NFEV
 from otbot_hw.diagnose.select import choose, free_nominal
-from otbot_hw.diagnose.significance import significance
 from otbot_hw.json_output import json_safe
 from otbot_hw.model.effects import ExtendedModel, parameter_unit
 from otbot_hw.params import OtbotParams
 
 
-FINAL_NFEV = 20  # iterations of the final fit, started from the last nested fit
 CORRELATION_NOTE = 0.98  # |correlation| of an effect and a nominal parameter worth reporting
 STD_INFLATION_WARN = 2.0  # HAC / white-noise std above this: warn about model-form error
 
@@ -122,93 +121,6 @@ def _in_place_of(recordings, final, base, effects, lead, other):
     return fit.std, fit
 
 
-PAIR_SPREAD = 0.15  # m: the pair's start, (x, +-PAIR_SPREAD) about the single caster's fitted x
-PAIR_EVIDENCE = 10.0  # BIC gain the pair needs over the single caster
-
-
-def _caster_pair(recordings, sel, final, progress):
-    """Casters not configured and caster drag found: one fitted caster is the catalog's model, but a robot
-    with two casters (say at (0.15, +-0.2) m) drags differently when it turns -- the single caster at
-    their midpoint leaves a misfit above the noise. Refit with two casters, started at (x, +-PAIR_SPREAD)
-    about the single caster's x (two casters at one point are one caster, so the pair nests it), and keep
-    the pair when it gains ``PAIR_EVIDENCE`` of BIC (2 more parameters). The caster entry then reports
-    f_cst (the summed drag) and both positions."""
-    names = [c.effect for c in sel.accepted] + [g[0].effect for g in sel.ambiguous]
-    if "caster_drag" not in names or "x_c1" not in final.names:
-        return final
-    x = final.values["x_c1"]
-    start = final.model.with_values({"n_cst": 2.0, "x_c1": x, "y_c1": PAIR_SPREAD, "x_c2": x, "y_c2": -PAIR_SPREAD})
-    free = list(final.names) + ["x_c2", "y_c2"]
-    pair = refit(recordings, start, free, max_nfev=FINAL_NFEV)
-    n = sum(pair.n_samples.values())
-    gain = (sum(pair.rss.values()) - sum(final.rss.values())) + 2 * np.log(max(n, 2))
-    progress(f"[diagnose] two casters instead of one: dBIC {gain:.1f}")
-    if gain < -PAIR_EVIDENCE:
-        e = sel.effects["caster_drag"]
-        sel.effects["caster_drag"] = dataclasses.replace(e, parameters=tuple(e.parameters) + ("x_c2", "y_c2"))
-        for c in list(sel.accepted) + [g[0] for g in sel.ambiguous]:
-            if c.effect == "caster_drag":
-                pars = sel.effects["caster_drag"].parameters
-                c.significance = significance("caster_drag", {k: pair.values[k] for k in pars},
-                                              {k: pair.std.get(k, float("nan")) for k in pars}, pair.model, recordings)
-        return pair
-    return final
-
-
-def _refine_shape(recordings, sel, final, start, progress):
-    """Found effects with a shape parameter (``catalog.SHAPE_REFINEMENTS``: the traction curve's knee): refit with
-    it free, started from its catalog form (0; from the catalog's other starts while none gains), and keep it when
-    it gains its BIC evidence (1 more parameter); the effect entry then reports it with the others. An effect accepted beside it before (the selection fitted
-    the catalog's shape: a look-alike took up part of the knee's misfit -- encoder scale and wheel radii beside
-    a tanh traction curve) is then refit away and dropped when it no longer gains ``ACCEPT_DBIC``. Returns
-    (final fit, what was tried: {effect, parameter, value, std, delta_bic, kept, dropped})."""
-    names = [c.effect for c in sel.accepted] + [g[0].effect for g in sel.ambiguous]
-    tried = []
-    for eff, (param, evidence, starts) in cat.SHAPE_REFINEMENTS.items():
-        if eff not in names or param in final.names:
-            continue
-        n = sum(final.n_samples.values())
-        fit, gain = None, np.inf
-        for x0 in starts:  # the catalog's form first; another start only when it gains nothing (a knee far
-            f = refit(recordings, final.model.with_values({param: x0}), list(final.names) + [param],
-                      max_nfev=FINAL_NFEV)  # from it: the fit from 0 stalled before a hard clip); the best kept
-            g = (sum(f.rss.values()) - sum(final.rss.values())) + np.log(max(n, 2))
-            if g < gain:
-                fit, gain = f, g
-            if gain < -evidence:
-                break
-        progress(f"[diagnose] {eff} with its {param} free: {param} = {fit.values[param]:.3g}, dBIC {gain:.1f}")
-        std = fit.std.get(param, float("nan"))
-        tried.append({"effect": eff, "parameter": param, "value": float(fit.values[param]),
-                      "std": float(std) if np.isfinite(std) else None, "delta_bic": float(gain),
-                      "kept": bool(gain < -evidence)})
-        if gain < -evidence:
-            e = sel.effects[eff]
-            sel.effects[eff] = dataclasses.replace(e, parameters=tuple(e.parameters) + (param,))
-            for c in list(sel.accepted) + [g[0] for g in sel.ambiguous]:
-                if c.effect == eff:
-                    pars = sel.effects[eff].parameters
-                    c.significance = significance(eff, {k: fit.values[k] for k in pars},
-                                                  {k: fit.std.get(k, float("nan")) for k in pars}, fit.model,
-                                                  recordings)
-            final = fit
-            tried[-1]["dropped"] = []
-            for c in reversed([c for c in sel.accepted if c.effect != eff]):
-                out = [p for p in sel.effects[c.effect].parameters
-                       if p in final.names and p not in sel.effects[eff].parameters]
-                if not out:
-                    continue
-                without = refit(recordings, final.model.with_values({p: start.get(p) for p in out}),
-                                [n for n in final.names if n not in out], max_nfev=FINAL_NFEV)
-                loss = (sum(without.rss.values()) - sum(final.rss.values())) - len(out) * np.log(max(n, 2))
-                progress(f"[diagnose] {c.effect} beside {eff} with its {param}: dBIC {loss:.1f} to keep it")
-                if loss < ACCEPT_DBIC:
-                    sel.accepted.remove(c)
-                    tried[-1]["dropped"].append(c.effect)
-                    final = without
-    return final, tried
-
-
 def _small_needed(recordings, holdout, params, sel, final, progress):
     """Effects with evidence listed as detected but small (``significance``: they do not matter by what they
     do on these runs) are left out of the model -- unless the model without them is inadequate and with them
@@ -276,7 +188,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     final = sel.final_fit
     shape_tried = []
     if not geometry.casters_configured:
-        final = _caster_pair(recordings, sel, final, progress)
+        final = caster_pair(recordings, sel, final, progress)
     if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
         final = refit(recordings, final.model, final.names, max_nfev=FINAL_NFEV)
         progress(f"[diagnose] final fit: {final.message} ({final.nfev} evaluations)")
@@ -289,7 +201,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
             progress(f"[diagnose] final fit from the file's nominal values fits better: {alt.message} "
                      f"({alt.nfev} evaluations)")
             final = alt
-        final, shape_tried = _refine_shape(recordings, sel, final, start, progress)
+        final, shape_tried = refine_shape(recordings, sel, final, start, progress)
     final = _small_needed(recordings, holdout, params, sel, final, progress)
     # standard deviations that hold with correlated residuals (model-form error), never below the usual ones
     std = dict(final.std)

@@ -31,6 +31,7 @@ MAX_NESTED = 4  # nested fits per round, taken alternately from the two screenin
 MAX_LOOKALIKES = 2  # catalog look-alikes of the best candidate fitted beside it before it is named
 MAX_PAIR_TRIES = 2  # second candidates fitted beside a best that leaves correlated residuals
 MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
+FINAL_NFEV = 20  # iterations of the final fit (and of a refinement's fit), started from the last nested fit
 NESTED_NFEV = 12  # iterations (function evaluations) of a nested fit
 QUICK_NFEV = 5  # ... after which a candidate without BIC evidence is given up
 KAPPA_WHITE = 1.2  # residual correlation factor of white residuals: nothing left for a further effect
