@@ -1,8 +1,13 @@
 """Check that a speed-up of ``diagnose()`` changes no result: save the diagnosis JSON of a fixed set of
 cases, then compare another checkout's against it (verdict, named effects, every number to 1e-6 relative).
 
-Cases: the slow and typical ones of ``benchmarks/diagnose.py`` (independent check, seed pair 0) and three
-discovery cases of ``benchmarks/diagnose_discovery.py`` (linear drag, cogging, pivot dead zone; rep 0).
+Cases: the slow and typical ones of ``benchmarks/diagnose.py`` (independent check, seed pair 0), three
+discovery cases of ``benchmarks/diagnose_discovery.py`` (linear drag, cogging, pivot dead zone; rep 0) and
+(``--cases slow``) the slowest diagnoses of the issue-20 studies (``SLOW``: a traction limit and configured
+casters under the paper's constant torques, the traction limit with a tanh and a hard-clip knee, the clean 30 s
+stand multisine of the calibration study, #380).
+``--conclusions``: compare only what the diagnosis concludes (verdict, named / ambiguous / withheld / small
+effects, discovered laws; effect values within ``VALUE_RULE`` relative) -- for a speed-up that may move numbers.
 Prints the process CPU time of each diagnosis (``time.process_time``: what the load of other jobs does not
 change).
 
@@ -24,6 +29,13 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 INDEPENDENT = ["coulomb_wheels", "none", "caster+asymmetry", "traction_limit", "phantom_load"]
 DISCOVERY = ["linear_drag", "cogging", "pivot_dead_zone"]
+#: label: (case of benchmarks/diagnose_independent.py, excitation family of its fitting run, traction curve)
+SLOW = {"traction_constant": ("traction_limit", "constant", "magic"),
+        "caster_constant": ("caster_configured", "constant", "magic"),
+        "traction_tanh": ("traction_limit", "piecewise", "tanh"),
+        "traction_clip": ("traction_limit", "piecewise", "clip")}
+CALIBRATION = {"clean_stand_multisine": 380}  # index in benchmarks/diagnose_calibration.py's plan(500)
+VALUE_RULE = 0.2  # effect values of two diagnoses within this relative difference: the same conclusion
 #: keys that measure time, not results
 TIMING = {"elapsed_s", "cpu_s", "regression_s"}
 
@@ -73,6 +85,64 @@ def cases(folder: Path, which: list[str]):
         if label in which:
             fit, held = dd._record(folder, label, dd.LAWS[label][0], 0)
             yield label, load([fit]), load([held]), nominal(), None
+    for label, (name, family, curve) in SLOW.items():
+        if label in which:
+            c = di.with_traction_curve(di.BY_LABEL[name], curve)
+            sub = folder / label
+            sub.mkdir(exist_ok=True)
+            paths = [sub / f"{c.label}_0_{k}.mcap" for k in ("fit", "heldout")]
+            if not all(p.exists() for p in paths):
+                paths = di.make_recordings(c, 0, sub, di.DURATION, family)
+            P, geometry = di.tool_inputs(c)
+            yield label, load(paths[:1]), load(paths[1:]), P, geometry
+    for label, index in CALIBRATION.items():
+        if label in which:
+            import diagnose_calibration as dc
+
+            spec = dc.plan(500)[index]
+            path = folder / f"cal_{spec.index}_{spec.simulator}_{spec.family}.mcap"
+            if not path.exists():
+                dc.record(spec, folder)
+            yield label, load([path]), [], nominal(), None
+
+
+def conclusions(r: dict) -> dict:
+    """What a diagnosis concludes: verdict, effects by name (with their values), laws discovered."""
+    def values(e):
+        return {k: v["value"] for k, v in e["parameters"].items()}
+
+    disc = r.get("discovered") or {}
+    return {"model_adequate": r["model_adequate"],
+            "effects": {e["name"]: values(e) for e in r["effects"]},
+            "ambiguous": [[c["name"] for c in g["candidates"]] for g in r["ambiguous"]],
+            "ambiguous_values": {c["name"]: values(c) for g in r["ambiguous"] for c in g["candidates"]},
+            "withheld": {w["name"]: {k: v["value"] for k, v in w["parameters"].items()} for w in r["withheld"]},
+            "small": sorted(e["name"] for e in r["detected_small"]),
+            "laws": {lw["law"]: {k: v["value"] for k, v in (lw.get("refit") or {}).items()}
+                     for lw in disc.get("laws", [])},
+            "laws_improve": disc.get("improves")}
+
+
+def diff_conclusions(a: dict, b: dict) -> tuple[list[str], list[str]]:
+    """(differences in what is concluded, value changes within ``VALUE_RULE``) between two diagnoses."""
+    ca, cb = conclusions(a), conclusions(b)
+    out, moved = [], []
+    for k in ("model_adequate", "ambiguous", "small", "laws_improve"):
+        if ca[k] != cb[k]:
+            out.append(f"{k}: {ca[k]!r} != {cb[k]!r}")
+    for k in ("effects", "withheld", "laws", "ambiguous_values"):
+        if set(ca[k]) != set(cb[k]):
+            out.append(f"{k}: {sorted(ca[k])} != {sorted(cb[k])}")
+            continue
+        for name in ca[k]:
+            for p, va in ca[k][name].items():
+                vb = cb[k][name].get(p)
+                if vb is None or va is None:
+                    continue
+                rel = abs(vb - va) / max(abs(va), 1e-12)
+                if rel > 1e-6:
+                    (out if rel > VALUE_RULE else moved).append(f"{k}.{name}.{p}: {va:.4g} -> {vb:.4g} ({100 * rel:+.1f} %)")
+    return out, moved
 
 
 def main() -> int:
@@ -80,6 +150,8 @@ def main() -> int:
     ap.add_argument("--recordings", type=Path, required=True, help="folder of the recordings (made when missing)")
     ap.add_argument("--cases", default=",".join(INDEPENDENT + DISCOVERY))
     ap.add_argument("--save", type=Path)
+    ap.add_argument("--conclusions", action="store_true", help="with --compare: only what the diagnosis concludes "
+                    "(verdict, effects, laws; values within VALUE_RULE), every value change listed")
     ap.add_argument("--compare", type=Path)
     args = ap.parse_args()
     from otbot_hw.diagnose.diagnosis import diagnose
@@ -87,13 +159,21 @@ def main() -> int:
     args.recordings.mkdir(parents=True, exist_ok=True)
     ref = json.loads(args.compare.read_text()) if args.compare else None
     out, bad = {}, 0
-    for label, fit, held, P, geometry in cases(args.recordings, args.cases.split(",")):
+    which = args.cases.split(",")
+    if "slow" in which:
+        which += list(SLOW) + list(CALIBRATION) + ["linear_drag"]
+    for label, fit, held, P, geometry in cases(args.recordings, which):
         t = time.process_time()
         r = diagnose(fit, P, held, geometry=geometry)
         cpu = time.process_time() - t
         out[label] = {"cpu_s": cpu, "result": _strip(json.loads(json.dumps(r, default=float)))}
         msg = ""
-        if ref and label in ref:
+        if ref and label in ref and args.conclusions:
+            d, moved = diff_conclusions(ref[label]["result"], out[label]["result"])
+            bad += bool(d)
+            msg = f" (before {ref[label]['cpu_s']:.1f} s) " + ("SAME CONCLUSIONS" if not d else "DIFFERENT: " + "; ".join(d))
+            msg += "".join(f"\n    moved: {m}" for m in moved)
+        elif ref and label in ref:
             d = diff(ref[label]["result"], out[label]["result"])
             bad += bool(d)
             msg = f" (before {ref[label]['cpu_s']:.1f} s) " + ("SAME" if not d else "DIFFERENT: " + "; ".join(d[:5]))

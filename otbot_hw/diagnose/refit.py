@@ -25,7 +25,7 @@ from threadpoolctl import threadpool_limits
 
 from otbot_hw.diagnose.data import DiagnosisData
 from otbot_hw.diagnose.prediction import FITTER_CHANNEL, ExtendedPredictionModel, diagnosis_experiments
-from otbot_hw.diagnose.simulated_run import simulate_outputs
+from otbot_hw.diagnose.simulated_run import initial_state, simulate_outputs
 from otbot_hw.identification.prediction_error import fit_parameters
 from otbot_hw.identification.residual_problem import RANK_TOL
 from otbot_hw.model.effects import TIED_PARAMS, ExtendedModel, parameter_bounds
@@ -241,7 +241,8 @@ def robust_std(recordings: list[DiagnosisData], fit: FitResult) -> dict[str, flo
         h = 1e-4 * max(abs(x), _typical(n))
         if x + h > hi:
             h = -h
-        res = weighted_residuals(recordings, fit.model.with_values({n: x + h}), fit.sigma)
+        m = fit.model.with_values({n: x + h})  # the initial rates fitted at the estimate (a nuisance estimate)
+        res = weighted_residuals(recordings, m, fit.sigma, [initial_state(d, m, rates_from=fit.model) for d in recordings])
         cols.append({k: (base[k] - res[k]) / h for k in keys})  # d(simulated)/d theta, in sigma units
     J = {k: np.column_stack([c[k] for c in cols]) for k in keys}
     A = sum(J[k].T @ J[k] for k in keys)

@@ -24,7 +24,7 @@ import numpy as np
 
 from otbot_hw.diagnose import catalog as cat
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.refit import FitResult, refit, weighted_residuals
+from otbot_hw.diagnose.refit import FitResult, channel_sigmas, correlation_factor, refit, weighted_residuals
 from otbot_hw.diagnose.rules import (ACCEPT_DBIC, AMBIGUOUS_DBIC, MAX_LOOKALIKES, MAX_PAIR_TRIES, MAX_ROUNDS,
                                      NESTED_NFEV, NESTED_TOL, QUICK_NFEV, SCREEN_DBIC, Candidate, ambiguous_group,
                                      fitting_evidence, has_evidence, information_criteria, matters, pair_adds,
@@ -55,8 +55,6 @@ def holdout_cost(holdout: list[DiagnosisData], model: ExtendedModel) -> float:
     """Sum over held-out channels of N ln(RSS / N) (noise-weighted): lower predicts better."""
     if not holdout:
         return float("nan")
-    from otbot_hw.diagnose.refit import channel_sigmas
-
     res = weighted_residuals(holdout, model, channel_sigmas(holdout))
     return float(sum(len(v) * np.log(max(v @ v, 1e-300) / len(v)) for v in res.values()))
 
@@ -98,8 +96,6 @@ def _effect_guess(e: cat.Effect, screening: Screening, sim_guess: dict | None = 
 
 
 def _kappa(recordings: list[DiagnosisData], fit: FitResult) -> float:
-    from otbot_hw.diagnose.refit import correlation_factor
-
     return correlation_factor(weighted_residuals(recordings, fit.model, fit.sigma))
 
 
@@ -110,6 +106,7 @@ class _Search:
     def __init__(self, recordings, holdout, base_fit, nominal_free, progress, casters_configured, given=None,
                  wandered=False):
         self.recordings, self.holdout, self.progress = recordings, holdout, progress
+        self.sigmas = channel_sigmas(recordings)  # noise levels of the fitting channels (``_better_start``)
         self.given = given  # the parameter file's model (``choose``)
         self.wandered = wandered  # the nominal fit moved implausibly far from it
         self.nominal_free = nominal_free
@@ -267,13 +264,10 @@ class _Search:
         alt = {**guess, **step}
         if not step or all(np.isclose(alt[p], guess.get(p, np.nan)) for p in step):
             return guess
-        from otbot_hw.diagnose.refit import channel_sigmas
-
-        sig = channel_sigmas(self.recordings)
 
         def cost(g):
             try:
-                res = weighted_residuals(self.recordings, model.with_values(g), sig)
+                res = weighted_residuals(self.recordings, model.with_values(g), self.sigmas)
             except (ValueError, ZeroDivisionError, FloatingPointError):
                 return np.inf
             return float(sum(v @ v for v in res.values()))
@@ -353,13 +347,13 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
     ref = S.reference(S.current)
     for round_index in range(MAX_ROUNDS):
         on = provisional.fit if provisional else S.current
-        cands = S.round(on, ref, round_index, S.used | ({provisional.effect} if provisional else set()))
+        exclude = S.used | ({provisional.effect} if provisional else set())  # unchanged until the round's decision
+        cands = S.round(on, ref, round_index, exclude)
         good = [c for c in cands if has_evidence(c)]
         if good:
             ref = S.polish(good, cands, ref)
             good = [c for c in cands if has_evidence(c)]
         if good:
-            exclude = S.used | ({provisional.effect} if provisional else set())
             # the look-alikes of the best and of those tied with it (each would be named in its group): gain_right
             # tied with saturation_right to 1e-5 BIC, and only the latter's look-alikes were fitted -- a left-wheel
             # gain under constant torques went unfitted, named as right and pivot gains beside a rescaled chassis
@@ -371,7 +365,6 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             # the best explains the fitting data but predicts the held-out runs worse: its look-alikes may explain
             # both (a wheel friction asymmetry stands in for a wheel gain at one constant torque; the held-out
             # run's other torques tell them apart -- the gain was never fitted)
-            exclude = S.used | ({provisional.effect} if provisional else set())
             cands += S.lookalikes(min(fit_only, key=lambda c: c.dbic), cands, on, ref, exclude)
             good = [c for c in cands if has_evidence(c)]
         if not good:

@@ -59,7 +59,7 @@ def _with_rates(x0: np.ndarray, w: np.ndarray, fixture: str, p) -> np.ndarray:
     return state_with_rates(x0, w, fixture, p.l1, p.l2, p.r)
 
 
-def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
+def initial_state(data: DiagnosisData, model: ExtendedModel, rates_from: ExtendedModel | None = None) -> np.ndarray:
     """x0 (12,) in rolling-angle coordinates: angles from the first encoder samples, joint rates fitted
     to the first ``HEAD_TIME`` s of encoder rates through the model.
 
@@ -73,15 +73,33 @@ def initial_state(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
     When the fitted rates are consistent with rest (chi-square below its ``REST_QUANTILE`` quantile)
     the start is at rest, exactly (recordings start from standstill; an estimate of zero carries
     noise into the long simulation). Kept in the recording's memo per model (parameters and effects).
+
+    ``rates_from``: a model next to ``model`` (a finite-difference Jacobian's centre, ``model`` one of its
+    columns): the fitted rates of that model are used, the angles read under ``model`` (``encoder_state``).
+    The initial rates are a nuisance estimate; refitting them per column cost 4 head simulations per column
+    (a fifth of a slow diagnosis) to move a derivative by the rates' own sensitivity.
     """
+    if rates_from is not None:
+        w = _start_rates(data, rates_from)
+        x_enc = encoder_state(data, model)
+        return x_enc if w is None else _with_rates(x_enc, w, data.fixture, model.params)
+    return _start(data, model)[0].copy()
+
+
+def _start(data: DiagnosisData, model: ExtendedModel) -> tuple[np.ndarray, np.ndarray | None]:
+    """(x0, fitted rates (3,) rad/s or None when x0 is the encoders' own) of ``model``, memoized."""
     key = (model.params.as_array().tobytes(), np.asarray(model.eff, dtype=float).tobytes())
     cache = data.memo("initial_states", dict)
-    x0 = cache.get(key)
-    if x0 is None:
+    out = cache.get(key)
+    if out is None:
         if len(cache) > X0_CACHE_SIZE:
             cache.clear()
-        x0 = cache[key] = _fitted_start(data, model)
-    return x0.copy()
+        out = cache[key] = _fitted_start(data, model)
+    return out
+
+
+def _start_rates(data: DiagnosisData, model: ExtendedModel) -> np.ndarray | None:
+    return _start(data, model)[1]
 
 
 @functools.lru_cache(maxsize=8)
@@ -93,14 +111,15 @@ def _rest_bound(k: int) -> float:
     return float(chi2.ppf(REST_QUANTILE, k))
 
 
-def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
+def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> tuple[np.ndarray, np.ndarray | None]:
+    """(x0, its joint rates w (3,) rad/s; None when x0 is ``encoder_state``'s: no rate channel, or the fit failed)."""
     x_enc = encoder_state(data, model)
     n = min(len(data), max(2 * data.window, int(round(HEAD_TIME / data.dt)) + 1))
     head = data.memo("x0_head", lambda: data.head(n))
     chans = [c for c in ("w_r", "w_l", "w_p") if head.measured(c) is not None]
     joints = [2] if data.fixture == "locked" else [0, 1, 2]
     if not chans:
-        return x_enc
+        return x_enc, None
     p = model.params
     x_rest = _with_rates(x_enc, np.zeros(3), data.fixture, p)
     try:
@@ -113,39 +132,43 @@ def _fitted_start(data: DiagnosisData, model: ExtendedModel) -> np.ndarray:
             sj = simulate_outputs(head, model, _with_rates(x_enc, w, data.fixture, p), cached=False)
             cols.append(np.concatenate([(sj[c] - base[c]) / h / head.noise_sigma(c) for c in chans]))
     except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError):
-        return x_enc
+        return x_enc, None
     S = np.column_stack(cols)
     r = np.concatenate([(head.measured(c) - base[c]) / head.noise_sigma(c) for c in chans])
     if not (np.all(np.isfinite(S)) and np.all(np.isfinite(r))):
-        return x_enc
+        return x_enc, None
     A = S.T @ S
     try:
         dw = np.linalg.solve(A, S.T @ r)
     except np.linalg.LinAlgError:
-        return x_enc
+        return x_enc, None
     if float(dw @ A @ dw) < _rest_bound(len(joints)):
-        return x_rest  # consistent with a start at rest
+        return x_rest, np.zeros(3)  # consistent with a start at rest
     w = np.zeros(3)
     w[joints] = dw
-    return _with_rates(x_enc, w, data.fixture, p)
+    return _with_rates(x_enc, w, data.fixture, p), w
 
 
 CASTER_STEP = 5e-3  # s: RK4 step on the floor with caster drag (its smoothed direction) but no friction sign
 FREE_STEP = 1e-2  # s: ... with neither
+OFF_FLOOR_STEP = 5e-3  # s: on the stand or with the wheels locked, no friction sign
 
 
 def diagnosis_substeps(dt: float, fixture: str, eff: np.ndarray) -> int:
     """RK4 steps per sample for the diagnosis's simulations, by the stiffest active term: the simulator's
     default (``otbot_hw.simulation.simulator.default_substeps``, which keeps the smoothed friction signs
-    stable) when a friction sign is active (Coulomb, Stribeck, rolling resistance) or off the floor;
-    ``CASTER_STEP`` with caster drag; else ``FREE_STEP``. Measured against a 16x finer step on 10 s
-    multisine, step and tracking runs: outputs within 7e-4 rad/s and m/s^2 (caster drag of 6 N at 5 ms;
-    slope, drag, slip, lag, sensor effects at 10 ms) -- far below the sensor noise -- for a half or a
-    quarter of the work."""
+    stable) when a friction sign is active (Coulomb, Stribeck, rolling resistance); off the floor
+    ``OFF_FLOOR_STEP``; on the floor ``CASTER_STEP`` with caster drag, else ``FREE_STEP``. Measured against a
+    16x finer step on 10 s multisine, step and tracking runs: outputs within 7e-4 rad/s and m/s^2 (caster drag
+    of 6 N at 5 ms; slope, drag, slip, lag, sensor effects at 10 ms) -- far below the sensor noise -- for a half
+    or a quarter of the work. Off the floor the default's 0.5 ms step on the stand is there for the friction
+    signs of a free wheel (I_a / b_w ~ 58 ms is no stiffer than the floor's terms): on the 30 s stand multisine
+    of the calibration study (#380) 5 ms steps are within 5e-5 sigma of 64 steps per sample without effects,
+    3e-3 sigma with a 5 ms current lag -- a tenth of the default's work."""
     friction = eff[fx.C_R] or eff[fx.C_L] or eff[fx.C_P] or eff[fx.S_W] or eff[fx.C_RR]
-    if fixture != "floor" or friction:
+    if friction:
         return default_substeps(dt, fixture)
-    h = CASTER_STEP if eff[fx.F_CST] else FREE_STEP
+    h = OFF_FLOOR_STEP if fixture != "floor" else CASTER_STEP if eff[fx.F_CST] else FREE_STEP
     return max(1, int(np.ceil(dt / h - 1e-9)))
 
 
