@@ -190,7 +190,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     if not geometry.casters_configured:
         final = caster_pair(recordings, sel, final, progress)
     if sel.accepted or sel.ambiguous:  # the nested fits stop early (decisions); converge the reported one
-        final = refit(recordings, final.model, final.names, max_nfev=FINAL_NFEV)
+        final = refit(recordings, final.model, final.names, max_nfev=FINAL_NFEV, scale=final.scale)
         progress(f"[diagnose] final fit: {final.message} ({final.nfev} evaluations)")
         # and from the file's nominal values with the effects as fitted: a friction effect trades off against
         # b_w along a flat valley, and the fit from the nominal fit's b_w stopped in it (Stribeck on a chirp:

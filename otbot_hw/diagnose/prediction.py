@@ -83,7 +83,8 @@ class ExtendedPredictionModel:
             y = np.column_stack([sim[c] for c in DIAGNOSIS_CHANNELS])
         except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError):
             return np.full((len(data), len(DIAGNOSIS_CHANNELS)), FAILED_OUTPUT)
-        return np.where(np.isfinite(y), y, FAILED_OUTPUT)
+        # a diverged simulation: non-finite, or beyond any physical output (its squares overflow the fitter's cost)
+        return np.where(np.isfinite(y) & (np.abs(y) < FAILED_OUTPUT), y, FAILED_OUTPUT)
 
     def predict(self, thetas: np.ndarray, experiment: DiagnosisExperiment) -> np.ndarray:
         """Predicted outputs (m, n_samples, 6) in ``channels`` order for parameter rows ``thetas`` (m, P)."""

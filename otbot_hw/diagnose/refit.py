@@ -24,7 +24,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from otbot_hw.diagnose.data import DiagnosisData
-from otbot_hw.diagnose.prediction import FITTER_CHANNEL, ExtendedPredictionModel, diagnosis_experiments
+from otbot_hw.diagnose.prediction import FAILED_OUTPUT, FITTER_CHANNEL, ExtendedPredictionModel, diagnosis_experiments
 from otbot_hw.diagnose.simulated_run import initial_state, simulate_outputs
 from otbot_hw.identification.prediction_error import fit_parameters
 from otbot_hw.identification.residual_problem import RANK_TOL
@@ -47,6 +47,7 @@ class FitResult:
     message: str
     sigma: dict[tuple[str, str], float] = field(default_factory=dict)
     correlation: np.ndarray | None = None  # of the free names, from the fitter's covariance
+    scale: dict[str, float] = field(default_factory=dict)  # the fitter's scale of each free name (``refit``)
 
     @property
     def n_params(self) -> int:
@@ -80,8 +81,10 @@ def weighted_residuals(recordings: list[DiagnosisData], model: ExtendedModel,
         except (ValueError, ZeroDivisionError, FloatingPointError):
             sim = {ch: np.full(len(d), 1e6) for ch in d.channels()}
         for ch in d.channels():
-            r = (d.measured(ch) - sim[ch]) / sigmas[(d.name, ch)]
-            out[(d.name, ch)] = np.where(np.isfinite(r), r, 1e6)
+            with np.errstate(over="ignore", invalid="ignore"):  # a diverged simulation: handled below
+                r = (d.measured(ch) - sim[ch]) / sigmas[(d.name, ch)]
+            # a diverged simulation (non-finite, or beyond any physical output) reads 1e6 sigma
+            out[(d.name, ch)] = np.where(np.isfinite(r) & (np.abs(sim[ch]) < FAILED_OUTPUT), r, 1e6)
     return out
 
 
@@ -95,11 +98,14 @@ def _typical(name: str) -> float:
 
 def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: list[str],
           guess: dict[str, float] | None = None, bounds: dict[str, tuple[float, float]] | None = None,
-          max_nfev: int | None = None, tol: float = 1e-7) -> FitResult:
+          max_nfev: int | None = None, tol: float = 1e-7, scale: dict[str, float] | None = None) -> FitResult:
     """Fit ``free_names`` of ``model`` (others held) to ``recordings`` by simulation output error.
 
     ``guess``: start values (default: the model's); ``bounds``: per-name (lo, hi) (default: the
-    physical bounds of each parameter); ``tol``: the fitter's relative tolerances (cost, step).
+    physical bounds of each parameter); ``tol``: the fitter's relative tolerances (cost, step);
+    ``scale``: the fitter's scale per name (default max(|start|, ``_typical``)) -- a fit continued from
+    another one's end passes that fit's ``FitResult.scale``: the same finite-difference steps, so its first
+    Jacobian is the other's last one, simulated already (the cache of recent simulations).
     Returns the fitted model and statistics.
     """
     sigmas = channel_sigmas(recordings)
@@ -117,12 +123,13 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
         return FitResult(names=[], values={}, std={}, model=model, rss={k: float(v @ v) for k, v in res.items()},
                          n_samples={k: len(v) for k, v in res.items()}, nfev=1, success=True,
                          message="nothing to fit", sigma=sigmas)
+    sc = {n: (scale or {}).get(n, max(abs(x), _typical(n))) for n, x in zip(names, x_start)}
     pm = ExtendedPredictionModel(model, tied=[n for n in names if n in TIED_PARAMS])
     fit = fit_parameters(
         pm, diagnosis_experiments(recordings, model.with_values(dict(zip(names, x_start))), sigmas), names,
         pm.vector(model),
         guess=dict(zip(names, x_start)), bounds=bnd,
-        scale={n: max(abs(x), _typical(n)) for n, x in zip(names, x_start)},
+        scale=sc,
         noise="residuals", max_nfev=max_nfev or 30 * (len(names) + 1), tol=tol,
         residual_tolerance=None, check_identifiability=False, integration_tol=None)
     rss, nobs = {}, {}
@@ -137,7 +144,7 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
         std = {n: float("nan") if lost[i] else std[n] for i, n in enumerate(names)}
     return FitResult(names=names, values=dict(fit.estimate), std=std, model=model.with_values(fit.estimate),
                      rss=rss, n_samples=nobs, nfev=fit.nfev, success=fit.optimizer_status > 0,
-                     message=fit.message, sigma=sigmas, correlation=np.asarray(fit.correlation))
+                     message=fit.message, sigma=sigmas, correlation=np.asarray(fit.correlation), scale=sc)
 
 
 def _determined(cov: np.ndarray) -> bool:

@@ -146,7 +146,8 @@ class _Search:
         bar = ref[1] + (beside if beside is not None else 0.0)
         if fit.nfev >= QUICK_NFEV and bic - bar < -ACCEPT_DBIC:  # promising and not converged yet: go on
             try:
-                fit = refit(self.recordings, fit.model, names, max_nfev=NESTED_NFEV - QUICK_NFEV, tol=NESTED_TOL)
+                fit = refit(self.recordings, fit.model, names, max_nfev=NESTED_NFEV - QUICK_NFEV, tol=NESTED_TOL,
+                            scale=fit.scale)
             except FIT_FAILURES as exc:  # keep the quick look
                 self.progress(f"[diagnose]   {name}: the continued fit failed ({type(exc).__name__}); quick look kept")
             aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
@@ -289,7 +290,7 @@ class _Search:
                                        if n in nominal_from.fit.values})
         try:  # from the best's nominal values a quick look's budget: the look-alike is then a step away
             fit = refit(self.recordings, start, c.fit.names, max_nfev=QUICK_NFEV if nominal_from else NESTED_NFEV,
-                        tol=NESTED_TOL)
+                        tol=NESTED_TOL, scale=None if nominal_from else c.fit.scale)
         except FIT_FAILURES:
             return c
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
