@@ -235,9 +235,9 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
         # accepted effects: beside Stribeck friction held, a Coulomb look-alike read c_w +30 % once rolling
         # resistance led the tie)
         members = [_candidate_json(grp[0], sel.effects, std, final)]
-        for c in grp[1:]:
-            members.append(_candidate_json(c, sel.effects, *_in_place_of(recordings, final, base, sel.effects,
-                                                                         grp[0], c)))
+        for c in grp[1:]:  # (an inadequate model's groups are withheld by their best member's name alone: no refit)
+            members.append(_candidate_json(c, sel.effects, *(_in_place_of(recordings, final, base, sel.effects, grp[0], c)
+                                                              if adequacy.adequate else (None, None))))
         ambiguous.append({"candidates": members,
                           "bic_margin": AMBIGUOUS_DBIC, "residual_correlation_factor": grp[0].kappa,
                           "experiment": "; ".join(dict.fromkeys(exps))})

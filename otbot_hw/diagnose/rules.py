@@ -33,7 +33,7 @@ MAX_PAIR_TRIES = 2  # second candidates fitted beside a best that leaves correla
 MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
 FINAL_NFEV = 20  # iterations of the final fit (and of a refinement's fit), started from the last nested fit
 NESTED_NFEV = 12  # iterations (function evaluations) of a nested fit
-QUICK_NFEV = 5  # ... after which a candidate without BIC evidence is given up
+QUICK_NFEV = 4  # ... after which a candidate without BIC evidence is given up
 KAPPA_WHITE = 1.2  # residual correlation factor of white residuals: nothing left for a further effect
 NESTED_TOL = 1e-5  # relative cost/step tolerance of a nested fit (1e-5 of a cost ~ N: < 0.1 BIC)
 
