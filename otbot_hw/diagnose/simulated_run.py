@@ -148,26 +148,26 @@ def _fitted_start(data: DiagnosisData, model: ExtendedModel, sens: np.ndarray | 
     return _with_rates(x_enc, w, data.fixture, p), S
 
 
-CASTER_STEP = 5e-3  # s: RK4 step on the floor with caster drag (its smoothed direction) but no friction sign
-FREE_STEP = 1e-2  # s: ... with neither
+FREE_STEP = 1e-2  # s: RK4 step on the floor without a friction sign (caster drag included)
 OFF_FLOOR_STEP = 5e-3  # s: on the stand or with the wheels locked, no friction sign
 
 
 def diagnosis_substeps(dt: float, fixture: str, eff: np.ndarray) -> int:
     """RK4 steps per sample for the diagnosis's simulations, by the stiffest active term: the simulator's
     default (``otbot_hw.simulation.simulator.default_substeps``, which keeps the smoothed friction signs
-    stable) when a friction sign is active (Coulomb, Stribeck, rolling resistance); off the floor
-    ``OFF_FLOOR_STEP``; on the floor ``CASTER_STEP`` with caster drag, else ``FREE_STEP``. Measured against a
-    16x finer step on 10 s multisine, step and tracking runs: outputs within 7e-4 rad/s and m/s^2 (caster drag
-    of 6 N at 5 ms; slope, drag, slip, lag, sensor effects at 10 ms) -- far below the sensor noise -- for a half
-    or a quarter of the work. Off the floor the default's 0.5 ms step on the stand is there for the friction
-    signs of a free wheel (I_a / b_w ~ 58 ms is no stiffer than the floor's terms): on the 30 s stand multisine
-    of the calibration study (#380) 5 ms steps are within 5e-5 sigma of 64 steps per sample without effects,
+    stable) when a friction sign is active (Coulomb, Stribeck, rolling resistance); else ``FREE_STEP`` on the
+    floor and ``OFF_FLOOR_STEP`` off it. Measured against 64 steps per sample (10 s, 100 Hz runs): slope, drag,
+    slip, lag and sensor effects at 10 ms within 7e-4 rad/s and m/s^2; caster drag of 6 N (its smoothed
+    direction, the stiffest of these) at 10 ms within 0.3 sigma at its worst sample, 5 ms within 0.12 sigma
+    (issue 20 item 6: the caster's 5 ms step made it a fifth of the slowest diagnoses; the fitted f_cst moved
+    by 0.1 % with 10 ms). Off the floor the default's 0.5 ms step on the stand is there for the friction signs
+    of a free wheel (I_a / b_w ~ 58 ms is no stiffer than the floor's terms): on the 30 s stand multisine of
+    the calibration study (#380) 5 ms steps are within 5e-5 sigma of 64 steps per sample without effects,
     3e-3 sigma with a 5 ms current lag -- a tenth of the default's work."""
     friction = eff[fx.C_R] or eff[fx.C_L] or eff[fx.C_P] or eff[fx.S_W] or eff[fx.C_RR]
     if friction:
         return default_substeps(dt, fixture)
-    h = OFF_FLOOR_STEP if fixture != "floor" else CASTER_STEP if eff[fx.F_CST] else FREE_STEP
+    h = FREE_STEP if fixture == "floor" else OFF_FLOOR_STEP
     return max(1, int(np.ceil(dt / h - 1e-9)))
 
 
