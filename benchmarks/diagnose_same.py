@@ -150,6 +150,8 @@ def main() -> int:
     ap.add_argument("--recordings", type=Path, required=True, help="folder of the recordings (made when missing)")
     ap.add_argument("--cases", default=",".join(INDEPENDENT + DISCOVERY))
     ap.add_argument("--save", type=Path)
+    ap.add_argument("--warm", action="store_true", help="diagnose the case none once, untimed, before the timed "
+                    "runs (numba's compiled kernels loaded)")
     ap.add_argument("--conclusions", action="store_true", help="with --compare: only what the diagnosis concludes "
                     "(verdict, effects, laws; values within VALUE_RULE), every value change listed")
     ap.add_argument("--compare", type=Path)
@@ -162,6 +164,9 @@ def main() -> int:
     which = args.cases.split(",")
     if "slow" in which:
         which += list(SLOW) + list(CALIBRATION) + ["linear_drag"]
+    if args.warm:
+        for label, fit, held, P, geometry in cases(args.recordings, ["none"]):
+            diagnose(fit, P, held, geometry=geometry)
     for label, fit, held, P, geometry in cases(args.recordings, which):
         t = time.process_time()
         r = diagnose(fit, P, held, geometry=geometry)

@@ -18,6 +18,7 @@ state (the fits so far, the reference, progress); the rules and the screening ar
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -106,7 +107,6 @@ class _Search:
     def __init__(self, recordings, holdout, base_fit, nominal_free, progress, casters_configured, given=None,
                  wandered=False):
         self.recordings, self.holdout, self.progress = recordings, holdout, progress
-        self.sigmas = channel_sigmas(recordings)  # noise levels of the fitting channels (``_better_start``)
         self.given = given  # the parameter file's model (``choose``)
         self.wandered = wandered  # the nominal fit moved implausibly far from it
         self.nominal_free = nominal_free
@@ -122,6 +122,11 @@ class _Search:
         self.sim_screens: list[dict[str, float]] = []
         self.used: set[str] = set()
         self.energy: dict = {}  # first round's signature energies (``screen_simulation``)
+
+    @functools.cached_property
+    def sigmas(self) -> dict:
+        """Noise levels of the fitting channels (``refit.channel_sigmas``), once per search (``_better_start``)."""
+        return channel_sigmas(self.recordings)
 
     def reference(self, fit: FitResult) -> tuple[float, float, float]:
         aic, bic = information_criteria(fit.rss, fit.n_samples, fit.n_params)
