@@ -31,7 +31,7 @@ from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refinements import caster_pair, refine_shape
 from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
-from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC, FINAL_NFEV
+from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC, FINAL_NFEV, NOMINAL_NFEV
 from otbot_hw.diagnose.select import choose, free_nominal
 from otbot_hw.json_output import json_safe
 from otbot_hw.model.effects import ExtendedModel, parameter_unit
@@ -172,7 +172,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     nominal_free = free_nominal(recordings)
     start = ExtendedModel.paper(params).with_values(geometry.effect_values())
     progress(f"[diagnose] nominal fit of {', '.join(nominal_free)} on {len(recordings)} recording(s)")
-    base = refit(recordings, start, nominal_free)
+    base = refit(recordings, start, nominal_free, max_nfev=NOMINAL_NFEV)
     progress(f"[diagnose] nominal fit: {base.message} ({base.nfev} evaluations)")
     windows = locate(recordings + holdout, base.model)
     progress(f"[diagnose] located {len(windows)} flagged window(s)")
@@ -186,6 +186,12 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     sel = choose(recordings, holdout, base, nominal_free, progress, geometry.casters_configured, start,
                  bool(wandered))
     final = sel.final_fit
+    if final is base and not base.success and base.nfev >= NOMINAL_NFEV:
+        # nothing found and the nominal fit stopped on its budget: it is the model judged, so it is converged
+        # (to the fitter's default budget, as before the budget) before the verdict and the discovery step
+        base = final = refit(recordings, base.model, nominal_free, max_nfev=30 * (len(nominal_free) + 1) - base.nfev,
+                             scale=base.scale)
+        progress(f"[diagnose] nominal fit continued: {base.message} ({base.nfev} evaluations)")
     shape_tried = []
     if not geometry.casters_configured:
         final = caster_pair(recordings, sel, final, progress)

@@ -31,6 +31,8 @@ MAX_NESTED = 4  # nested fits per round, taken alternately from the two screenin
 MAX_LOOKALIKES = 2  # catalog look-alikes of the best candidate fitted beside it before it is named
 MAX_PAIR_TRIES = 2  # second candidates fitted beside a best that leaves correlated residuals
 MAX_ROUNDS = 3  # rounds of screening + nested fits (each adds one effect, group or small detection)
+NOMINAL_NFEV = 60  # evaluations of the nominal fit: beyond them it crawls along a model that misses an effect (a
+# traction limit under constant torques: 240, half of the diagnosis's CPU); continued when nothing is found
 FINAL_NFEV = 20  # iterations of the final fit (and of a refinement's fit), started from the last nested fit
 NESTED_NFEV = 10  # iterations (function evaluations) of a nested fit
 QUICK_NFEV = 4  # ... after which a candidate without BIC evidence is given up
