@@ -79,7 +79,10 @@ class ExtendedPredictionModel:
         try:
             m = self.resolve(theta)
             x0 = None if centre is None else initial_state(data, m, rates_from=centre)
-            sim = simulate_outputs(data, m, x0, substeps=substeps)
+            # the step of this parameter row (a friction level sets it: ``diagnosis_substeps``), never coarser
+            # than the experiment's
+            sub = max(substeps, diagnosis_substeps(data.dt, data.fixture, m.eff, m.params))
+            sim = simulate_outputs(data, m, x0, substeps=sub)
             y = np.column_stack([sim[c] for c in DIAGNOSIS_CHANNELS])
         except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError):
             return np.full((len(data), len(DIAGNOSIS_CHANNELS)), FAILED_OUTPUT)
@@ -118,8 +121,9 @@ class ExtendedPredictionModel:
 def diagnosis_experiments(recordings: Sequence[DiagnosisData], model: ExtendedModel,
                           sigmas: dict[tuple[str, str], float]) -> list[DiagnosisExperiment]:
     """One fitter experiment per recording: its usable channels, weighted by ``sigmas[(name, channel)]``
-    (units of the channel), x0 from the encoders under ``model``, the diagnosis's RK4 step for ``model``
-    (``simulated_run.diagnosis_substeps``; pass the model at the fit's start values)."""
+    (units of the channel), x0 from the encoders under ``model``; the RK4 step is each parameter row's own
+    (``simulated_run.diagnosis_substeps``, in ``ExtendedPredictionModel``: a friction level sets it), so the
+    experiments' ``substeps`` is 1 (a larger one set later, as the fitter's integration check does, is a floor)."""
     out = []
     for d in recordings:
         chans = d.channels()
@@ -128,5 +132,5 @@ def diagnosis_experiments(recordings: Sequence[DiagnosisData], model: ExtendedMo
             measured={FITTER_CHANNEL[c]: np.asarray(d.measured(c), dtype=float) for c in chans},
             sigma={FITTER_CHANNEL[c]: float(sigmas[(d.name, c)]) for c in chans},
             sigma_source={FITTER_CHANNEL[c]: "given" for c in chans},
-            x0=initial_state(d, model), substeps=diagnosis_substeps(d.dt, d.fixture, model.eff)))
+            x0=initial_state(d, model), substeps=1))
     return out

@@ -152,23 +152,59 @@ FREE_STEP = 1e-2  # s: RK4 step on the floor without a friction sign (caster dra
 OFF_FLOOR_STEP = 5e-3  # s: on the stand or with the wheels locked, no friction sign
 
 
-def diagnosis_substeps(dt: float, fixture: str, eff: np.ndarray) -> int:
-    """RK4 steps per sample for the diagnosis's simulations, by the stiffest active term: the simulator's
-    default (``otbot_hw.simulation.simulator.default_substeps``, which keeps the smoothed friction signs
-    stable) when a friction sign is active (Coulomb, Stribeck, rolling resistance); else ``FREE_STEP`` on the
-    floor and ``OFF_FLOOR_STEP`` off it. Measured against 64 steps per sample (10 s, 100 Hz runs): slope, drag,
-    slip, lag and sensor effects at 10 ms within 7e-4 rad/s and m/s^2; caster drag of 6 N (its smoothed
-    direction, the stiffest of these) at 10 ms within 0.3 sigma at its worst sample, 5 ms within 0.12 sigma
-    (issue 20 item 6: the caster's 5 ms step made it a fifth of the slowest diagnoses; the fitted f_cst moved
-    by 0.1 % with 10 ms). Off the floor the default's 0.5 ms step on the stand is there for the friction signs
-    of a free wheel (I_a / b_w ~ 58 ms is no stiffer than the floor's terms): on the 30 s stand multisine of
-    the calibration study (#380) 5 ms steps are within 5e-5 sigma of 64 steps per sample without effects,
-    3e-3 sigma with a 5 ms current lag -- a tenth of the default's work."""
-    friction = eff[fx.C_R] or eff[fx.C_L] or eff[fx.C_P] or eff[fx.S_W] or eff[fx.C_RR]
-    if friction:
-        return default_substeps(dt, fixture)
-    h = FREE_STEP if fixture == "floor" else OFF_FLOOR_STEP
-    return max(1, int(np.ceil(dt / h - 1e-9)))
+SIGN_STABILITY = 2.1  # h * rate of the stiffest smoothed friction sign, as the simulator's default step keeps it
+#: smallest effective inertia (kg m^2) a friction sign acts on (``default_substeps``): wheel on the floor, on the
+#: stand (the wheel alone), pivot
+I_EFF_MIN = {"floor": 0.048, "stand": 0.0104, "pivot": 0.31}
+
+
+def sign_rate(eff: np.ndarray, fixture: str, params=None) -> float:
+    """Rate (1/s) of the stiffest smoothed friction sign: friction level / (sign width x effective inertia), the
+    width proportional to the level above its minimum (``effect_physics.sign_width``): at most 1 / (0.025
+    I_eff) at a wheel -- the simulator's default step is set for that --, but a small friction level (a
+    candidate's start, c_w = 0.002 N m) is far from stiff."""
+    rr = 0.0
+    if eff[fx.C_RR] and params is not None:
+        rr = eff[fx.C_RR] * (params.m_c + params.m_p) * 9.81 * 0.5 * params.r
+    elif eff[fx.C_RR]:
+        return np.inf
+    rate = 0.0
+    if fixture != "locked":
+        for c in (eff[fx.C_R], eff[fx.C_L]):
+            level = abs(c) + abs(eff[fx.S_W]) + abs(rr)
+            if level > 0:
+                width = max(fx.WIDTH_MIN_WHEEL, fx.WIDTH_PER_NM_WHEEL * level)
+                rate = max(rate, level / (width * I_EFF_MIN["stand" if fixture == "stand" else "floor"]))
+    if eff[fx.C_P]:
+        level = abs(eff[fx.C_P])
+        rate = max(rate, level / (max(fx.WIDTH_MIN_PIVOT, fx.WIDTH_PER_NM_PIVOT * level) * I_EFF_MIN["pivot"]))
+    return rate
+
+
+def diagnosis_substeps(dt: float, fixture: str, eff: np.ndarray, params=None) -> int:
+    """RK4 steps per sample for the diagnosis's simulations, by the stiffest active term. Without a friction sign
+    ``FREE_STEP`` on the floor and ``OFF_FLOOR_STEP`` off it. Measured against 64 steps per sample (10 s, 100 Hz
+    runs): slope, drag, slip, lag and sensor effects at 10 ms within 7e-4 rad/s and m/s^2; caster drag of 6 N
+    (its smoothed direction, the stiffest of these) at 10 ms within 0.3 sigma at its worst sample, 5 ms within
+    0.12 sigma (issue 20 item 6: the caster's 5 ms step made it a fifth of the slowest diagnoses; the fitted
+    f_cst moved by 0.1 % with 10 ms). Off the floor the default's 0.5 ms step on the stand is there for the
+    friction signs of a free wheel (I_a / b_w ~ 58 ms is no stiffer than the floor's terms): on the 30 s stand
+    multisine of the calibration study (#380) 5 ms steps are within 5e-5 sigma of 64 steps per sample without
+    effects, 3e-3 sigma with a 5 ms current lag -- a tenth of the default's work.
+
+    With a friction sign (Coulomb, Stribeck, rolling resistance) the step keeps h x ``sign_rate`` within
+    ``SIGN_STABILITY``, never below the simulator's default (``default_substeps``, which does that for the
+    largest friction levels): a friction level of a few mN m -- the start of a friction candidate's nested fit,
+    or what it fits on a robot without that friction -- runs at the free step, not at 2.5 ms (a traction-limit
+    diagnosis spent 40 % of its CPU on such fits). ``params``: the model's parameters (rolling resistance's
+    torque; without them a rolling resistance takes the default step)."""
+    free = FREE_STEP if fixture == "floor" else OFF_FLOOR_STEP
+    rate = sign_rate(eff, fixture, params)
+    if rate > 0:
+        n_default = default_substeps(dt, fixture)
+        h = min(free, SIGN_STABILITY / rate)
+        return min(n_default, max(1, int(np.ceil(dt / h - 1e-9))))
+    return max(1, int(np.ceil(dt / free - 1e-9)))
 
 
 def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray | None = None,
@@ -181,7 +217,7 @@ def simulate_outputs(data: DiagnosisData, model: ExtendedModel, x0: np.ndarray |
     The simulator's ``simulate_extended`` then the sensor model's ``sensor_outputs`` (the accelerations
     and slip rates at the samples from the integrator's first stage)."""
     x0 = initial_state(data, model) if x0 is None else x0
-    sub = substeps or diagnosis_substeps(data.dt, data.fixture, model.eff)
+    sub = substeps or diagnosis_substeps(data.dt, data.fixture, model.eff, model.params)
     if not cached:
         return _simulate_outputs(data, model, x0, sub)
     key = (data.memo("command_digest", lambda: _digest(data)), model.params.as_array().tobytes(),
