@@ -1,5 +1,5 @@
 """The shortcuts that keep every diagnosis under 10 s of CPU (issue 20 item 6) keep what they stand in for:
-the RK4 step off the floor, the initial rates of a Jacobian column from its centre's rate sensitivity, the
+the RK4 step off the floor and with a friction sign, the initial rates of a Jacobian column from its centre's rate sensitivity, the
 centre of a finite-difference batch, a diverged simulation read without overflow, and the check that a speed-up
 changes no conclusion (``benchmarks/diagnose_same.py --conclusions``)."""
 from __future__ import annotations
@@ -45,8 +45,25 @@ def test_off_the_floor_the_coarser_step_is_within_a_hundredth_of_the_noise(stand
     got = SR.simulate_outputs(stand, m, x0, cached=False)
     for ch in stand.channels():
         assert np.max(np.abs(got[ch] - fine[ch])) < 0.01 * stand.noise_sigma(ch), ch
-    with_friction = m.with_values({"c_w": 0.1})
-    assert SR.diagnosis_substeps(stand.dt, stand.fixture, with_friction.eff) == SR.default_substeps(stand.dt, "stand")
+
+
+@pytest.mark.parametrize("rec,vals", [("stand", {"c_w": 0.002}), ("stand", {"c_w": 0.3}), ("floor", {"c_w": 0.002}),
+                                      ("floor", {"c_w": 0.3}), ("floor", {"c_rr": 0.0005, "c_p": 0.05})])
+def test_with_a_friction_sign_the_step_follows_its_level_and_stays_accurate(request, rec, vals):
+    """A small friction level (a candidate's start) runs at a coarser step than the simulator's default, a large
+    one at the default's (which keeps the stiffest sign stable); both within 0.1 sigma of 64 steps per sample."""
+    d = request.getfixturevalue(rec)
+    m = ExtendedModel.paper(P).with_values(vals)
+    sub, default = SR.diagnosis_substeps(d.dt, d.fixture, m.eff, m.params), SR.default_substeps(d.dt, d.fixture)
+    if max(vals.values()) >= 0.3:
+        assert 0.9 * default <= sub <= default
+    else:
+        assert sub < default
+    x0 = SR.initial_state(d, m)
+    fine = SR.simulate_outputs(d, m, x0, substeps=64, cached=False)
+    got = SR.simulate_outputs(d, m, x0, cached=False)
+    for ch in d.channels():
+        assert np.max(np.abs(got[ch] - fine[ch])) < 0.1 * d.noise_sigma(ch), ch
 
 
 def test_a_jacobian_column_takes_its_centres_rate_sensitivity_and_lands_where_its_own_fit_does(floor):
