@@ -152,7 +152,8 @@ def _determined(cov: np.ndarray) -> bool:
     has condition number below 1 / RANK_TOL^2 (the identification's rank tolerance)."""
     if not np.all(np.isfinite(cov)):
         return False
-    d = np.sqrt(np.diag(cov))
+    with np.errstate(invalid="ignore"):  # a negative variance: NaN, not determined (below)
+        d = np.sqrt(np.diag(cov))
     if not np.all(d > 0):
         return False
     return bool(np.linalg.cond(cov / np.outer(d, d)) < 1.0 / RANK_TOL ** 2)
