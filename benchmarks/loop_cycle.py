@@ -24,15 +24,20 @@ interpreter's whole load per cycle: in process, one lock runs one thread at a ti
 plant's (the simulated drives: not the master's), heartbeats, telemetry, ...; and the loop's own
 timing from ``status`` (period, overruns: wall time, distorted by the machine's load).
 
+Also: the garbage collections in the window (``gc``: per generation the count, the longest in µs and the
+threads they ran on), and ``--record-in-background``: the daemon's ``LoopRunner`` with
+``record_in_background=True`` (the recording written by a ``recording-writer`` thread).
+
 ``--profile FILE``: pyinstrument on the loop thread over the window (text: wall time, call tree);
-``--cprofile FILE``: cProfile on the loop thread, and in ``FILE.plant.txt`` on the plant's CAN receive
-thread (wall time per function, waits included); either slows the cycle, so the timing of a
+``--cprofile FILE``: cProfile on the loop thread, in ``FILE.plant.txt`` on the plant's CAN receive
+thread and in ``FILE.master_rx.txt`` on the master's (wall time per function, waits included); either slows the cycle, so the timing of a
 profiled run is not representative.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import math
 import os
@@ -138,7 +143,8 @@ def _thread_cpu() -> dict[str, float]:
     return out
 
 
-def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, cprofile: Path | None = None) -> dict:
+def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, cprofile: Path | None = None,
+        record_in_background: bool = False) -> dict:
     from otbot_hw.cli import build_parser
     from otbot_hw.cli.daemon import prepare
     from otbot_hw.runtime.daemon_process import local_config
@@ -149,6 +155,16 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     sock = folder / "control.sock"
     args = build_parser().parse_args(["daemon", "--bus", "sim", "--config", str(cfg), "--socket", str(sock),
                                       "--record-dir", str(folder / "rec"), "--telemetry", "127.0.0.1:0"])
+    if record_in_background:  # the recording-writer thread variant (LoopRunner's record_in_background)
+        import otbot_hw.runtime.daemon as daemon_mod
+
+        base = daemon_mod.LoopRunner
+
+        class BackgroundRunner(base):
+            def __init__(self, *a, **kw):
+                super().__init__(*a, record_in_background=True, **kw)
+
+        daemon_mod.LoopRunner = BackgroundRunner
     daemon, opener = prepare(args)
     summary: dict = {}
     prof_box: dict = {}
@@ -179,6 +195,15 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
                             (runner, "_timing", "loop timing"),
                             (robot.network.bus, "send", "CAN send (virtual bus)")):
         probe.section(obj, attr, name)
+    if hasattr(robot.network.bus, "send_frames"):  # several frames in one call (a cycle's RPDOs): CAN sends too
+        probe.section(robot.network.bus, "send_frames", "CAN send (virtual bus)")  # (same name: same sum)
+    # parts of read() and of the command (where the checkout has them)
+    for obj, attr, name in ((robot, "_await_tpdos", "read: TPDO wait (CPU)"),
+                            (robot, "_read_imu", "read: IMU"),
+                            (getattr(robot, "heartbeats", None), "check", "read: heartbeat check"),
+                            (runner, "_command", "command (law, limiter, RPDOs)")):
+        if obj is not None and hasattr(obj, attr):
+            probe.section(obj, attr, name)
     if daemon.telemetry is not None:  # after the cycle (the daemon's _after_cycle), not in read -> write
         name = "publish_cycle" if hasattr(daemon.telemetry, "publish_cycle") else "publish"  # (code before: publish)
         probe.section(daemon.telemetry, name, "telemetry publish (after the write)")
@@ -210,17 +235,31 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
         prof_box["c"] = cProfile.Profile()
         _loop_call(daemon, prof_box["c"].enable)
         plant = getattr(robot, "plant", None)
-        if plant is not None:  # the plant's receive thread too: enabled from inside it, at its next frame
-            prof_box["plant"] = cProfile.Profile()
-            net, notify = plant.network, plant.network.notify
+        # the plant's receive thread and the master's: each enabled from inside its thread, at its next frame
+        for key, net in (("plant", plant.network if plant is not None else None), ("master_rx", robot.network)):
+            if net is None:
+                continue
+            prof_box[key] = cProfile.Profile()
 
-            def notify_once(*a):
+            def notify_once(*a, net=net, key=key, notify=net.notify):
                 del net.notify  # back to the class's method
-                prof_box["plant"].enable()
-                prof_box["plant_thread"] = threading.get_ident()
+                prof_box[key].enable()
                 return notify(*a)
 
             net.notify = notify_once
+    gc_log: list = []  # (generation, thread name, seconds) of each collection in the window
+    gc_t0: dict = {}
+
+    def on_gc(phase, info):
+        if not probe.active:
+            return
+        if phase == "start":
+            gc_t0[threading.get_ident()] = time.perf_counter()
+        elif threading.get_ident() in gc_t0:
+            gc_log.append((info["generation"], threading.current_thread().name,
+                           time.perf_counter() - gc_t0.pop(threading.get_ident())))
+
+    gc.callbacks.append(on_gc)
     cpu0 = _thread_cpu()
     st0 = _request(sock, "status")
     probe.active = True
@@ -232,6 +271,7 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
         commands += 1
         time.sleep(0.1)
     probe.active = False
+    gc.callbacks.remove(on_gc)
     wall = time.monotonic() - t0
     st = _request(sock, "status")
     cpu1 = _thread_cpu()
@@ -245,7 +285,9 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
 
         _loop_call(daemon, prof_box["c"].disable)
         for key, what, dest in (("c", "the loop thread", cprofile),
-                                ("plant", "the plant's CAN receive thread", cprofile.with_suffix(".plant.txt"))):
+                                ("plant", "the plant's CAN receive thread", cprofile.with_suffix(".plant.txt")),
+                                ("master_rx", "the master's CAN receive thread",
+                                 cprofile.with_suffix(".master_rx.txt"))):
             if key not in prof_box:
                 continue
             out = io.StringIO()
@@ -283,6 +325,10 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
             "overruns": loop["overruns"] - loop0["overruns"],
             "overruns_per_min": (loop["overruns"] - loop0["overruns"]) / (wall / 60.0),
             "period_p99_ms": None if loop["period"]["p99"] is None else 1e3 * loop["period"]["p99"],
+            "gc": {f"gen{g}": {"count": sum(1 for x in gc_log if x[0] == g),
+                               "max_us": max((x[2] * 1e6 for x in gc_log if x[0] == g), default=0.0),
+                               "total_us_per_cycle": sum(x[2] for x in gc_log if x[0] == g) * 1e6 / max(cycles, 1),
+                               "threads": sorted({x[1] for x in gc_log if x[0] == g})} for g in range(3)},
             "fault": (st.get("faults") or [None])[0], "load": load}
 
 
@@ -293,13 +339,15 @@ def main(argv=None) -> int:
     ap.add_argument("--profile", type=Path, default=None, help="write a pyinstrument text profile of the loop thread")
     ap.add_argument("--cprofile", type=Path, default=None,
                     help="write a cProfile table (by own time, then cumulative) of the loop thread")
+    ap.add_argument("--record-in-background", action="store_true",
+                    help="the daemon's LoopRunner with record_in_background=True (a recording-writer thread)")
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     load0 = os.getloadavg()[0]
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
-        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile)
+        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.record_in_background)
     row["label"] = a.label
     row["load_before"] = load0  # 1-min load average at the start; "load": at the window's end
     if a.json:
