@@ -200,6 +200,8 @@ def diagnosis_substeps(dt: float, fixture: str, eff: np.ndarray, params=None) ->
     torque; without them a rolling resistance takes the default step)."""
     free = FREE_STEP if fixture == "floor" else OFF_FLOOR_STEP
     rate = sign_rate(eff, fixture, params)
+    if not np.isfinite(rate):
+        return default_substeps(dt, fixture)
     if rate > 0:
         n_default = default_substeps(dt, fixture)
         h = min(free, SIGN_STABILITY / rate)
