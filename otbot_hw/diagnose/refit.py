@@ -11,8 +11,8 @@ channels, initial state from the encoders, each (recording, channel) weighted by
 noise level measured from the data). Options chosen for the diagnosis: no
 residual-vs-noise acceptance test (the "before" fit of a model that misses physics
 is expected to be poor and is still the answer), no identifiability exception (a
-parameter the data cannot determine gets std NaN instead), the diagnosis's fixed
-2.5 ms RK4 step, standard deviations with each channel's noise variance estimated
+parameter the data cannot determine gets std NaN instead), the diagnosis's RK4 step
+(``simulated_run.diagnosis_substeps``, per parameter row), standard deviations with each channel's noise variance estimated
 from its residuals.
 """
 from __future__ import annotations
