@@ -9,7 +9,8 @@ stand multisine of the calibration study, #380).
 ``--conclusions``: compare only what the diagnosis concludes (verdict, named / ambiguous / withheld / small
 effects, discovered laws; effect values within ``VALUE_RULE`` relative) -- for a speed-up that may move numbers.
 Prints the process CPU time of each diagnosis (``time.process_time``: what the load of other jobs does not
-change).
+change), its wall time and the load average before and after (the wall time is what a user waits for, on an
+idle machine between CPU / 2 and CPU: the diagnosis predicts on two threads).
 
     .venv/bin/python benchmarks/diagnose_same.py --recordings DIR --save before.json
     .venv/bin/python benchmarks/diagnose_same.py --recordings DIR --compare before.json
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -37,7 +39,7 @@ SLOW = {"traction_constant": ("traction_limit", "constant", "magic"),
 CALIBRATION = {"clean_stand_multisine": 380}  # index in benchmarks/diagnose_calibration.py's plan(500)
 VALUE_RULE = 0.2  # effect values of two diagnoses within this relative difference: the same conclusion
 #: keys that measure time, not results
-TIMING = {"elapsed_s", "cpu_s", "regression_s"}
+TIMING = {"elapsed_s", "cpu_s", "wall_s", "load", "regression_s"}
 
 
 def _strip(x):
@@ -168,10 +170,12 @@ def main() -> int:
         for label, fit, held, P, geometry in cases(args.recordings, ["none"]):
             diagnose(fit, P, held, geometry=geometry)
     for label, fit, held, P, geometry in cases(args.recordings, which):
-        t = time.process_time()
+        load_before = os.getloadavg()[0]
+        t, w = time.process_time(), time.perf_counter()
         r = diagnose(fit, P, held, geometry=geometry)
-        cpu = time.process_time() - t
-        out[label] = {"cpu_s": cpu, "result": _strip(json.loads(json.dumps(r, default=float)))}
+        cpu, wall = time.process_time() - t, time.perf_counter() - w
+        out[label] = {"cpu_s": cpu, "wall_s": wall, "load": [load_before, os.getloadavg()[0]],
+                      "result": _strip(json.loads(json.dumps(r, default=float)))}
         msg = ""
         if ref and label in ref and args.conclusions:
             d, moved = diff_conclusions(ref[label]["result"], out[label]["result"])
@@ -182,7 +186,8 @@ def main() -> int:
             d = diff(ref[label]["result"], out[label]["result"])
             bad += bool(d)
             msg = f" (before {ref[label]['cpu_s']:.1f} s) " + ("SAME" if not d else "DIFFERENT: " + "; ".join(d[:5]))
-        print(f"{label}: CPU {cpu:.1f} s{msg}", flush=True)
+        print(f"{label}: CPU {cpu:.1f} s, wall {wall:.1f} s (load {load_before:.1f} -> {os.getloadavg()[0]:.1f}){msg}",
+              flush=True)
     if args.save:
         args.save.write_text(json.dumps(out, default=float))
     return 1 if bad else 0
