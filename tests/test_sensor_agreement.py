@@ -18,12 +18,12 @@ VALUES = {"c_r": 0.3, "c_l": 0.2, "c_p": 0.3, "s_w": 0.2, "v_s": 0.3, "c_rr": 0.
           "u_max_l": 4.0, "u_max_p": 3.0, "T_i": 0.02, "db_w": 0.05, "dr_r": 0.03, "dr_l": -0.03, "t_trac": 2.0,
           "b_ax": 0.1, "b_ay": -0.1, "b_gz": 0.02, "d_x": 0.05, "d_y": -0.04, "psi": 0.1, "d_imu": 0.015,
           "e_r": 0.02, "e_l": -0.02, "n_cst": 2.0, "x_c1": 0.15, "y_c1": 0.1, "x_c2": 0.15, "y_c2": -0.1,
-          "x_c3": 0.0, "y_c3": 0.0, "x_c4": 0.0, "y_c4": 0.0,
+          "x_c3": 0.0, "y_c3": 0.0, "x_c4": 0.0, "y_c4": 0.0, "kn_trac": 1.0,
           # laws beyond the catalog (diagnose/discover.py writes them)
           "c_lin": 12.0, "dz_r": 1.0, "dz_l": 0.5, "dz_p": 0.8, "ts_r": 3.0, "ts_l": 4.0, "ts_p": 2.0,
           "cog_r": 0.3, "cog_l": -0.2, "cog_p": 0.4, "cogn_r": 4.0, "cogn_l": 2.0, "cogn_p": 6.0,
           "cogph_r": 0.5, "cogph_l": -1.0, "cogph_p": 2.0}
-WITH = {"v_s": {"s_w": 0.2}, "n_cst": {"f_cst": 8.0}, "x_c1": {"f_cst": 8.0}, "y_c1": {"f_cst": 8.0},
+WITH = {"v_s": {"s_w": 0.2}, "kn_trac": {"k_slip": 0.02, "t_trac": 2.0}, "n_cst": {"f_cst": 8.0}, "x_c1": {"f_cst": 8.0}, "y_c1": {"f_cst": 8.0},
         "x_c2": {"f_cst": 8.0, "n_cst": 2.0}, "y_c2": {"f_cst": 8.0, "n_cst": 2.0},
         **{f"cog_{j}": {f"cogn_{j}": 3.0} for j in "rlp"}, **{f"cogn_{j}": {f"cog_{j}": 0.3} for j in "rlp"},
         **{f"cogph_{j}": {f"cog_{j}": 0.3, f"cogn_{j}": 3.0} for j in "rlp"}}
