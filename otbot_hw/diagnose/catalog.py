@@ -34,6 +34,9 @@ class Effect:
     #: parameters profiled on a grid in screening (nonlinear), with their grid (empty grid: the
     #: saturation levels, set from the recorded commands)
     grids: dict[str, tuple[float, ...]] = field(default_factory=dict)
+    #: delays s whose simulated readings jump where the delay crosses a whole sample period
+    #: (``sensor_model.delay_held``): their fits start inside an interval (``select.held_delay_start``)
+    held_delays: tuple[str, ...] = ()
 
     def units(self) -> dict[str, str]:
         return {p: parameter_unit(p) for p in self.parameters}
@@ -168,7 +171,7 @@ CATALOG: tuple[Effect, ...] = (
     Effect("imu_latency", "IMU latency", "sensor", "the IMU sample stamped t_k was taken at t_k - d_imu",
            ("d_imu",), "none", "IMU residual ~ -d_imu d(a)/dt: spikes at torque steps",
            ("current_lag",), "torque steps: a current lag delays the encoders too, an IMU latency does not",
-           ({"d_imu": 0.02}, {"d_imu": 0.04}), grids={"d_imu": (0.01, 0.03, 0.08)}),
+           ({"d_imu": 0.02}, {"d_imu": 0.04}), grids={"d_imu": (0.01, 0.03, 0.08)}, held_delays=("d_imu",)),
     Effect("encoder_scale", "a wheel-encoder scale error", "sensor", "wheel encoder readings = (1 + e) * angle",
            ("e_r", "e_l"), "residual from misjudged wheel accelerations (inertia-weighted)",
            "encoder-predicted accelerations scaled against the IMU", ("wheel_radii", "wheel_slip"),

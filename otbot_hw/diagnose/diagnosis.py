@@ -29,7 +29,7 @@ from otbot_hw.diagnose.identifiability import (effect_identifiability, not_ident
                                                saturation_not_identifiable, undetermined_effect_parameters)
 from otbot_hw.diagnose.locate import locate, summarize
 from otbot_hw.diagnose.refinements import caster_pair, refine_shape
-from otbot_hw.diagnose.refit import refit, robust_std, single_blas_thread
+from otbot_hw.diagnose.refit import default_nfev, refit, robust_std, single_blas_thread
 from otbot_hw.diagnose.report import channel_stats, plot_residuals, verdict
 from otbot_hw.diagnose.rules import AMBIGUOUS_DBIC, FINAL_NFEV, NOMINAL_NFEV
 from otbot_hw.diagnose.select import choose, free_nominal
@@ -189,7 +189,7 @@ def _diagnose(recordings, params, holdout, report_dir, progress, model_out, geom
     if final is base and not base.success and base.nfev >= NOMINAL_NFEV:
         # nothing found and the nominal fit stopped on its budget: it is the model judged, so it is converged
         # (to the fitter's default budget, as before the budget) before the verdict and the discovery step
-        base = final = refit(recordings, base.model, nominal_free, max_nfev=30 * (len(nominal_free) + 1) - base.nfev,
+        base = final = refit(recordings, base.model, nominal_free, max_nfev=default_nfev(len(nominal_free)) - base.nfev,
                              scale=base.scale)
         progress(f"[diagnose] nominal fit continued: {base.message} ({base.nfev} evaluations)")
     shape_tried = []

@@ -96,6 +96,11 @@ def _typical(name: str) -> float:
     return 1e-2
 
 
+def default_nfev(n_free: int) -> int:
+    """The fitter's default iteration budget for ``n_free`` free parameters (``refit`` without ``max_nfev``)."""
+    return 30 * (n_free + 1)
+
+
 def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: list[str],
           guess: dict[str, float] | None = None, bounds: dict[str, tuple[float, float]] | None = None,
           max_nfev: int | None = None, tol: float = 1e-7, scale: dict[str, float] | None = None) -> FitResult:
@@ -130,7 +135,7 @@ def refit(recordings: list[DiagnosisData], model: ExtendedModel, free_names: lis
         pm.vector(model),
         guess=dict(zip(names, x_start)), bounds=bnd,
         scale=sc,
-        noise="residuals", max_nfev=max_nfev or 30 * (len(names) + 1), tol=tol,
+        noise="residuals", max_nfev=max_nfev or default_nfev(len(names)), tol=tol,
         residual_tolerance=None, check_identifiability=False, integration_tol=None)
     rss, nobs = {}, {}
     for d in recordings:

@@ -31,6 +31,7 @@ from otbot_hw.diagnose.rules import (ACCEPT_DBIC, AMBIGUOUS_DBIC, MAX_LOOKALIKES
                                      fitting_evidence, has_evidence, information_criteria, matters, pair_adds,
                                      shortlist, white)
 from otbot_hw.diagnose.screening import Screening, screen, screen_simulation
+from otbot_hw.identification.model import map_prediction_rows
 from otbot_hw.model.effects import ExtendedModel, parameter_bounds
 
 #: what a nested fit raises when the simulation diverges at a trial point (NaN in the Jacobian's SVD)
@@ -77,6 +78,21 @@ class Selection:
     effects: dict[str, cat.Effect] = field(default_factory=dict)  # the catalog entries as applied
     #: {effect: (chi2, k, n, magnitude)}: signature energy of each effect's catalog step on the base model
     energy: dict = field(default_factory=dict)
+
+
+HELD_DELAY_SPACING = 0.008  # s: the first scan's spacing over a held delay's range (``mid_interval_delays``)
+
+
+def mid_interval_delays(periods: list[float], lo: float, hi: float, spacing: float = 0.0) -> list[float]:
+    """Delays s in (lo, hi) inside a sample interval of every period in ``periods`` (s, ascending):
+    (k + 1/2) dt of the finest, those within a quarter of it from a multiple of a coarser one dropped; with
+    ``spacing`` s, only every ceil(spacing / dt)-th of them."""
+    dt = periods[0]
+    k0, k1 = int(np.floor(lo / dt)), int(np.ceil(hi / dt))
+    out = [(k + 0.5) * dt for k in range(k0, k1 + 1) if lo < (k + 0.5) * dt < hi]
+    out = [v for v in out if all(abs(v / q - round(v / q)) * q >= 0.25 * dt for q in periods[1:])]
+    stride = max(1, int(np.ceil(spacing / dt - 1e-9)))
+    return out[::stride]
 
 
 def _effect_guess(e: cat.Effect, screening: Screening, sim_guess: dict | None = None,
@@ -139,6 +155,12 @@ class _Search:
         against ``beside`` (the BIC gain of the effect already in ``on``) for a second effect."""
         e = self.by_name[name]
         names = list(on.names) + [p for p in e.parameters if p not in on.names]
+        if len(names) == len(on.names):
+            # every parameter already free beside it (wheel slip's k_slip in a traction limit): the "fit" would
+            # only continue the one it stands on, and its gain be read as a second effect's evidence
+            self.progress(f"[diagnose]   {name}: its parameters are already fitted; not a candidate")
+            return Candidate(name, on, np.inf, np.inf, np.inf, screen_gains[0], screen_gains[1],
+                             parameters=tuple(e.parameters))
         guess = self._better_start(e, on.model, guess)
         self.progress(f"[diagnose] nested fit: + {name} (start {guess})")
         try:
@@ -268,8 +290,6 @@ class _Search:
         creep slope read 0.26 rad/(s N m) for a true 0.02; the fit from there stopped on its budget at kappa 46)."""
         step = {p: e.magnitudes[0][p] for p in e.parameters if p in e.magnitudes[0]}
         alt = {**guess, **step}
-        if not step or all(np.isclose(alt[p], guess.get(p, np.nan)) for p in step):
-            return guess
 
         def cost(g):
             try:
@@ -278,7 +298,32 @@ class _Search:
                 return np.inf
             return float(sum(v @ v for v in res.values()))
 
+        if e.held_delays:
+            return self._held_delay_start(e, guess, cost)
+        if not step or all(np.isclose(alt[p], guess.get(p, np.nan)) for p in step):
+            return guess
         return alt if cost(alt) < cost(guess) else guess
+
+    def _held_delay_start(self, e: cat.Effect, guess: dict, cost) -> dict:
+        """A held delay's start: the best of a scan over mid-interval delays (``mid_interval_delays``), coarse
+        then fine around the best. Its readings jump where the delay crosses a whole sample period, so a fit
+        started on a multiple of the period (a PRBS's IMU latency from the catalog's 20 ms at 100 Hz) has no
+        slope to follow and one started inside an interval stops at the jump into the next."""
+        periods = sorted({round(float(d.dt), 12) for d in self.recordings})
+        out = dict(guess)
+        for p in e.held_delays:
+            lo, hi = parameter_bounds(p)
+            coarse = mid_interval_delays(periods, lo, hi, HELD_DELAY_SPACING)
+            costs = map_prediction_rows(lambda i: cost({**out, p: coarse[i]}), len(coarse))
+            best = coarse[int(np.argmin(costs))]
+            width = max(HELD_DELAY_SPACING, periods[0])
+            fine = [v for v in mid_interval_delays(periods, max(lo, best - width), min(hi, best + width))
+                    if not np.any(np.isclose(v, coarse))]
+            fine_costs = map_prediction_rows(lambda i: cost({**out, p: fine[i]}), len(fine))
+            cands, allc = list(coarse) + fine, list(costs) + list(fine_costs)
+            out[p] = float(cands[int(np.argmin(allc))])
+            self.progress(f"[diagnose]   {p}: start {1e3 * out[p]:.1f} ms of {len(cands)} mid-interval delays")
+        return out
 
     def converge(self, c: Candidate, ref: tuple, nominal_from: Candidate | None = None) -> Candidate:
         """``c`` with its nested fit continued (``NESTED_NFEV`` more iterations) when it stopped on the
@@ -372,6 +417,15 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             # both (a wheel friction asymmetry stands in for a wheel gain at one constant torque; the held-out
             # run's other torques tell them apart -- the gain was never fitted)
             cands += S.lookalikes(min(fit_only, key=lambda c: c.dbic), cands, on, ref, exclude)
+            good = [c for c in cands if has_evidence(c)]
+        fit_only = [c for c in cands if fitting_evidence(c)]
+        if not good and fit_only:
+            # a fit stopped on its budget predicts the held-out runs worse than it will converged: a closed-loop
+            # traction limit at 10 iterations did (held-out +365), and its continuation, taken for a wheel slip
+            # "beside" it (the same k_slip), passed -- so the best is converged before it is judged
+            lead = min(fit_only, key=lambda c: c.dbic)
+            conv = S.converge(lead, ref)
+            cands = [conv if c is lead else c for c in cands]
             good = [c for c in cands if has_evidence(c)]
         if not good:
             # the first round's best explains the fitting data but predicts the held-out runs worse: a

@@ -18,7 +18,7 @@ from otbot_hw.diagnose.residuals import ACTUATOR_ENTRIES, estimate_motion, initi
 from otbot_hw.model import effect_physics as phys
 from otbot_hw.model import effects as fx
 from otbot_hw.model import sensor_model
-from otbot_hw.model.effects import ExtendedModel
+from otbot_hw.model.effects import GRAVITY, ExtendedModel
 from otbot_hw.simulation.simulator import default_substeps, simulate_extended
 
 X0_CACHE_SIZE = 4096  # initial states kept per recording (one per combination of the entries x0 depends on)
@@ -165,7 +165,7 @@ def sign_rate(eff: np.ndarray, fixture: str, params=None) -> float:
     candidate's start, c_w = 0.002 N m) is far from stiff."""
     rr = 0.0
     if eff[fx.C_RR] and params is not None:
-        rr = eff[fx.C_RR] * (params.m_c + params.m_p) * 9.81 * 0.5 * params.r
+        rr = eff[fx.C_RR] * (params.m_c + params.m_p) * GRAVITY * 0.5 * params.r
     elif eff[fx.C_RR]:
         return np.inf
     rate = 0.0
