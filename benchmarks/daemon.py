@@ -68,7 +68,7 @@ class _InProcess:
 
 
 def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, fifo: int | None = None,
-             paced: bool = False, in_process: bool = False, imu: bool = True) -> dict:
+             paced: bool = False, in_process: bool = False, imu: bool = True, trace: Path | None = None) -> dict:
     cfg_path = local_config(folder, replace={**RELAX, "control_rate: {value: 100, unit: Hz}":
                                              f"control_rate: {{value: {rate:g}, unit: Hz}}"})
     config = load_robot_config(cfg_path)
@@ -84,7 +84,8 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
             bus = [b for b in bus if b != "--no-imu"] + ["--no-imu"]
         d = DaemonProcess([*bus, "--config", str(cfg_path), "--record-dir", str(folder / "rec"),
                            *(["--telemetry", "127.0.0.1:0"] if telemetry else ["--no-telemetry"])],
-                          folder / "control.sock", folder / f"daemon-{rate:g}.log")
+                          folder / "control.sock", folder / f"daemon-{rate:g}.log",
+                          env={"OTBOT_LOOP_TRACE": str(trace)} if trace is not None else None)
         try:
             if fifo:
                 if plant.proc is not None:
@@ -130,7 +131,8 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
             "plant_cpu_share": cpu_plant / wall, "achieved_rate": cycles / wall,
             "fault": (st["faults"] or [None])[0], "exit_code": code,
             "load_before": load0, "load_after": load1, "period_ms": 1e3 * period, "fifo": fifo,
-            "paced": paced, "in_process": in_process, "imu": imu}
+            "paced": paced, "in_process": in_process, "imu": imu,
+            "trace": str(trace) if trace is not None else None}
 
 
 def main(argv=None) -> int:
@@ -149,9 +151,13 @@ def main(argv=None) -> int:
     ap.add_argument("--no-imu", action="store_true", help="no IMU (its sentences travel over a pty too)")
     ap.add_argument("--work-dir", type=Path, default=None,
                     help="keep the configurations, logs and recordings here (default: a temporary folder)")
+    ap.add_argument("--trace", type=Path, default=None, metavar="DIR",
+                    help="the daemon's loop trace (otbot_hw.runtime.loop_trace) per rate in DIR/trace-RATE.json")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     rows = []
+    if a.trace:
+        a.trace.mkdir(parents=True, exist_ok=True)
     with (contextlib.nullcontext(str(a.work_dir)) if a.work_dir else
           tempfile.TemporaryDirectory(prefix="otbot-daemon-bench-")) as tmp:
         for r in (float(x) for x in a.rates.split(",")):
@@ -159,7 +165,8 @@ def main(argv=None) -> int:
             print(f"{r:g} Hz for {secs:g} s (load average {os.getloadavg()[0]:.1f}) ...", file=sys.stderr, flush=True)
             folder = Path(tmp) / f"{r:g}"
             rows.append(run_rate(r, secs, folder, telemetry=not a.no_telemetry, fifo=a.fifo, paced=a.paced,
-                                 in_process=a.in_process, imu=not a.no_imu))
+                                 in_process=a.in_process, imu=not a.no_imu,
+                                 trace=a.trace / f"trace-{r:g}.json" if a.trace else None))
             print("  " + json.dumps(rows[-1]), file=sys.stderr, flush=True)
     if a.json:
         print(json.dumps(rows))

@@ -58,6 +58,7 @@ from otbot_hw.runtime.daemon_modes import MODES, REST_SPEED, REST_TURN, START_TO
 from otbot_hw.runtime.daemon_sessions import DaemonRecordings
 from otbot_hw.runtime.feedback import EkfFeedback
 from otbot_hw.runtime.loop import LoopRunner
+from otbot_hw.runtime.loop_trace import from_env as loop_trace_from_env
 from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor, Violation
 from otbot_hw.runtime.systemd import Notifier, Watchdog
 
@@ -205,6 +206,9 @@ class Daemon:
         if adapter is not None:  # its estimate on /otbot/payload, its events and bounds fault through the loop
             runner.payload = adapter
             adapter.on_fault, adapter.on_event = runner.trip, runner.event
+        trace = loop_trace_from_env(period, sup.config.overrun_factor)  # a measurement aid, off by default
+        if trace is not None:
+            trace.install(self, robot, runner)
         runner.start(enable=False)
         runner.cycle()
         gc.freeze()  # what booting the drives created, too (no collection: that would stall the bus)
@@ -224,6 +228,11 @@ class Daemon:
                 runner.close()
             except Exception as exc:  # noqa: BLE001 - the recording's close: said, never raised
                 self.problems.append(f"closing the recording failed: {type(exc).__name__}: {exc}")
+            if trace is not None:
+                try:
+                    trace.close()
+                except Exception as exc:  # noqa: BLE001 - a measurement aid never fails the daemon
+                    self.problems.append(f"writing the loop trace failed: {type(exc).__name__}: {exc}")
 
     def _warm_up(self, period: float) -> None:
         """Before the robot is opened: everything the first cycles run once — the EKF's compiled
