@@ -67,8 +67,72 @@ class _InProcess:
         return None
 
 
+#: a part of the cycle whose wall time exceeds its CPU time by more than this (s) waited for something
+#: beyond its normal wait (the pacer's normal wait is the period less the cycle's work: judged apart)
+OFF_CPU = {"read: TPDO wait": 0.0008, "read: IMU": 0.0005, "pacer wait": None}
+LEAVES = ("read: TPDO wait", "read: IMU", "read: heartbeat check", "EKF step", "supervisor check",
+          "recording (loop side)", "write (RPDOs)", "recording sample write", "mailbox", "telemetry publish",
+          "pacer wait", "loop timing")
+
+
+def attribute(trace: dict, canary: dict | None, t0: float, t1: float) -> list[dict]:
+    """Each overrun of a loop trace (``otbot_hw.runtime.loop_trace``) between ``t0`` and ``t1``
+    (CLOCK_MONOTONIC s) with its cause: the part of the cycle that took the time (the loop-thread part
+    with the most wall time beyond its CPU time, i.e. waiting), whether the loop thread ran, waited
+    on the run queue or was off the CPU (blocked: the interpreter lock, a system call, the host), which
+    other thread ran during it, and whether the wake-up canary (another process) was late in the same
+    interval (then the machine stalled, not the daemon)."""
+    period = trace["period"]
+    late = (canary or {}).get("late", [])
+    out = []
+    for st in trace["stalls"]:
+        if not t0 <= st["mono"] <= t1:
+            continue
+        start = st["mono"] - st["between_checks"]
+        loop = [e for e in st["events"] if e[1] == "MainThread" and e[0] in LEAVES
+                and e[2] + e[3] > -0.0003 and e[2] < st["between_checks"]]
+
+        def waited(e):  # wall beyond CPU; the pacer's normal wait is the rest of the period
+            w = e[3] - e[4]
+            return w - (period - 0.8e-3) if e[0] == "pacer wait" else w
+
+        part = max(loop, key=waited) if loop else None
+        others = {k: v for k, v in st["threads_ms"].items() if not k.startswith("MainThread")}
+        busy = max(others.items(), key=lambda kv: kv[1][0]) if others else ("-", (0.0, 0.0))
+        canary_late = [round((b - a) * 1e3, 2) for a, b in late if b > start and a < st["mono"]]
+        if canary_late:
+            cause = "machine: the canary process woke late in the same interval"
+        elif busy[1][0] > 1.5:
+            cause = f"interpreter lock held by {busy[0].split(' [')[0]}"
+        elif st["loop_cpu"] > 3e-3:
+            cause = "loop thread on CPU for > 3 ms (CPU time stretched: host or kernel)"
+        elif part is not None:
+            cause = f"{part[0]}: off CPU, no other thread running"
+        else:
+            cause = "unknown"
+        out.append({"t": st["t"], "period_ms": round(st["period"] * 1e3, 2), "cause": cause,
+                    "part": part[0] if part else None, "part_wall_ms": round(part[3] * 1e3, 2) if part else None,
+                    "part_cpu_ms": round(part[4] * 1e3, 2) if part else None,
+                    "loop_cpu_ms": round(st["loop_cpu"] * 1e3, 2), "loop_runq_ms": round(st["loop_runq"] * 1e3, 2),
+                    "busiest_other": [busy[0].split(" [")[0], *busy[1]], "canary_late_ms": canary_late})
+    return out
+
+
+_CPU_LATENCY = [None]  # the /dev/cpu_dma_latency value held during the runs (None: not held)
+
+
+def hold_cpu_latency(us: int):
+    """Hold /dev/cpu_dma_latency at ``us`` (the PM QoS request stays while the file is open): idle CPUs
+    only enter idle states that wake within ``us`` (0: poll, never halt). Returns the open file."""
+    f = open("/dev/cpu_dma_latency", "wb", buffering=0)
+    f.write(int(us).to_bytes(4, "little"))
+    _CPU_LATENCY[0] = int(us)
+    return f
+
+
 def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, fifo: int | None = None,
-             paced: bool = False, in_process: bool = False, imu: bool = True, trace: Path | None = None) -> dict:
+             paced: bool = False, in_process: bool = False, imu: bool = True, trace: Path | None = None,
+             canary: bool = False, cpus: set[int] | None = None) -> dict:
     cfg_path = local_config(folder, replace={**RELAX, "control_rate: {value: 100, unit: Hz}":
                                              f"control_rate: {{value: {rate:g}, unit: Hz}}"})
     config = load_robot_config(cfg_path)
@@ -91,9 +155,20 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
                 if plant.proc is not None:
                     realtime_priority(plant.proc.pid, fifo)
                 realtime_priority(d.pid, fifo)
+            if cpus:  # every thread of the daemon (and the plant) on these CPUs; new threads inherit it
+                for pid in [d.pid] + ([plant.proc.pid] if plant.proc is not None else []):
+                    for tid in os.listdir(f"/proc/{pid}/task"):
+                        os.sched_setaffinity(int(tid), cpus)
             cpu_plant0 = proc_cpu(plant.proc.pid) if plant.proc is not None else 0.0
             d.request("enable")
             time.sleep(1.0)  # the hold settles; the window starts here
+            can = None
+            if canary:  # the wake-up canary beside the run (same priority), until the window ends
+                import subprocess
+
+                can = subprocess.Popen([sys.executable, str(Path(__file__).with_name("wake_canary.py")),
+                                        "--seconds", str(seconds + 5), "--out", str(folder / "canary.json"),
+                                        *(["--fifo", str(fifo)] if fifo else [])])
             t0 = time.monotonic()
             st0 = d.request("status")
             n = 0
@@ -107,6 +182,10 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
                 n += 1
                 time.sleep(0.1)
             st = d.request("status")
+            t_end = time.monotonic()
+            if can is not None:
+                can.terminate()
+                can.wait(10)
             cpu_plant = proc_cpu(plant.proc.pid) - cpu_plant0 if plant.proc is not None else math.nan
             wall = time.monotonic() - t0
             code, summary = d.terminate()
@@ -114,6 +193,16 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
             d.kill()
             raise
     load1 = os.getloadavg()[0]
+    causes = None
+    if trace is not None and trace.exists():
+        can_data = json.loads((folder / "canary.json").read_text()) if (folder / "canary.json").exists() else None
+        stalls = attribute(json.loads(trace.read_text()), can_data, t0, t_end)
+        (trace.with_suffix(".stalls.json")).write_text(json.dumps(stalls, indent=1))
+        causes = {}
+        for x in stalls:
+            causes[x["cause"]] = causes.get(x["cause"], 0) + 1
+        if can_data is not None:
+            causes["(canary: wake-ups, late > 0.5 ms)"] = [can_data["wakeups"], len(can_data["late"])]
     loop, loop0 = st["loop"], st0["loop"]
     cycles = loop["cycles"] - loop0["cycles"]
     overruns = loop["overruns"] - loop0["overruns"]  # in the window (the percentiles include the start)
@@ -131,8 +220,9 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
             "plant_cpu_share": cpu_plant / wall, "achieved_rate": cycles / wall,
             "fault": (st["faults"] or [None])[0], "exit_code": code,
             "load_before": load0, "load_after": load1, "period_ms": 1e3 * period, "fifo": fifo,
-            "paced": paced, "in_process": in_process, "imu": imu,
-            "trace": str(trace) if trace is not None else None}
+            "paced": paced, "in_process": in_process, "imu": imu, "cpu_latency_us": _CPU_LATENCY[0],
+            "cpus": sorted(cpus) if cpus else None,
+            "trace": str(trace) if trace is not None else None, "causes": causes}
 
 
 def main(argv=None) -> int:
@@ -153,8 +243,15 @@ def main(argv=None) -> int:
                     help="keep the configurations, logs and recordings here (default: a temporary folder)")
     ap.add_argument("--trace", type=Path, default=None, metavar="DIR",
                     help="the daemon's loop trace (otbot_hw.runtime.loop_trace) per rate in DIR/trace-RATE.json")
+    ap.add_argument("--canary", action="store_true",
+                    help="with --trace: a wake-up canary process (benchmarks/wake_canary.py) beside each run")
+    ap.add_argument("--cpu-latency", type=int, default=None, metavar="US",
+                    help="hold /dev/cpu_dma_latency at US microseconds during the runs (0: idle CPUs poll)")
+    ap.add_argument("--cpus", default=None, metavar="LIST",
+                    help="pin every thread of the daemon (and plant) to these CPUs, e.g. 1 (taskset's -c list)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    qos = hold_cpu_latency(a.cpu_latency) if a.cpu_latency is not None else None  # noqa: F841 - held open
     rows = []
     if a.trace:
         a.trace.mkdir(parents=True, exist_ok=True)
@@ -166,7 +263,8 @@ def main(argv=None) -> int:
             folder = Path(tmp) / f"{r:g}"
             rows.append(run_rate(r, secs, folder, telemetry=not a.no_telemetry, fifo=a.fifo, paced=a.paced,
                                  in_process=a.in_process, imu=not a.no_imu,
-                                 trace=a.trace / f"trace-{r:g}.json" if a.trace else None))
+                                 trace=a.trace / f"trace-{r:g}.json" if a.trace else None, canary=a.canary,
+                                 cpus={int(c) for c in a.cpus.split(",")} if a.cpus else None))
             print("  " + json.dumps(rows[-1]), file=sys.stderr, flush=True)
     if a.json:
         print(json.dumps(rows))

@@ -167,7 +167,7 @@ class LoopTrace:
         names = {t.ident: t.name for t in threading.enumerate()}
         ev = [(n, names.get(i, str(i)), round(t0 - t_prev, 6), round(t1 - t0, 6), round(c1 - c0, 6))
               for n, i, t0, t1, c0, c1 in list(self.ring) if t1 >= since]
-        self.stalls.append({"t": now - self.t_start, "period": wall_period,
+        self.stalls.append({"t": now - self.t_start, "mono": now, "period": wall_period,
                             "loop_cpu": (st[0] - st_prev[0]) * 1e-9, "loop_runq": (st[1] - st_prev[1]) * 1e-9,
                             "between_checks": now - t_prev, "events": ev, "threads_ms": threads,
                             "load": os.getloadavg()[0]})
