@@ -341,14 +341,23 @@ def main(argv=None) -> int:
                     help="write a cProfile table (by own time, then cumulative) of the loop thread")
     ap.add_argument("--record-in-background", action="store_true",
                     help="the daemon's LoopRunner with record_in_background=True (a recording-writer thread)")
+    ap.add_argument("--cpus", default=None, metavar="LIST",
+                    help="run the process (every thread) on these CPUs, e.g. 1 (as the unit's CPUAffinity=)")
+    ap.add_argument("--fifo", type=int, default=None, metavar="PRIORITY",
+                    help="SCHED_FIFO at this priority for every thread (as the unit's CPUSchedulingPolicy=fifo)")
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    if a.cpus:  # before any thread starts: every thread inherits it
+        os.sched_setaffinity(0, {int(c) for c in a.cpus.split(",")})
+    if a.fifo:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(a.fifo))
     load0 = os.getloadavg()[0]
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
         row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.record_in_background)
     row["label"] = a.label
+    row["cpus"], row["fifo"] = a.cpus, a.fifo
     row["load_before"] = load0  # 1-min load average at the start; "load": at the window's end
     if a.json:
         print(json.dumps(row))
