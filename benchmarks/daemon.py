@@ -114,7 +114,8 @@ def attribute(trace: dict, canary: dict | None, t0: float, t1: float) -> list[di
                     "part": part[0] if part else None, "part_wall_ms": round(part[3] * 1e3, 2) if part else None,
                     "part_cpu_ms": round(part[4] * 1e3, 2) if part else None,
                     "loop_cpu_ms": round(st["loop_cpu"] * 1e3, 2), "loop_runq_ms": round(st["loop_runq"] * 1e3, 2),
-                    "busiest_other": [busy[0].split(" [")[0], *busy[1]], "canary_late_ms": canary_late})
+                    "busiest_other": [busy[0].split(" [")[0], *busy[1]], "canary_late_ms": canary_late,
+                    "gc_ms": [round(e[3] * 1e3, 3) for e in st["events"] if e[0].startswith("gc")]})
     return out
 
 
