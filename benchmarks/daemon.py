@@ -88,9 +88,9 @@ def attribute(trace: dict, canary: dict | None, t0: float, t1: float) -> list[di
     for st in trace["stalls"]:
         if not t0 <= st["mono"] <= t1:
             continue
-        start = st["mono"] - st["between_checks"]
+        start = st["mono"] - st["since_period_start"]  # the period's first SYNC; events are timed from it
         loop = [e for e in st["events"] if e[1] == "MainThread" and e[0] in LEAVES
-                and e[2] + e[3] > -0.0003 and e[2] < st["between_checks"]]
+                and e[2] + e[3] > 0 and e[2] < st["period"]]
 
         def waited(e):  # wall beyond CPU; the pacer's normal wait is the rest of the period
             w = e[3] - e[4]
@@ -102,8 +102,8 @@ def attribute(trace: dict, canary: dict | None, t0: float, t1: float) -> list[di
         canary_late = [round((b - a) * 1e3, 2) for a, b in late if b > start and a < st["mono"]]
         if canary_late:
             cause = "machine: the canary process woke late in the same interval"
-        elif busy[1][0] > 1.5:
-            cause = f"interpreter lock held by {busy[0].split(' [')[0]}"
+        elif sum(v[0] for v in others.values()) > 1.5:  # ms: the other threads' CPU in the period
+            cause = "interpreter lock and CPU taken by the other threads (busiest: " + busy[0].split(" [")[0] + ")"
         elif st["loop_cpu"] > 0.8 * period:  # ~2x its usual CPU per cycle: the same code ran slower
             cause = "loop thread's CPU over the period > 0.8 periods (the CPU slowed: host or kernel)"
         elif part is not None:

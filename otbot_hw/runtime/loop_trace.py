@@ -68,6 +68,9 @@ class LoopTrace:
         self._fd = None
         self._last_sync = None  # (monotonic, schedstat, period, every thread's schedstat) at the previous SYNC
         self._fds: dict[str, int] = {}
+        self._at_sync = self._at_sync_prev = None  # every thread's schedstat at the last two SYNCs
+        self._loop_at_sync = self._loop_at_sync_prev = None  # the loop thread's
+        self._sync_mono = self._sync_mono_prev = None  # when the last two reads (SYNCs) began (s)
         self.threads_start: list[dict] = []
         self.t_start = time.monotonic()
 
@@ -125,14 +128,23 @@ class LoopTrace:
         timing = runner._timing
         mono = time.monotonic
 
+        read = robot.read
+
+        def read_probe(_r=read):  # every thread's scheduler statistics at the SYNC (a period's start/end)
+            self._at_sync, self._at_sync_prev = [_schedstat(fd) for fd in self._fds.values()], self._at_sync
+            self._loop_at_sync, self._loop_at_sync_prev = _schedstat(self._fd), self._loop_at_sync
+            self._sync_mono, self._sync_mono_prev = mono(), self._sync_mono
+            return _r()
+
+        robot.read = read_probe
+
         def timing_probe(wall_period, _t=timing):
             now = mono()
             st = _schedstat(self._fd) if self._fd is not None else (0, 0)
-            every = [_schedstat(fd) for fd in self._fds.values()]  # every thread's, at this cycle
-            last, self._last_sync = self._last_sync, (now, st, wall_period, every)
+            last, self._last_sync = self._last_sync, (now, st, wall_period, None)
             self.cycles += 1
-            if wall_period > self.limit and last is not None:
-                self._keep(now, wall_period, last, st, every)
+            if wall_period > self.limit and last is not None and self._at_sync_prev is not None:
+                self._keep(now, wall_period, last, st, self._at_sync, self._at_sync_prev)
             return _t(wall_period)
 
         runner._timing = timing_probe
@@ -157,19 +169,20 @@ class LoopTrace:
                                   time.thread_time()))
                 self.gc.append((info["generation"], threading.current_thread().name, time.monotonic() - t[0]))
 
-    def _keep(self, now, wall_period, last, st, every) -> None:
-        """An overrun: the events since the SYNC before the previous one, the loop thread's schedstat,
-        every thread's CPU and run-queue wait (ms) since the previous cycle."""
-        t_prev, st_prev, _, every_prev = last
+    def _keep(self, now, wall_period, last, st, every, every_prev) -> None:
+        """An overrun: the events from the period's first SYNC on (times relative to it, s), the loop
+        thread's CPU and run-queue wait over the period (SYNC to SYNC, s) and every thread's (ms)."""
+        t_prev = self._sync_mono_prev
+        st, st_prev = self._loop_at_sync, self._loop_at_sync_prev
         threads = {name: (round((a[0] - b[0]) * 1e-6, 3), round((a[1] - b[1]) * 1e-6, 3))
                    for name, a, b in zip(self._fds, every, every_prev) if a != b}
-        since = t_prev - self.period  # a little before the previous SYNC's timing check
+        since = t_prev - 0.5e-3  # from just before the period's first SYNC
         names = {t.ident: t.name for t in threading.enumerate()}
         ev = [(n, names.get(i, str(i)), round(t0 - t_prev, 6), round(t1 - t0, 6), round(c1 - c0, 6))
               for n, i, t0, t1, c0, c1 in list(self.ring) if t1 >= since]
         self.stalls.append({"t": now - self.t_start, "mono": now, "period": wall_period,
                             "loop_cpu": (st[0] - st_prev[0]) * 1e-9, "loop_runq": (st[1] - st_prev[1]) * 1e-9,
-                            "between_checks": now - t_prev, "events": ev, "threads_ms": threads,
+                            "since_period_start": now - t_prev, "events": ev, "threads_ms": threads,
                             "load": os.getloadavg()[0]})
 
     def close(self) -> None:
