@@ -180,6 +180,20 @@ class SimulatedBusRobot(ImuLockstep, CanopenRobot, SimulatedRobot):
     def operator(self, command: str) -> dict:
         return self.plant.operator(command)
 
+    def trace_points(self, wrap) -> None:
+        """For ``otbot_hw.runtime.loop_trace`` (a measurement aid): stamp the plant's work —
+        ``wrap(obj, attr, name)`` on its CAN dispatch, its SYNC handler and its IMU's writes."""
+        plant = self.plant
+        wrap(plant.network, "notify", "plant rx dispatch")
+        subs = plant.network.subscribers.get(0x80, [])
+        if plant._on_sync in subs:  # the subscriber list holds the bound method: swap in the stamped one
+            holder = type("SyncHandler", (), {})()
+            holder.f = plant._on_sync
+            wrap(holder, "f", "plant SYNC handler")
+            subs[:] = [holder.f if cb == plant._on_sync else cb for cb in subs]
+        if plant.imu is not None:
+            wrap(plant.imu, "_send", "sim IMU write")
+
     def truth(self) -> np.ndarray | None:
         x = self.plant.sync_x  # the latest SYNC's state, set before its TPDOs went out: no lock to wait
         if x is not None:      # for (the SYNC handler holds it while the model steps after the TPDOs)

@@ -112,17 +112,10 @@ class LoopTrace:
             w(obj, attr, name)
         net = getattr(robot, "network", None)
         w(net, "notify", "master rx dispatch")
-        plant = getattr(robot, "plant", None)
-        if plant is not None:
-            w(getattr(plant, "network", None), "notify", "plant rx dispatch")
-            subs = plant.network.subscribers.get(0x80, []) if hasattr(plant, "network") else []
-            handler = getattr(plant, "_on_sync", None)
-            if handler is not None and handler in subs:
-                holder = type("H", (), {})()
-                holder.f = handler
-                w(holder, "f", "plant SYNC handler")
-                subs[:] = [holder.f if cb == handler else cb for cb in subs]
-            w(getattr(plant, "imu", None), "_send", "sim IMU write")
+        # what only the back end knows (a simulated plant's threads): it wraps them with ``w`` itself
+        points = getattr(robot, "trace_points", None)
+        if points is not None:
+            points(w)
         w(net, "send_message", "master send_message")  # SYNC, RPDOs (one at a time), the master's heartbeat
         # the loop's own SYNC-to-SYNC check: after _timing has the period
         timing = runner._timing
