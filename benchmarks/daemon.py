@@ -100,16 +100,15 @@ def attribute(trace: dict, canary: dict | None, t0: float, t1: float) -> list[di
         others = {k: v for k, v in st["threads_ms"].items() if not k.startswith("MainThread")}
         busy = max(others.items(), key=lambda kv: kv[1][0]) if others else ("-", (0.0, 0.0))
         canary_late = [round((b - a) * 1e3, 2) for a, b in late if b > start and a < st["mono"]]
+        idle = st["period"] * 1e3 - sum(v[0] for v in st["threads_ms"].values())  # ms no thread of the daemon ran
         if canary_late:
             cause = "machine: the canary process woke late in the same interval"
-        elif sum(v[0] for v in others.values()) > 1.5:  # ms: the other threads' CPU in the period
-            cause = "interpreter lock and CPU taken by the other threads (busiest: " + busy[0].split(" [")[0] + ")"
+        elif idle > 1.0:
+            cause = f"no thread of the daemon ran for > 1 ms: a wake-up not served ({part[0] if part else '?'})"
         elif st["loop_cpu"] > 0.8 * period:  # ~2x its usual CPU per cycle: the same code ran slower
-            cause = "loop thread's CPU over the period > 0.8 periods (the CPU slowed: host or kernel)"
-        elif part is not None:
-            cause = f"{part[0]}: off CPU, no other thread running"
+            cause = "the CPU slowed: the loop thread's own CPU > 0.8 periods"
         else:
-            cause = "unknown"
+            cause = "every thread busy: CPU and interpreter lock shared (busiest: " + busy[0].split(" [")[0] + ")"
         out.append({"t": st["t"], "period_ms": round(st["period"] * 1e3, 2), "cause": cause,
                     "part": part[0] if part else None, "part_wall_ms": round(part[3] * 1e3, 2) if part else None,
                     "part_cpu_ms": round(part[4] * 1e3, 2) if part else None,
