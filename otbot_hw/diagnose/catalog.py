@@ -35,7 +35,7 @@ class Effect:
     #: saturation levels, set from the recorded commands)
     grids: dict[str, tuple[float, ...]] = field(default_factory=dict)
     #: delays s whose simulated readings jump where the delay crosses a whole sample period
-    #: (``sensor_model.delay_held``): their fits start inside an interval (``select.held_delay_start``)
+    #: (``sensor_model.delay_held``): their fits start inside an interval (``select.mid_interval_delays``)
     held_delays: tuple[str, ...] = ()
 
     def units(self) -> dict[str, str]:

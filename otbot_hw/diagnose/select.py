@@ -420,9 +420,9 @@ def choose(recordings: list[DiagnosisData], holdout: list[DiagnosisData], base_f
             good = [c for c in cands if has_evidence(c)]
         fit_only = [c for c in cands if fitting_evidence(c)]
         if not good and fit_only:
-            # a fit stopped on its budget predicts the held-out runs worse than it will converged: a closed-loop
-            # traction limit at 10 iterations did (held-out +365), and its continuation, taken for a wheel slip
-            # "beside" it (the same k_slip), passed -- so the best is converged before it is judged
+            # a fit stopped on its budget may predict the held-out runs worse only because it stopped: the best
+            # is converged before it is judged (a wheel slip "beside" a closed-loop traction limit, the same k_slip,
+            # was its continuation and passed; converged outright, that traction limit still predicts worse)
             lead = min(fit_only, key=lambda c: c.dbic)
             conv = S.converge(lead, ref)
             cands = [conv if c is lead else c for c in cands]

@@ -14,8 +14,8 @@ nominal period; in a real-time loop the supervisor faults on them.
 from __future__ import annotations
 
 import math
-from array import array
 import time
+from array import array
 from dataclasses import dataclass, replace
 
 import numpy as np

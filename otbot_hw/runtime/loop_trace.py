@@ -66,7 +66,6 @@ class LoopTrace:
         self.gc: list = []
         self._gc_t0: dict = {}
         self._fd = None
-        self._last_sync = None  # (monotonic, schedstat, period, every thread's schedstat) at the previous SYNC
         self._fds: dict[str, int] = {}
         self._at_sync = self._at_sync_prev = None  # every thread's schedstat at the last two SYNCs
         self._loop_at_sync = self._loop_at_sync_prev = None  # the loop thread's
@@ -132,12 +131,9 @@ class LoopTrace:
         robot.read = read_probe
 
         def timing_probe(wall_period, _t=timing):
-            now = mono()
-            st = _schedstat(self._fd) if self._fd is not None else (0, 0)
-            last, self._last_sync = self._last_sync, (now, st, wall_period, None)
             self.cycles += 1
-            if wall_period > self.limit and last is not None and self._at_sync_prev is not None:
-                self._keep(now, wall_period, last, st, self._at_sync, self._at_sync_prev)
+            if wall_period > self.limit and self._at_sync_prev is not None:  # two SYNCs seen: a whole period
+                self._keep(mono(), wall_period, self._at_sync, self._at_sync_prev)
             return _t(wall_period)
 
         runner._timing = timing_probe
@@ -162,7 +158,7 @@ class LoopTrace:
                                   time.thread_time()))
                 self.gc.append((info["generation"], threading.current_thread().name, time.monotonic() - t[0]))
 
-    def _keep(self, now, wall_period, last, st, every, every_prev) -> None:
+    def _keep(self, now, wall_period, every, every_prev) -> None:
         """An overrun: the events from the period's first SYNC on (times relative to it, s), the loop
         thread's CPU and run-queue wait over the period (SYNC to SYNC, s) and every thread's (ms)."""
         t_prev = self._sync_mono_prev
