@@ -236,8 +236,11 @@ def test_a_stalled_master_stops_every_drive_within_three_periods():
 
 def test_a_stalled_loop_withholds_the_heartbeat_whatever_thread_is_alive():
     """Lockstep (no SYNC or RPDO watchdog armed): the loop stops while the drives are enabled; the
-    heartbeat thread lives on but sends nothing after ``bus.loop_liveness`` periods, so every drive's
-    heartbeat consumer (0x1016) stops it."""
+    heartbeat thread lives on but sends nothing after ``bus.loop_liveness`` periods, so the drives'
+    heartbeat consumers (0x1016) stop them: each by its own, or by the master's reaction to the first
+    one's EMCY 0x8130 (a drive whose watchdog thread runs a little later is quick-stopped by the master
+    first; the drives then no longer enabled, the master's heartbeat may resume before its consumer
+    expires)."""
     period = CFG.bus.period
     consumer = CFG.drives[0].master_heartbeat_consumer
 
@@ -262,7 +265,14 @@ def test_a_stalled_loop_withholds_the_heartbeat_whatever_thread_is_alive():
             assert last_hb - t_stall <= CFG.bus.loop_liveness * period + CFG.bus.master_heartbeat + 0.05
             left = d.left_enabled_at(t_stall)
             assert left is not None and left - last_hb <= consumer + 0.05, (d.node_id, d.transitions)
-            assert any(code == 0x8130 for _, code in d.emcy_sent), (d.node_id, d.emcy_sent, robot.faults)
+        causes = {d.node_id: next(c for t, _, old, _, c in d.transitions if t == d.left_enabled_at(t_stall)
+                                  and old == ENABLED) for d in drives}
+        by_consumer = {d.node_id for d in drives if any(code == 0x8130 for _, code in d.emcy_sent)}
+        assert by_consumer, (causes, robot.faults)  # at least one drive's own consumer tripped
+        for node, cause in causes.items():
+            assert ("master heartbeat lost" in cause and node in by_consumer) or cause == "controlword 0x0002", \
+                (node, cause, by_consumer)
+        assert any(f.kind == "emcy" and f.code == 0x8130 for f in robot.faults), robot.faults
 
 
 def test_a_refused_mapping_is_a_configuration_error_naming_the_object():
