@@ -15,8 +15,11 @@ to SYNC periods: p50/p99, jitter = |period - target| p99 and max, overruns = per
 targets), then SIGTERM gives its CPU time. Reported: period p50/p99 (ms), jitter p99/max (ms),
 overruns per minute, the daemon's CPU time per period (all its threads) as a share of the period,
 the plant's, the load average (1 min) before and after, and whether a fault stopped it.
-``--fifo P``: both processes under SCHED_FIFO priority P once started (the unit's
-CPUSchedulingPolicy=fifo; needs CAP_SYS_NICE). The configuration counts overruns without stopping
+``--fifo P``: the daemon started under SCHED_FIFO priority P (the unit's CPUSchedulingPolicy=fifo,
+so its operator threads go ``daemon.scheduling.operator_threads_below`` levels lower; ``--operator-below
+N`` sets it), the plant process put under it once started; needs CAP_SYS_NICE. ``--cpus LIST``: the
+daemon pins itself there (``daemon.scheduling.cpus``), the plant is put there. ``--status-every S``: a
+``status`` request every S s beside the velocity commands (an operator's dashboard). The configuration counts overruns without stopping
 (max_consecutive_overruns very large) and gives the heartbeat consumers 0.5 s, so a run measures
 the loop instead of ending at the first stall of a shared machine; a fault still ends it and is
 reported. Target (issue 14): 250 Hz with no overrun in 5 minutes and p99 jitter <= 0.5 ms. Targets
@@ -132,9 +135,14 @@ def hold_cpu_latency(us: int):
 
 def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, fifo: int | None = None,
              paced: bool = False, in_process: bool = False, imu: bool = True, trace: Path | None = None,
-             canary: bool = False, cpus: set[int] | None = None) -> dict:
-    cfg_path = local_config(folder, replace={**RELAX, "control_rate: {value: 100, unit: Hz}":
-                                             f"control_rate: {{value: {rate:g}, unit: Hz}}"})
+             canary: bool = False, cpus: set[int] | None = None, operator_below: int | None = None,
+             status_every: float | None = None) -> dict:
+    edits = {**RELAX, "control_rate: {value: 100, unit: Hz}": f"control_rate: {{value: {rate:g}, unit: Hz}}"}
+    if cpus:  # the daemon pins itself (daemon.scheduling.cpus), as the robot's configuration would say
+        edits["    cpus: null"] = f"    cpus: [{', '.join(map(str, sorted(cpus)))}]"
+    if operator_below is not None:
+        edits["operator_threads_below: 1"] = f"operator_threads_below: {operator_below}"
+    cfg_path = local_config(folder, replace=edits)
     config = load_robot_config(cfg_path)
     load0 = os.getloadavg()[0]
     with (_InProcess() if in_process else PlantProcess(config, noise=NoiseModel.paper(), with_imu=imu)) as plant:
@@ -149,16 +157,14 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
         d = DaemonProcess([*bus, "--config", str(cfg_path), "--record-dir", str(folder / "rec"),
                            *(["--telemetry", "127.0.0.1:0"] if telemetry else ["--no-telemetry"])],
                           folder / "control.sock", folder / f"daemon-{rate:g}.log",
-                          env={"OTBOT_LOOP_TRACE": str(trace)} if trace is not None else None)
+                          env={"OTBOT_LOOP_TRACE": str(trace)} if trace is not None else None,
+                          priority=fifo)  # started under SCHED_FIFO, as the unit starts it
         try:
-            if fifo:
-                if plant.proc is not None:
-                    realtime_priority(plant.proc.pid, fifo)
-                realtime_priority(d.pid, fifo)
-            if cpus:  # every thread of the daemon (and the plant) on these CPUs; new threads inherit it
-                for pid in [d.pid] + ([plant.proc.pid] if plant.proc is not None else []):
-                    for tid in os.listdir(f"/proc/{pid}/task"):
-                        os.sched_setaffinity(int(tid), cpus)
+            if fifo and plant.proc is not None:
+                realtime_priority(plant.proc.pid, fifo)
+            if cpus and plant.proc is not None:  # the plant's threads on the daemon's CPUs
+                for tid in os.listdir(f"/proc/{plant.proc.pid}/task"):
+                    os.sched_setaffinity(int(tid), cpus)
             cpu_plant0 = proc_cpu(plant.proc.pid) if plant.proc is not None else 0.0
             d.request("enable")
             time.sleep(1.0)  # the hold settles; the window starts here
@@ -172,7 +178,13 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
             t0 = time.monotonic()
             st0 = d.request("status")
             n = 0
+            n_status = 0
+            next_status = t0 + status_every if status_every else math.inf
             while time.monotonic() - t0 < seconds:
+                if time.monotonic() >= next_status:  # an operator's dashboard polling the daemon
+                    d.request("status")
+                    n_status += 1
+                    next_status += status_every
                 a = 0.4 * (time.monotonic() - t0)  # 0.2 m/s on a 0.5 m circle
                 try:
                     d.request("velocity", vx=0.2 * math.cos(a), vy=0.2 * math.sin(a), wz=0.0)
@@ -208,7 +220,8 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
     overruns = loop["overruns"] - loop0["overruns"]  # in the window (the percentiles include the start)
     period = 1.0 / rate
     ms = lambda v: None if v is None else 1e3 * v  # noqa: E731
-    return {"rate": rate, "seconds": wall, "cycles": cycles, "commands": n,
+    return {"rate": rate, "seconds": wall, "cycles": cycles, "commands": n, "status_requests": n_status + 2,
+            "scheduling": st.get("scheduling"),
             "period_p50_ms": ms(loop["period"]["p50"]), "period_p99_ms": ms(loop["period"]["p99"]),
             "period_max_ms": ms(loop["period"]["max"]),
             "jitter_p50_ms": ms(loop["jitter"]["p50"]), "jitter_p99_ms": ms(loop["jitter"]["p99"]),
@@ -248,7 +261,11 @@ def main(argv=None) -> int:
     ap.add_argument("--cpu-latency", type=int, default=None, metavar="US",
                     help="hold /dev/cpu_dma_latency at US microseconds during the runs (0: idle CPUs poll)")
     ap.add_argument("--cpus", default=None, metavar="LIST",
-                    help="pin every thread of the daemon (and plant) to these CPUs, e.g. 1 (taskset's -c list)")
+                    help="every thread of the daemon (daemon.scheduling.cpus) and the plant on these CPUs, e.g. 1")
+    ap.add_argument("--operator-below", type=int, default=None, metavar="N",
+                    help="daemon.scheduling.operator_threads_below (default: the configuration's, 1; 0: one priority)")
+    ap.add_argument("--status-every", type=float, default=None, metavar="S",
+                    help="also ask the daemon's status every S seconds (a dashboard polling it)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     qos = hold_cpu_latency(a.cpu_latency) if a.cpu_latency is not None else None  # noqa: F841 - held open
@@ -264,7 +281,8 @@ def main(argv=None) -> int:
             rows.append(run_rate(r, secs, folder, telemetry=not a.no_telemetry, fifo=a.fifo, paced=a.paced,
                                  in_process=a.in_process, imu=not a.no_imu,
                                  trace=a.trace / f"trace-{r:g}.json" if a.trace else None, canary=a.canary,
-                                 cpus={int(c) for c in a.cpus.split(",")} if a.cpus else None))
+                                 cpus={int(c) for c in a.cpus.split(",")} if a.cpus else None,
+                                 operator_below=a.operator_below, status_every=a.status_every))
             print("  " + json.dumps(rows[-1]), file=sys.stderr, flush=True)
     if a.json:
         print(json.dumps(rows))

@@ -76,7 +76,14 @@ def _table():
         server = ControlServer(FakeHandler(), ControlSocketConfig(), ArgumentLimits(), path=d / "control.sock").start()
         return [], server.close
 
+    def cpu_missing(d):
+        from otbot_hw.runtime.daemon_process import local_config
+
+        cpu = max(os.sched_getaffinity(0)) + 1
+        return ["--config", str(local_config(d / "cfg", replace={"cpus: null": f"cpus: [0, {cpu}]"}))], None
+
     return [
+        ("a CPU this process may not use", cpu_missing, ["daemon.scheduling.cpus", "not available", "may run on"]),
         ("socket folder missing", socket_in(lambda d: d / "nope"), ["control socket folder", "does not exist",
                                                                     "RuntimeDirectory="]),
         ("socket folder unwritable", socket_in(_read_only_folder), ["control socket folder", "not writable"]),

@@ -134,6 +134,14 @@ def prepare(args: argparse.Namespace):
             check_telemetry_address(*telemetry)
     except (ControlSocketError, TelemetryError) as exc:
         raise CliError(str(exc)) from None
+    if dcfg.scheduling.cpus is not None:
+        from otbot_hw.motors import DEFAULT_ROBOT_FILE
+        from otbot_hw.runtime.scheduling import SchedulingError, check_cpus
+
+        try:
+            check_cpus(dcfg.scheduling.cpus, f"{args.config or DEFAULT_ROBOT_FILE}: 'daemon.scheduling.cpus'")
+        except SchedulingError as exc:
+            raise CliError(str(exc)) from None
     record_dir = _writable_folder(args.record_dir if args.record_dir is not None else dcfg.recording.dir,
                                   "--record-dir")
     model = ExtendedModel.load(args.params)

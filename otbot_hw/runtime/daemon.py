@@ -58,6 +58,7 @@ from otbot_hw.runtime.daemon_modes import MODES, REST_SPEED, REST_TURN, START_TO
 from otbot_hw.runtime.daemon_sessions import DaemonRecordings
 from otbot_hw.runtime.feedback import EkfFeedback
 from otbot_hw.runtime.loop import LoopRunner
+from otbot_hw.runtime import scheduling
 from otbot_hw.runtime.loop_trace import from_env as loop_trace_from_env
 from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor, Violation
 from otbot_hw.runtime.systemd import Notifier, Watchdog
@@ -115,6 +116,7 @@ class Daemon:
         self.modes = ModeMachine(self.law, vel, self.notifier.status)
         self.recordings = DaemonRecordings(self)
         self.telemetry = None
+        self.scheduling: dict | None = None  # what serve() did: cpus, policy, the loop's and operator's priority
         self.runner: LoopRunner | None = None
         self.robot: Robot | None = None
         self.stop_reason: str | None = None
@@ -165,6 +167,10 @@ class Daemon:
 
         s = self.settings
         self._t_start = (time.monotonic(), time.process_time())
+        sched = s.daemon.scheduling
+        if sched.cpus is not None:  # before any thread starts: they inherit it (pin() moves the others)
+            scheduling.pin(scheduling.check_cpus(sched.cpus))
+        before = scheduling.tasks()
         self.server.start()  # SocketInUse: another daemon runs here; nothing else touched yet
         switch = sys.getswitchinterval()
         # A thread waiting for the interpreter lock asks the holder to let go after this interval:
@@ -177,6 +183,11 @@ class Daemon:
                 host, port = s.telemetry
                 self.telemetry = TelemetryServer(host, port, s.daemon.telemetry.rate, limits=s.limits.max_torque,
                                                  l1=self.params.l1)
+            # the operator's threads (control socket, telemetry and its server's workers) below the loop's
+            done = scheduling.lower(scheduling.tasks() - before, sched.operator_threads_below)
+            self.scheduling = {"cpus": sorted(os.sched_getaffinity(0)), "policy": done["policy"],
+                               "priority": done["priority"], "operator_priority": done["operator_priority"],
+                               "operator_threads": [[t, scheduling.thread_name(t)] for t in done["lowered"]]}
             self._warm_up(self._period_hint)
             with open_robot() as robot:
                 self.robot = robot
@@ -370,7 +381,8 @@ class Daemon:
                         "fault": r.fault.to_dict() if r is not None and r.fault is not None else None,
                         "faults_seen": self.faults_seen, "sessions": self.sessions,
                         "recording_dir": str(self.settings.record_dir) if self.settings.record_dir else None,
-                        "wall_s": wall, "cpu_s": cpu, "pid": os.getpid(), "problems": self.problems})
+                        "wall_s": wall, "cpu_s": cpu, "pid": os.getpid(), "scheduling": self.scheduling,
+                        "problems": self.problems})
 
 
 def _probe_feedback(period: float):

@@ -67,7 +67,8 @@ class DaemonCommands:
                "recording": r.recording.status() if r is not None and r.recording is not None else None,
                "overrun_warnings": d.overrun_warnings,
                "payload": d.payload_status(),
-               "telemetry": d.telemetry.status() if d.telemetry is not None else None}
+               "telemetry": d.telemetry.status() if d.telemetry is not None else None,
+               "scheduling": d.scheduling}
         if est is not None:
             out["pose"] = {"x": float(est.pose[0]), "y": float(est.pose[1]), "alpha": float(est.pose[2]),
                            "std": [float(v) for v in est.std[:3]],

@@ -1,5 +1,5 @@
 """The ``daemon:`` section of ``config/robot.yaml``: control socket, who may command, velocity mode,
-recording and telemetry of the on-robot daemon (``otbot daemon``, ``docs/daemon.md``).
+recording, telemetry and thread scheduling of the on-robot daemon (``otbot daemon``, ``docs/daemon.md``).
 
 Quantities are ``{value: V, unit: U}`` like the rest of the file; every error is a
 ``ParameterError`` naming the file and the key (exit code 2). The section is optional: without it
@@ -84,12 +84,24 @@ class TelemetryConfig:
 
 
 @dataclass(frozen=True)
+class SchedulingConfig:
+    """cpus: Linux CPU numbers every thread of the daemon runs on (None: wherever the system puts
+    them; ``otbot_hw.runtime.scheduling.pin``); operator_threads_below: real-time priority levels the
+    control socket's and telemetry's threads run below the loop's (0: all at one priority; only
+    under a real-time policy, e.g. the unit's CPUSchedulingPolicy=fifo)."""
+
+    cpus: tuple[int, ...] | None = None
+    operator_threads_below: int = 1
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     socket: ControlSocketConfig = field(default_factory=ControlSocketConfig)
     velocity: VelocityConfig = field(default_factory=VelocityConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
     adaptation: Any = field(default_factory=lambda: _adaptation_default())  # estimation.payload.AdaptationConfig
+    scheduling: SchedulingConfig = field(default_factory=SchedulingConfig)
 
 
 def _adaptation_default():
@@ -156,6 +168,18 @@ class _Section:
             raise self.err(k, f"must be a list of names or numeric ids >= 0, got {v!r}")
         return tuple(v)
 
+    def cpus(self, k: str) -> tuple[int, ...] | None:
+        """null, or a non-empty list of distinct CPU numbers (whole numbers >= 0)."""
+        v = self.data.get(k)
+        if v is None:
+            return None
+        if not isinstance(v, list) or not v or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0
+                                                       for c in v):
+            raise self.err(k, f"must be null or a non-empty list of CPU numbers (whole numbers >= 0), got {v!r}")
+        if len(set(v)) != len(v):
+            raise self.err(k, f"lists a CPU twice: {v!r}")
+        return tuple(v)
+
     def text(self, k: str, default: str | None) -> str | None:
         v = self.data.get(k, default)
         if v is not None and (not isinstance(v, str) or not v):
@@ -170,7 +194,7 @@ class _Section:
 
 def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
     """Validate a ``daemon`` mapping (None: all defaults); relative paths are relative to the cwd."""
-    top = _Section(source, "daemon", data, ("socket", "velocity", "recording", "telemetry", "adaptation"))
+    top = _Section(source, "daemon", data, ("socket", "velocity", "recording", "telemetry", "adaptation", "scheduling"))
     s = _Section(source, "daemon.socket", top.data.get("socket"),
                  ("path", "allowed_users", "allowed_groups", "max_request", "max_clients", "reserved_clients",
                   "request_timeout", "idle_timeout"))
@@ -225,10 +249,14 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
         raise t.err("enabled", f"must be true or false, got {enabled!r}")
     tel = TelemetryConfig(enabled=enabled, host=t.text("host", dt.host),
                           port=t.integer("port", dt.port, 0, 65535), rate=t.quantity("rate", "Hz", dt.rate))
+    c = _Section(source, "daemon.scheduling", top.data.get("scheduling"), ("cpus", "operator_threads_below"))
+    sched = SchedulingConfig(cpus=c.cpus("cpus"), operator_threads_below=c.integer(
+        "operator_threads_below", SchedulingConfig.operator_threads_below, 0, 98))
     from otbot_hw.estimation.payload import AdaptationConfig
 
     return DaemonConfig(socket=sock, velocity=vel, recording=rec, telemetry=tel,
-                        adaptation=AdaptationConfig.from_section(top.data.get("adaptation"), source))
+                        adaptation=AdaptationConfig.from_section(top.data.get("adaptation"), source),
+                        scheduling=sched)
 
 
 def load_daemon_config(path: str | Path | None = None) -> DaemonConfig:
@@ -246,4 +274,4 @@ def load_daemon_config(path: str | Path | None = None) -> DaemonConfig:
     if not rec.dir.is_absolute():
         rec = RecordingConfig(**{**rec.__dict__, "dir": base / rec.dir})
     return DaemonConfig(socket=sock, velocity=cfg.velocity, recording=rec, telemetry=cfg.telemetry,
-                        adaptation=cfg.adaptation)
+                        adaptation=cfg.adaptation, scheduling=cfg.scheduling)

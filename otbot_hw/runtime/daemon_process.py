@@ -87,10 +87,12 @@ def realtime_priority(pid: int, priority: int = 50) -> int:
 class DaemonProcess:
     """``otbot daemon --json ARGS`` as a child process with its socket at ``socket`` and its log in
     ``log`` (a file path); the ``--record-dir`` folder in ARGS is created first (as systemd's
-    ``StateDirectory=`` would). ``request(cmd, **args)`` sends one command; ``terminate()`` sends SIGTERM
-    and returns (exit code, the JSON summary it printed)."""
+    ``StateDirectory=`` would). ``priority``: started under SCHED_FIFO at it, as the unit's
+    CPUSchedulingPolicy=fifo starts it (needs CAP_SYS_NICE). ``request(cmd, **args)`` sends one
+    command; ``terminate()`` sends SIGTERM and returns (exit code, the JSON summary it printed)."""
 
-    def __init__(self, args: list[str], socket: Path, log: Path, env: dict | None = None, ready_timeout: float = 60.0):
+    def __init__(self, args: list[str], socket: Path, log: Path, env: dict | None = None, ready_timeout: float = 60.0,
+                 priority: int | None = None):
         self.socket = Path(socket)
         self.log_path = Path(log)
         if "--record-dir" in args:  # the daemon never creates it (systemd's StateDirectory= would): this helper does
@@ -98,7 +100,9 @@ class DaemonProcess:
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen([*_cli(), "daemon", "--socket", str(self.socket), "--json", *args],
                                      stdout=subprocess.PIPE, stderr=self._log, text=True,
-                                     env={**os.environ, **(env or {})})
+                                     env={**os.environ, **(env or {})},
+                                     preexec_fn=None if priority is None else lambda: os.sched_setscheduler(
+                                         0, os.SCHED_FIFO, os.sched_param(priority)))
         self.wait_ready(ready_timeout)
 
     def wait_ready(self, timeout: float) -> dict:
