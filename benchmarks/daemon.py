@@ -14,7 +14,7 @@ the EKF, the supervisor, the recording and the telemetry all work every cycle. A
 to SYNC periods: p50/p99, jitter = |period - target| p99 and max, overruns = periods above 1.5
 targets), then SIGTERM gives its CPU time. Reported: period p50/p99 (ms), jitter p99/max (ms),
 overruns per minute, the daemon's CPU time per period (all its threads) as a share of the period,
-the plant's, the load average (1 min) before and after, and whether a fault stopped it.
+the plant's, the time the hypervisor took from the CPUs (``/proc/stat`` steal, of ``--cpus`` or all), the load average (1 min) before and after, and whether a fault stopped it.
 ``--fifo P``: the daemon started under SCHED_FIFO priority P (the unit's CPUSchedulingPolicy=fifo,
 so its operator threads go ``daemon.scheduling.operator_threads_below`` levels lower; ``--operator-below
 N`` sets it), the plant process put under it once started; needs CAP_SYS_NICE. ``--cpus LIST``: the
@@ -50,6 +50,16 @@ from sim.plant_process import PlantProcess  # noqa: E402
 RELAX = {"max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {value: 1000000000",
          "master_heartbeat_consumer: {value: 100, unit: ms}": "master_heartbeat_consumer: {value: 500, unit: ms}",
          "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 500, unit: ms}"}
+
+
+def steal_s(cpus: set[int] | None = None) -> float:
+    """CPU time the hypervisor took from these CPUs (all: None) since boot, s (``/proc/stat`` steal)."""
+    total = 0.0
+    for line in Path("/proc/stat").read_text().splitlines():
+        name, *f = line.split()
+        if name.startswith("cpu") and name != "cpu" and (cpus is None or int(name[3:]) in cpus):
+            total += int(f[7]) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 def proc_cpu(pid: int) -> float:
@@ -169,13 +179,19 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
             d.request("enable")
             time.sleep(1.0)  # the hold settles; the window starts here
             can = None
-            if canary:  # the wake-up canary beside the run (same priority), until the window ends
+            if canary:  # the wake-up canary beside the run, until the window ends; with --cpus on the
+                # daemon's CPUs one level above it: then it is late only when that CPU did not run at all
+                # (the host) or the kernel would not be preempted, never because of the daemon's threads
                 import subprocess
 
+                prio = (fifo + 1 if cpus else fifo) if fifo else None
                 can = subprocess.Popen([sys.executable, str(Path(__file__).with_name("wake_canary.py")),
                                         "--seconds", str(seconds + 5), "--out", str(folder / "canary.json"),
-                                        *(["--fifo", str(fifo)] if fifo else [])])
+                                        *(["--fifo", str(prio)] if prio else [])])
+                if cpus:
+                    os.sched_setaffinity(can.pid, cpus)
             t0 = time.monotonic()
+            steal0 = steal_s(cpus)
             st0 = d.request("status")
             n = 0
             n_status = 0
@@ -195,6 +211,7 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
                 time.sleep(0.1)
             st = d.request("status")
             t_end = time.monotonic()
+            steal = steal_s(cpus) - steal0
             if can is not None:
                 can.terminate()
                 can.wait(10)
@@ -231,6 +248,7 @@ def run_rate(rate: float, seconds: float, folder: Path, telemetry: bool = True, 
             "compute_p50_ms": ms(loop["compute"]["p50"]), "compute_p99_ms": ms(loop["compute"]["p99"]),
             "daemon_cpu_share": summary["cpu_s"] / summary["wall_s"],
             "plant_cpu_share": cpu_plant / wall, "achieved_rate": cycles / wall,
+            "steal_ms_per_min": 1e3 * steal / (wall / 60.0),
             "fault": (st["faults"] or [None])[0], "exit_code": code,
             "load_before": load0, "load_after": load1, "period_ms": 1e3 * period, "fifo": fifo,
             "paced": paced, "in_process": in_process, "imu": imu, "cpu_latency_us": _CPU_LATENCY[0],

@@ -29,6 +29,7 @@ threads they ran on), and ``--record-in-background``: the daemon's ``LoopRunner`
 ``record_in_background=True`` (the recording written by a ``recording-writer`` thread).
 
 ``--profile FILE``: pyinstrument on the loop thread over the window (text: wall time, call tree);
+``--flame PNG`` with it: the cycle's call tree as a flame graph (``benchmarks/flame_graph.py``);
 ``--cprofile FILE``: cProfile on the loop thread, in ``FILE.plant.txt`` on the plant's CAN receive
 thread and in ``FILE.master_rx.txt`` on the master's (wall time per function, waits included); either slows the cycle, so the timing of a
 profiled run is not representative.
@@ -144,7 +145,7 @@ def _thread_cpu() -> dict[str, float]:
 
 
 def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, cprofile: Path | None = None,
-        record_in_background: bool = False) -> dict:
+        record_in_background: bool = False, flame: Path | None = None) -> dict:
     from otbot_hw.cli import build_parser
     from otbot_hw.cli.daemon import prepare
     from otbot_hw.runtime.daemon_process import local_config
@@ -275,10 +276,16 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
     wall = time.monotonic() - t0
     st = _request(sock, "status")
     cpu1 = _thread_cpu()
+    row_flame = None
     if profile is not None:
         p = prof_box["p"]
         _loop_call(daemon, p.stop)
         profile.write_text(p.output_text(unicode=False, color=False, show_all=False))
+        if flame is not None:
+            from flame_graph import cycle_flame
+
+            row_flame = cycle_flame(p.last_session, flame, f"loop thread, {rate:g} Hz, {seconds:g} s, in process "
+                                    f"(otbot daemon --bus sim), pyinstrument every 0.2 ms of wall time")
     if cprofile is not None:
         import io
         import pstats
@@ -329,7 +336,7 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
                                "max_us": max((x[2] * 1e6 for x in gc_log if x[0] == g), default=0.0),
                                "total_us_per_cycle": sum(x[2] for x in gc_log if x[0] == g) * 1e6 / max(cycles, 1),
                                "threads": sorted({x[1] for x in gc_log if x[0] == g})} for g in range(3)},
-            "fault": (st.get("faults") or [None])[0], "load": load}
+            "fault": (st.get("faults") or [None])[0], "load": load, "flame_top_shares": row_flame}
 
 
 def main(argv=None) -> int:
@@ -337,6 +344,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=500.0, help="control rate (Hz)")
     ap.add_argument("--seconds", type=float, default=30.0, help="measured window (s)")
     ap.add_argument("--profile", type=Path, default=None, help="write a pyinstrument text profile of the loop thread")
+    ap.add_argument("--flame", type=Path, default=None, metavar="PNG",
+                    help="with --profile: a flame graph of LoopRunner.cycle (benchmarks/flame_graph.py)")
     ap.add_argument("--cprofile", type=Path, default=None,
                     help="write a cProfile table (by own time, then cumulative) of the loop thread")
     ap.add_argument("--record-in-background", action="store_true",
@@ -355,7 +364,9 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
-        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.record_in_background)
+        if a.flame is not None and a.profile is None:
+            ap.error("--flame needs --profile FILE")
+        row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.record_in_background, a.flame)
     row["label"] = a.label
     row["cpus"], row["fifo"] = a.cpus, a.fifo
     row["load_before"] = load0  # 1-min load average at the start; "load": at the window's end
