@@ -47,6 +47,9 @@ class Pacer(Unpaced):
     def __init__(self, period: float):
         super().__init__(period)
         self._next: float | None = None  # when the next tick is due (s, time.monotonic); None: now
+        #: s (time.monotonic): the last tick ``wait`` had to wait for (its work left time in the period);
+        #: at construction until then
+        self.waited = time.monotonic()
         self._lock = threading.Lock()
 
     def wait(self, wake: threading.Event | None = None) -> float:
@@ -58,6 +61,7 @@ class Pacer(Unpaced):
             self._next = due + self.period
         delay = due - time.monotonic()
         if delay > 0:
+            self.waited = due  # the caller's work left time in the period
             if wake is None:
                 time.sleep(delay)
             else:

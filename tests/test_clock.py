@@ -29,6 +29,24 @@ def test_a_pacer_ticks_one_period_apart_and_takes_a_late_tick_at_once_without_a_
     assert c.wait() >= late + P - 1e-9  # no burst of catch-up ticks
 
 
+def test_a_pacer_says_when_its_caller_last_waited_for_a_tick():
+    """``waited``: the last tick the caller's work left time for (the daemon leaves its core to the
+    operator's threads when that is long ago, ``scheduling.OperatorShare``); a late tick leaves it."""
+    start = time.monotonic()
+    c = Pacer(P)
+    assert start <= c.waited <= time.monotonic()  # at construction until the first wait
+    c.wait()  # the first tick: at once, no wait
+    assert c.waited <= start + P
+    second = c.wait()  # a wait of a period
+    assert c.waited == second
+    for _ in range(3):
+        time.sleep(1.5 * P)  # the work overran the period: ticks claimed late, no wait
+        c.wait()
+        assert c.waited == second
+    third = c.wait()  # the grid continues a period after the late tick: a wait again
+    assert c.waited == third > second
+
+
 def test_a_sequence_tick_pushes_the_grid_and_an_unpaced_clock_never_waits():
     c = Pacer(P)
     t0 = c.wait()

@@ -193,3 +193,64 @@ def test_a_daemon_under_fifo_runs_its_operator_threads_one_level_below_and_all_o
     assert sorted(n for n in named.values() if n != "tokio-rt-worker") == ["otbot-control", "otbot-dispatch",
                                                                             "otbot-telemetry"], named
     assert "tokio-rt-worker" in named.values()                             # the Foxglove server's workers too
+
+
+@needs_fifo
+def test_a_loop_that_cannot_keep_its_period_still_leaves_its_core_to_the_operators_estop(tmp_path):
+    """2500 Hz in process on one core under FIFO 20: the loop's work fills every period (no tick waited
+    for). Its operator threads at 19 would never run; the daemon sleeps 0.5 ms per 10 ms once late
+    (``scheduling.OperatorShare``), so ``status`` answers and ``estop`` stops the drives, judged by the states they report."""
+    from otbot_hw.runtime.daemon_process import DaemonProcess, local_config
+
+    cpu = max(os.sched_getaffinity(0))
+    cfg = local_config(tmp_path / "cfg", replace={
+        "cpus: null": f"cpus: [{cpu}]", "control_rate: {value: 100, unit: Hz}": "control_rate: {value: 2500, unit: Hz}",
+        "max_consecutive_overruns: {value: 5": "max_consecutive_overruns: {value: 1000000000",
+        "master_heartbeat_consumer: {value: 100, unit: ms}": "master_heartbeat_consumer: {value: 1000, unit: ms}",
+        "heartbeat_consumer: {value: 200, unit: ms}": "heartbeat_consumer: {value: 1000, unit: ms}"})
+    d = DaemonProcess(["--bus", "sim", "--config", str(cfg), "--record-dir", str(tmp_path / "rec"), "--no-telemetry"],
+                      tmp_path / "control.sock", tmp_path / "daemon.log", priority=20)
+    try:
+        d.request("enable", timeout=10)
+        time.sleep(1.0)
+        answered = [d.request("status", timeout=5) for _ in range(5)]   # each within 5 s, or DaemonUnreachable
+        d.request("estop", timeout=5)
+        end = time.monotonic() + 5
+        while True:
+            st = d.request("status", timeout=5)
+            if st["mode"] == "idle" and not any(s == "OPERATION ENABLED" for s in st["drive_states"].values()):
+                break
+            assert time.monotonic() < end, st["drive_states"]
+            time.sleep(0.05)
+        code, _ = d.terminate()
+    finally:
+        d.kill()
+    assert code == 0, d.log()[-2000:]
+    loop = answered[-1]["loop"]
+    assert answered[-1]["scheduling"]["operator_priority"] == 19
+    assert answered[-1]["scheduling"]["operator_shares"] > 0              # the loop left them its core
+    assert loop["overruns"] > loop["cycles"] / 4, loop                    # the loop could not keep its period
+
+
+class _Clock:
+    def __init__(self, waited):
+        self.waited = waited
+
+
+def test_operator_share_sleeps_only_when_active_and_the_loop_has_not_waited_for_longer_than_after(monkeypatch):
+    slept = []
+    monkeypatch.setattr(scheduling.time, "sleep", lambda s: slept.append(s))
+    share = scheduling.OperatorShare()
+    after = share.AFTER
+    share.after_cycle(_Clock(0.0), 10.0)
+    assert slept == []                                                     # inactive: never
+    share.active = True
+    share.after_cycle(_Clock(10.0 - 0.9 * after), 10.0)
+    assert slept == []                                                     # waited recently enough
+    share.after_cycle(_Clock(10.0 - 1.1 * after), 10.0)
+    assert slept == [share.SLEEP] and share.count == 1                      # late for longer than AFTER: once
+    t = share.shared
+    share.after_cycle(_Clock(0.0), t + 0.9 * after)
+    assert len(slept) == 1                                                 # not again within AFTER of the last
+    share.after_cycle(_Clock(0.0), t + 1.1 * after)
+    assert len(slept) == 2                                                 # while it lasts, once per AFTER

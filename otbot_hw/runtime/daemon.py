@@ -24,7 +24,8 @@ socket also stops the systemd watchdog ping (systemd restarts the daemon: nobody
 Overruns (a period longer than ``safety.overrun_factor`` periods): while the robot moves (track,
 velocity, excite, or a hold still ramping to rest) more than ``safety.max_consecutive_overruns`` in
 a row are a fault; at rest (idle, or a hold that has reached its pose) they are a warning, counted
-in ``status`` (``overrun_warnings``) and logged once per streak.
+in ``status`` (``overrun_warnings``) and logged once per streak. A loop that fills its core still
+leaves the operator's threads their share (``scheduling.OperatorShare``).
 """
 from __future__ import annotations
 
@@ -128,6 +129,7 @@ class Daemon:
         self.faults_seen = 0
         self.overrun_warnings = 0
         self._overrun_streak = False
+        self.operator_share = scheduling.OperatorShare()  # active once serve() lowered the operator's threads
         self._t_start = None
         self._next_server_check = 0.0
         self.server.on_failure = self._server_failed
@@ -184,10 +186,8 @@ class Daemon:
                 self.telemetry = TelemetryServer(host, port, s.daemon.telemetry.rate, limits=s.limits.max_torque,
                                                  l1=self.params.l1)
             # the operator's threads (control socket, telemetry and its server's workers) below the loop's
-            done = scheduling.lower(scheduling.tasks() - before, sched.operator_threads_below)
-            self.scheduling = {"cpus": sorted(os.sched_getaffinity(0)), "policy": done["policy"],
-                               "priority": done["priority"], "operator_priority": done["operator_priority"],
-                               "operator_threads": [[t, scheduling.thread_name(t)] for t in done["lowered"]]}
+            self.scheduling = scheduling.lower_operators(scheduling.tasks() - before, sched.operator_threads_below)
+            self.operator_share.active = self.scheduling["operator_priority"] < self.scheduling["priority"]
             self._warm_up(self._period_hint)
             with open_robot() as robot:
                 self.robot = robot
@@ -305,6 +305,7 @@ class Daemon:
                                 "(a fault only while moving)", self.mode, period * 1e3, r.period * 1e3,
                                 self.overrun_warnings)
                 self._overrun_streak = True
+        self.operator_share.after_cycle(r.clock, now)
         if now >= self._next_server_check:  # a server thread that died without saying so
             self._next_server_check = now + 0.25
             if not self.server.alive and not self._stop.is_set() and self.server.failure is None:

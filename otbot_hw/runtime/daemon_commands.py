@@ -68,7 +68,8 @@ class DaemonCommands:
                "overrun_warnings": d.overrun_warnings,
                "payload": d.payload_status(),
                "telemetry": d.telemetry.status() if d.telemetry is not None else None,
-               "scheduling": d.scheduling}
+               "scheduling": None if d.scheduling is None else {**d.scheduling,
+                                                                 "operator_shares": d.operator_share.count}}
         if est is not None:
             out["pose"] = {"x": float(est.pose[0]), "y": float(est.pose[1]), "alpha": float(est.pose[2]),
                            "std": [float(v) for v in est.std[:3]],

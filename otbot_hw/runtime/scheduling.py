@@ -13,11 +13,13 @@ docs/daemon.md, docs/performance.md "Seventh pass"). Linux only: threads are the
   once the loop wants it, instead of finishing its work first (a ``status`` reply: ~1 ms). Lowering
   needs no privilege (raising does: CAP_SYS_NICE or RLIMIT_RTPRIO), so it works under the unit's
   empty capability set. Under a normal (SCHED_OTHER) policy nothing is changed.
+* ``OperatorShare``: what keeps the lowered threads alive when the loop fills its core.
 """
 from __future__ import annotations
 
 import os
 import threading
+import time
 from collections.abc import Iterable
 
 _POLICIES = {getattr(os, "SCHED_FIFO", -1): "fifo", getattr(os, "SCHED_RR", -2): "rr"}
@@ -99,3 +101,35 @@ def lower(tids: Iterable[int], levels: int, reference: int = 0) -> dict:
             pass
     done["operator_priority"] = target
     return done
+
+
+def lower_operators(tids: Iterable[int], levels: int) -> dict:
+    """``lower`` the operator's threads ``tids`` below the calling (loop) thread; what the daemon's
+    ``status`` says of it: ``cpus`` (of the calling thread), ``policy``, the loop's ``priority``, the
+    ``operator_priority`` and ``operator_threads`` ([thread id, name] of each thread lowered)."""
+    done = lower(tids, levels)
+    return {"cpus": sorted(os.sched_getaffinity(0)), "policy": done["policy"], "priority": done["priority"],
+            "operator_priority": done["operator_priority"],
+            "operator_threads": [[t, thread_name(t)] for t in done["lowered"]]}
+
+
+class OperatorShare:
+    """With the operator's threads below the loop (``active``), a loop that cannot keep its period
+    would hold its core for ever and they (``estop`` and ``status`` among them) would never run. Called
+    after each cycle with the loop's clock (``otbot_hw.clock.Pacer``): once the loop has not waited for
+    a tick (its work filled every period) for ``AFTER`` s, it sleeps ``SLEEP`` s, and again every
+    ``AFTER`` s while that lasts. A loop late for less than ``AFTER`` never sleeps."""
+
+    SLEEP = 0.0005  # s
+    AFTER = 0.01  # s
+
+    def __init__(self):
+        self.active = False
+        self.shared = 0.0  # s (time.monotonic): the last sleep
+        self.count = 0  # sleeps so far
+
+    def after_cycle(self, clock, now: float) -> None:
+        if self.active and now - max(getattr(clock, "waited", now), self.shared) > self.AFTER:
+            time.sleep(self.SLEEP)
+            self.shared = time.monotonic()
+            self.count += 1
