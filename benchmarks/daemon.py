@@ -14,7 +14,8 @@ the EKF, the supervisor, the recording and the telemetry all work every cycle. A
 to SYNC periods: p50/p99, jitter = |period - target| p99 and max, overruns = periods above 1.5
 targets), then SIGTERM gives its CPU time. Reported: period p50/p99 (ms), jitter p99/max (ms),
 overruns per minute, the daemon's CPU time per period (all its threads) as a share of the period,
-the plant's, the time the hypervisor took from the CPUs (``/proc/stat`` steal, of ``--cpus`` or all), the load average (1 min) before and after, and whether a fault stopped it.
+the plant's, the time the hypervisor took from the CPUs (``/proc/stat`` steal, of ``--cpus`` or all),
+the load average (1 min) before and after, and whether a fault stopped it.
 ``--fifo P``: the daemon started under SCHED_FIFO priority P (the unit's CPUSchedulingPolicy=fifo,
 so its operator threads go ``daemon.scheduling.operator_threads_below`` levels lower; ``--operator-below
 N`` sets it), the plant process put under it once started; needs CAP_SYS_NICE. ``--cpus LIST``: the

@@ -190,16 +190,18 @@ def test_a_daemon_under_fifo_runs_its_operator_threads_one_level_below_and_all_o
     assert {"cpus": [cpu], "policy": "fifo", "priority": 20, "operator_priority": 19}.items() <= sch.items(), sch
     named = {t: name for t, name in sch["operator_threads"]}
     assert set(named) == low, (kernel, named)                              # what the kernel says is what it says
-    assert sorted(n for n in named.values() if n != "tokio-rt-worker") == ["otbot-control", "otbot-dispatch",
-                                                                            "otbot-telemetry"], named
+    assert sorted(n for n in named.values() if n != "tokio-rt-worker") == ["otbot-dispatch", "otbot-telemetry"], named
+    io = sch["estop_thread"]  # the control socket's I/O thread, where estop acts the moment it is parsed
+    assert io in kernel and io not in low and kernel[io][1] == 20, (io, kernel)
     assert "tokio-rt-worker" in named.values()                             # the Foxglove server's workers too
 
 
 @needs_fifo
 def test_a_loop_that_cannot_keep_its_period_still_leaves_its_core_to_the_operators_estop(tmp_path):
     """2500 Hz in process on one core under FIFO 20: the loop's work fills every period (no tick waited
-    for). Its operator threads at 19 would never run; the daemon sleeps 0.5 ms per 10 ms once late
-    (``scheduling.OperatorShare``), so ``status`` answers and ``estop`` stops the drives, judged by the states they report."""
+    for). Its operator threads at 19 (the dispatch thread builds ``status``) would never run; the daemon
+    sleeps 0.5 ms per 10 ms once late (``scheduling.OperatorShare``), so ``status`` answers; ``estop``
+    (on the I/O thread, at the loop's priority) stops the drives, judged by the states they report."""
     from otbot_hw.runtime.daemon_process import DaemonProcess, local_config
 
     cpu = max(os.sched_getaffinity(0))

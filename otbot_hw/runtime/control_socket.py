@@ -140,6 +140,11 @@ class ControlServer:
         log.info("control socket %s", self.path)
         return self
 
+    @property
+    def io_thread_id(self) -> int | None:
+        """Kernel thread id of the I/O thread (where ``estop`` acts; None before ``start``)."""
+        return self._threads[0].native_id if self._threads else None
+
     def close(self, timeout: float = 2.0) -> None:
         """Stop serving and remove the socket file (only if it is still ours). New connections and
         requests are no longer taken; requests already queued are carried out and their replies

@@ -185,8 +185,11 @@ class Daemon:
                 host, port = s.telemetry
                 self.telemetry = TelemetryServer(host, port, s.daemon.telemetry.rate, limits=s.limits.max_torque,
                                                  l1=self.params.l1)
-            # the operator's threads (control socket, telemetry and its server's workers) below the loop's
-            self.scheduling = scheduling.lower_operators(scheduling.tasks() - before, sched.operator_threads_below)
+            # the operator's threads (control socket's dispatch, telemetry and its server's workers) below the loop's
+            # ... but the control socket's I/O thread, where estop acts the moment it is parsed
+            io = self.server.io_thread_id
+            self.scheduling = {**scheduling.lower_operators(scheduling.tasks() - before - {io},
+                                                            sched.operator_threads_below), "estop_thread": io}
             self.operator_share.active = self.scheduling["operator_priority"] < self.scheduling["priority"]
             self._warm_up(self._period_hint)
             with open_robot() as robot:
