@@ -48,6 +48,7 @@ from otbot_hw.json_output import json_safe
 from otbot_hw.model.constants import GRAVITY
 from otbot_hw.recording import source_metadata
 from otbot_hw.robot import Robot
+from otbot_hw.runtime import scheduling
 from otbot_hw.runtime.control_protocol import ArgumentLimits
 from otbot_hw.runtime.control_peers import Peer
 from otbot_hw.runtime.control_socket import ControlServer
@@ -59,7 +60,6 @@ from otbot_hw.runtime.daemon_modes import MODES, REST_SPEED, REST_TURN, START_TO
 from otbot_hw.runtime.daemon_sessions import DaemonRecordings
 from otbot_hw.runtime.feedback import EkfFeedback
 from otbot_hw.runtime.loop import LoopRunner
-from otbot_hw.runtime import scheduling
 from otbot_hw.runtime.loop_trace import from_env as loop_trace_from_env
 from otbot_hw.runtime.supervisor import SafetyConfig, Supervisor, Violation
 from otbot_hw.runtime.systemd import Notifier, Watchdog

@@ -87,8 +87,8 @@ class TelemetryConfig:
 class SchedulingConfig:
     """cpus: Linux CPU numbers every thread of the daemon runs on (None: wherever the system puts
     them; ``otbot_hw.runtime.scheduling.pin``); operator_threads_below: real-time priority levels the
-    control socket's and telemetry's threads run below the loop's (0: all at one priority; only
-    under a real-time policy, e.g. the unit's CPUSchedulingPolicy=fifo)."""
+    control socket's dispatch thread and telemetry's threads run below the loop's (0: all at one
+    priority; only under a real-time policy, e.g. the unit's CPUSchedulingPolicy=fifo)."""
 
     cpus: tuple[int, ...] | None = None
     operator_threads_below: int = 1

@@ -1,13 +1,13 @@
 """Where and at what priority the daemon's threads run (``daemon.scheduling`` in config/robot.yaml;
-docs/daemon.md, docs/performance.md "Seventh pass"). Linux only: threads are the tasks of
-``/proc/self/task``.
+docs/daemon.md, docs/performance.md "Seventh pass"). Linux: threads are the tasks of
+``/proc/self/task`` (elsewhere nothing is lowered).
 
 * ``pin(cpus)``: every thread of this process onto ``cpus`` (Linux CPU numbers); threads started
   later inherit the affinity of the thread that starts them. What the unit's ``CPUAffinity=`` does,
   from the daemon's own configuration, checked against the CPUs the process may use
   (``check_cpus``: a missing CPU is a one-line error, not a refused unit).
-* ``lower(tids, levels)``: the operator's threads (control socket, telemetry) ``levels`` real-time
-  priorities below the process's own, so that on a shared core the loop and the bus's receive
+* ``lower(tids, levels)``: the operator's threads (the control socket's dispatch thread, telemetry;
+  not the socket's I/O thread, where ``estop`` acts) ``levels`` real-time priorities below the loop's, so that on a shared core the loop and the bus's receive
   threads preempt them. One interpreter lock still serialises the Python in both; a lowered thread
   that holds it is asked to let go after the switch interval (0.2 ms, ``daemon.GIL_SWITCH_INTERVAL``)
   once the loop wants it, instead of finishing its work first (a ``status`` reply: ~1 ms). Lowering
@@ -30,11 +30,12 @@ class SchedulingError(ValueError):
 
 
 def tasks() -> set[int]:
-    """Thread ids (TIDs) of this process, Python's and foreign ones (foxglove's Rust workers)."""
+    """Thread ids (TIDs) of this process, Python's and foreign ones (foxglove's Rust workers); empty
+    where the system has no ``/proc/self/task`` (not Linux: nothing to lower)."""
     try:
         return {int(t) for t in os.listdir("/proc/self/task")}
     except FileNotFoundError:
-        raise SchedulingError("thread scheduling needs Linux (/proc/self/task)") from None
+        return set()
 
 
 def check_cpus(cpus: Iterable[int], key: str = "daemon.scheduling.cpus") -> frozenset[int]:
@@ -87,7 +88,7 @@ def lower(tids: Iterable[int], levels: int, reference: int = 0) -> dict:
     at least priority 1, in the reference's policy; nothing when that policy is not real-time or
     ``levels`` is 0. Returns what was done: policy, the reference's priority, the lowered one and
     the ids of the threads lowered (a thread that ended in between is skipped)."""
-    name, prio = policy(reference)
+    name, prio = policy(reference) if hasattr(os, "sched_getscheduler") else ("other", 0)
     target = max(1, prio - int(levels))
     done = {"policy": name, "priority": prio, "operator_priority": prio, "lowered": []}
     if name == "other" or target >= prio:
@@ -108,7 +109,8 @@ def lower_operators(tids: Iterable[int], levels: int) -> dict:
     ``status`` says of it: ``cpus`` (of the calling thread), ``policy``, the loop's ``priority``, the
     ``operator_priority`` and ``operator_threads`` ([thread id, name] of each thread lowered)."""
     done = lower(tids, levels)
-    return {"cpus": sorted(os.sched_getaffinity(0)), "policy": done["policy"], "priority": done["priority"],
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    return {"cpus": cpus, "policy": done["policy"], "priority": done["priority"],
             "operator_priority": done["operator_priority"],
             "operator_threads": [[t, thread_name(t)] for t in done["lowered"]]}
 
