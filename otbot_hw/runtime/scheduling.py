@@ -7,8 +7,8 @@ docs/daemon.md, docs/performance.md "Seventh pass"). Linux: threads are the task
   from the daemon's own configuration, checked against the CPUs the process may use
   (``check_cpus``: a missing CPU is a one-line error, not a refused unit).
 * ``lower(tids, levels)``: the operator's threads (the control socket's dispatch thread, telemetry;
-  not the socket's I/O thread, where ``estop`` acts) ``levels`` real-time priorities below the loop's, so that on a shared core the loop and the bus's receive
-  threads preempt them. One interpreter lock still serialises the Python in both; a lowered thread
+  not the socket's I/O thread, where ``estop`` acts) ``levels`` real-time priorities below the
+  loop's, so that on a shared core the loop and the bus's receive threads preempt them. One interpreter lock still serialises the Python in both; a lowered thread
   that holds it is asked to let go after the switch interval (0.2 ms, ``daemon.GIL_SWITCH_INTERVAL``)
   once the loop wants it, instead of finishing its work first (a ``status`` reply: ~1 ms). Lowering
   needs no privilege (raising does: CAP_SYS_NICE or RLIMIT_RTPRIO), so it works under the unit's
@@ -117,7 +117,7 @@ def lower_operators(tids: Iterable[int], levels: int) -> dict:
 
 class OperatorShare:
     """With the operator's threads below the loop (``active``), a loop that cannot keep its period
-    would hold its core for ever and they (``estop`` and ``status`` among them) would never run. Called
+    would hold its core for ever and they (every command but ``estop``, ``status``) would never run. Called
     after each cycle with the loop's clock (``otbot_hw.clock.Pacer``): once the loop has not waited for
     a tick (its work filled every period) for ``AFTER`` s, it sleeps ``SLEEP`` s, and again every
     ``AFTER`` s while that lasts. A loop late for less than ``AFTER`` never sleeps."""
