@@ -20,8 +20,8 @@ the load average (1 min) before and after, and whether a fault stopped it.
 so its operator threads go ``daemon.scheduling.operator_threads_below`` levels lower; ``--operator-below
 N`` sets it), the plant process put under it once started; needs CAP_SYS_NICE. ``--cpus LIST``: the
 daemon pins itself there (``daemon.scheduling.cpus``), the plant is put there. ``--status-every S``: a
-``status`` request every S s beside the velocity commands (an operator's dashboard). The configuration counts overruns without stopping
-(max_consecutive_overruns very large) and gives the heartbeat consumers 0.5 s, so a run measures
+``status`` request every S s beside the velocity commands (an operator's dashboard). The
+configuration counts overruns without stopping (max_consecutive_overruns very large) and gives the heartbeat consumers 0.5 s, so a run measures
 the loop instead of ending at the first stall of a shared machine; a fault still ends it and is
 reported. Target (issue 14): 250 Hz with no overrun in 5 minutes and p99 jitter <= 0.5 ms. Targets
 (issue 22), with the plant in the daemon: ``--in-process --rates 500,800 --seconds 300 --fifo 50`` --
@@ -287,6 +287,10 @@ def main(argv=None) -> int:
                     help="also ask the daemon's status every S seconds (a dashboard polling it)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    if a.status_every is not None and not a.status_every > 0:
+        ap.error(f"--status-every must be > 0 s, got {a.status_every}")
+    if a.operator_below is not None and not 0 <= a.operator_below <= 98:
+        ap.error(f"--operator-below must be in 0..98, got {a.operator_below}")
     qos = hold_cpu_latency(a.cpu_latency) if a.cpu_latency is not None else None  # noqa: F841 - held open
     rows = []
     if a.trace:

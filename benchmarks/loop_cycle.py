@@ -357,6 +357,8 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    if a.flame is not None and a.profile is None:
+        ap.error("--flame needs --profile FILE")
     if a.cpus:  # before any thread starts: every thread inherits it
         os.sched_setaffinity(0, {int(c) for c in a.cpus.split(",")})
     if a.fifo:
@@ -364,8 +366,6 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
-        if a.flame is not None and a.profile is None:
-            ap.error("--flame needs --profile FILE")
         row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.record_in_background, a.flame)
     row["label"] = a.label
     row["cpus"], row["fifo"] = a.cpus, a.fifo

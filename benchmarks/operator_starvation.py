@@ -68,6 +68,8 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=10.0, help="s a request may take before it counts as lost")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    if not a.rate > 0 or a.requests < 1 or not a.timeout > 0 or not 0 <= a.below <= 98 or not 1 <= a.fifo <= 99:
+        ap.error("--rate and --timeout must be > 0, --requests >= 1, --below in 0..98, --fifo in 1..99")
     row = run(a.rate, a.below, a.cpu, a.fifo, a.requests, a.timeout)
     if a.json:
         print(json.dumps(row))
