@@ -192,6 +192,12 @@ BAD_INPUT = [
     ("simulate", "--params {dup_yaml}", "key 'm_c' is written twice (line 14 and line 15); keys must be unique"),
     ("simulate", "--params {huge_yaml}", "a parameter file is at most 4 MiB, this file is 300 MiB"),
     ("track", "corridor --sim --config {dup_robot}", "key 'channel' is written twice (line 11 and line 12)"),
+    # each value passes its own rule, together they make the model singular (numba divided by zero)
+    ("simulate", "--params {singular_yaml}", "these parameters make the model singular"),
+    ("simulate", "--params {overflow_yaml}", "largest m_c = 1e+308 kg"),
+    ("track", "corridor --sim --params {singular_yaml}", "these parameters make the model singular"),
+    ("plan", "--out {tmp}/p.csv --params {singular_yaml}", "these parameters make the model singular"),
+    ("identify", "chassis --recording {ok} --params {singular_yaml}", "these parameters make the model singular"),
     ("identify", "chassis --recording {ok} {ok}", "--recording {ok}: is named twice; each recording counts once"),
     ("identify", "chassis --recording {ok} {ok_copy}", "--recording {ok_copy}: has the same content as {ok}"),
     ("run", "--bus sim --duration 1 --inject bus-off@1e9", "--inject bus-off@1e9: 1e+09 s is outside the run (1 s"),
@@ -232,6 +238,8 @@ def files(tmp_path_factory) -> dict[str, str]:
     params = (ROOT / "config" / "otbot.yaml").read_text().splitlines(keepends=True)
     i = next(k for k, line in enumerate(params) if line.strip().startswith("m_c:"))
     (d / "dup.yaml").write_text("".join(params[:i + 1] + [params[i].replace("109.14", "5")] + params[i + 1:]))
+    (d / "singular.yaml").write_text("".join(params).replace("m_c: {value: 109.14", "m_c: {value: 1e30"))
+    (d / "overflow.yaml").write_text("".join(params).replace("m_c: {value: 109.14", "m_c: {value: 1e308"))
     robot = (ROOT / "config" / "robot.yaml").read_text().splitlines(keepends=True)
     i = next(k for k, line in enumerate(robot) if line.strip().startswith("channel:"))
     (d / "dup_robot.yaml").write_text("".join(robot[:i + 1] + [robot[i]] + robot[i + 1:]))
@@ -246,7 +254,8 @@ def files(tmp_path_factory) -> dict[str, str]:
             "binary_yaml": str(d / "binary.yaml"), "unreadable": str(unreadable),
             "cut_before_samples": str(d / "cut_before_samples.mcap"), "ok_copy": str(d / "ok_copy.mcap"),
             "long_csv": str(d / "long.csv"), "dup_yaml": str(d / "dup.yaml"), "dup_robot": str(d / "dup_robot.yaml"),
-            "huge_yaml": str(d / "huge.yaml")}
+            "huge_yaml": str(d / "huge.yaml"), "singular_yaml": str(d / "singular.yaml"),
+            "overflow_yaml": str(d / "overflow.yaml")}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:

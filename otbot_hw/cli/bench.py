@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.estimation.config import EstimatorConfig
     from otbot_hw.experiment_limits import load_experiment_limits
     from otbot_hw.model.effects import ExtendedModel
-    from otbot_hw.params import OtbotParams
+    from otbot_hw.model.well_posed import load_params
     from otbot_hw.runtime.bench.steps import BenchSettings, SimulatedRobot, settings_from_manifest
     from otbot_hw.runtime.bench.session import SessionError, SessionFolder
     from otbot_hw.runtime.supervisor import SafetyConfig
@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> dict:
     with_imu = cfg.imu is not None and not args.no_imu
     base = BenchSettings(steps=parse_steps(args.steps), excitation=args.excitation or "designed",
                          attempts=args.attempts or 2, limits=limits, safety=SafetyConfig.load(args.config),
-                         motor_limits=cfg.limits, params_start=OtbotParams.load(args.params),
+                         motor_limits=cfg.limits, params_start=load_params(args.params),
                          noise=NoiseModel(accel=est.accel_sigma, gyro=est.gyro_sigma, enc_rate=est.encoder_rate_sigma),
                          imu_rate=float(cfg.imu.rate_hz) if with_imu else None, diagnose=not args.no_diagnose)
     session = None

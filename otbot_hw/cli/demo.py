@@ -64,7 +64,8 @@ def format_q(q) -> str:
 
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.cli.simulate import write_plots
-    from otbot_hw.params import OtbotParams, nominal
+    from otbot_hw.model.well_posed import load_params
+    from otbot_hw.params import nominal
     from otbot_hw.recording import write_recording
     from otbot_hw.sensors import NoiseModel
     from otbot_hw.simulation.runs import simulated_recording
@@ -93,7 +94,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.cli.run import bus_demo
     result["bus_run"] = bus_demo(out, args.seed, quiet, reference=rec)
     result["bench"] = _bench(out, quiet, args.seed)
-    identified = OtbotParams.load(result["bench"]["params_file"])
+    identified = load_params(result["bench"]["params_file"])
     result["corridor"] = _corridor(out, identified, quiet, args.seed, plant=params.with_load(*DEMO_LOAD))
     result["adaptation"] = _adaptation(out, params, quiet, args.seed)
     return result

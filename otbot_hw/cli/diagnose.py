@@ -103,7 +103,8 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.diagnose.data import load
     from otbot_hw.diagnose.diagnosis import diagnose
     from otbot_hw.diagnose.geometry import load_geometry
-    from otbot_hw.params import OtbotParams, nominal
+    from otbot_hw.model.well_posed import load_params
+    from otbot_hw.params import nominal
 
     quiet = args.json
     say = (lambda m: progress(m, True))
@@ -126,7 +127,7 @@ def run(args: argparse.Namespace) -> dict:
     overlap = {str(p) for p in fitting} & {str(p) for p in held}
     if overlap:
         raise CliError(f"recording(s) both fitting and held-out: {sorted(overlap)}")
-    params = OtbotParams.load(args.params) if args.params else nominal()
+    params = load_params(args.params) if args.params else nominal()
     geometry = load_geometry(args.robot)
     if args.out is not None:
         if args.each:

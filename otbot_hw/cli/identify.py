@@ -98,13 +98,14 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.identification.prediction_error import cramer_rao_std
     from otbot_hw.identification.report import plot_fit, step_table, step_to_dict
     from otbot_hw.identification.steps import check_fixtures, check_guess, identify_step
-    from otbot_hw.params import OtbotParams, ParameterError
+    from otbot_hw.model.well_posed import load_params
+    from otbot_hw.params import ParameterError
     from otbot_hw.recording import read_recording
 
     quiet = args.json
     output_file(args.out, "--out")
     output_folder(args.plot, "--plot")
-    base = OtbotParams.load(args.params)
+    base = load_params(args.params)
     guess = parse_guesses(args.guess, args.step)
     check_guess(args.step, guess, base)
     load = parse_load(args.load)

@@ -45,10 +45,10 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.control.planner import PlannerError, PlanningProblem, crowded_corridor_problem, plan
     from otbot_hw.motors import load_motor_limits
-    from otbot_hw.params import OtbotParams
+    from otbot_hw.model.well_posed import load_params
 
     output_file(args.out, "--out")
-    params = OtbotParams.load(args.params)
+    params = load_params(args.params)
     limits = load_motor_limits(args.robot)
     base = crowded_corridor_problem(params, limits, args.intervals)
     start = tuple(parse_vector(args.start, 3, "--start")) if args.start else base.start

@@ -48,12 +48,13 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.cli.identify import parse_load
     from otbot_hw.identification.executors import make_executor
     from otbot_hw.identification.sweep import deviation_grid, plot_sweep, run_sweep
-    from otbot_hw.params import OtbotParams, ParameterError
+    from otbot_hw.model.well_posed import load_params
+    from otbot_hw.params import ParameterError
 
     if args.scheduler and args.workers is not None:
         raise CliError("give --scheduler or --workers, not both (a Dask cluster has its own workers)")
     output_folder(args.plot, "--plot")
-    base = OtbotParams.load(args.params)
+    base = load_params(args.params)
     load = parse_load(args.load)
     try:
         truth = base.with_load(*load) if load else base

@@ -67,7 +67,9 @@ class ExtendedModel:
         (``EFFECT_PARAMS``; ``c_w`` sets both wheels) to ``{value, unit[, std]}``; absent = paper's model."""
         from otbot_hw.params import EFFECTS_SECTION, OtbotParams, ParameterError, read_entry
 
-        params = OtbotParams.from_dict(data, source, allow_effects=True)
+        from otbot_hw.model.well_posed import check_well_posed
+
+        params = check_well_posed(OtbotParams.from_dict(data, source, allow_effects=True), source)
         block = data.get(EFFECTS_SECTION) or {}
         if not isinstance(block, dict):
             raise ParameterError(f"{source}: section '{EFFECTS_SECTION}' must be a mapping of effect parameters")
