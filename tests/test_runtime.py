@@ -223,6 +223,31 @@ def test_overruns_stop_a_realtime_loop_but_only_count_in_lockstep():
     assert res.completed and res.stats.overruns >= 4                    # lockstep: no deadline, counted only
 
 
+def test_an_overrun_streak_begun_at_rest_counts_from_the_first_cycle_meant_to_move():
+    """The daemon judges overruns only while the robot is meant to move (``realtime``); 300 late cycles
+    at rest and then the first moving ones: the fault comes at the (max + 1)-th late cycle in a row
+    while moving, not at the first; an in-time cycle while moving restarts the count."""
+    from otbot_hw.motors import load_motor_limits
+    from otbot_hw.runtime.supervisor import Supervisor
+
+    cfg = SafetyConfig(overrun_factor=1.5, max_consecutive_overruns=3)
+    sup = Supervisor(load_motor_limits(), cfg, period=0.01, realtime=False)
+    w = np.zeros(3)
+    for k in range(300):                                    # at rest: late every cycle, no fault
+        assert sup.check(k * 0.01, w, wall_period=0.05) is None
+    sup.realtime = True                                     # meant to move from here
+    for k in range(3):
+        assert sup.check(3 + k * 0.01, w, wall_period=0.05) is None
+    assert sup.check(3.03, w, wall_period=0.01) is None     # in time: the streak restarts
+    for k in range(3):
+        assert sup.check(3.04 + k * 0.01, w, wall_period=0.05) is None
+    v = sup.check(3.07, w, wall_period=0.05)                # the 4th late cycle in a row while moving
+    assert v is not None and v.kind == "overrun" and v.text.startswith("4 cycles in a row")
+    sup.reset()
+    sup.realtime = False                                    # at rest again after the reset: warnings only
+    assert all(sup.check(4 + k * 0.01, w, wall_period=0.05) is None for k in range(50))
+
+
 def test_supervisor_over_the_bus_quick_stops_the_simulated_drives():
     """A joint-rate violation over the simulated CAN bus: the plant's drives (not the master's belief)
     end quick-stopped (then disabled) with zero torque, and the plant's pivot coasts without torque."""

@@ -18,7 +18,8 @@ tracking_error         |(x, y) - (x_d, y_d)| above max_position_error or |alpha 
 estimator              a non-finite estimate, position/heading std above its maximum, or more than
                        max_rejected_fraction of the innovations rejected over rejection_window
 overrun                real-time loops only: more than max_consecutive_overruns cycles in a row whose
-                       period exceeded overrun_factor periods
+                       period exceeded overrun_factor periods (the daemon judges them only while the
+                       robot is meant to move; a streak begun at rest counts from the first such cycle)
 command                the controller produced a non-finite torque
 =====================  ===========================================================================
 
@@ -232,14 +233,16 @@ class Supervisor:
     def _check(self, t, joint_vel, est, ref, wall_period) -> Violation | None:
         # plain floats: this runs every cycle, and numpy on 3-vectors costs more than the checks
         c = self.config
-        if wall_period is not None and wall_period > c.overrun_factor * self.period:
-            self._consecutive += 1
-            if self.realtime and self._consecutive > c.max_consecutive_overruns:
-                return Violation("overrun", t, f"{self._consecutive} cycles in a row longer than "
-                                               f"{c.overrun_factor:g} periods (last {wall_period * 1e3:.2f} ms, period "
-                                               f"{self.period * 1e3:.2f} ms)", wall_period, c.overrun_factor * self.period)
-        elif wall_period is not None:
-            self._consecutive = 0
+        if wall_period is not None:
+            if self.realtime and wall_period > c.overrun_factor * self.period:
+                self._consecutive += 1
+                if self._consecutive > c.max_consecutive_overruns:
+                    return Violation("overrun", t, f"{self._consecutive} cycles in a row longer than "
+                                                   f"{c.overrun_factor:g} periods (last {wall_period * 1e3:.2f} ms, "
+                                                   f"period {self.period * 1e3:.2f} ms)", wall_period,
+                                     c.overrun_factor * self.period)
+            else:  # in time, or not judged (lockstep; the daemon's robot at rest): a streak starts afresh, so
+                self._consecutive = 0  # one that began at rest counts from the first cycle meant to move
         w = joint_vel.tolist() if hasattr(joint_vel, "tolist") else list(joint_vel)
         for i, lim in ((0, c.max_wheel_rate), (1, c.max_wheel_rate), (2, c.max_pivot_rate)):
             if lim is not None and not abs(w[i]) <= lim:
