@@ -24,6 +24,11 @@ interpreter's whole load per cycle: in process, one lock runs one thread at a ti
 plant's (the simulated drives: not the master's), heartbeats, telemetry, ...; and the loop's own
 timing from ``status`` (period, overruns: wall time, distorted by the machine's load).
 
+Work is also split by cycles whose snapshot brought a new IMU sample (100 Hz: one cycle in eight at 800
+Hz; they run the IMU's parse and the gyro update) and the others. ``--yardstick S`` (default 10 s, first):
+the machine's own tail, a fixed piece of pure-Python work paced at the rate on the same CPUs and priority
+(``benchmarks/machine_tail.py``): the work's p99 cannot beat its p99 / p50 ratio on the same machine.
+
 Also: the garbage collections in the window (``gc``: per generation the count, the longest in µs and the
 threads they ran on), and ``--record-in-background``: the daemon's ``LoopRunner`` with
 ``record_in_background=True`` (the recording written by a ``recording-writer`` thread).
@@ -82,6 +87,8 @@ class _Probe:
         self.robot = robot
         self.read_cpu = np.full(n, np.nan)
         self.work_cpu = np.full(n, np.nan)
+        self.fresh_imu = np.zeros(n, bool)  # the cycle's snapshot brought a new IMU sample
+        self._imu_time = self._fresh = None
         self.k = 0
         self.n = n
         self._t_ask = self._t_read = 0.0
@@ -94,6 +101,8 @@ class _Probe:
         t0 = time.thread_time()
         s = self._read()
         self._t_ask, self._t_read = t0, time.thread_time()
+        self._fresh = s.imu_time is not None and s.imu_time != self._imu_time
+        self._imu_time = s.imu_time
         if self.loop_ident is None:
             self.loop_ident = threading.get_ident()
         return s
@@ -104,6 +113,7 @@ class _Probe:
         if self.active and self.k < self.n and self._t_read:
             self.read_cpu[self.k] = self._t_read - self._t_ask
             self.work_cpu[self.k] = t - self._t_ask
+            self.fresh_imu[self.k] = self._fresh
             for acc in self.sections.values():
                 acc[0][self.k] = acc[1]
             self.k += 1
@@ -321,6 +331,9 @@ def run(rate: float, seconds: float, folder: Path, profile: Path | None = None, 
             "read_p50_us": us(r, 50), "read_p99_us": us(r, 99),
             "compute_write_p50_us": us(w - r, 50), "compute_write_p99_us": us(w - r, 99),
             "work_p50_us": us(w, 50), "work_p99_us": us(w, 99), "work_max_us": us(w, 100),
+            "work_imu_cycles_p50_p99_us": (us(w[probe.fresh_imu[:k]], 50), us(w[probe.fresh_imu[:k]], 99)),
+            "work_other_cycles_p50_p99_us": (us(w[~probe.fresh_imu[:k]], 50), us(w[~probe.fresh_imu[:k]], 99)),
+            "imu_cycle_share": float(np.mean(probe.fresh_imu[:k])),
             "work_less_sends_p50_us": us(w - sends, 50), "work_less_sends_p99_us": us(w - sends, 99),
             "master_rx_us_per_cycle": master_rx * 1e6,
             "plant_sync_p50_us": us(plant_sync[:plant_k[0]], 50), "plant_sync_p99_us": us(plant_sync[:plant_k[0]], 99),
@@ -354,22 +367,34 @@ def main(argv=None) -> int:
                     help="run the process (every thread) on these CPUs, e.g. 1 (as the unit's CPUAffinity=)")
     ap.add_argument("--fifo", type=int, default=None, metavar="PRIORITY",
                     help="SCHED_FIFO at this priority for every thread (as the unit's CPUSchedulingPolicy=fifo)")
+    ap.add_argument("--yardstick", type=float, default=10.0, metavar="SECONDS",
+                    help="first, this long: the machine's own tail (benchmarks/machine_tail.py: a fixed piece of "
+                         "pure-Python work paced at --rate, placed as the daemon; 0: skip)")
     ap.add_argument("--label", default=str(ROOT), help="what the row is called")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     if a.flame is not None and a.profile is None:
         ap.error("--flame needs --profile FILE")
+    if not (a.yardstick >= 0 and math.isfinite(a.yardstick)):
+        ap.error(f"argument --yardstick: must be >= 0 s and finite, got {a.yardstick!r}")
     if a.cpus:  # before any thread starts: every thread inherits it
         os.sched_setaffinity(0, {int(c) for c in a.cpus.split(",")})
     if a.fifo:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(a.fifo))
     load0 = os.getloadavg()[0]
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
+    yard = None
+    if a.yardstick > 0:  # the machine's tail for fixed work, placed as the daemon (same CPUs, same priority)
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from machine_tail import tail
+
+        yard = tail(a.rate, a.yardstick, 3000)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
         row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.record_in_background, a.flame)
     row["label"] = a.label
     row["cpus"], row["fifo"] = a.cpus, a.fifo
     row["load_before"] = load0  # 1-min load average at the start; "load": at the window's end
+    row["yardstick"] = yard
     if a.json:
         print(json.dumps(row))
         return 0
@@ -383,6 +408,13 @@ def main(argv=None) -> int:
           f"{row['compute_write_p50_us']:.0f} / {row['compute_write_p99_us']:.0f} | "
           f"{row['master_rx_us_per_cycle']:.0f} | {row['overruns']} ({row['overruns_per_min']:.0f}) | "
           f"{row['load_before']:.1f}, {row['load']:.1f} |")
+    print(f"\nwork on cycles with a new IMU sample ({100 * row['imu_cycle_share']:.1f} % of them) p50 / p99: "
+          f"{row['work_imu_cycles_p50_p99_us'][0]:.0f} / {row['work_imu_cycles_p50_p99_us'][1]:.0f} us; on the others: "
+          f"{row['work_other_cycles_p50_p99_us'][0]:.0f} / {row['work_other_cycles_p50_p99_us'][1]:.0f} us")
+    if yard is not None:
+        print(f"the machine's tail (benchmarks/machine_tail.py, fixed work at {a.rate:g} Hz for {a.yardstick:g} s): "
+              f"CPU p50 / p99 {yard['cpu_p50_us']:.0f} / {yard['cpu_p99_us']:.0f} us, p99 / p50 "
+              f"{yard['cpu_p99_over_p50']:.2f}")
     print("\nloop-thread sections, CPU p50 / p99 (us): " + ", ".join(
         f"{k}: {v[0]:.0f} / {v[1]:.0f}" for k, v in row["sections_p50_p99_us"].items()))
     print(f"\nplant SYNC handler (simulated drives, IMU, model step) CPU p50 / p99: {row['plant_sync_p50_us']:.0f} / "
