@@ -57,6 +57,45 @@ def test_stop_trajectory_takes_over_the_motion_and_comes_to_rest_within_the_limi
     assert hold.stop_time == 0 and np.all(hold.sample(np.array([0.0, 5.0]))[0] == p0)
 
 
+@pytest.mark.parametrize("v0, moving", [
+    ((0.0, 0.0, 0.0), False),
+    ((0.01, 0.0, 0.0), False),             # REST_SPEED itself: standing
+    ((0.0, -0.01, 0.0), False),
+    ((0.006, -0.008, 0.0), False),         # |v| = 0.01: standing
+    ((0.0101, 0.0, 0.0), True),
+    ((0.0, -0.0101, 0.0), True),
+    ((0.0, 0.0, 0.02), False),             # REST_TURN itself
+    ((0.0, 0.0, -0.02), False),
+    ((0.0, 0.0, 0.0201), True),
+    ((0.0, 0.0, -0.0201), True),
+    ((0.3, 0.0, 0.0), True),
+])
+def test_a_hold_that_starts_from_rest_is_standing_for_the_overrun_rule(v0, moving):
+    """``ModeMachine.moving``: a hold ramping from a twist within the rest thresholds (enable's, from the
+    estimate's noise) is standing -- overruns there are warnings; from above them it moves until its
+    ramp ends; either sign."""
+    import types
+
+    from otbot_hw.runtime.daemon_modes import ModeMachine
+
+    m = ModeMachine(law=None, velocity=None, notify=lambda _: None)
+    m.runner = types.SimpleNamespace(t=0.0, period=0.01)
+    traj = StopTrajectory((0.0, 0.0, 0.0), v0, 0.5, 1.0)
+    ramp = {"done": False}
+    m.holding = types.SimpleNamespace(reference=traj, finished=lambda t: ramp["done"])
+    m.mode = "hold"
+    assert m.moving() is moving
+    ramp["done"] = True
+    assert m.moving() is False                                    # ramp over: standing whatever it began at
+    m.holding = None
+    assert m.moving() is True                                     # a hold without its controller: assume motion
+    for mode in ("track", "velocity", "excite"):
+        m.mode = mode
+        assert m.moving() is True
+    m.mode = "idle"
+    assert m.moving() is False
+
+
 def test_placed_trajectory_is_the_same_motion_started_elsewhere():
     ref = corridor_spec(smooth=True).reference
     start = np.array([3.0, -1.0, 2.0])

@@ -104,14 +104,21 @@ class ModeMachine:
                 self.ramp_to_hold("excitation finished")
 
     def moving(self) -> bool:
-        """Whether the robot is meant to move: track, velocity, excite, or a hold still ramping."""
+        """Whether the robot is meant to move: track, velocity, excite, or a hold still ramping from a
+        speed above rest (``REST_SPEED``, ``REST_TURN``). A hold that starts from rest -- ``enable``'s,
+        ramping from the estimate's noise-level twist for a few ms -- is standing."""
         mode = self.mode
         if mode in ("track", "velocity", "excite"):
             return True
         if mode == "hold":
             h = self.holding
             r = self.runner
-            return h is None or not h.finished(r.t + r.period)
+            if h is None:
+                return True
+            if h.finished(r.t + r.period):
+                return False
+            v0 = getattr(h.reference, "v0", None)  # the StopTrajectory's start twist (m/s, rad/s)
+            return bool(v0 is None or math.hypot(v0[0], v0[1]) > REST_SPEED or abs(v0[2]) > REST_TURN)
         return False
 
     # -- checks -----------------------------------------------------------------------------------
