@@ -198,6 +198,8 @@ BAD_INPUT = [
     ("track", "corridor --sim --params {singular_yaml}", "these parameters make the model singular"),
     ("plan", "--out {tmp}/p.csv --params {singular_yaml}", "these parameters make the model singular"),
     ("identify", "chassis --recording {ok} --params {singular_yaml}", "these parameters make the model singular"),
+    ("identify", "platform --sim --load 1e30@0,0", "--load: the loaded robot: these parameters make the model singular"),
+    ("sweep", "--load 1e30@0,0", "--load: the loaded robot: these parameters make the model singular"),
     ("identify", "chassis --recording {ok} {ok}", "--recording {ok}: is named twice; each recording counts once"),
     ("identify", "chassis --recording {ok} {ok_copy}", "--recording {ok_copy}: has the same content as {ok}"),
     ("run", "--bus sim --duration 1 --inject bus-off@1e9", "--inject bus-off@1e9: 1e+09 s is outside the run (1 s"),

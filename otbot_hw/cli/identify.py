@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.identification.prediction_error import cramer_rao_std
     from otbot_hw.identification.report import plot_fit, step_table, step_to_dict
     from otbot_hw.identification.steps import check_fixtures, check_guess, identify_step
-    from otbot_hw.model.well_posed import load_params
+    from otbot_hw.model.well_posed import check_well_posed, load_params
     from otbot_hw.params import ParameterError
     from otbot_hw.recording import read_recording
 
@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> dict:
     truth = None
     if args.sim:
         try:
-            truth = base.with_load(*load) if load else base
+            truth = check_well_posed(base.with_load(*load), "the loaded robot") if load else base
         except ParameterError as exc:
             raise CliError(f"--load: {exc}") from None
     if args.deviation is not None:

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.cli.identify import parse_load
     from otbot_hw.identification.executors import make_executor
     from otbot_hw.identification.sweep import deviation_grid, plot_sweep, run_sweep
-    from otbot_hw.model.well_posed import load_params
+    from otbot_hw.model.well_posed import check_well_posed, load_params
     from otbot_hw.params import ParameterError
 
     if args.scheduler and args.workers is not None:
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> dict:
     base = load_params(args.params)
     load = parse_load(args.load)
     try:
-        truth = base.with_load(*load) if load else base
+        truth = check_well_posed(base.with_load(*load), "the loaded robot") if load else base
     except ParameterError as exc:
         raise CliError(f"--load: {exc}") from None
     quiet = args.json

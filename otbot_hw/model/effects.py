@@ -65,9 +65,8 @@ class ExtendedModel:
     def from_dict(cls, data, source: str = "<dict>") -> "ExtendedModel":
         """Parameters and effects from the YAML structure. ``effects`` maps effect-parameter names
         (``EFFECT_PARAMS``; ``c_w`` sets both wheels) to ``{value, unit[, std]}``; absent = paper's model."""
-        from otbot_hw.params import EFFECTS_SECTION, OtbotParams, ParameterError, read_entry
-
         from otbot_hw.model.well_posed import check_well_posed
+        from otbot_hw.params import EFFECTS_SECTION, OtbotParams, ParameterError, read_entry
 
         params = check_well_posed(OtbotParams.from_dict(data, source, allow_effects=True), source)
         block = data.get(EFFECTS_SECTION) or {}
