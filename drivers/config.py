@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from drivers.config_reader import ConfigReader
 from otbot_hw.motors import DEFAULT_ROBOT_FILE, MOTORS, MotorLimits, load_motor_limits
 from otbot_hw.params import ParameterError, read_yaml
 
@@ -21,6 +21,13 @@ VELOCITY_UNITS = ("counts/s", "rpm", "0.1 rpm", "0.001 rpm")  # of 0x606C, motor
 ABORT_OPTIONS = {"no_action": 0, "fault": 1, "disable_voltage": 2, "quick_stop": 3}
 
 
+#: Longest wait for a node's boot-up message (s).
+MAX_BOOT_TIMEOUT = 60.0
+#: Heartbeat times (ms) go to 0x1016 / 0x1017, UNSIGNED16.
+MAX_HEARTBEAT_MS = (65535.0, "0x1016/0x1017 hold at most 65535 ms")
+#: Largest gear ratio (motor or encoder revolutions per joint revolution) accepted.
+MAX_GEAR_RATIO = (1e5, "no gearbox reduces more")
+UNSIGNED32 = 2 ** 32 - 1
 #: Lockstep runs: how long the master waits for the plant's answer to a SYNC (s).
 LOCKSTEP_TIMEOUT = 0.25
 #: Lockstep runs: SDO answers are awaited this long (s) while booting (a loaded machine can hold a
@@ -186,93 +193,18 @@ class RobotConfig:
         return ids
 
 
-class _Reader:
-    """Typed access to nested YAML mappings with errors naming ``file: 'a.b.c'``."""
-
-    def __init__(self, path: Path):
-        self.path = path
-
-    def err(self, key: str, msg: str) -> ParameterError:
-        return ParameterError(f"{self.path}: '{key}' {msg}")
-
-    def section(self, data: dict, key: str) -> dict:
-        v = data.get(key.split(".")[-1]) if isinstance(data, dict) else None
-        if not isinstance(v, dict):
-            raise ParameterError(f"{self.path}: missing section '{key}'")
-        return v
-
-    def raw(self, d: dict, key: str, name: str, default: Any = ...):
-        if key not in d:
-            if default is ...:
-                raise self.err(name, "is missing")
-            return default
-        return d[key]
-
-    def number(self, d: dict, key: str, name: str, unit: str | None, default: Any = ..., positive: bool = True,
-               integer: bool = False):
-        v = self.raw(d, key, name, default)
-        if v is default and default is not ...:
-            return default
-        if unit is not None:
-            if not isinstance(v, dict) or "value" not in v:
-                raise self.err(name, f"must be {{value: NUMBER, unit: {unit}}}, got {v!r}")
-            if v.get("unit") != unit:
-                raise self.err(name, f"unit must be '{unit}', got {v.get('unit')!r}")
-            v = v["value"]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise self.err(name, f"must be a finite number, got {v!r}")
-        if integer and (not float(v).is_integer()):
-            raise self.err(name, f"must be a whole number, got {v!r}")
-        if positive and not v > 0:
-            raise self.err(name, f"must be > 0, got {v!r}")
-        return int(v) if integer else float(v)
-
-    def periods(self, d: dict, key: str, name: str, rate: float, default: int) -> int:
-        """A whole number of control periods, written {value: N, unit: periods}; a time in s is
-        rounded up to whole periods of ``rate`` Hz."""
-        v = self.raw(d, key, name, None)
-        if v is None:
-            return default
-        if isinstance(v, dict) and v.get("unit") == "s":
-            secs = self.number(d, key, name, "s")
-            return max(1, int(np.ceil(secs * rate - 1e-9)))
-        n = self.number(d, key, name, "periods")
-        if not float(n).is_integer() or n < 1:
-            raise self.err(name, f"must be a whole number of periods >= 1, got {n!r}")
-        return int(n)
-
-    def node_id(self, d: dict, name: str) -> int:
-        v = self.number(d, "node_id", f"{name}.node_id", None, integer=True)
-        if not 1 <= v <= 127:
-            raise self.err(f"{name}.node_id", f"must be a CANopen node ID 1..127, got {v}")
-        return v
-
-    def sign(self, d: dict, key: str, name: str) -> int:
-        v = self.raw(d, key, name, 1)
-        if v not in (1, -1) or isinstance(v, bool):
-            raise self.err(name, f"must be 1 or -1, got {v!r}")
-        return int(v)
-
-    def eds(self, d: dict, name: str) -> Path:
-        v = self.raw(d, "eds", name)
-        if not isinstance(v, str) or not v:
-            raise self.err(name, f"must be a file name, got {v!r}")
-        p = Path(v) if Path(v).is_absolute() else self.path.parent / v
-        if not p.is_file():
-            raise self.err(name, f"names {p}, which does not exist")
-        return p
-
-
 def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     """Read and validate bus, drives, pivot_encoder, imu and motors from ``path`` (default config/robot.yaml)."""
     p = Path(path) if path is not None else DEFAULT_ROBOT_FILE
     data = read_yaml(p)
     if not isinstance(data, dict):
         raise ParameterError(f"{p}: expected a mapping of sections, got {type(data).__name__}")
-    r = _Reader(p)
+    r = ConfigReader(p)
     limits = load_motor_limits(p)
 
     b = r.section(data, "bus")
+    r.only(b, "bus", ("interface", "channel", "bitrate", "control_rate", "tpdo_timeout", "reaction_timeout",
+                      "boot_timeout", "master_node_id", "master_heartbeat", "loop_liveness", "options"))
     iface = r.raw(b, "interface", "bus.interface")
     chan = r.raw(b, "channel", "bus.channel")
     import can
@@ -293,23 +225,30 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
                     bitrate=r.number(b, "bitrate", "bus.bitrate", "bit/s", integer=True),
                     control_rate=rate,
                     tpdo_timeout=r.periods(b, "tpdo_timeout", "bus.tpdo_timeout", rate, default=2),
-                    boot_timeout=r.number(b, "boot_timeout", "bus.boot_timeout", "s", default=2.0),
+                    boot_timeout=r.number(b, "boot_timeout", "bus.boot_timeout", "s", default=2.0,
+                                          maximum=(MAX_BOOT_TIMEOUT, "a node boots in seconds")),
                     options=dict(options),
                     reaction_timeout=r.periods(b, "reaction_timeout", "bus.reaction_timeout", rate, default=2),
                     master_node_id=master_id,
-                    master_heartbeat=r.number(b, "master_heartbeat", "bus.master_heartbeat", "ms", default=20.0) / 1000,
+                    master_heartbeat=r.number(b, "master_heartbeat", "bus.master_heartbeat", "ms", default=20.0,
+                                              maximum=MAX_HEARTBEAT_MS) / 1000,
                     loop_liveness=r.periods(b, "loop_liveness", "bus.loop_liveness", rate, default=3))
 
     d = r.section(data, "drives")
+    r.only(d, "drives", ("eds", "counts_per_rev", "velocity_unit", "rated_torque", "heartbeat_producer",
+                         "heartbeat_consumer", "master_heartbeat_consumer", "sync_watchdog", "rpdo_timeout",
+                         "abort_connection_option", "quick_stop_option", "sdo_config") + tuple(JOINTS))
     eds = r.eds(d, "drives.eds")
-    cpr = r.number(d, "counts_per_rev", "drives.counts_per_rev", None, integer=True)
-    rated = r.number(d, "rated_torque", "drives.rated_torque", "N m")
-    hb_p = r.number(d, "heartbeat_producer", "drives.heartbeat_producer", "ms") / 1000
-    hb_c = r.number(d, "heartbeat_consumer", "drives.heartbeat_consumer", "ms") / 1000
+    cpr = r.number(d, "counts_per_rev", "drives.counts_per_rev", None, integer=True,
+                   maximum=(UNSIGNED32, "0x608F:01 is UNSIGNED32"))
+    rated = r.number(d, "rated_torque", "drives.rated_torque", "N m",
+                     maximum=(UNSIGNED32 / 1000, "0x6076 is UNSIGNED32 mN m"))
+    hb_p = r.number(d, "heartbeat_producer", "drives.heartbeat_producer", "ms", maximum=MAX_HEARTBEAT_MS) / 1000
+    hb_c = r.number(d, "heartbeat_consumer", "drives.heartbeat_consumer", "ms", maximum=MAX_HEARTBEAT_MS) / 1000
     if hb_c <= hb_p:
         raise r.err("drives.heartbeat_consumer", f"({hb_c * 1000:g} ms) must exceed heartbeat_producer "
                                                  f"({hb_p * 1000:g} ms)")
-    sdo = _sdo_list(r, d.get("sdo_config", []), "drives.sdo_config")
+    sdo = _sdo_list(r, d.get("sdo_config", []), "drives.sdo_config", eds)
     vunit = r.raw(d, "velocity_unit", "drives.velocity_unit", "counts/s")
     if vunit not in VELOCITY_UNITS:
         raise r.err("drives.velocity_unit", f"must be one of {', '.join(VELOCITY_UNITS)}, got {vunit!r}")
@@ -325,7 +264,7 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
         raise r.err("drives.sync_watchdog", f"must be true or false (0x1006 = the control period, or 0: off), "
                                             f"got {sync_watchdog!r}")
     abort = r.raw(d, "abort_connection_option", "drives.abort_connection_option", "quick_stop")
-    if abort not in ABORT_OPTIONS:
+    if not isinstance(abort, str) or abort not in ABORT_OPTIONS:
         raise r.err("drives.abort_connection_option", f"must be one of {', '.join(ABORT_OPTIONS)}, got {abort!r}")
     qso = r.raw(d, "quick_stop_option", "drives.quick_stop_option", 2)
     if isinstance(qso, bool) or not isinstance(qso, int) or not 0 <= qso <= 8:
@@ -334,9 +273,10 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     drives = []
     for k, name in enumerate(JOINTS):
         j = r.section(d, f"drives.{name}")
+        r.only(j, f"drives.{name}", ("node_id", "gear_ratio", "polarity"))
         drives.append(DriveConfig(
             name=name, node_id=r.node_id(j, f"drives.{name}"), eds=eds, counts_per_rev=cpr,
-            gear_ratio=r.number(j, "gear_ratio", f"drives.{name}.gear_ratio", None),
+            gear_ratio=r.number(j, "gear_ratio", f"drives.{name}.gear_ratio", None, maximum=MAX_GEAR_RATIO),
             polarity=r.sign(j, "polarity", f"drives.{name}.polarity"), rated_torque=rated,
             heartbeat_producer=hb_p, heartbeat_consumer=hb_c, sdo_config=sdo,
             max_torque=float(limits.max_torque[k]), velocity_unit=vunit, master_heartbeat_consumer=mhb_c,
@@ -344,20 +284,24 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
             sync_watchdog=sync_watchdog))
 
     e = r.section(data, "pivot_encoder")
+    r.only(e, "pivot_encoder", ("source", "node_id", "eds", "offset", "direction", "gear_ratio", "heartbeat_producer",
+                                "heartbeat_consumer"))
     source = r.raw(e, "source", "pivot_encoder.source")
     if source not in ("encoder", "drive"):
         raise r.err("pivot_encoder.source", f"must be 'encoder' or 'drive', got {source!r}")
     if source == "encoder":
-        e_hb_p = r.number(e, "heartbeat_producer", "pivot_encoder.heartbeat_producer", "ms") / 1000
-        e_hb_c = r.number(e, "heartbeat_consumer", "pivot_encoder.heartbeat_consumer", "ms") / 1000
+        e_hb_p = r.number(e, "heartbeat_producer", "pivot_encoder.heartbeat_producer", "ms",
+                          maximum=MAX_HEARTBEAT_MS) / 1000
+        e_hb_c = r.number(e, "heartbeat_consumer", "pivot_encoder.heartbeat_consumer", "ms",
+                          maximum=MAX_HEARTBEAT_MS) / 1000
         if e_hb_c <= e_hb_p:
             raise r.err("pivot_encoder.heartbeat_consumer", "must exceed heartbeat_producer")
         enc = EncoderConfig(source=source, node_id=r.node_id(e, "pivot_encoder"),
                             eds=r.eds(e, "pivot_encoder.eds"),
-                            offset=r.number(e, "offset", "pivot_encoder.offset", "counts", positive=False,
-                                            integer=True),
+                            offset=_offset(r, e),
                             direction=r.sign(e, "direction", "pivot_encoder.direction"),
-                            gear_ratio=r.number(e, "gear_ratio", "pivot_encoder.gear_ratio", None, default=1.0),
+                            gear_ratio=r.number(e, "gear_ratio", "pivot_encoder.gear_ratio", None, default=1.0,
+                                                maximum=MAX_GEAR_RATIO),
                             heartbeat_producer=e_hb_p, heartbeat_consumer=e_hb_c)
     else:
         enc = EncoderConfig(source="drive")
@@ -374,10 +318,23 @@ def load_robot_config(path: str | Path | None = None) -> RobotConfig:
     return RobotConfig(bus=bus, drives=tuple(drives), pivot_encoder=enc, imu=imu, limits=limits, path=p)
 
 
-def _sdo_list(r: _Reader, items, name: str) -> tuple:
+def _offset(r: ConfigReader, e: dict) -> int:
+    """pivot_encoder.offset: counts >= 0 within UNSIGNED32 (the device's own range, 0x6002, is checked at
+    boot)."""
+    v = r.number(e, "offset", "pivot_encoder.offset", "counts", positive=False, integer=True,
+                 maximum=(UNSIGNED32, "an absolute position is UNSIGNED32"))
+    if v < 0:
+        raise r.err("pivot_encoder.offset", f"must be a position >= 0 counts (0x6004), got {v}")
+    return v
+
+
+def _sdo_list(r: ConfigReader, items, name: str, eds: Path) -> tuple:
+    """[index, subindex, value] writes (no PDO object), each value within its object's data type where the
+    drive's EDS has the object."""
     if not isinstance(items, list):
         raise r.err(name, f"must be a list of [index, subindex, value], got {items!r}")
     out = []
+    od = _import_od(r, eds, name) if items else None
     for k, it in enumerate(items):
         if (not isinstance(it, list) or len(it) != 3
                 or not all(isinstance(v, int) and not isinstance(v, bool) for v in it)):
@@ -387,5 +344,21 @@ def _sdo_list(r: _Reader, items, name: str) -> tuple:
             raise r.err(f"{name}[{k}]", f"index 0x{idx:X} / subindex {sub} out of range")
         if 0x1400 <= idx <= 0x1BFF:
             raise r.err(f"{name}[{k}]", f"0x{idx:04X} is a PDO object: the driver maps PDOs itself")
+        var = od.get_variable(idx, sub)
+        try:  # (an object the EDS lacks is the drive's to refuse at boot, after its more basic checks)
+            if var is not None:
+                var.encode_raw(val)
+        except (ValueError, TypeError, OverflowError):
+            raise r.err(f"{name}[{k}]", f"{val} does not fit 0x{idx:04X}:{sub:02X} {var.name!r} (data type "
+                                        f"0x{var.data_type:04X} in {eds.name})") from None
         out.append((idx, sub, val))
     return tuple(out)
+
+
+def _import_od(r: ConfigReader, eds: Path, name: str):
+    import canopen
+
+    try:
+        return canopen.import_od(str(eds))
+    except Exception as exc:  # noqa: BLE001 -- canopen raises many kinds on a malformed file
+        raise r.err(name, f"cannot check the writes against {eds}: {exc}") from None

@@ -91,6 +91,12 @@ class ImuConfig:
     timeout: float
 
 
+#: keys of the ``imu`` section
+IMU_KEYS = ("port", "baudrate", "protocol", "output", "rate_hz", "timeout", "mounting")
+#: longest IMU watchdog accepted (s)
+MAX_TIMEOUT = 10.0
+
+
 def load_imu_config(path: str | Path | None = None) -> ImuConfig:
     """Read and validate the ``imu`` section; :class:`ParameterError` names the bad key."""
     p = Path(path) if path is not None else DEFAULT_ROBOT_FILE
@@ -98,6 +104,10 @@ def load_imu_config(path: str | Path | None = None) -> ImuConfig:
     sec = (data or {}).get("imu") if isinstance(data, dict) else None
     if not isinstance(sec, dict):
         raise ParameterError(f"{p}: missing section 'imu'")
+
+    unknown = [k for k in sec if k not in IMU_KEYS]
+    if unknown:
+        raise ParameterError(f"{p}: 'imu' has unknown key(s) {unknown} (known: {', '.join(IMU_KEYS)})")
 
     def need(key):
         if key not in sec:
@@ -125,11 +135,16 @@ def load_imu_config(path: str | Path | None = None) -> ImuConfig:
     except ValueError as exc:
         raise ParameterError(f"{p}: 'imu.rate_hz' with 'imu.baudrate': {exc}") from None
     timeout = sec.get("timeout", 0.5)
-    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not (np.isfinite(timeout) and timeout > 0):
-        raise ParameterError(f"{p}: 'imu.timeout' must be a number of seconds > 0, got {timeout!r}")
+    if (isinstance(timeout, bool) or not isinstance(timeout, (int, float))
+            or not (np.isfinite(timeout) and 0 < timeout <= MAX_TIMEOUT)):
+        raise ParameterError(f"{p}: 'imu.timeout' must be a number of seconds in (0, {MAX_TIMEOUT:g}] (a longer "
+                             f"silence is no watchdog), got {timeout!r}")
     mounting = need("mounting")
     if not isinstance(mounting, dict) or "matrix" not in mounting:
         raise ParameterError(f"{p}: missing key 'imu.mounting.matrix' (3x3 rotation, sensor -> platform B'')")
+    if set(mounting) != {"matrix"}:
+        raise ParameterError(f"{p}: 'imu.mounting' has unknown key(s) {sorted(set(mounting) - {'matrix'})} "
+                             f"(known: matrix)")
     rows = mounting["matrix"]
     if (not isinstance(rows, list) or len(rows) != 3
             or not all(isinstance(r, list) and len(r) == 3 for r in rows)

@@ -33,10 +33,20 @@ def load_motor_limits(path: str | Path | None = None) -> MotorLimits:
     if not isinstance(motors, dict):
         raise ParameterError(f"{p}: missing section 'motors'")
     out = []
+    unknown = [k for k in motors if k not in MOTORS]
+    if unknown:
+        raise ParameterError(f"{p}: 'motors' has unknown key(s) {unknown} (known: {', '.join(MOTORS)})")
     for name in MOTORS:
-        entry = motors.get(name, {}).get("max_torque") if isinstance(motors.get(name), dict) else None
+        block = motors.get(name)
+        if isinstance(block, dict) and set(block) - {"max_torque"}:
+            raise ParameterError(f"{p}: 'motors.{name}' has unknown key(s) {sorted(set(block) - {'max_torque'})} "
+                                 f"(known: max_torque)")
+        entry = block.get("max_torque") if isinstance(block, dict) else None
         if not isinstance(entry, dict) or "value" not in entry:
             raise ParameterError(f"{p}: missing key 'motors.{name}.max_torque' ({{value, unit: N m}})")
+        if set(entry) - {"value", "unit"}:
+            raise ParameterError(f"{p}: 'motors.{name}.max_torque' has unknown key(s) "
+                                 f"{sorted(set(entry) - {'value', 'unit'})} (known: value, unit)")
         if entry.get("unit") != "N m":
             raise ParameterError(f"{p}: 'motors.{name}.max_torque' unit must be 'N m', got {entry.get('unit')!r}")
         v = entry["value"]

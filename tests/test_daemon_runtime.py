@@ -225,6 +225,32 @@ def test_daemon_velocity_configuration_names_bad_keys():
                      ({"max_angular_acceleration": {"value": 1, "unit": "rad/s"}}, "max_angular_acceleration")):
         with pytest.raises(ParameterError, match=key):
             daemon_config_from_dict({"velocity": bad})
+    # the deadman's bound: 10 s itself is accepted, beyond is no deadman
+    assert daemon_config_from_dict({"velocity": {"deadman": {"value": 10, "unit": "s"}}}).velocity.deadman == 10.0
+    for v in (10.001, 1e300):
+        with pytest.raises(ParameterError, match=r"'daemon.velocity.deadman' must be at most 10 s \(a longer one"):
+            daemon_config_from_dict({"velocity": {"deadman": {"value": v, "unit": "s"}}})
+
+
+@pytest.mark.parametrize("section, block, message", [
+    ("socket", {"max_request": {"value": 64, "unit": ["KiB"]}}, "'daemon.socket.max_request' must be {value: N, unit"),
+    ("socket", {"max_request": {"value": 64, "unit": {"KiB": 1}}}, "'daemon.socket.max_request' must be"),
+    ("recording", {"rotate_size": {"value": 1, "unit": ["GiB"]}}, "'daemon.recording.rotate_size' must be"),
+    ("recording", {"dir": None}, "'daemon.recording.dir' must be a non-empty string, got None"),
+])
+def test_daemon_configuration_of_the_wrong_type_is_named_not_a_traceback(section, block, message):
+    with pytest.raises(ParameterError) as e:
+        daemon_config_from_dict({section: block})
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_innovation_share_is_a_share():
+    from otbot_hw.runtime.supervisor import SafetyConfig
+
+    assert SafetyConfig.from_dict({"max_rejected_fraction": {"value": 1, "unit": "1"}}).max_rejected_fraction == 1.0
+    for v in (1.0001, 1e300):
+        with pytest.raises(ParameterError, match=r"'safety.max_rejected_fraction' must be a share in \(0, 1\]"):
+            SafetyConfig.from_dict({"max_rejected_fraction": {"value": v, "unit": "1"}})
 
 
 @pytest.mark.parametrize("argv, message", [

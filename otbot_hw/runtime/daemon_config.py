@@ -110,6 +110,8 @@ def _adaptation_default():
     return AdaptationConfig()
 
 
+#: longest velocity deadman accepted (s)
+MAX_DEADMAN = 10.0
 _SIZE_UNITS = {"bytes": 1, "KiB": 2 ** 10, "MiB": 2 ** 20, "GiB": 2 ** 30}
 
 
@@ -133,12 +135,16 @@ class _Section:
     def err(self, k: str, msg: str) -> ParameterError:
         return ParameterError(f"{self.source}: '{self.key(k)}' {msg}")
 
-    def quantity(self, k: str, unit: str, default: float) -> float:
-        """A ``{value, unit}`` entry that must be a finite number > 0."""
+    def quantity(self, k: str, unit: str, default: float, maximum: tuple[float, str] | None = None) -> float:
+        """A ``{value, unit}`` entry that must be a finite number > 0 (and at most ``maximum``: (value,
+        why))."""
         if k not in self.data:
             return default
         v, _ = read_entry(self.source, self.key(k), self.data[k], unit)
-        return self._positive(k, v, unit)
+        v = self._positive(k, v, unit)
+        if maximum is not None and v > maximum[0]:
+            raise self.err(k, f"must be at most {maximum[0]:g} {unit} ({maximum[1]}), got {v:g}")
+        return v
 
     def size(self, k: str, default: int) -> int:
         """A ``{value, unit}`` byte count with unit bytes, KiB, MiB or GiB."""
@@ -146,7 +152,7 @@ class _Section:
             return default
         e = self.data[k]
         unit = e.get("unit") if isinstance(e, dict) else None
-        if unit not in _SIZE_UNITS:
+        if not isinstance(unit, str) or unit not in _SIZE_UNITS:
             raise self.err(k, f"must be {{value: N, unit: bytes|KiB|MiB|GiB}}, got {e!r}")
         v, _ = read_entry(self.source, self.key(k), e, unit)
         n = self._positive(k, v, unit) * _SIZE_UNITS[unit]
@@ -180,9 +186,9 @@ class _Section:
             raise self.err(k, f"lists a CPU twice: {v!r}")
         return tuple(v)
 
-    def text(self, k: str, default: str | None) -> str | None:
+    def text(self, k: str, default: str | None, nullable: bool = True) -> str | None:
         v = self.data.get(k, default)
-        if v is not None and (not isinstance(v, str) or not v):
+        if (v is None and not nullable) or (v is not None and (not isinstance(v, str) or not v)):
             raise self.err(k, f"must be a non-empty string, got {v!r}")
         return v
 
@@ -216,7 +222,8 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
     v = _Section(source, "daemon.velocity", top.data.get("velocity"),
                  ("deadman", "max_linear", "max_angular", "max_acceleration", "max_angular_acceleration"))
     dv = VelocityConfig()
-    vel = VelocityConfig(deadman=v.quantity("deadman", "s", dv.deadman),
+    vel = VelocityConfig(deadman=v.quantity("deadman", "s", dv.deadman, maximum=(MAX_DEADMAN, "a longer one lets a "
+                                                                                   "lost client's last twist run on")),
                          max_linear=v.quantity("max_linear", "m/s", dv.max_linear),
                          max_angular=v.quantity("max_angular", "rad/s", dv.max_angular),
                          max_acceleration=v.quantity("max_acceleration", "m/s^2", dv.max_acceleration),
@@ -225,7 +232,7 @@ def daemon_config_from_dict(data: Any, source: str = "<dict>") -> DaemonConfig:
     r = _Section(source, "daemon.recording", top.data.get("recording"),
                  ("dir", "rotate_size", "rotate_time", "flush_interval", "format"))
     dr = RecordingConfig()
-    rec = RecordingConfig(dir=Path(r.text("dir", str(dr.dir))),
+    rec = RecordingConfig(dir=Path(r.text("dir", str(dr.dir), nullable=False)),
                           rotate_size=r.size("rotate_size", dr.rotate_size),
                           rotate_time=r.quantity("rotate_time", "s", dr.rotate_time),
                           flush_interval=r.quantity("flush_interval", "s", dr.flush_interval),

@@ -128,6 +128,9 @@ class SafetyConfig:
                     raise ParameterError(f"{source}: '{name}' must be a number > 0, got {v!r}")
                 if key == "overrun_factor" and not v > 1:
                     raise ParameterError(f"{source}: '{name}' must be > 1 (a multiple of the period), got {v!r}")
+                if key == "max_rejected_fraction" and not v <= 1:
+                    raise ParameterError(f"{source}: '{name}' must be a share in (0, 1] (above 1 the check never "
+                                         f"fires; null turns it off), got {v!r}")
                 values[key] = float(v)
         return cls(**values)
 
