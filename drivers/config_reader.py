@@ -102,6 +102,8 @@ class ConfigReader:
         if not isinstance(v, str) or not v:
             raise self.err(name, f"must be a file name, got {v!r}")
         p = Path(v) if Path(v).is_absolute() else self.path.parent / v
+        if p.is_dir():
+            raise self.err(name, f"names {p}, which is a folder, not an EDS file")
         if not p.is_file():
             raise self.err(name, f"names {p}, which does not exist")
         return p

@@ -34,6 +34,8 @@ def check_rotation(m, name: str = "mounting", tol: float = ROTATION_TOL) -> np.n
         raise ValueError(f"{name} must be a 3x3 matrix, got shape {r.shape}")
     if not np.all(np.isfinite(r)):
         raise ValueError(f"{name} has non-finite entries")
+    if np.abs(r).max() > 2.0:  # (a rotation's entries are within [-1, 1]; also keeps r @ r.T finite)
+        raise ValueError(f"{name} is not a rotation: entry {float(np.abs(r).max()):.3g} outside [-1, 1]")
     ortho = float(np.abs(r @ r.T - np.eye(3)).max())
     if ortho > tol:
         raise ValueError(f"{name} is not a rotation: |R R^T - I| = {ortho:.3g} > {tol:g}")

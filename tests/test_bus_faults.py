@@ -185,6 +185,8 @@ def test_malformed_frames_are_ignored_without_crash():
     ("right_wheel: {max_torque: {value: 40.0, unit: N m}}",
      "right_wheel: {max_torque: {value: 40.0, unit: N m, limit: 5}}", "'motors.right_wheel.max_torque' has unknown"),
     ("  timeout: 0.5", "  timeout: 1.0e+300", "'imu.timeout' must be a number of seconds in (0, 10]"),
+    ("      - [1.0, 0.0, 0.0]", "      - [1.0e+300, 0.0, 0.0]", "'imu.mounting.matrix' is not a rotation: entry 1e+300"),
+    ("eds: cia402_torque_drive.eds", "eds: .", "which is a folder, not an EDS file"),
     ("  timeout: 0.5", "  timeout: 0.5\n  timout: 2", "'imu' has unknown key(s) ['timout']"),
 ])
 def test_bad_config_is_rejected_naming_the_key(robot_yaml, old, new, key):
