@@ -219,6 +219,16 @@ BAD_INPUT = [
     ("export", "{ok} --ros2 {ok}", "exists and is not a folder (a rosbag2 bag is a folder)"),
     ("export", "{ok} --ros2 {missing}/bag", "does not exist (otbot creates no parent folders)"),
     ("export", "{cut_before_samples} --ros2 {tmp}/bag", "truncated"),
+    # --- inputs that are not regular files: refused before the open (a FIFO blocked it, /dev/zero never ended)
+    ("estimate", "{fifo}", "{fifo}: cannot read: is a FIFO (pipe), not a file"),
+    ("simulate", "--params {fifo}", "cannot read parameter file: is a FIFO (pipe), not a file"),
+    ("track", "{fifo} --sim", "{fifo}: cannot read: is a FIFO (pipe), not a file"),
+    ("track", "corridor --sim --config {fifo}", "is a FIFO (pipe), not a file"),
+    ("identify", "chassis --recording {fifo}", "{fifo}: cannot read: is a FIFO (pipe), not a file"),
+    ("export", "{fifo} --ros2 {tmp}/bag", "is a FIFO (pipe), not a file"),
+    ("imu", "parse /dev/zero", "/dev/zero: cannot read: is a character device, not a file"),
+    ("estimate", "{loop}", "{loop}: cannot read: Too many levels of symbolic links"),
+    ("identify", "chassis --recording {loop}", "Too many levels of symbolic links"),
 ]
 
 
@@ -248,6 +258,9 @@ def files(tmp_path_factory) -> dict[str, str]:
     with open(d / "huge.yaml", "wb") as f:  # sparse: 300 MB long, no disk used
         f.write(b"geometry:\n")
         f.truncate(300 * 1024 * 1024)
+    os.mkfifo(d / "fifo.mcap")
+    (d / "loop_a").symlink_to(d / "loop_b")
+    (d / "loop_b").symlink_to(d / "loop_a")
     unreadable = d / "unreadable.mcap"
     unreadable.write_bytes(data)
     unreadable.chmod(0)
@@ -257,7 +270,7 @@ def files(tmp_path_factory) -> dict[str, str]:
             "cut_before_samples": str(d / "cut_before_samples.mcap"), "ok_copy": str(d / "ok_copy.mcap"),
             "long_csv": str(d / "long.csv"), "dup_yaml": str(d / "dup.yaml"), "dup_robot": str(d / "dup_robot.yaml"),
             "huge_yaml": str(d / "huge.yaml"), "singular_yaml": str(d / "singular.yaml"),
-            "overflow_yaml": str(d / "overflow.yaml")}
+            "overflow_yaml": str(d / "overflow.yaml"), "fifo": str(d / "fifo.mcap"), "loop": str(d / "loop_a")}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:
@@ -274,6 +287,8 @@ def _skip_reason(command: str | None, argv: str) -> str | None:
         return f"otbot {command} is not on this branch"
     if "{unreadable}" in argv and os.geteuid() == 0:
         return "root reads files without read permission"
+    if "/dev/zero" in argv and not os.path.exists("/dev/zero"):
+        return "no /dev/zero on this machine"
     if "/dev/full" in argv and not os.path.exists("/dev/full"):
         return "no /dev/full on this machine"
     return None

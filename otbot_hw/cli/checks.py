@@ -208,11 +208,13 @@ def distinct_files(paths, option: str) -> None:
     input must count once. Unreadable files are skipped (their reader says what is wrong)."""
     import hashlib
 
+    from otbot_hw.input_files import open_input
+
     seen: dict[tuple[int, str], Path] = {}
     for p in paths:
         p = Path(p)
         try:
-            with open(p, "rb") as f:
+            with open_input(p) as f:
                 size = os.fstat(f.fileno()).st_size
                 digest = hashlib.file_digest(f, "sha256").hexdigest()
         except OSError:

@@ -108,9 +108,11 @@ def csv_numbers(path, header: list[str], rows: list[list[str]], wanted: Sequence
 
 def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
     """Read a trajectory CSV (format in the module docstring); errors name the row and column."""
+    from otbot_hw.input_files import read_text
+
     path = Path(path)
     try:
-        text = path.read_text()
+        text = read_text(path)
     except OSError as exc:
         raise TrajectoryError(f"{path}: cannot read: {exc.strerror}") from None
     except UnicodeDecodeError:
