@@ -219,6 +219,22 @@ BAD_INPUT = [
     ("export", "{ok} --ros2 {ok}", "exists and is not a folder (a rosbag2 bag is a folder)"),
     ("export", "{ok} --ros2 {missing}/bag", "does not exist (otbot creates no parent folders)"),
     ("export", "{cut_before_samples} --ros2 {tmp}/bag", "truncated"),
+    # --- an output that names an input (also through a link) would replace what the work reads: refused first
+    ("identify", "chassis --local-only --recording {victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("identify", "chassis --sim --params {victim_yaml} --out {victim_link}",
+     "--out {victim_link}: is the parameter file itself"),
+    ("diagnose", "{victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("diagnose", "{ok} --holdout {victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("track", "{victim_csv} --sim --no-robustness --out {victim_csv}", "--out {victim_csv}: is the trajectory itself"),
+    ("track", "corridor --sim --params {victim_yaml} --out {victim_link}", "is the parameter file itself"),
+    ("simulate", "--params {victim_yaml} --out {victim_yaml}", "--out {victim_yaml}: is the parameter file itself"),
+    ("simulate", "--params {victim_yaml} --out {victim_link}", "--out {victim_link}: is the parameter file itself"),
+    ("estimate", "{victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("estimate", "{ok} --params {victim_yaml} --out {victim_yaml}", "is the parameter file itself"),
+    ("import", "{victim} --out {victim}", "--out {victim}: is the bag itself"),
+    ("plan", "--params {victim_yaml} --out {victim_yaml}", "is the parameter file itself"),
+    ("bench", "--params {victim_yaml} --out {victim_link}", "is the parameter file itself"),
+    ("run", "--plant-params {victim_yaml} --out {victim_yaml}", "is the plant parameter file itself"),
     # --- inputs that are not regular files: refused before the open (a FIFO blocked it, /dev/zero never ended)
     ("estimate", "{fifo}", "{fifo}: cannot read: is a FIFO (pipe), not a file"),
     ("simulate", "--params {fifo}", "cannot read parameter file: is a FIFO (pipe), not a file"),
@@ -259,6 +275,10 @@ def files(tmp_path_factory) -> dict[str, str]:
         f.write(b"geometry:\n")
         f.truncate(300 * 1024 * 1024)
     os.mkfifo(d / "fifo.mcap")
+    (d / "victim.mcap").write_bytes(data)  # inputs a row names as its output too (rows must leave them as they are)
+    (d / "victim.yaml").write_text("".join(params))
+    (d / "victim_link.yaml").symlink_to(d / "victim.yaml")
+    (d / "victim.csv").write_text("t,x,y,alpha\n0,0,0,0\n2,0.5,0,0\n")
     (d / "loop_a").symlink_to(d / "loop_b")
     (d / "loop_b").symlink_to(d / "loop_a")
     unreadable = d / "unreadable.mcap"
@@ -270,7 +290,9 @@ def files(tmp_path_factory) -> dict[str, str]:
             "cut_before_samples": str(d / "cut_before_samples.mcap"), "ok_copy": str(d / "ok_copy.mcap"),
             "long_csv": str(d / "long.csv"), "dup_yaml": str(d / "dup.yaml"), "dup_robot": str(d / "dup_robot.yaml"),
             "huge_yaml": str(d / "huge.yaml"), "singular_yaml": str(d / "singular.yaml"),
-            "overflow_yaml": str(d / "overflow.yaml"), "fifo": str(d / "fifo.mcap"), "loop": str(d / "loop_a")}
+            "overflow_yaml": str(d / "overflow.yaml"), "fifo": str(d / "fifo.mcap"), "loop": str(d / "loop_a"),
+            "victim": str(d / "victim.mcap"), "victim_yaml": str(d / "victim.yaml"),
+            "victim_link": str(d / "victim_link.yaml"), "victim_csv": str(d / "victim.csv")}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:

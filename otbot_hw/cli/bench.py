@@ -126,7 +126,8 @@ def run(args: argparse.Namespace) -> dict:
     if args.bus == "config" and (args.sim_params is not None or args.sim_load is not None):
         raise CliError("--sim-params and --sim-load set the simulated robot (--bus sim); the configured bus runs the "
                        "robot that is there")
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"parameter file": args.params, "simulated robot's parameter file":
+                                           args.sim_params, "hardware configuration": args.config})
     output_folder(args.report, "--report")
     cfg, _ = bus_config(args, args.rate, quiet, "bench")
     if abs(cfg.bus.control_rate - RATE) > 1e-9:

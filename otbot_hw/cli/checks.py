@@ -8,9 +8,10 @@ the quantity cannot be (durations, rates, counts), non-integers for seeds and co
 Output paths follow one rule (README, "CLI reference"): **otbot creates the file or folder you name,
 never the folders above it.** The folder that will hold an output must already exist and be
 writable; a file output must not be an existing folder, a folder output must not be an existing
-file; an existing file is replaced. ``output_file`` / ``output_folder`` check this before the
-work starts (they create nothing that stays), and ``writing`` turns a file-system error that still
-happens while writing (disk full, a folder removed meanwhile) into the same one-line error.
+file; an existing file is replaced, unless it is one of the command's inputs (a recording, parameter
+file, trajectory: ``not_an_input``). ``output_file`` / ``output_folder`` check this before the work
+starts (they create nothing that stays), and ``writing`` turns a file-system error that still happens
+while writing (disk full, a folder removed meanwhile) into the same one-line error.
 """
 from __future__ import annotations
 
@@ -148,14 +149,41 @@ def _writable_folder(folder: Path, option: str, path: Path) -> None:
         raise CliError(f"{option} {path}: cannot write in folder {folder}: {exc.strerror}") from None
 
 
-def output_file(path: Path | str | None, option: str, suffix: str | None = None) -> Path | None:
+def same_file(a: Path | str, b: Path | str) -> bool:
+    """True when ``a`` and ``b`` name one file: the same inode when both exist (a link or another spelling
+    counts), else the same resolved path."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        try:
+            return Path(a).resolve() == Path(b).resolve()
+        except (OSError, RuntimeError):  # a loop of links: its reader says so
+            return False
+
+
+def not_an_input(path: Path | str | None, option: str, inputs: dict[str, object]) -> None:
+    """CliError when the output ``path`` is one of the command's inputs: ``inputs`` maps what an input is
+    ("recording", "parameter file") to its path, None or a list of paths. Writing the output would replace
+    the input the work reads (``otbot import --out bag.mcap bag.mcap``: "--out bag.mcap: is the bag itself")."""
+    if path is None:
+        return
+    for what, given in inputs.items():
+        for q in given if isinstance(given, (list, tuple)) else [given]:
+            if q is not None and same_file(path, q):
+                raise CliError(f"{option} {path}: is the {what} itself")
+
+
+def output_file(path: Path | str | None, option: str, suffix: str | None = None,
+                inputs: dict[str, object] | None = None) -> Path | None:
     """Check an output file before the work starts (see the module's rule); None passes through.
 
-    suffix: required file ending (e.g. ".gif"), compared case-insensitively.
+    suffix: required file ending (e.g. ".gif"), compared case-insensitively. inputs: the command's input
+    files by what they are (``not_an_input``); the output must not be one of them.
     """
     if path is None:
         return None
     path = Path(path)
+    not_an_input(path, option, inputs or {})
     if suffix is not None and path.suffix.lower() != suffix:
         raise CliError(f"{option} {path}: the file name must end in {suffix}")
     if path.is_dir():

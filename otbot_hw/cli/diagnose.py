@@ -14,8 +14,7 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
-from otbot_hw.cli.checks import output_folder
-from otbot_hw.cli.simulate import check_output_folder
+from otbot_hw.cli.checks import output_file, output_folder
 
 
 def register(sub) -> None:
@@ -132,7 +131,8 @@ def run(args: argparse.Namespace) -> dict:
     if args.out is not None:
         if args.each:
             raise CliError("--out writes one model; it does not apply with --each")
-        check_output_folder(args.out, "--out")
+        output_file(args.out, "--out", inputs={"recording": list(fitting) + list(held), "parameter file": args.params,
+                                               "hardware configuration": args.robot})
     if not args.each and (args.workers is not None or args.scheduler):
         raise CliError("--workers and --scheduler apply only with --each")
     if args.each:

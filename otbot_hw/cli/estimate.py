@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag
-from otbot_hw.cli.checks import write_failure
+from otbot_hw.cli.checks import output_file, write_failure
 
 
 def register(sub) -> None:
@@ -48,9 +48,9 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.estimation.replay import initial_state, with_estimate
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.recording import read_recording, write_recording
-    from otbot_hw.cli.simulate import check_output_folder
 
-    check_output_folder(args.out, "--out")
+    output_file(args.out, "--out", inputs={"recording": args.recording, "parameter file": args.params,
+                                           "configuration file": args.config})
     rec = read_recording(args.recording)
     params = ExtendedModel.load(args.params).params
     config = EstimatorConfig.load(args.config)

@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.recording import read_recording
 
     quiet = args.json
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"recording": args.recording, "parameter file": args.params})
     output_folder(args.plot, "--plot")
     base = load_params(args.params)
     guess = parse_guesses(args.guess, args.step)

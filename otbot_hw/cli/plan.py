@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.motors import load_motor_limits
     from otbot_hw.model.well_posed import load_params
 
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"parameter file": args.params, "hardware configuration": args.robot})
     params = load_params(args.params)
     limits = load_motor_limits(args.robot)
     base = crowded_corridor_problem(params, limits, args.intervals)

@@ -72,7 +72,8 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.runtime.supervisor import SafetyConfig
 
     quiet = args.json
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"plant parameter file": args.plant_params,
+                                           "hardware configuration": args.config})
     output_folder(args.plot, "--plot")
     tau = parse_vector(args.torques, 3, "--torques")
     if args.plant_params is not None and args.bus != "sim":

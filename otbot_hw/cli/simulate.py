@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> dict:
 
     torques = parse_vector(args.torques, 3, "--torques")
     n = sample_count(args.duration, args.rate)
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"parameter file": args.params})
     output_folder(args.plot, "--plot")
     model = ExtendedModel.load(args.params)
     params = model.params

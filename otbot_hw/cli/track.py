@@ -175,9 +175,11 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError("--fixes feeds the EKF: use --feedback ekf")
     if args.scenario not in SCENARIOS and not Path(args.scenario).exists():
         raise CliError(f"unknown scenario {args.scenario!r}: use {', '.join(SCENARIOS)} or an existing CSV file")
-    output_file(args.animate, "--animate", suffix=".gif")
+    inputs = {"trajectory": None if args.scenario in SCENARIOS else args.scenario, "parameter file": args.params,
+              "plant parameter file": args.plant_params, "hardware configuration": args.config}
+    output_file(args.animate, "--animate", suffix=".gif", inputs=inputs)
     output_folder(args.plot, "--plot")
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs=inputs)
     tstab = parse_tstab(args.tstab)
     adapt = None
     if args.adapt == "payload":
