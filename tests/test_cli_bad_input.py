@@ -202,6 +202,8 @@ BAD_INPUT = [
     ("sweep", "--load 1e30@0,0", "--load: the loaded robot: these parameters make the model singular"),
     ("identify", "chassis --recording {ok} {ok}", "--recording {ok}: is named twice; each recording counts once"),
     ("identify", "chassis --recording {ok} {ok_copy}", "--recording {ok_copy}: has the same content as {ok}"),
+    ("diagnose", "{ok} {ok}", "recording {ok}: is named twice; each recording counts once"),
+    ("diagnose", "{ok} --holdout {ok_copy}", "recording {ok_copy}: has the same content as {ok}"),
     ("run", "--bus sim --duration 1 --inject bus-off@1e9", "--inject bus-off@1e9: 1e+09 s is outside the run (1 s"),
     ("estimate", "{ok} --out /dev/full", "cannot write /dev/full: No space left on device"),
     # --- the entry point itself
@@ -224,7 +226,7 @@ BAD_INPUT = [
     ("identify", "chassis --sim --params {victim_yaml} --out {victim_link}",
      "--out {victim_link}: is the parameter file itself"),
     ("diagnose", "{victim} --out {victim}", "--out {victim}: is the recording itself"),
-    ("diagnose", "{ok} --holdout {victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("diagnose", "{cut_before_samples} --holdout {victim} --out {victim}", "--out {victim}: is the recording itself"),
     ("track", "{victim_csv} --sim --no-robustness --out {victim_csv}", "--out {victim_csv}: is the trajectory itself"),
     ("track", "corridor --sim --params {victim_yaml} --out {victim_link}", "is the parameter file itself"),
     ("simulate", "--params {victim_yaml} --out {victim_yaml}", "--out {victim_yaml}: is the parameter file itself"),

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
-from otbot_hw.cli.checks import output_file, output_folder
+from otbot_hw.cli.checks import distinct_files, output_file, output_folder
 
 
 def register(sub) -> None:
@@ -126,6 +126,8 @@ def run(args: argparse.Namespace) -> dict:
     overlap = {str(p) for p in fitting} & {str(p) for p in held}
     if overlap:
         raise CliError(f"recording(s) both fitting and held-out: {sorted(overlap)}")
+    if not args.demo:
+        distinct_files(list(fitting) + list(held), "recording")
     params = load_params(args.params) if args.params else nominal()
     geometry = load_geometry(args.robot)
     if args.out is not None:
