@@ -187,6 +187,13 @@ def run(args: argparse.Namespace) -> dict:
     return result
 
 
+def _percent(channel: dict | None) -> str:
+    """A channel's fit percentage with one decimal, "n/a" where there is none (a channel that does not move:
+    the locked fixture's wheels)."""
+    value = (channel or {}).get("fit_percent")
+    return "n/a" if value is None else f"{value:.1f}"
+
+
 def _print_summary(r: dict) -> None:
     out = sys.stdout
     print(r["verdict"], file=out)
@@ -194,8 +201,8 @@ def _print_summary(r: dict) -> None:
         b, a = r["fit_before"].get(key) or {}, r["fit_after"].get(key) or {}
         if not b:
             continue
-        print(f"{key} fit %:  " + "  ".join(f"{ch} {b[ch]['fit_percent']:.1f} -> {a[ch]['fit_percent']:.1f}"
-                                          for ch in b), file=out)
+        print(f"{key} fit %:  " + "  ".join(f"{ch} {_percent(b[ch])} -> {_percent(a.get(ch))}" for ch in b),
+              file=out)
     moved = {n: v for n, v in r["nominal_shift"].items() if v["shift"] != 0}
     if r["effects"] or r["ambiguous"]:
         print("nominal parameters moved: " + ", ".join(f"{n} {v['before']:.4g} -> {v['after']:.4g} {v['unit']}"
