@@ -221,6 +221,8 @@ BAD_INPUT = [
     ("export", "{ok} --ros2 {ok}", "exists and is not a folder (a rosbag2 bag is a folder)"),
     ("export", "{ok} --ros2 {missing}/bag", "does not exist (otbot creates no parent folders)"),
     ("export", "{cut_before_samples} --ros2 {tmp}/bag", "truncated"),
+    ("estimate", "{cut_before_samples}", "{cut_before_samples} is truncated (the writer stopped before closing it): it "
+                                         "holds no complete sample: nothing to estimate"),
     # --- an output that names an input (also through a link) would replace what the work reads: refused first
     ("identify", "chassis --local-only --recording {victim} --out {victim}", "--out {victim}: is the recording itself"),
     ("identify", "chassis --sim --params {victim_yaml} --out {victim_link}",

@@ -202,6 +202,33 @@ def test_bench_resume_says_when_a_passed_steps_recording_was_truncated(tmp_path,
         assert notices == []
 
 
+def test_estimate_says_a_truncated_recording_is_truncated(tmp_path, otbot_cli):
+    """As identify and export do: a notice line when complete samples are left, an error naming the file when
+    fewer than two are (estimate said nothing, or "fewer than 2 samples" without the file)."""
+    from otbot_hw.recording import write_recording
+    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.simulation.runs import simulated_recording
+
+    full = tmp_path / "full.mcap"
+    write_recording(full, simulated_recording(nominal(), np.tile([2.0, 2.0, 0.0], (200, 1)), 0.01, NoiseModel.paper()))
+    data = full.read_bytes()
+    cut, short = tmp_path / "cut.mcap", tmp_path / "short.mcap"
+    cut.write_bytes(data[:len(data) // 2])
+    short.write_bytes(data[:data.index(b'{"t": 0.01') + 5])  # inside sample 1: one complete sample
+    rc, out, err = otbot_cli(["estimate", str(cut), "--json"])
+    assert rc == 0, err
+    notices = [line for line in err.splitlines() if "notice" in line]
+    assert len(notices) == 1 and f"[estimate] notice: {cut} is truncated (the writer stopped" in notices[0], err
+    assert notices[0].endswith("complete samples; estimating on those")
+    assert json.loads(out)["truncated"] is True
+    rc, out, err = otbot_cli(["estimate", str(full), "--json"])
+    assert rc == 0 and "notice" not in err and json.loads(out)["truncated"] is False
+    rc, out, err = otbot_cli(["estimate", str(short)])
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert f"{short} is truncated (the writer stopped before closing it): it ends at t = 0 s after 1 complete " \
+           "sample: nothing to estimate" in err
+
+
 # -- plan: Ctrl-C is an interrupt ----------------------------------------------------------------------
 def test_plan_interrupted_inside_ipopt_exits_130(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -189,7 +189,7 @@ def run(args: argparse.Namespace) -> dict:
 def _notice_truncated(session, steps) -> None:
     """A notice (as ``otbot identify`` gives) for every passed step whose recording was cut short since: the
     session's fit uses what is left of it."""
-    from otbot_hw.cli.identify import truncation_notice
+    from otbot_hw.cli.checks import truncation_notice
     from otbot_hw.recording import read_recording
 
     for step in steps:

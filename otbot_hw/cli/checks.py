@@ -231,6 +231,28 @@ def writing(what: str) -> Iterator[None]:
 
 # --- input files ------------------------------------------------------------------------------------
 
+def truncation_notice(path, rec) -> str:
+    """One line saying that ``rec`` (read from ``path``) was cut short and what is left of it."""
+    n = len(rec)
+    end = (f"ends at t = {rec.t[-1]:g} s after {n} complete sample{'' if n == 1 else 's'}" if n
+           else "holds no complete sample")
+    return f"{path} is truncated (the writer stopped before closing it): it {end}"
+
+
+def complete_samples(path, rec, command: str, work: str, doing: str, minimum: int = 2) -> bool:
+    """Whether ``rec`` (read from ``path``) was cut short. When it was: CliError naming the file when fewer than
+    ``minimum`` complete samples are left ("X is truncated ...: nothing to {work}"), else a notice line on stderr
+    ("[{command}] notice: X is truncated ...; {doing} those")."""
+    if not rec.truncated:
+        return False
+    if len(rec) < minimum:
+        raise CliError(f"{truncation_notice(path, rec)}: nothing to {work}")
+    import sys
+
+    print(f"[{command}] notice: {truncation_notice(path, rec)}; {doing} those", file=sys.stderr, flush=True)
+    return True
+
+
 def distinct_files(paths, option: str) -> None:
     """CliError when two of ``paths`` hold the same bytes (a file named twice, a copy, a link): each
     input must count once. Unreadable files are skipped (their reader says what is wrong)."""

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag
-from otbot_hw.cli.checks import output_file, write_failure
+from otbot_hw.cli.checks import complete_samples, output_file, write_failure
 
 
 def register(sub) -> None:
@@ -52,6 +52,7 @@ def run(args: argparse.Namespace) -> dict:
     output_file(args.out, "--out", inputs={"recording": args.recording, "parameter file": args.params,
                                            "configuration file": args.config})
     rec = read_recording(args.recording)
+    truncated = complete_samples(args.recording, rec, "estimate", "estimate", "estimating on")
     params = ExtendedModel.load(args.params).params
     config = EstimatorConfig.load(args.config)
     if args.prediction:
@@ -68,6 +69,7 @@ def run(args: argparse.Namespace) -> dict:
             nis_mean[kind] = float(ok.mean())
     result = {
         "recording": str(args.recording),
+        "truncated": truncated,
         "samples": len(rec),
         "duration_s": float(rec.t[-1] - rec.t[0]),
         "prediction": est.prediction,
