@@ -188,6 +188,7 @@ BAD_INPUT = [
     ("track", "corridor --sim --rate 1e9", "trajectory corridor lasts 30 s: at 1e+09 Hz that is 30000000000 samples; "
                                            "at most 10000000"),
     ("track", "{long_csv} --sim", "samples; at most 10000000 (lower --rate or shorten the trajectory)"),
+    ("track", "{dup_column_csv} --sim", "dup_column.csv: column x is named twice in the header (columns 2 and 5)"),
     ("track", "{long_csv} --sim --rate 50", "its torque-feasibility check would bound"),
     ("simulate", "--params {dup_yaml}", "key 'm_c' is written twice (line 14 and line 15); keys must be unique"),
     ("simulate", "--params {huge_yaml}", "a parameter file is at most 4 MiB, this file is 300 MiB"),
@@ -266,6 +267,7 @@ def files(tmp_path_factory) -> dict[str, str]:
     (d / "binary.yaml").write_bytes(data[:4000])
     (d / "folder").mkdir()
     (d / "ok_copy.mcap").write_bytes(data)
+    (d / "dup_column.csv").write_text("t,x,y,alpha,x\n0,0,0,0,1\n2,0.5,0,0,1\n")
     (d / "long.csv").write_text("t,x,y,alpha\n0,0,0,0\n100000,0,0,0\n")
     params = (ROOT / "config" / "otbot.yaml").read_text().splitlines(keepends=True)
     i = next(k for k, line in enumerate(params) if line.strip().startswith("m_c:"))
@@ -296,7 +298,8 @@ def files(tmp_path_factory) -> dict[str, str]:
             "huge_yaml": str(d / "huge.yaml"), "singular_yaml": str(d / "singular.yaml"),
             "overflow_yaml": str(d / "overflow.yaml"), "fifo": str(d / "fifo.mcap"), "loop": str(d / "loop_a"),
             "victim": str(d / "victim.mcap"), "victim_yaml": str(d / "victim.yaml"),
-            "victim_link": str(d / "victim_link.yaml"), "victim_csv": str(d / "victim.csv")}
+            "victim_link": str(d / "victim_link.yaml"), "victim_csv": str(d / "victim.csv"),
+            "dup_column_csv": str(d / "dup_column.csv")}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:

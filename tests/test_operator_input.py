@@ -110,6 +110,27 @@ def test_a_trajectory_csv_with_a_byte_order_mark_loads(tmp_path):
     assert header == ["t", "tau_r", "tau_l", "tau_p"] and rows == [["0", "1", "2", "3"]]
 
 
+
+def test_a_csv_naming_a_column_twice_is_refused_by_every_csv_reader(tmp_path):
+    """'t,x,y,alpha,x' was read with the first x, silently; the torque files of ctl excite share the reader."""
+    from otbot_hw.control.sampled_trajectory import load_csv
+    from otbot_hw.control.trajectories import TrajectoryError
+    from otbot_hw.runtime.openloop import TorqueSequenceError, load_torque_sequence
+
+    traj, torques = tmp_path / "traj.csv", tmp_path / "torques.csv"
+    traj.write_text("t,x,y,alpha,x\n0,0,0,0,1\n2,0.5,0,0,1\n")
+    torques.write_text("t,tau_r,tau_l,tau_p,tau_l\n0,1,2,3,4\n1,1,2,3,4\n")
+    with pytest.raises(TrajectoryError, match=r"traj.csv: column x is named twice in the header \(columns 2 and 5\)"):
+        load_csv(traj)
+    with pytest.raises(TorqueSequenceError, match=r"column tau_l is named twice in the header \(columns 3 and 5\)"):
+        load_torque_sequence(torques)
+    torques.write_text("t,tau_r,tau_l,tau_p,note,note\n0,1,2,3,a,b\n1,1,2,3,a,b\n")  # an ignored column too
+    with pytest.raises(TorqueSequenceError, match="column note is named twice"):
+        load_torque_sequence(torques)
+    torques.write_text("t,tau_r,tau_l,tau_p,,\n0,1,2,3,,\n1,1,2,3,,\n")  # empty names (trailing commas) are no names
+    assert load_torque_sequence(torques)[1].shape == (2, 3)
+
+
 # -- track: sizes checked before work, long phases say where they are -------------------------------
 def test_the_feasibility_check_works_in_chunks_says_where_it_is_and_refuses_beyond_its_size(monkeypatch):
     from otbot_hw.control import feasibility
