@@ -131,6 +131,25 @@ def test_a_csv_naming_a_column_twice_is_refused_by_every_csv_reader(tmp_path):
     assert load_torque_sequence(torques)[1].shape == (2, 3)
 
 
+
+def test_export_refuses_to_replace_the_bag_that_holds_its_recording(tmp_path, otbot_cli):
+    """An earlier bag at --ros2 is replaced (removed once the new one is complete): a recording kept inside it
+    went with it, after exit 0."""
+    from otbot_hw.recording import write_recording
+    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.simulation.runs import simulated_recording
+
+    run, bag = tmp_path / "run.mcap", tmp_path / "bag"
+    write_recording(run, simulated_recording(nominal(), np.tile([2.0, 2.0, 0.0], (20, 1)), 0.01, NoiseModel.paper()))
+    assert otbot_cli(["export", str(run), "--ros2", str(bag), "--json"])[0] == 0
+    inside = bag / "run.mcap"
+    inside.write_bytes(run.read_bytes())
+    rc, out, err = otbot_cli(["export", str(inside), "--ros2", str(bag)])
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert f"--ros2 {bag}: holds the recording {inside}; replacing the folder would remove it" in err
+    assert inside.read_bytes() == run.read_bytes()
+
+
 # -- track: sizes checked before work, long phases say where they are -------------------------------
 def test_the_feasibility_check_works_in_chunks_says_where_it_is_and_refuses_beyond_its_size(monkeypatch):
     from otbot_hw.control import feasibility

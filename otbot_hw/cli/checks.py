@@ -161,16 +161,29 @@ def same_file(a: Path | str, b: Path | str) -> bool:
             return False
 
 
-def not_an_input(path: Path | str | None, option: str, inputs: dict[str, object]) -> None:
+def not_an_input(path: Path | str | None, option: str, inputs: dict[str, object], folder: bool = False) -> None:
     """CliError when the output ``path`` is one of the command's inputs: ``inputs`` maps what an input is
     ("recording", "parameter file") to its path, None or a list of paths. Writing the output would replace
-    the input the work reads (``otbot import --out bag.mcap bag.mcap``: "--out bag.mcap: is the bag itself")."""
+    the input the work reads (``otbot import --out bag.mcap bag.mcap``: "--out bag.mcap: is the bag itself").
+    folder: ``path`` is a folder output that replaces an existing folder (``export --ros2``): an input inside
+    it is refused too."""
     if path is None:
         return
     for what, given in inputs.items():
         for q in given if isinstance(given, (list, tuple)) else [given]:
-            if q is not None and same_file(path, q):
+            if q is None:
+                continue
+            if same_file(path, q):
                 raise CliError(f"{option} {path}: is the {what} itself")
+            if folder and Path(path).is_dir() and _inside(q, path):
+                raise CliError(f"{option} {path}: holds the {what} {q}; replacing the folder would remove it")
+
+
+def _inside(file: Path | str, folder: Path | str) -> bool:
+    try:
+        return Path(file).resolve().is_relative_to(Path(folder).resolve())
+    except (OSError, RuntimeError):
+        return False
 
 
 def output_file(path: Path | str | None, option: str, suffix: str | None = None,
