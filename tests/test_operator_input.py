@@ -150,6 +150,34 @@ def test_export_refuses_to_replace_the_bag_that_holds_its_recording(tmp_path, ot
     assert inside.read_bytes() == run.read_bytes()
 
 
+
+@pytest.mark.parametrize("argv, what", [
+    ("simulate --duration 0.01 --out config/otbot.yaml", "is the parameter file itself"),
+    ("identify chassis --sim --out config/otbot.yaml", "is the parameter file itself"),
+    ("estimate {run} --out config/robot.yaml", "is the configuration file itself"),
+    ("track corridor --sim --out config/robot.yaml", "is the hardware configuration itself"),
+    ("plan --out config/otbot.yaml", "is the parameter file itself"),
+])
+def test_an_output_may_not_replace_the_default_configuration_it_reads(argv, what, tmp_path, otbot_cli, monkeypatch):
+    """config/otbot.yaml and config/robot.yaml are read when --params / --config are not given: inputs too."""
+    from otbot_hw.recording import write_recording
+    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.simulation.runs import simulated_recording
+
+    run = tmp_path / "run.mcap"
+    write_recording(run, simulated_recording(nominal(), np.tile([2.0, 2.0, 0.0], (20, 1)), 0.01, NoiseModel.paper()))
+    monkeypatch.chdir(ROOT)
+    kept = {name: (ROOT / "config" / name).read_bytes() for name in ("otbot.yaml", "robot.yaml")}
+    try:
+        rc, out, err = otbot_cli(argv.format(run=run).split())
+    finally:  # a regression must not leave the project's configuration replaced
+        changed = [n for n, data in kept.items() if (ROOT / "config" / n).read_bytes() != data]
+        for n in changed:
+            (ROOT / "config" / n).write_bytes(kept[n])
+    assert not changed
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "--out config/" in err and what in err, err
+
+
 # -- track: sizes checked before work, long phases say where they are -------------------------------
 def test_the_feasibility_check_works_in_chunks_says_where_it_is_and_refuses_beyond_its_size(monkeypatch):
     from otbot_hw.control import feasibility

@@ -161,6 +161,12 @@ def same_file(a: Path | str, b: Path | str) -> bool:
             return False
 
 
+def default_input(path: Path | str | None, name: str) -> Path | str:
+    """``path``, or the project's configuration file ``config/NAME`` (otbot.yaml, robot.yaml) that a command
+    reads when ``path`` is not given: an output must not replace it either."""
+    return path if path is not None else Path(__file__).resolve().parents[2] / "config" / name
+
+
 def not_an_input(path: Path | str | None, option: str, inputs: dict[str, object], folder: bool = False) -> None:
     """CliError when the output ``path`` is one of the command's inputs: ``inputs`` maps what an input is
     ("recording", "parameter file") to its path, None or a list of paths. Writing the output would replace

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
-from otbot_hw.cli.checks import distinct_files, output_file, output_folder
+from otbot_hw.cli.checks import default_input, distinct_files, output_file, output_folder
 
 
 def register(sub) -> None:
@@ -133,8 +133,9 @@ def run(args: argparse.Namespace) -> dict:
     if args.out is not None:
         if args.each:
             raise CliError("--out writes one model; it does not apply with --each")
-        output_file(args.out, "--out", inputs={"recording": list(fitting) + list(held), "parameter file": args.params,
-                                               "hardware configuration": args.robot})
+        output_file(args.out, "--out", inputs={"recording": list(fitting) + list(held), "parameter file":
+                                               default_input(args.params, "otbot.yaml"),
+                                               "hardware configuration": default_input(args.robot, "robot.yaml")})
     if not args.each and (args.workers is not None or args.scheduler):
         raise CliError("--workers and --scheduler apply only with --each")
     if args.each:

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag
-from otbot_hw.cli.checks import complete_samples, output_file, write_failure
+from otbot_hw.cli.checks import complete_samples, default_input, output_file, write_failure
 
 
 def register(sub) -> None:
@@ -49,8 +49,9 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.recording import read_recording, write_recording
 
-    output_file(args.out, "--out", inputs={"recording": args.recording, "parameter file": args.params,
-                                           "configuration file": args.config})
+    output_file(args.out, "--out", inputs={"recording": args.recording, "parameter file":
+                                           default_input(args.params, "otbot.yaml"),
+                                           "configuration file": default_input(args.config, "robot.yaml")})
     rec = read_recording(args.recording)
     truncated = complete_samples(args.recording, rec, "estimate", "estimate", "estimating on")
     params = ExtendedModel.load(args.params).params

@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
-from otbot_hw.cli.checks import (complete_samples, distinct_files, number, output_file, output_folder, seed,
-                                 truncation_notice, writing)  # noqa: F401  (truncation_notice: re-exported)
+from otbot_hw.cli.checks import (complete_samples, default_input, distinct_files, number, output_file,
+                                 output_folder, seed, truncation_notice, writing)  # noqa: F401  (truncation_notice: re-exported)
 
 STEP_HELP = ("wheel: I_a, b_w (robot on a stand, right wheel driven); pivot: I_p0, b_p (wheels locked, "
              "platform driven); chassis: m_c, I_c, x_B, y_B (unloaded robot on the floor); platform: "
@@ -98,7 +98,8 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.recording import read_recording
 
     quiet = args.json
-    output_file(args.out, "--out", inputs={"recording": args.recording, "parameter file": args.params})
+    output_file(args.out, "--out", inputs={"recording": args.recording,
+                                           "parameter file": default_input(args.params, "otbot.yaml")})
     output_folder(args.plot, "--plot")
     base = load_params(args.params)
     guess = parse_guesses(args.guess, args.step)
