@@ -116,9 +116,11 @@ def read_yaml(path: str | Path, what: str = "configuration file") -> Any:
     unreadable, oversized or malformed files raise ``ParameterError`` naming ``what``."""
     import yaml
 
+    from otbot_hw.input_files import open_input
+
     p = Path(path)
     try:
-        with open(p, "rb") as f:
+        with open_input(p) as f:
             size = os.fstat(f.fileno()).st_size
             if size > MAX_YAML_BYTES:
                 raise ParameterError(f"{p}: a {what} is at most {MAX_YAML_BYTES // (1024 * 1024)} MiB, this file "

@@ -188,6 +188,7 @@ BAD_INPUT = [
     ("track", "corridor --sim --rate 1e9", "trajectory corridor lasts 30 s: at 1e+09 Hz that is 30000000000 samples; "
                                            "at most 10000000"),
     ("track", "{long_csv} --sim", "samples; at most 10000000 (lower --rate or shorten the trajectory)"),
+    ("track", "{dup_column_csv} --sim", "dup_column.csv: column x is named twice in the header (columns 2 and 5)"),
     ("track", "{long_csv} --sim --rate 50", "its torque-feasibility check would bound"),
     ("simulate", "--params {dup_yaml}", "key 'm_c' is written twice (line 14 and line 15); keys must be unique"),
     ("simulate", "--params {huge_yaml}", "a parameter file is at most 4 MiB, this file is 300 MiB"),
@@ -202,6 +203,8 @@ BAD_INPUT = [
     ("sweep", "--load 1e30@0,0", "--load: the loaded robot: these parameters make the model singular"),
     ("identify", "chassis --recording {ok} {ok}", "--recording {ok}: is named twice; each recording counts once"),
     ("identify", "chassis --recording {ok} {ok_copy}", "--recording {ok_copy}: has the same content as {ok}"),
+    ("diagnose", "{ok} {ok}", "recording {ok}: is named twice; each recording counts once"),
+    ("diagnose", "{ok} --holdout {ok_copy}", "recording {ok_copy}: has the same content as {ok}"),
     ("run", "--bus sim --duration 1 --inject bus-off@1e9", "--inject bus-off@1e9: 1e+09 s is outside the run (1 s"),
     ("estimate", "{ok} --out /dev/full", "cannot write /dev/full: No space left on device"),
     # --- the entry point itself
@@ -219,6 +222,34 @@ BAD_INPUT = [
     ("export", "{ok} --ros2 {ok}", "exists and is not a folder (a rosbag2 bag is a folder)"),
     ("export", "{ok} --ros2 {missing}/bag", "does not exist (otbot creates no parent folders)"),
     ("export", "{cut_before_samples} --ros2 {tmp}/bag", "truncated"),
+    ("estimate", "{cut_before_samples}", "{cut_before_samples} is truncated (the writer stopped before closing it): it "
+                                         "holds no complete sample: nothing to estimate"),
+    # --- an output that names an input (also through a link) would replace what the work reads: refused first
+    ("identify", "chassis --local-only --recording {victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("identify", "chassis --sim --params {victim_yaml} --out {victim_link}",
+     "--out {victim_link}: is the parameter file itself"),
+    ("diagnose", "{victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("diagnose", "{cut_before_samples} --holdout {victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("track", "{victim_csv} --sim --no-robustness --out {victim_csv}", "--out {victim_csv}: is the trajectory itself"),
+    ("track", "corridor --sim --params {victim_yaml} --out {victim_link}", "is the parameter file itself"),
+    ("simulate", "--params {victim_yaml} --out {victim_yaml}", "--out {victim_yaml}: is the parameter file itself"),
+    ("simulate", "--params {victim_yaml} --out {victim_link}", "--out {victim_link}: is the parameter file itself"),
+    ("estimate", "{victim} --out {victim}", "--out {victim}: is the recording itself"),
+    ("estimate", "{ok} --params {victim_yaml} --out {victim_yaml}", "is the parameter file itself"),
+    ("import", "{victim} --out {victim}", "--out {victim}: is the bag itself"),
+    ("plan", "--params {victim_yaml} --out {victim_yaml}", "is the parameter file itself"),
+    ("bench", "--params {victim_yaml} --out {victim_link}", "is the parameter file itself"),
+    ("run", "--plant-params {victim_yaml} --out {victim_yaml}", "is the plant parameter file itself"),
+    # --- inputs that are not regular files: refused before the open (a FIFO blocked it, /dev/zero never ended)
+    ("estimate", "{fifo}", "{fifo}: cannot read: is a FIFO (pipe), not a file"),
+    ("simulate", "--params {fifo}", "cannot read parameter file: is a FIFO (pipe), not a file"),
+    ("track", "{fifo} --sim", "{fifo}: cannot read: is a FIFO (pipe), not a file"),
+    ("track", "corridor --sim --config {fifo}", "is a FIFO (pipe), not a file"),
+    ("identify", "chassis --recording {fifo}", "{fifo}: cannot read: is a FIFO (pipe), not a file"),
+    ("export", "{fifo} --ros2 {tmp}/bag", "is a FIFO (pipe), not a file"),
+    ("imu", "parse /dev/zero", "/dev/zero: cannot read: is a character device, not a file"),
+    ("estimate", "{loop}", "{loop}: cannot read: Too many levels of symbolic links"),
+    ("identify", "chassis --recording {loop}", "Too many levels of symbolic links"),
 ]
 
 
@@ -236,6 +267,7 @@ def files(tmp_path_factory) -> dict[str, str]:
     (d / "binary.yaml").write_bytes(data[:4000])
     (d / "folder").mkdir()
     (d / "ok_copy.mcap").write_bytes(data)
+    (d / "dup_column.csv").write_text("t,x,y,alpha,x\n0,0,0,0,1\n2,0.5,0,0,1\n")
     (d / "long.csv").write_text("t,x,y,alpha\n0,0,0,0\n100000,0,0,0\n")
     params = (ROOT / "config" / "otbot.yaml").read_text().splitlines(keepends=True)
     i = next(k for k, line in enumerate(params) if line.strip().startswith("m_c:"))
@@ -248,6 +280,13 @@ def files(tmp_path_factory) -> dict[str, str]:
     with open(d / "huge.yaml", "wb") as f:  # sparse: 300 MB long, no disk used
         f.write(b"geometry:\n")
         f.truncate(300 * 1024 * 1024)
+    os.mkfifo(d / "fifo.mcap")
+    (d / "victim.mcap").write_bytes(data)  # inputs a row names as its output too (rows must leave them as they are)
+    (d / "victim.yaml").write_text("".join(params))
+    (d / "victim_link.yaml").symlink_to(d / "victim.yaml")
+    (d / "victim.csv").write_text("t,x,y,alpha\n0,0,0,0\n2,0.5,0,0\n")
+    (d / "loop_a").symlink_to(d / "loop_b")
+    (d / "loop_b").symlink_to(d / "loop_a")
     unreadable = d / "unreadable.mcap"
     unreadable.write_bytes(data)
     unreadable.chmod(0)
@@ -257,7 +296,10 @@ def files(tmp_path_factory) -> dict[str, str]:
             "cut_before_samples": str(d / "cut_before_samples.mcap"), "ok_copy": str(d / "ok_copy.mcap"),
             "long_csv": str(d / "long.csv"), "dup_yaml": str(d / "dup.yaml"), "dup_robot": str(d / "dup_robot.yaml"),
             "huge_yaml": str(d / "huge.yaml"), "singular_yaml": str(d / "singular.yaml"),
-            "overflow_yaml": str(d / "overflow.yaml")}
+            "overflow_yaml": str(d / "overflow.yaml"), "fifo": str(d / "fifo.mcap"), "loop": str(d / "loop_a"),
+            "victim": str(d / "victim.mcap"), "victim_yaml": str(d / "victim.yaml"),
+            "victim_link": str(d / "victim_link.yaml"), "victim_csv": str(d / "victim.csv"),
+            "dup_column_csv": str(d / "dup_column.csv")}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:
@@ -274,6 +316,8 @@ def _skip_reason(command: str | None, argv: str) -> str | None:
         return f"otbot {command} is not on this branch"
     if "{unreadable}" in argv and os.geteuid() == 0:
         return "root reads files without read permission"
+    if "/dev/zero" in argv and not os.path.exists("/dev/zero"):
+        return "no /dev/zero on this machine"
     if "/dev/full" in argv and not os.path.exists("/dev/full"):
         return "no /dev/full on this machine"
     return None

@@ -387,3 +387,14 @@ def test_fast_paths_give_the_plain_numbers():
         again["w_r"][0] = 0.0
     other = dataclasses.replace(d, u=d.u * 1.5)
     assert not np.array_equal(SR.simulate_outputs(other, m)["w_r"], fresh["w_r"])
+
+
+def test_summary_says_n_a_for_a_channel_without_a_fit_percentage(tmp_path, capsys):
+    """The locked fixture's accelerometer does not move: no fit percentage (None), the text summary
+    printed it with :.1f and crashed (TypeError traceback)."""
+    locked = tmp_path / "locked.mcap"
+    assert main(["simulate", "--fixture", "locked", "--noise", "none", "--duration", "1", "--out", str(locked)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(locked)]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fitting fit %:"))
+    assert "a_x n/a -> n/a" in line and "w_p 100.0" in line

@@ -110,6 +110,74 @@ def test_a_trajectory_csv_with_a_byte_order_mark_loads(tmp_path):
     assert header == ["t", "tau_r", "tau_l", "tau_p"] and rows == [["0", "1", "2", "3"]]
 
 
+
+def test_a_csv_naming_a_column_twice_is_refused_by_every_csv_reader(tmp_path):
+    """'t,x,y,alpha,x' was read with the first x, silently; the torque files of ctl excite share the reader."""
+    from otbot_hw.control.sampled_trajectory import load_csv
+    from otbot_hw.control.trajectories import TrajectoryError
+    from otbot_hw.runtime.openloop import TorqueSequenceError, load_torque_sequence
+
+    traj, torques = tmp_path / "traj.csv", tmp_path / "torques.csv"
+    traj.write_text("t,x,y,alpha,x\n0,0,0,0,1\n2,0.5,0,0,1\n")
+    torques.write_text("t,tau_r,tau_l,tau_p,tau_l\n0,1,2,3,4\n1,1,2,3,4\n")
+    with pytest.raises(TrajectoryError, match=r"traj.csv: column x is named twice in the header \(columns 2 and 5\)"):
+        load_csv(traj)
+    with pytest.raises(TorqueSequenceError, match=r"column tau_l is named twice in the header \(columns 3 and 5\)"):
+        load_torque_sequence(torques)
+    torques.write_text("t,tau_r,tau_l,tau_p,note,note\n0,1,2,3,a,b\n1,1,2,3,a,b\n")  # an ignored column too
+    with pytest.raises(TorqueSequenceError, match="column note is named twice"):
+        load_torque_sequence(torques)
+    torques.write_text("t,tau_r,tau_l,tau_p,,\n0,1,2,3,,\n1,1,2,3,,\n")  # empty names (trailing commas) are no names
+    assert load_torque_sequence(torques)[1].shape == (2, 3)
+
+
+
+def test_export_refuses_to_replace_the_bag_that_holds_its_recording(tmp_path, otbot_cli):
+    """An earlier bag at --ros2 is replaced (removed once the new one is complete): a recording kept inside it
+    went with it, after exit 0."""
+    from otbot_hw.recording import write_recording
+    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.simulation.runs import simulated_recording
+
+    run, bag = tmp_path / "run.mcap", tmp_path / "bag"
+    write_recording(run, simulated_recording(nominal(), np.tile([2.0, 2.0, 0.0], (20, 1)), 0.01, NoiseModel.paper()))
+    assert otbot_cli(["export", str(run), "--ros2", str(bag), "--json"])[0] == 0
+    inside = bag / "run.mcap"
+    inside.write_bytes(run.read_bytes())
+    rc, out, err = otbot_cli(["export", str(inside), "--ros2", str(bag)])
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert f"--ros2 {bag}: holds the recording {inside}; replacing the folder would remove it" in err
+    assert inside.read_bytes() == run.read_bytes()
+
+
+
+@pytest.mark.parametrize("argv, what", [
+    ("simulate --duration 0.01 --out config/otbot.yaml", "is the parameter file itself"),
+    ("identify chassis --sim --out config/otbot.yaml", "is the parameter file itself"),
+    ("estimate {run} --out config/robot.yaml", "is the configuration file itself"),
+    ("track corridor --sim --out config/robot.yaml", "is the hardware configuration itself"),
+    ("plan --out config/otbot.yaml", "is the parameter file itself"),
+])
+def test_an_output_may_not_replace_the_default_configuration_it_reads(argv, what, tmp_path, otbot_cli, monkeypatch):
+    """config/otbot.yaml and config/robot.yaml are read when --params / --config are not given: inputs too."""
+    from otbot_hw.recording import write_recording
+    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.simulation.runs import simulated_recording
+
+    run = tmp_path / "run.mcap"
+    write_recording(run, simulated_recording(nominal(), np.tile([2.0, 2.0, 0.0], (20, 1)), 0.01, NoiseModel.paper()))
+    monkeypatch.chdir(ROOT)
+    kept = {name: (ROOT / "config" / name).read_bytes() for name in ("otbot.yaml", "robot.yaml")}
+    try:
+        rc, out, err = otbot_cli(argv.format(run=run).split())
+    finally:  # a regression must not leave the project's configuration replaced
+        changed = [n for n, data in kept.items() if (ROOT / "config" / n).read_bytes() != data]
+        for n in changed:
+            (ROOT / "config" / n).write_bytes(kept[n])
+    assert not changed
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "--out config/" in err and what in err, err
+
+
 # -- track: sizes checked before work, long phases say where they are -------------------------------
 def test_the_feasibility_check_works_in_chunks_says_where_it_is_and_refuses_beyond_its_size(monkeypatch):
     from otbot_hw.control import feasibility
@@ -200,6 +268,33 @@ def test_bench_resume_says_when_a_passed_steps_recording_was_truncated(tmp_path,
         assert "complete samples; fitting those" in notices[0]
     else:
         assert notices == []
+
+
+def test_estimate_says_a_truncated_recording_is_truncated(tmp_path, otbot_cli):
+    """As identify and export do: a notice line when complete samples are left, an error naming the file when
+    fewer than two are (estimate said nothing, or "fewer than 2 samples" without the file)."""
+    from otbot_hw.recording import write_recording
+    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.simulation.runs import simulated_recording
+
+    full = tmp_path / "full.mcap"
+    write_recording(full, simulated_recording(nominal(), np.tile([2.0, 2.0, 0.0], (200, 1)), 0.01, NoiseModel.paper()))
+    data = full.read_bytes()
+    cut, short = tmp_path / "cut.mcap", tmp_path / "short.mcap"
+    cut.write_bytes(data[:len(data) // 2])
+    short.write_bytes(data[:data.index(b'{"t": 0.01') + 5])  # inside sample 1: one complete sample
+    rc, out, err = otbot_cli(["estimate", str(cut), "--json"])
+    assert rc == 0, err
+    notices = [line for line in err.splitlines() if "notice" in line]
+    assert len(notices) == 1 and f"[estimate] notice: {cut} is truncated (the writer stopped" in notices[0], err
+    assert notices[0].endswith("complete samples; estimating on those")
+    assert json.loads(out)["truncated"] is True
+    rc, out, err = otbot_cli(["estimate", str(full), "--json"])
+    assert rc == 0 and "notice" not in err and json.loads(out)["truncated"] is False
+    rc, out, err = otbot_cli(["estimate", str(short)])
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert f"{short} is truncated (the writer stopped before closing it): it ends at t = 0 s after 1 complete " \
+           "sample: nothing to estimate" in err
 
 
 # -- plan: Ctrl-C is an interrupt ----------------------------------------------------------------------

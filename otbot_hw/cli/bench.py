@@ -19,7 +19,7 @@ from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import count, number, output_file, output_folder, writing
+from otbot_hw.cli.checks import count, default_input, number, output_file, output_folder, writing
 
 STEP_NAMES = ("wheel", "pivot", "chassis", "platform")
 RATE = 100.0  # Hz: the paper's experiments are sampled at 100 Hz
@@ -126,7 +126,9 @@ def run(args: argparse.Namespace) -> dict:
     if args.bus == "config" and (args.sim_params is not None or args.sim_load is not None):
         raise CliError("--sim-params and --sim-load set the simulated robot (--bus sim); the configured bus runs the "
                        "robot that is there")
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"parameter file": default_input(args.params, "otbot.yaml"),
+                                           "simulated robot's parameter file": args.sim_params,
+                                           "hardware configuration": default_input(args.config, "robot.yaml")})
     output_folder(args.report, "--report")
     cfg, _ = bus_config(args, args.rate, quiet, "bench")
     if abs(cfg.bus.control_rate - RATE) > 1e-9:
@@ -188,7 +190,7 @@ def run(args: argparse.Namespace) -> dict:
 def _notice_truncated(session, steps) -> None:
     """A notice (as ``otbot identify`` gives) for every passed step whose recording was cut short since: the
     session's fit uses what is left of it."""
-    from otbot_hw.cli.identify import truncation_notice
+    from otbot_hw.cli.checks import truncation_notice
     from otbot_hw.recording import read_recording
 
     for step in steps:

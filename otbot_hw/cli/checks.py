@@ -8,9 +8,10 @@ the quantity cannot be (durations, rates, counts), non-integers for seeds and co
 Output paths follow one rule (README, "CLI reference"): **otbot creates the file or folder you name,
 never the folders above it.** The folder that will hold an output must already exist and be
 writable; a file output must not be an existing folder, a folder output must not be an existing
-file; an existing file is replaced. ``output_file`` / ``output_folder`` check this before the
-work starts (they create nothing that stays), and ``writing`` turns a file-system error that still
-happens while writing (disk full, a folder removed meanwhile) into the same one-line error.
+file; an existing file is replaced, unless it is one of the command's inputs (a recording, parameter
+file, trajectory: ``not_an_input``). ``output_file`` / ``output_folder`` check this before the work
+starts (they create nothing that stays), and ``writing`` turns a file-system error that still happens
+while writing (disk full, a folder removed meanwhile) into the same one-line error.
 """
 from __future__ import annotations
 
@@ -148,14 +149,60 @@ def _writable_folder(folder: Path, option: str, path: Path) -> None:
         raise CliError(f"{option} {path}: cannot write in folder {folder}: {exc.strerror}") from None
 
 
-def output_file(path: Path | str | None, option: str, suffix: str | None = None) -> Path | None:
+def same_file(a: Path | str, b: Path | str) -> bool:
+    """True when ``a`` and ``b`` name one file: the same inode when both exist (a link or another spelling
+    counts), else the same resolved path."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        try:
+            return Path(a).resolve() == Path(b).resolve()
+        except (OSError, RuntimeError):  # a loop of links: its reader says so
+            return False
+
+
+def default_input(path: Path | str | None, name: str) -> Path | str:
+    """``path``, or the project's configuration file ``config/NAME`` (otbot.yaml, robot.yaml) that a command
+    reads when ``path`` is not given: an output must not replace it either."""
+    return path if path is not None else Path(__file__).resolve().parents[2] / "config" / name
+
+
+def not_an_input(path: Path | str | None, option: str, inputs: dict[str, object], folder: bool = False) -> None:
+    """CliError when the output ``path`` is one of the command's inputs: ``inputs`` maps what an input is
+    ("recording", "parameter file") to its path, None or a list of paths. Writing the output would replace
+    the input the work reads (``otbot import --out bag.mcap bag.mcap``: "--out bag.mcap: is the bag itself").
+    folder: ``path`` is a folder output that replaces an existing folder (``export --ros2``): an input inside
+    it is refused too."""
+    if path is None:
+        return
+    for what, given in inputs.items():
+        for q in given if isinstance(given, (list, tuple)) else [given]:
+            if q is None:
+                continue
+            if same_file(path, q):
+                raise CliError(f"{option} {path}: is the {what} itself")
+            if folder and Path(path).is_dir() and _inside(q, path):
+                raise CliError(f"{option} {path}: holds the {what} {q}; replacing the folder would remove it")
+
+
+def _inside(file: Path | str, folder: Path | str) -> bool:
+    try:
+        return Path(file).resolve().is_relative_to(Path(folder).resolve())
+    except (OSError, RuntimeError):
+        return False
+
+
+def output_file(path: Path | str | None, option: str, suffix: str | None = None,
+                inputs: dict[str, object] | None = None) -> Path | None:
     """Check an output file before the work starts (see the module's rule); None passes through.
 
-    suffix: required file ending (e.g. ".gif"), compared case-insensitively.
+    suffix: required file ending (e.g. ".gif"), compared case-insensitively. inputs: the command's input
+    files by what they are (``not_an_input``); the output must not be one of them.
     """
     if path is None:
         return None
     path = Path(path)
+    not_an_input(path, option, inputs or {})
     if suffix is not None and path.suffix.lower() != suffix:
         raise CliError(f"{option} {path}: the file name must end in {suffix}")
     if path.is_dir():
@@ -203,16 +250,40 @@ def writing(what: str) -> Iterator[None]:
 
 # --- input files ------------------------------------------------------------------------------------
 
+def truncation_notice(path, rec) -> str:
+    """One line saying that ``rec`` (read from ``path``) was cut short and what is left of it."""
+    n = len(rec)
+    end = (f"ends at t = {rec.t[-1]:g} s after {n} complete sample{'' if n == 1 else 's'}" if n
+           else "holds no complete sample")
+    return f"{path} is truncated (the writer stopped before closing it): it {end}"
+
+
+def complete_samples(path, rec, command: str, work: str, doing: str, minimum: int = 2) -> bool:
+    """Whether ``rec`` (read from ``path``) was cut short. When it was: CliError naming the file when fewer than
+    ``minimum`` complete samples are left ("X is truncated ...: nothing to {work}"), else a notice line on stderr
+    ("[{command}] notice: X is truncated ...; {doing} those")."""
+    if not rec.truncated:
+        return False
+    if len(rec) < minimum:
+        raise CliError(f"{truncation_notice(path, rec)}: nothing to {work}")
+    import sys
+
+    print(f"[{command}] notice: {truncation_notice(path, rec)}; {doing} those", file=sys.stderr, flush=True)
+    return True
+
+
 def distinct_files(paths, option: str) -> None:
     """CliError when two of ``paths`` hold the same bytes (a file named twice, a copy, a link): each
     input must count once. Unreadable files are skipped (their reader says what is wrong)."""
     import hashlib
 
+    from otbot_hw.input_files import open_input
+
     seen: dict[tuple[int, str], Path] = {}
     for p in paths:
         p = Path(p)
         try:
-            with open(p, "rb") as f:
+            with open_input(p) as f:
                 size = os.fstat(f.fileno()).st_size
                 digest = hashlib.file_digest(f, "sha256").hexdigest()
         except OSError:

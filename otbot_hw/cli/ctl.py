@@ -122,15 +122,17 @@ def _configured_socket(config: Path | None) -> Path | None:
     usual null is seen without a YAML parser, a set path read with PyYAML alone. Anything unusual
     goes to the full loader, whose errors name the key."""
     path = Path(config) if config is not None else Path(__file__).resolve().parents[2] / "config" / "robot.yaml"
+    from otbot_hw.input_files import open_input, read_text
+
     try:
-        if _null_socket_path(path.read_text(encoding="utf-8")):
+        if _null_socket_path(read_text(path, encoding="utf-8")):
             return None
     except (OSError, UnicodeError):
         pass
     import yaml
 
     try:
-        with open(path, "rb") as f:
+        with open_input(path) as f:
             data = yaml.load(f, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
         sock = (data.get("daemon") or {}).get("socket") or {}
         value = sock.get("path")

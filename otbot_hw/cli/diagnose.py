@@ -14,8 +14,7 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, progress
-from otbot_hw.cli.checks import output_folder
-from otbot_hw.cli.simulate import check_output_folder
+from otbot_hw.cli.checks import default_input, distinct_files, output_file, output_folder
 
 
 def register(sub) -> None:
@@ -127,12 +126,16 @@ def run(args: argparse.Namespace) -> dict:
     overlap = {str(p) for p in fitting} & {str(p) for p in held}
     if overlap:
         raise CliError(f"recording(s) both fitting and held-out: {sorted(overlap)}")
+    if not args.demo:
+        distinct_files(list(fitting) + list(held), "recording")
     params = load_params(args.params) if args.params else nominal()
     geometry = load_geometry(args.robot)
     if args.out is not None:
         if args.each:
             raise CliError("--out writes one model; it does not apply with --each")
-        check_output_folder(args.out, "--out")
+        output_file(args.out, "--out", inputs={"recording": list(fitting) + list(held), "parameter file":
+                                               default_input(args.params, "otbot.yaml"),
+                                               "hardware configuration": default_input(args.robot, "robot.yaml")})
     if not args.each and (args.workers is not None or args.scheduler):
         raise CliError("--workers and --scheduler apply only with --each")
     if args.each:
@@ -185,6 +188,13 @@ def run(args: argparse.Namespace) -> dict:
     return result
 
 
+def _percent(channel: dict | None) -> str:
+    """A channel's fit percentage with one decimal, "n/a" where there is none (a channel that does not move:
+    the locked fixture's wheels)."""
+    value = (channel or {}).get("fit_percent")
+    return "n/a" if value is None else f"{value:.1f}"
+
+
 def _print_summary(r: dict) -> None:
     out = sys.stdout
     print(r["verdict"], file=out)
@@ -192,8 +202,8 @@ def _print_summary(r: dict) -> None:
         b, a = r["fit_before"].get(key) or {}, r["fit_after"].get(key) or {}
         if not b:
             continue
-        print(f"{key} fit %:  " + "  ".join(f"{ch} {b[ch]['fit_percent']:.1f} -> {a[ch]['fit_percent']:.1f}"
-                                          for ch in b), file=out)
+        print(f"{key} fit %:  " + "  ".join(f"{ch} {_percent(b[ch])} -> {_percent(a.get(ch))}" for ch in b),
+              file=out)
     moved = {n: v for n, v in r["nominal_shift"].items() if v["shift"] != 0}
     if r["effects"] or r["ambiguous"]:
         print("nominal parameters moved: " + ", ".join(f"{n} {v['before']:.4g} -> {v['after']:.4g} {v['unit']}"

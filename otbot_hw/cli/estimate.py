@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag
-from otbot_hw.cli.checks import write_failure
+from otbot_hw.cli.checks import complete_samples, default_input, output_file, write_failure
 
 
 def register(sub) -> None:
@@ -48,10 +48,12 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.estimation.replay import initial_state, with_estimate
     from otbot_hw.model.effects import ExtendedModel
     from otbot_hw.recording import read_recording, write_recording
-    from otbot_hw.cli.simulate import check_output_folder
 
-    check_output_folder(args.out, "--out")
+    output_file(args.out, "--out", inputs={"recording": args.recording, "parameter file":
+                                           default_input(args.params, "otbot.yaml"),
+                                           "configuration file": default_input(args.config, "robot.yaml")})
     rec = read_recording(args.recording)
+    truncated = complete_samples(args.recording, rec, "estimate", "estimate", "estimating on")
     params = ExtendedModel.load(args.params).params
     config = EstimatorConfig.load(args.config)
     if args.prediction:
@@ -68,6 +70,7 @@ def run(args: argparse.Namespace) -> dict:
             nis_mean[kind] = float(ok.mean())
     result = {
         "recording": str(args.recording),
+        "truncated": truncated,
         "samples": len(rec),
         "duration_s": float(rec.t[-1] - rec.t[0]),
         "prediction": est.prediction,

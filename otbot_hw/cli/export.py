@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 
 from otbot_hw.cli import add_json_flag
-from otbot_hw.cli.checks import CliError, writing
+from otbot_hw.cli.checks import CliError, not_an_input, writing
 
 
 def register(sub) -> None:
@@ -30,6 +30,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.ros2.bag_export import check_output, export_recording
 
     check_output(args.ros2)
+    not_an_input(args.ros2, "--ros2", {"recording": args.recording}, folder=True)
     rec = read_recording(args.recording)
     if len(rec) == 0:
         raise CliError(f"{args.recording}: no complete sample" + (" (the file was cut short: truncated)"

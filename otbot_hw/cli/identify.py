@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
-from otbot_hw.cli.checks import distinct_files, number, output_file, output_folder, seed, writing
+from otbot_hw.cli.checks import (complete_samples, default_input, distinct_files, number, output_file,
+                                 output_folder, seed, truncation_notice, writing)  # noqa: F401  (truncation_notice: re-exported)
 
 STEP_HELP = ("wheel: I_a, b_w (robot on a stand, right wheel driven); pivot: I_p0, b_p (wheels locked, "
              "platform driven); chassis: m_c, I_c, x_B, y_B (unloaded robot on the floor); platform: "
@@ -86,12 +87,6 @@ def parse_guesses(items: list[str], step: str) -> dict[str, float]:
     return out
 
 
-def truncation_notice(path, rec) -> str:
-    """One line saying that ``rec`` (read from ``path``) was cut short and what is left of it."""
-    end = f"ends at t = {rec.t[-1]:g} s after {len(rec)} complete samples" if len(rec) else "holds no complete sample"
-    return f"{path} is truncated (the writer stopped before closing it): it {end}"
-
-
 def run(args: argparse.Namespace) -> dict:
     from otbot_hw.identification.experiments import deviation_guess, simulate_experiment
     from otbot_hw.identification.model import OtbotModel
@@ -103,7 +98,8 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.recording import read_recording
 
     quiet = args.json
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"recording": args.recording,
+                                           "parameter file": default_input(args.params, "otbot.yaml")})
     output_folder(args.plot, "--plot")
     base = load_params(args.params)
     guess = parse_guesses(args.guess, args.step)
@@ -130,11 +126,8 @@ def run(args: argparse.Namespace) -> dict:
         recs = [read_recording(p) for p in args.recording]
         check_fixtures(args.step, recs, [str(p) for p in args.recording])
         for path, rec in zip(args.recording, recs):
-            if rec.truncated:
-                if len(rec) < 2:
-                    raise CliError(truncation_notice(path, rec) + ": nothing to fit")
+            if complete_samples(path, rec, "identify", "fit", "fitting"):
                 truncated.append(str(path))
-                progress(f"[identify] notice: {truncation_notice(path, rec)}; fitting those", True)
     progress(f"[identify] fitting step {args.step}", not quiet)
     res = identify_step(args.step, recs, base, guess=guess or None, global_start=not args.local_only,
                         truth=truth, guess_first=bool(guess))

@@ -44,9 +44,7 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.ros2.bag_import import import_bag
     from otbot_hw.ros2.mapping import load_map
 
-    output_file(args.out, "--out")
-    if args.out.resolve() == args.bag.resolve():
-        raise CliError(f"--out {args.out}: is the bag itself")
+    output_file(args.out, "--out", inputs={"bag": args.bag, "map file": args.map})
     bag_map = load_map(args.map)
     res = import_bag(args.bag, bag_map, rate=args.rate, start=args.start, end=args.end,
                      allow_truncated=args.allow_truncated)

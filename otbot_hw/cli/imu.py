@@ -66,10 +66,11 @@ def register(sub) -> None:
 
 def run_parse(args: argparse.Namespace) -> dict:
     from drivers.vectornav import ImuRecord, parse_bytes
+    from otbot_hw.input_files import read_bytes
 
     path: Path = args.file
     try:
-        data = path.read_bytes()
+        data = read_bytes(path)
     except IsADirectoryError:
         raise CliError(f"{path}: is a directory, expected a captured byte stream") from None
     except OSError as exc:

@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
-from otbot_hw.cli.checks import count, duration, non_negative, number, output_file, writing
+from otbot_hw.cli.checks import count, default_input, duration, non_negative, number, output_file, writing
 
 
 def register(sub) -> None:
@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.motors import load_motor_limits
     from otbot_hw.model.well_posed import load_params
 
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"parameter file": default_input(args.params, "otbot.yaml"),
+                                           "hardware configuration": default_input(args.robot, "robot.yaml")})
     params = load_params(args.params)
     limits = load_motor_limits(args.robot)
     base = crowded_corridor_problem(params, limits, args.intervals)

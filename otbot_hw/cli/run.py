@@ -16,7 +16,7 @@ import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import duration, output_file, output_folder, sample_count, write_failure
+from otbot_hw.cli.checks import default_input, duration, output_file, output_folder, sample_count, write_failure
 
 
 def register(sub) -> None:
@@ -72,7 +72,8 @@ def run(args: argparse.Namespace) -> dict:
     from otbot_hw.runtime.supervisor import SafetyConfig
 
     quiet = args.json
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"plant parameter file": default_input(args.plant_params, "otbot.yaml"),
+                                           "hardware configuration": default_input(args.config, "robot.yaml")})
     output_folder(args.plot, "--plot")
     tau = parse_vector(args.torques, 3, "--torques")
     if args.plant_params is not None and args.bus != "sim":

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector
-from otbot_hw.cli.checks import duration, output_file, output_folder, rate, sample_count, seed, writing
+from otbot_hw.cli.checks import (default_input, duration, output_file, output_folder, rate, sample_count, seed,
+                                 writing)
 
 
 def register(sub) -> None:
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> dict:
 
     torques = parse_vector(args.torques, 3, "--torques")
     n = sample_count(args.duration, args.rate)
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs={"parameter file": default_input(args.params, "otbot.yaml")})
     output_folder(args.plot, "--plot")
     model = ExtendedModel.load(args.params)
     params = model.params

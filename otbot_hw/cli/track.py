@@ -11,7 +11,7 @@ from pathlib import Path
 
 from otbot_hw.cli import CliError, add_json_flag, checks, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import output_file, output_folder, write_failure
+from otbot_hw.cli.checks import default_input, output_file, output_folder, write_failure
 
 _TIMES = "Settle times: seconds until the position and velocity errors stay below 2 % of the event's peak"
 
@@ -175,9 +175,12 @@ def run(args: argparse.Namespace) -> dict:
         raise CliError("--fixes feeds the EKF: use --feedback ekf")
     if args.scenario not in SCENARIOS and not Path(args.scenario).exists():
         raise CliError(f"unknown scenario {args.scenario!r}: use {', '.join(SCENARIOS)} or an existing CSV file")
-    output_file(args.animate, "--animate", suffix=".gif")
+    inputs = {"trajectory": None if args.scenario in SCENARIOS else args.scenario, "parameter file":
+              default_input(args.params, "otbot.yaml"), "plant parameter file": args.plant_params,
+              "hardware configuration": default_input(args.config, "robot.yaml")}
+    output_file(args.animate, "--animate", suffix=".gif", inputs=inputs)
     output_folder(args.plot, "--plot")
-    output_file(args.out, "--out")
+    output_file(args.out, "--out", inputs=inputs)
     tstab = parse_tstab(args.tstab)
     adapt = None
     if args.adapt == "payload":

@@ -78,13 +78,17 @@ def _check_samples(t, P, PD, source):
 
 def csv_table(path, text: str, required: Sequence[str], error: type[Exception] = TrajectoryError):
     """(header, data rows) of a CSV text with a header row; lines starting with ``#`` are comments.
-    ``error`` (naming ``path``) when it is empty or lacks a ``required`` column. A leading byte-order
-    mark (what spreadsheets write by default) is dropped."""
+    ``error`` (naming ``path``) when it is empty, lacks a ``required`` column or names a column twice (which
+    of the two would be meant?). A leading byte-order mark (what spreadsheets write by default) is dropped."""
     text = text.removeprefix("\ufeff")
     rows = list(csv.reader(line for line in text.splitlines() if line.strip() and not line.startswith("#")))
     if not rows:
         raise error(f"{path}: empty file (expected a header with columns {', '.join(required)})")
     header = [h.strip() for h in rows[0]]
+    for j, name in enumerate(header):
+        if name and name in header[:j]:
+            raise error(f"{path}: column {name} is named twice in the header (columns {header.index(name) + 1} and "
+                        f"{j + 1}); each column once")
     missing = [c for c in required if c not in header]
     if missing:
         raise error(f"{path}: missing column(s) {', '.join(missing)} (header: {', '.join(header)})")
@@ -108,9 +112,11 @@ def csv_numbers(path, header: list[str], rows: list[list[str]], wanted: Sequence
 
 def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
     """Read a trajectory CSV (format in the module docstring); errors name the row and column."""
+    from otbot_hw.input_files import read_text
+
     path = Path(path)
     try:
-        text = path.read_text()
+        text = read_text(path)
     except OSError as exc:
         raise TrajectoryError(f"{path}: cannot read: {exc.strerror}") from None
     except UnicodeDecodeError:

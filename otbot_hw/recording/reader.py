@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from otbot_hw.input_files import open_input
 from otbot_hw.recording.format import (
     FORMAT_NAME, FORMAT_VERSION, MCAP_MAGIC, SAMPLE_TOPICS, TOPIC_COMMAND, TOPIC_ESTIMATE, TOPIC_EVENTS, TOPIC_IMU,
     TOPIC_JOINTS, TOPIC_PAYLOAD, TOPIC_REFERENCE, TOPIC_TRUTH, TOPICS, Recording, RecordingError)
@@ -39,7 +40,7 @@ def _records(path: Path) -> tuple[list, bool]:
     if path.is_dir():
         raise RecordingError(f"{path}: is a folder, expected an MCAP recording file")
     try:
-        with open(path, "rb") as f:
+        with open_input(path) as f:
             magic = f.read(len(MCAP_MAGIC))
             if not magic:
                 raise RecordingError(f"{path}: empty file, expected an MCAP recording")
@@ -69,8 +70,12 @@ def read_recording(path: str | Path) -> Recording:
     from mcap.records import Channel, Footer, Message, Metadata
 
     path = Path(path)
-    if not path.exists():
-        raise RecordingError(f"{path}: no such file")
+    try:
+        path.stat()
+    except FileNotFoundError:  # a dangling link too; a loop of links is said by the open
+        raise RecordingError(f"{path}: no such file") from None
+    except OSError:
+        pass
     records, truncated = _records(path)
     if not any(isinstance(r, Footer) for r in records):
         truncated = True

@@ -16,6 +16,7 @@ from typing import Any
 
 import yaml
 
+from otbot_hw.input_files import open_input, read_text
 from otbot_hw.recording import MCAP_MAGIC
 from otbot_hw.ros2 import BagError, rosbags
 from otbot_hw.ros2.writer import CUSTOM_KEY, TURNS_KEY
@@ -72,7 +73,7 @@ def _stream_mcap(path: Path) -> tuple[dict[str, Connection], dict[str, Any], lis
     conns: dict[str, Connection] = {}
     custom: dict[str, Any] = {}
     msgs: list = []
-    with open(path, "rb") as f:
+    with open_input(path) as f:
         try:
             for r in StreamReader(f, record_size_limit=256 * 2 ** 20).records:
                 if isinstance(r, Schema):
@@ -111,7 +112,7 @@ def open_bag(path: str | Path, allow_truncated: bool = False) -> OpenBag:
             raise BagError(f"{path}: folder without metadata.yaml: not a rosbag2 bag (a bag folder holds "
                            "metadata.yaml and its storage files; `ros2 bag reindex` rebuilds a lost one)")
         try:
-            meta_yaml = (yaml.safe_load(mfile.read_text()) or {}).get("rosbag2_bagfile_information") or {}
+            meta_yaml = (yaml.safe_load(read_text(mfile)) or {}).get("rosbag2_bagfile_information") or {}
         except (yaml.YAMLError, UnicodeDecodeError, AttributeError):
             raise BagError(f"{mfile}: not a rosbag2 metadata file (invalid YAML)") from None
         except OSError as exc:
@@ -131,8 +132,11 @@ def open_bag(path: str | Path, allow_truncated: bool = False) -> OpenBag:
     elif path.suffix.lower() == ".mcap":
         storage, custom, turns = "mcap", {}, {}
         mcap_files = [path]
-        with open(path, "rb") as f:
-            head = f.read(64)
+        try:
+            with open_input(path) as f:
+                head = f.read(64)
+        except OSError as exc:
+            raise BagError(f"{path}: cannot read: {exc.strerror or exc}") from None
         if not head.startswith(MCAP_MAGIC[:len(head)]) or len(head) < len(MCAP_MAGIC):
             raise BagError(f"{path}: not an MCAP file (it does not start with the MCAP magic bytes)")
         if b"otbot" in head and b"ros2" not in head:

@@ -71,10 +71,13 @@ def load_torque_sequence(path) -> tuple[np.ndarray, np.ndarray]:
         t, u = np.asarray(rec.t, float), np.asarray(rec.torque, float)
     else:
         from otbot_hw.control.sampled_trajectory import csv_numbers, csv_table
+        from otbot_hw.input_files import read_text
 
         try:
-            text = path.read_text()
-        except (OSError, UnicodeDecodeError) as exc:
+            text = read_text(path)
+        except OSError as exc:
+            raise TorqueSequenceError(f"{path}: cannot read a CSV text file: {exc.strerror or exc}") from None
+        except UnicodeDecodeError as exc:
             raise TorqueSequenceError(f"{path}: cannot read a CSV text file: {exc}") from None
         header, rows = csv_table(path, text, TORQUE_CSV_COLUMNS, TorqueSequenceError)
         arr = csv_numbers(path, header, rows, TORQUE_CSV_COLUMNS, TorqueSequenceError)
