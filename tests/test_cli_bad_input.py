@@ -204,6 +204,13 @@ BAD_INPUT = [
     ("identify", "chassis --recording {ok} {ok_copy}", "--recording {ok_copy}: has the same content as {ok}"),
     ("run", "--bus sim --duration 1 --inject bus-off@1e9", "--inject bus-off@1e9: 1e+09 s is outside the run (1 s"),
     ("estimate", "{ok} --out /dev/full", "cannot write /dev/full: No space left on device"),
+    # --- numbers that overflow: a one-line refusal, never an OverflowError or a 300-digit count
+    ("simulate", "--duration 1e308", "--duration 1e+308 s at 100 Hz gives inf samples; at most 10000000"),
+    ("simulate", "--rate 1e308 --duration 1", "gives 1e+308 samples; at most 10000000"),
+    ("simulate", "--duration 1e300", "gives 1e+302 samples; at most 10000000"),
+    ("run", "--bus sim --duration 1e308", "gives inf samples; at most 10000000"),
+    ("run", "--bus sim --duration 1 --rate 1e-320", "control period inf s cannot be written as 0x60C2"),
+    ("plant", "--rate 1e-320", "cannot be written as 0x60C2"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
     (None, "", "the following arguments are required: COMMAND"),    # --- import (ROS 2 bag -> recording), export (recording -> ROS 2 bag)
@@ -400,6 +407,30 @@ def test_sigint_to_the_parent_ends_sweep_workers_and_exits_130():
     assert elapsed < 1.0, f"took {elapsed:.2f} s to exit after SIGINT"
     assert err.strip().splitlines()[-1] == "otbot sweep: interrupted" and "Traceback" not in err
     assert _alive(kids) == []
+
+
+def test_sigint_stops_a_long_simulation_between_chunks():
+    """``simulate`` of 10^7 samples integrates in chunks with progress: SIGINT ends it at once (exit 130)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "simulate", "--duration", "100000"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    try:
+        lines = []
+        while not any("%" in line for line in lines):  # the integration is under way
+            lines.append(proc.stderr.readline())
+            assert lines[-1], f"no progress line: {lines}"
+        t0 = time.monotonic()
+        os.kill(proc.pid, signal.SIGINT)
+        proc.wait(timeout=30)
+        elapsed = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    err = "".join(lines) + proc.stderr.read()
+    assert lines[0].startswith("[simulate] integrating 10000000 intervals"), lines
+    assert proc.returncode == 130, err
+    assert elapsed < 1.5, f"took {elapsed:.2f} s to exit after SIGINT"
+    assert err.strip().splitlines()[-1] == "otbot simulate: interrupted" and "Traceback" not in err
 
 
 def test_interrupted_local_executor_terminates_running_items():

@@ -131,3 +131,13 @@ def test_installed_entry_point_runs(tmp_path):
     assert ok.returncode == 0 and len(json.loads(ok.stdout)["q"]) == 6
     bad = subprocess.run([*cmd, "simulate", "--torques", "1,2"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--torques needs 3" in bad.stderr
+
+
+def test_a_duration_that_is_not_whole_periods_is_said(otbot_cli):
+    """--duration 0.5 s at 3 Hz is 1.5 periods: the run lasts 2 periods, and a notice line says so."""
+    rc, out, err = otbot_cli(["simulate", "--rate", "3", "--duration", "0.5", "--json"])
+    assert rc == 0 and json.loads(out)["t_final"] == pytest.approx(2 / 3)
+    assert err == ("otbot simulate: note: --duration 0.5 s at 3 Hz is 1.5 periods; running 2 periods "
+                   "(0.666667 s)\n")
+    rc, out, err = otbot_cli(["simulate", "--rate", "100", "--duration", "0.5", "--json"])
+    assert rc == 0 and err == ""
