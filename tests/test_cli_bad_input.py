@@ -222,6 +222,12 @@ BAD_INPUT = [
     ("import", "{ok} --out {missing}/imported.mcap", "does not exist (otbot creates no parent folders)"),
     ("import", "{ok} --out {tmp}/imported.mcap --rate 0", "argument --rate: must be a finite number of Hz > 0"),
     ("import", "{ok} --out {tmp}/imported.mcap --map {binary_yaml}", "not a text file"),
+    ("import", "{bag} --out {tmp}/imported.mcap --rate 1e9", "--rate 1e+09 Hz over the bag's 0.2 s gives "
+                                                              "200000001 samples; at most 10000000"),
+    ("import", "{bag} --out {tmp}/imported.mcap --rate 1e10", "gives 2e+09 samples; at most 10000000"),
+    ("import", "{bag} --out {tmp}/imported.mcap --rate 1e-320", "the sample period 1/rate is not a finite number"),
+    ("import", "{bag} --out {tmp}/imported.mcap --end 1e308", "--end 1e+308 s: at most 9e+09 s after the first"),
+    ("import", "{bag} --out {tmp}/imported.mcap --start 1e308", "--start 1e+308 s: at most 9e+09 s"),
     ("export", "{missing}/run.mcap --ros2 {tmp}/bag", "run.mcap: no such file"),
     ("export", "{ok} --ros2 {ok}", "exists and is not a folder (a rosbag2 bag is a folder)"),
     ("export", "{ok} --ros2 {missing}/bag", "does not exist (otbot creates no parent folders)"),
@@ -255,6 +261,10 @@ def files(tmp_path_factory) -> dict[str, str]:
     with open(d / "huge.yaml", "wb") as f:  # sparse: 300 MB long, no disk used
         f.write(b"geometry:\n")
         f.truncate(300 * 1024 * 1024)
+    from otbot_hw.recording import read_recording
+    from otbot_hw.ros2.bag_export import export_recording
+
+    export_recording(read_recording(ok), d / "bag")  # a ROS 2 bag of 0.2 s at 100 Hz
     unreadable = d / "unreadable.mcap"
     unreadable.write_bytes(data)
     unreadable.chmod(0)
@@ -264,7 +274,7 @@ def files(tmp_path_factory) -> dict[str, str]:
             "cut_before_samples": str(d / "cut_before_samples.mcap"), "ok_copy": str(d / "ok_copy.mcap"),
             "long_csv": str(d / "long.csv"), "dup_yaml": str(d / "dup.yaml"), "dup_robot": str(d / "dup_robot.yaml"),
             "huge_yaml": str(d / "huge.yaml"), "singular_yaml": str(d / "singular.yaml"),
-            "overflow_yaml": str(d / "overflow.yaml")}
+            "overflow_yaml": str(d / "overflow.yaml"), "bag": str(d / "bag")}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:
