@@ -211,6 +211,12 @@ BAD_INPUT = [
     ("run", "--bus sim --duration 1e308", "gives inf samples; at most 10000000"),
     ("run", "--bus sim --duration 1 --rate 1e-320", "control period inf s cannot be written as 0x60C2"),
     ("plant", "--rate 1e-320", "cannot be written as 0x60C2"),
+    ("track", "corridor --sim --rate 1e308", "at 1e+308 Hz that is inf samples; at most 10000000"),
+    ("track", "corridor --sim --rate 1e300", "at 1e+300 Hz that is 3e+301 samples; at most 10000000"),
+    ("track", "{close_csv} --sim --no-robustness", "lines 2 and 3 are 1e-160 s apart (t = 0 s, 1e-160 s); rows must "
+                                                   "be at least 1e-06 s apart"),
+    ("track", "{denormal_csv} --sim --no-robustness", "lines 2 and 3 are 1e-320 s apart"),
+    ("track", "{far_csv} --sim --no-robustness", "line 3, column x: 1e+300 is beyond 1e+06"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
     (None, "", "the following arguments are required: COMMAND"),    # --- import (ROS 2 bag -> recording), export (recording -> ROS 2 bag)
@@ -224,7 +230,7 @@ BAD_INPUT = [
     ("import", "{ok} --out {tmp}/imported.mcap --map {binary_yaml}", "not a text file"),
     ("import", "{bag} --out {tmp}/imported.mcap --rate 1e9", "--rate 1e+09 Hz over the bag's 0.2 s gives "
                                                               "200000001 samples; at most 10000000"),
-    ("import", "{bag} --out {tmp}/imported.mcap --rate 1e10", "gives 2e+09 samples; at most 10000000"),
+    ("import", "{bag} --out {tmp}/imported.mcap --rate 1e10", "gives 2000000001 samples; at most 10000000"),
     ("import", "{bag} --out {tmp}/imported.mcap --rate 1e-320", "the sample period 1/rate is not a finite number"),
     ("import", "{bag} --out {tmp}/imported.mcap --end 1e308", "--end 1e+308 s: at most 9e+09 s after the first"),
     ("import", "{bag} --out {tmp}/imported.mcap --start 1e308", "--start 1e+308 s: at most 9e+09 s"),
@@ -250,6 +256,9 @@ def files(tmp_path_factory) -> dict[str, str]:
     (d / "folder").mkdir()
     (d / "ok_copy.mcap").write_bytes(data)
     (d / "long.csv").write_text("t,x,y,alpha\n0,0,0,0\n100000,0,0,0\n")
+    (d / "close.csv").write_text("t,x,y,alpha\n0,0,0,0\n1e-160,0.5,0,0\n")
+    (d / "denormal.csv").write_text("t,x,y,alpha\n0,0,0,0\n1e-320,0.5,0,0\n")
+    (d / "far.csv").write_text("t,x,y,alpha\n0,0,0,0\n1,1e300,0,0\n")
     params = (ROOT / "config" / "otbot.yaml").read_text().splitlines(keepends=True)
     i = next(k for k, line in enumerate(params) if line.strip().startswith("m_c:"))
     (d / "dup.yaml").write_text("".join(params[:i + 1] + [params[i].replace("109.14", "5")] + params[i + 1:]))
@@ -274,7 +283,8 @@ def files(tmp_path_factory) -> dict[str, str]:
             "cut_before_samples": str(d / "cut_before_samples.mcap"), "ok_copy": str(d / "ok_copy.mcap"),
             "long_csv": str(d / "long.csv"), "dup_yaml": str(d / "dup.yaml"), "dup_robot": str(d / "dup_robot.yaml"),
             "huge_yaml": str(d / "huge.yaml"), "singular_yaml": str(d / "singular.yaml"),
-            "overflow_yaml": str(d / "overflow.yaml"), "bag": str(d / "bag")}
+            "overflow_yaml": str(d / "overflow.yaml"), "bag": str(d / "bag"),
+            **{k: str(d / f"{k.removesuffix('_csv')}.csv") for k in ("close_csv", "denormal_csv", "far_csv")}}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:

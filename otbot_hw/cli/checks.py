@@ -98,8 +98,8 @@ MAX_SAMPLES = 10_000_000
 
 
 def count_text(n: float) -> str:
-    """A count for a message: exact up to 10^9, else 3 significant digits (no 300-digit numbers)."""
-    return f"{int(n)}" if math.isfinite(n) and abs(n) < 1e9 else f"{n:.3g}"
+    """A count for a message: exact below 10^15, else 3 significant digits (no 300-digit numbers)."""
+    return f"{int(n)}" if math.isfinite(n) and abs(n) < 1e15 else f"{n:.3g}"
 
 
 def sample_count(duration_s: float, rate_hz: float, limit: int = MAX_SAMPLES) -> int:

@@ -147,7 +147,7 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
         if max_samples is not None and span_ns / period_ns + 1 > max_samples:
             k = span_ns / period_ns + 1
             raise BagError(f"--rate {rate_hz:g} Hz over the bag's {span_ns * 1e-9:.6g} s gives "
-                           f"{int(k) if k < 1e9 else format(k, '.3g')} samples; at most {max_samples}")
+                           f"{int(k) if k < 1e15 else format(k, '.3g')} samples; at most {max_samples}")
         half = period_ns / 2
         first = max(int(s.stamps[0]) for s in required) - half  # a topic's edge value serves half a period
         g1 = int(min(int(s.stamps[-1]) for s in required) + half)
