@@ -10,6 +10,7 @@ run the real ``python -m otbot_hw`` to show the console entry point behaves the 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -217,6 +218,10 @@ BAD_INPUT = [
                                                    "be at least 1e-06 s apart"),
     ("track", "{denormal_csv} --sim --no-robustness", "lines 2 and 3 are 1e-320 s apart"),
     ("track", "{far_csv} --sim --no-robustness", "line 3, column x: 1e+300 is beyond 1e+06"),
+    ("estimate", "{ok} --config {sigma_robot}", "estimator.encoder_rate_sigma must be at most 1e+06 rad/s (its "
+                                                "square enters the covariance), got 1e+160"),
+    ("estimate", "{ok} --config {window_robot}", "estimator.walk_adaptation_window must be 0 (off) or at least "
+                                                 "0.001 s"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
     (None, "", "the following arguments are required: COMMAND"),    # --- import (ROS 2 bag -> recording), export (recording -> ROS 2 bag)
@@ -267,6 +272,10 @@ def files(tmp_path_factory) -> dict[str, str]:
     robot = (ROOT / "config" / "robot.yaml").read_text().splitlines(keepends=True)
     i = next(k for k, line in enumerate(robot) if line.strip().startswith("channel:"))
     (d / "dup_robot.yaml").write_text("".join(robot[:i + 1] + [robot[i]] + robot[i + 1:]))
+    for name, key, value in (("sigma", "encoder_rate_sigma", "1e160"), ("window", "walk_adaptation_window", "1e-320")):
+        text, k = re.subn(rf"(\n  {key}: {{value: )[^,]+", rf"\g<1>{value}", "".join(robot))
+        assert k == 1, key
+        (d / f"{name}_robot.yaml").write_text(text)
     with open(d / "huge.yaml", "wb") as f:  # sparse: 300 MB long, no disk used
         f.write(b"geometry:\n")
         f.truncate(300 * 1024 * 1024)
@@ -284,6 +293,7 @@ def files(tmp_path_factory) -> dict[str, str]:
             "long_csv": str(d / "long.csv"), "dup_yaml": str(d / "dup.yaml"), "dup_robot": str(d / "dup_robot.yaml"),
             "huge_yaml": str(d / "huge.yaml"), "singular_yaml": str(d / "singular.yaml"),
             "overflow_yaml": str(d / "overflow.yaml"), "bag": str(d / "bag"),
+            "sigma_robot": str(d / "sigma_robot.yaml"), "window_robot": str(d / "window_robot.yaml"),
             **{k: str(d / f"{k.removesuffix('_csv')}.csv") for k in ("close_csv", "denormal_csv", "far_csv")}}
 
 
