@@ -222,6 +222,11 @@ BAD_INPUT = [
                                                 "square enters the covariance), got 1e+160"),
     ("estimate", "{ok} --config {window_robot}", "estimator.walk_adaptation_window must be 0 (off) or at least "
                                                  "0.001 s"),
+    ("simulate", "--torques 1e308,0,0 --duration 0.1", "the simulation diverged: the state is not finite from "
+                                                       "t = 0.01 s (sample 1)"),
+    ("plan", "--out {tmp}/p.csv --intervals 8 --goal 1e308,0,0", "the goal is 1e+308 m from the start: at the largest "
+                                                                 "pivot speed 1 m/s (--max-speed) that takes at least"),
+    ("plan", "--out {tmp}/p.csv --intervals 8 --duration 1e-320", "more than the fixed --duration of 9.99989e-321 s"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
     (None, "", "the following arguments are required: COMMAND"),    # --- import (ROS 2 bag -> recording), export (recording -> ROS 2 bag)
@@ -377,6 +382,7 @@ def otbot(*args: str, **kw) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("argv, expected", [
     ("simulate --torques 1e9,0,0 --duration 0.1 --json", "the simulation diverged"),
+    ("simulate --torques 1e308,0,0 --duration 0.1", "the simulation diverged"),  # no numpy warning lines before it
     ("plan --out {missing}/p.csv", "folder {missing} does not exist"),
     ("imu parse {missing}/capture.bin", "cannot read: No such file or directory"),
     ("run --no-such-option", "usage: otbot run"),
