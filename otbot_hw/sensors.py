@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from otbot_hw.interrupts import deferred_sigint
 from otbot_hw.model.constants import GRAVITY  # noqa: F401  (m/s^2; the IMU's z reading, re-exported)
 from otbot_hw.model.effect_catalog import effect_vector
 from otbot_hw.model.effect_physics import ext_sample_accelerations
@@ -111,9 +112,13 @@ def measure(x: np.ndarray, u: np.ndarray, f: np.ndarray, params: OtbotParams, no
     x, u, f = (np.ascontiguousarray(a, dtype=float) for a in (x, u, f))
     prm, code = params.as_array(), fixture_code(fixture)
     # in blocks of rows (each row's readings are its own): Ctrl-C is honoured between the compiled calls
-    parts = [sensor_samples(x[a:a + MEASURE_BLOCK], np.zeros((len(x[a:a + MEASURE_BLOCK]), 2)), u[a:a + MEASURE_BLOCK],
-                            f[a:a + MEASURE_BLOCK], u[a:a + MEASURE_BLOCK], f[a:a + MEASURE_BLOCK], None, None, _PAPER,
-                            prm, code) for a in range(0, max(n, 1), MEASURE_BLOCK)]
+    parts = []
+    with deferred_sigint() as pending:  # Ctrl-C: KeyboardInterrupt after the block, not inside numba
+        for a in range(0, max(n, 1), MEASURE_BLOCK):
+            b = a + MEASURE_BLOCK
+            parts.append(sensor_samples(x[a:b], np.zeros((len(x[a:b]), 2)), u[a:b], f[a:b], u[a:b], f[a:b], None, None,
+                                        _PAPER, prm, code))
+            pending.check()
     phi, phid, acc, gyro = (parts[0][i] if len(parts) == 1 else np.concatenate([p[i] for p in parts])
                             for i in (0, 1, 2, 4))
     phi = quantize(phi, noise.counts_per_rev)

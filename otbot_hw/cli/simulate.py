@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 import numpy as np
@@ -74,8 +75,16 @@ def write_outputs(result: dict, rec, params, out: Path | None, plot: Path | None
     from otbot_hw.recording import write_recording
 
     with writing("output"):
-        if out:
+        if out and out.exists() and not out.is_file():  # a device (/dev/null): written as it is, never replaced
             write_recording(out, rec, progress=progress)
+        elif out:  # written beside, renamed when complete: an interrupted write leaves no truncated recording
+            tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+            try:
+                write_recording(tmp, rec, progress=progress)
+                os.replace(tmp, out)
+            finally:
+                if tmp.exists():
+                    tmp.unlink()
             result["recording"] = str(out)
         if plot:
             result["plots"] = write_plots(plot, rec, params, title)

@@ -24,6 +24,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from otbot_hw.interrupts import deferred_sigint
 from otbot_hw.model.dynamics import forward_dynamics
 from otbot_hw.model.effect_catalog import EFFECT_INDEX, N_EFFECT, effect_vector
 from otbot_hw.model.effect_physics import actuated_torque
@@ -186,11 +187,13 @@ def _chunked_rk4(x0, U, F, dt, substeps, prm, code, chunk, progress) -> np.ndarr
         return rk4_zoh(x0, U, F, dt, substeps, prm, code)
     X = np.empty((n + 1, 12))
     X[0] = x0
-    for k0 in range(0, n, max(1, int(chunk))):
-        k1 = min(n, k0 + max(1, int(chunk)))
-        rk4_zoh_into(X[k0].copy(), U[k0:k1], F[k0:k1], dt, substeps, prm, code, X[k0:k1 + 1])
-        if progress is not None:
-            progress(k1, n)
+    with deferred_sigint() as pending:  # Ctrl-C: KeyboardInterrupt after the chunk, not inside numba
+        for k0 in range(0, n, max(1, int(chunk))):
+            k1 = min(n, k0 + max(1, int(chunk)))
+            rk4_zoh_into(X[k0].copy(), U[k0:k1], F[k0:k1], dt, substeps, prm, code, X[k0:k1 + 1])
+            pending.check()
+            if progress is not None:
+                progress(k1, n)
     return X
 
 
