@@ -142,8 +142,8 @@ def run(args: argparse.Namespace) -> dict:
     # a diverged run's sensor readings overflow (numpy warning lines): check_finite says it in one line
     with np.errstate(over="ignore", invalid="ignore"):
         if model.active_effects():  # a diagnosed model: the paper's dynamics plus its effects
-            say(f"integrating {n} intervals (extended model, one call) and the sensor readings")
-            rec = extended_recording(model, U, dt, noise, seed=args.seed, fixture=args.fixture)
+            say(f"integrating {n} intervals (extended model), then the sensor readings")
+            rec = extended_recording(model, U, dt, noise, seed=args.seed, fixture=args.fixture, progress=say.chunk)
         else:
             say(f"integrating {n} intervals, then the sensor readings")
             rec = simulated_recording(params, U, dt, noise, seed=args.seed, fixture=args.fixture,

@@ -41,17 +41,19 @@ def simulated_recording(params: OtbotParams, torques: np.ndarray, dt: float, noi
 
 
 def extended_recording(model, torques: np.ndarray, dt: float, noise: NoiseModel | None = None,
-                       seed: int | None = 0, fixture: str = "floor", extra_metadata: dict | None = None) -> Recording:
+                       seed: int | None = 0, fixture: str = "floor", extra_metadata: dict | None = None,
+                       progress=None) -> Recording:
     """Like ``simulated_recording``, for the extended model ``model`` (``otbot_hw.model.effects.ExtendedModel``:
     the paper's parameters plus missing-physics effects); sensor effects are applied before the noise.
 
     Ground truth q holds the rolling angles of the wheels (equal to the wheel angles without a radius
-    asymmetry); the effects are written to the ``effects`` metadata entry.
+    asymmetry); the effects are written to the ``effects`` metadata entry. ``progress(done, N)``: as in
+    ``simulated_recording``.
     """
     from otbot_hw.model.sensor_model import sensor_outputs
 
     noise = noise or NoiseModel()
-    traj = simulate_extended(model.params, model.eff, torques, dt, fixture=fixture)
+    traj = simulate_extended(model.params, model.eff, torques, dt, fixture=fixture, progress=progress)
     s = sensor_outputs(traj, model.params, model.eff)
     rng = np.random.default_rng(seed)
     n = len(traj.t)

@@ -235,19 +235,38 @@ def check_effects(eff) -> np.ndarray:
 
 def simulate_extended(params: OtbotParams, eff: np.ndarray, torques: np.ndarray, dt: float,
                       x0: np.ndarray | None = None, fixture: str = "floor", tau0: np.ndarray | None = None,
-                      forces: np.ndarray | None = None, substeps: int | None = None) -> Trajectory:
+                      forces: np.ndarray | None = None, substeps: int | None = None, chunk: int = CHUNK,
+                      progress: Callable[[int, int], None] | None = None) -> Trajectory:
     """Simulate the extended model under commanded ``torques`` (N, 3) N m held for ``dt`` s.
 
     ``tau0``: delivered torque before t_0 (default 0: the drives start from rest), only
     matters with a current-loop lag. ``x0`` (12,) in rolling-angle coordinates (default rest).
     The accelerations and slip rates at the samples come from the integrator's first stage
     (``ext_rk4_zoh_samples``: one model evaluation per sample fewer than evaluating them again).
+    Without a current-loop lag the intervals run ``chunk`` per compiled call, ``progress(done, N)`` after
+    each, bit for bit the one call's numbers (with a lag, whose state is not an output, in one call).
     """
     U, F, x0 = check_inputs(torques, dt, forces, x0)
     eff = check_effects(eff)
     sub = substeps or default_substeps(dt, fixture)
     t0 = np.zeros(3) if tau0 is None else np.asarray(tau0, dtype=float)
-    X, TAU, S, QDD, SD = ext_rk4_zoh_samples(x0, t0, U, F, dt, sub, params.as_array(), eff, fixture_code(fixture))
+    n, prm, code = len(U), params.as_array(), fixture_code(fixture)
+    if (n <= chunk and progress is None) or eff[T_I_INDEX] > 0:
+        X, TAU, S, QDD, SD = ext_rk4_zoh_samples(x0, t0, U, F, dt, sub, prm, eff, code)
+    else:
+        X, TAU, S = np.empty((n + 1, 12)), np.empty((n + 1, 3)), np.zeros((n + 1, 2))
+        QDD, SD = np.empty((n + 1, 6)), np.empty((n + 1, 2))
+        X[0] = x0
+        step = max(1, int(chunk))
+        with deferred_sigint() as pending:  # Ctrl-C: KeyboardInterrupt after the chunk, not inside numba
+            for k0 in range(0, n, step):  # each chunk rewrites its first sample's row, as one call has it
+                k1 = min(n, k0 + step)
+                rows = slice(k0, k1 + 1)
+                ext_rk4_into(X[k0].copy(), t0, U[k0:k1], F[k0:k1], dt, sub, prm, eff, code, X[rows], TAU[rows],
+                             S[rows], QDD[rows], SD[rows])
+                pending.check()
+                if progress is not None:
+                    progress(k1, n)
     Uf, Ff = _held(U, F)
     return Trajectory(t=np.arange(len(X)) * dt, x=X, u=Uf, f=Ff, dt=dt, fixture=fixture, tau=TAU, slip=S, qdd=QDD,
                       slip_rate=SD)
