@@ -72,7 +72,10 @@ def no_torque_mode(bits: int) -> str:
 
 
 def interpolation_period(period: float) -> tuple[int, int]:
-    """0x60C2 (value, index) with value * 10^index = ``period`` s, value <= 255."""
+    """0x60C2 (value, index) with value * 10^index = ``period`` s, value <= 255 (ValueError otherwise,
+    also for a period that is not a finite number > 0, e.g. 1/rate of a denormal rate)."""
+    if not (math.isfinite(period) and 0 < period <= 1.0):
+        raise ValueError(f"control period {period:g} s cannot be written as 0x60C2 (value 1..255 x 10^-3..-6 s)")
     for index in range(-3, -7, -1):
         value = period / 10.0 ** index
         if abs(value - round(value)) < 1e-6 and 1 <= round(value) <= 255:

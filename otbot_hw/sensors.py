@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from otbot_hw.interrupts import deferred_sigint
 from otbot_hw.model.constants import GRAVITY  # noqa: F401  (m/s^2; the IMU's z reading, re-exported)
 from otbot_hw.model.effect_catalog import effect_vector
 from otbot_hw.model.effect_physics import ext_sample_accelerations
@@ -99,14 +100,27 @@ class SensorReadings:
     imu_gyro: np.ndarray
 
 
+#: Samples per compiled call of ``measure``'s sensor model (about 0.2 s each).
+MEASURE_BLOCK = 200_000
+
+
 def measure(x: np.ndarray, u: np.ndarray, f: np.ndarray, params: OtbotParams, noise: NoiseModel,
             rng: np.random.Generator | None = None, fixture: str = "floor") -> SensorReadings:
     """Sensor readings at each sample of a simulated run (states x, held torques u and forces f)."""
     rng = rng if rng is not None else np.random.default_rng(0)
     n = len(x)
     x, u, f = (np.ascontiguousarray(a, dtype=float) for a in (x, u, f))
-    phi, phid, acc, _, gyro = sensor_samples(x, np.zeros((n, 2)), u, f, u, f, None, None, _PAPER, params.as_array(),
-                                             fixture_code(fixture))
+    prm, code = params.as_array(), fixture_code(fixture)
+    # in blocks of rows (each row's readings are its own): Ctrl-C is honoured between the compiled calls
+    parts = []
+    with deferred_sigint() as pending:  # Ctrl-C: KeyboardInterrupt after the block, not inside numba
+        for a in range(0, max(n, 1), MEASURE_BLOCK):
+            b = a + MEASURE_BLOCK
+            parts.append(sensor_samples(x[a:b], np.zeros((len(x[a:b]), 2)), u[a:b], f[a:b], u[a:b], f[a:b], None, None,
+                                        _PAPER, prm, code))
+            pending.check()
+    phi, phid, acc, gyro = (parts[0][i] if len(parts) == 1 else np.concatenate([p[i] for p in parts])
+                            for i in (0, 1, 2, 4))
     phi = quantize(phi, noise.counts_per_rev)
     acc = acc + noise.accel * rng.standard_normal((n, 3))
     gyro = gyro + noise.gyro * rng.standard_normal((n, 3))

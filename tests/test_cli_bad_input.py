@@ -10,6 +10,7 @@ run the real ``python -m otbot_hw`` to show the console entry point behaves the 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -207,6 +208,28 @@ BAD_INPUT = [
     ("diagnose", "{ok} --holdout {ok_copy}", "recording {ok_copy}: has the same content as {ok}"),
     ("run", "--bus sim --duration 1 --inject bus-off@1e9", "--inject bus-off@1e9: 1e+09 s is outside the run (1 s"),
     ("estimate", "{ok} --out /dev/full", "cannot write /dev/full: No space left on device"),
+    # --- numbers that overflow: a one-line refusal, never an OverflowError or a 300-digit count
+    ("simulate", "--duration 1e308", "--duration 1e+308 s at 100 Hz gives inf samples; at most 10000000"),
+    ("simulate", "--rate 1e308 --duration 1", "gives 1e+308 samples; at most 10000000"),
+    ("simulate", "--duration 1e300", "gives 1e+302 samples; at most 10000000"),
+    ("run", "--bus sim --duration 1e308", "gives inf samples; at most 10000000"),
+    ("run", "--bus sim --duration 1 --rate 1e-320", "control period inf s cannot be written as 0x60C2"),
+    ("plant", "--rate 1e-320", "cannot be written as 0x60C2"),
+    ("track", "corridor --sim --rate 1e308", "at 1e+308 Hz that is inf samples; at most 10000000"),
+    ("track", "corridor --sim --rate 1e300", "at 1e+300 Hz that is 3e+301 samples; at most 10000000"),
+    ("track", "{close_csv} --sim --no-robustness", "lines 2 and 3 are 1e-160 s apart (t = 0 s, 1e-160 s); rows must "
+                                                   "be at least 1e-06 s apart"),
+    ("track", "{denormal_csv} --sim --no-robustness", "lines 2 and 3 are 1e-320 s apart"),
+    ("track", "{far_csv} --sim --no-robustness", "line 3, column x: 1e+300 is beyond 1e+06"),
+    ("estimate", "{ok} --config {sigma_robot}", "estimator.encoder_rate_sigma must be at most 1e+06 rad/s (its "
+                                                "square enters the covariance), got 1e+160"),
+    ("estimate", "{ok} --config {window_robot}", "estimator.walk_adaptation_window must be 0 (off) or at least "
+                                                 "0.001 s"),
+    ("simulate", "--torques 1e308,0,0 --duration 0.1", "the simulation diverged: the state is not finite from "
+                                                       "t = 0.01 s (sample 1)"),
+    ("plan", "--out {tmp}/p.csv --intervals 8 --goal 1e308,0,0", "the goal is 1e+308 m from the start: at the largest "
+                                                                 "pivot speed 1 m/s (--max-speed) that takes at least"),
+    ("plan", "--out {tmp}/p.csv --intervals 8 --duration 1e-320", "more than the fixed --duration of 9.99989e-321 s"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
     (None, "", "the following arguments are required: COMMAND"),    # --- import (ROS 2 bag -> recording), export (recording -> ROS 2 bag)
@@ -218,6 +241,12 @@ BAD_INPUT = [
     ("import", "{ok} --out {missing}/imported.mcap", "does not exist (otbot creates no parent folders)"),
     ("import", "{ok} --out {tmp}/imported.mcap --rate 0", "argument --rate: must be a finite number of Hz > 0"),
     ("import", "{ok} --out {tmp}/imported.mcap --map {binary_yaml}", "not a text file"),
+    ("import", "{bag} --out {tmp}/imported.mcap --rate 1e9", "--rate 1e+09 Hz over the bag's 0.2 s gives "
+                                                              "200000001 samples; at most 10000000"),
+    ("import", "{bag} --out {tmp}/imported.mcap --rate 1e10", "gives 2000000001 samples; at most 10000000"),
+    ("import", "{bag} --out {tmp}/imported.mcap --rate 1e-320", "the sample period 1/rate is not a finite number"),
+    ("import", "{bag} --out {tmp}/imported.mcap --end 1e308", "--end 1e+308 s: at most 9e+09 s after the first"),
+    ("import", "{bag} --out {tmp}/imported.mcap --start 1e308", "--start 1e+308 s: at most 9e+09 s"),
     ("export", "{missing}/run.mcap --ros2 {tmp}/bag", "run.mcap: no such file"),
     ("export", "{ok} --ros2 {ok}", "exists and is not a folder (a rosbag2 bag is a folder)"),
     ("export", "{ok} --ros2 {missing}/bag", "does not exist (otbot creates no parent folders)"),
@@ -269,6 +298,9 @@ def files(tmp_path_factory) -> dict[str, str]:
     (d / "ok_copy.mcap").write_bytes(data)
     (d / "dup_column.csv").write_text("t,x,y,alpha,x\n0,0,0,0,1\n2,0.5,0,0,1\n")
     (d / "long.csv").write_text("t,x,y,alpha\n0,0,0,0\n100000,0,0,0\n")
+    (d / "close.csv").write_text("t,x,y,alpha\n0,0,0,0\n1e-160,0.5,0,0\n")
+    (d / "denormal.csv").write_text("t,x,y,alpha\n0,0,0,0\n1e-320,0.5,0,0\n")
+    (d / "far.csv").write_text("t,x,y,alpha\n0,0,0,0\n1,1e300,0,0\n")
     params = (ROOT / "config" / "otbot.yaml").read_text().splitlines(keepends=True)
     i = next(k for k, line in enumerate(params) if line.strip().startswith("m_c:"))
     (d / "dup.yaml").write_text("".join(params[:i + 1] + [params[i].replace("109.14", "5")] + params[i + 1:]))
@@ -277,6 +309,10 @@ def files(tmp_path_factory) -> dict[str, str]:
     robot = (ROOT / "config" / "robot.yaml").read_text().splitlines(keepends=True)
     i = next(k for k, line in enumerate(robot) if line.strip().startswith("channel:"))
     (d / "dup_robot.yaml").write_text("".join(robot[:i + 1] + [robot[i]] + robot[i + 1:]))
+    for name, key, value in (("sigma", "encoder_rate_sigma", "1e160"), ("window", "walk_adaptation_window", "1e-320")):
+        text, k = re.subn(rf"(\n  {key}: {{value: )[^,]+", rf"\g<1>{value}", "".join(robot))
+        assert k == 1, key
+        (d / f"{name}_robot.yaml").write_text(text)
     with open(d / "huge.yaml", "wb") as f:  # sparse: 300 MB long, no disk used
         f.write(b"geometry:\n")
         f.truncate(300 * 1024 * 1024)
@@ -287,6 +323,10 @@ def files(tmp_path_factory) -> dict[str, str]:
     (d / "victim.csv").write_text("t,x,y,alpha\n0,0,0,0\n2,0.5,0,0\n")
     (d / "loop_a").symlink_to(d / "loop_b")
     (d / "loop_b").symlink_to(d / "loop_a")
+    from otbot_hw.recording import read_recording
+    from otbot_hw.ros2.bag_export import export_recording
+
+    export_recording(read_recording(ok), d / "bag")  # a ROS 2 bag of 0.2 s at 100 Hz
     unreadable = d / "unreadable.mcap"
     unreadable.write_bytes(data)
     unreadable.chmod(0)
@@ -299,7 +339,10 @@ def files(tmp_path_factory) -> dict[str, str]:
             "overflow_yaml": str(d / "overflow.yaml"), "fifo": str(d / "fifo.mcap"), "loop": str(d / "loop_a"),
             "victim": str(d / "victim.mcap"), "victim_yaml": str(d / "victim.yaml"),
             "victim_link": str(d / "victim_link.yaml"), "victim_csv": str(d / "victim.csv"),
-            "dup_column_csv": str(d / "dup_column.csv")}
+            "dup_column_csv": str(d / "dup_column.csv"),
+            "bag": str(d / "bag"),
+            "sigma_robot": str(d / "sigma_robot.yaml"), "window_robot": str(d / "window_robot.yaml"),
+            **{k: str(d / f"{k.removesuffix('_csv')}.csv") for k in ("close_csv", "denormal_csv", "far_csv")}}
 
 
 def assert_one_line_error(rc: int, out: str, err: str, expected: str) -> None:
@@ -384,6 +427,7 @@ def otbot(*args: str, **kw) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("argv, expected", [
     ("simulate --torques 1e9,0,0 --duration 0.1 --json", "the simulation diverged"),
+    ("simulate --torques 1e308,0,0 --duration 0.1", "the simulation diverged"),  # no numpy warning lines before it
     ("plan --out {missing}/p.csv", "folder {missing} does not exist"),
     ("imu parse {missing}/capture.bin", "cannot read: No such file or directory"),
     ("run --no-such-option", "usage: otbot run"),
@@ -444,6 +488,30 @@ def test_sigint_to_the_parent_ends_sweep_workers_and_exits_130():
     assert elapsed < 1.0, f"took {elapsed:.2f} s to exit after SIGINT"
     assert err.strip().splitlines()[-1] == "otbot sweep: interrupted" and "Traceback" not in err
     assert _alive(kids) == []
+
+
+def test_sigint_stops_a_long_simulation_between_chunks():
+    """``simulate`` of 10^7 samples integrates in chunks with progress: SIGINT ends it at once (exit 130)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "simulate", "--duration", "100000"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    try:
+        lines = []
+        while not any("%" in line for line in lines):  # the integration is under way
+            lines.append(proc.stderr.readline())
+            assert lines[-1], f"no progress line: {lines}"
+        t0 = time.monotonic()
+        os.kill(proc.pid, signal.SIGINT)
+        proc.wait(timeout=30)
+        elapsed = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    err = "".join(lines) + proc.stderr.read()
+    assert lines[0].startswith("[simulate] integrating 10000000 intervals"), lines
+    assert proc.returncode == 130, err
+    assert elapsed < 1.5, f"took {elapsed:.2f} s to exit after SIGINT"
+    assert err.strip().splitlines()[-1] == "otbot simulate: interrupted" and "Traceback" not in err
 
 
 def test_interrupted_local_executor_terminates_running_items():

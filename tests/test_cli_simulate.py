@@ -131,3 +131,28 @@ def test_installed_entry_point_runs(tmp_path):
     assert ok.returncode == 0 and len(json.loads(ok.stdout)["q"]) == 6
     bad = subprocess.run([*cmd, "simulate", "--torques", "1,2"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--torques needs 3" in bad.stderr
+
+
+def test_a_duration_that_is_not_whole_periods_is_said(otbot_cli):
+    """--duration 0.5 s at 3 Hz is 1.5 periods: the run lasts 2 periods, and a notice line says so."""
+    rc, out, err = otbot_cli(["simulate", "--rate", "3", "--duration", "0.5", "--json"])
+    assert rc == 0 and json.loads(out)["t_final"] == pytest.approx(2 / 3)
+    assert err == ("otbot simulate: note: --duration 0.5 s at 3 Hz is 1.5 periods; running 2 periods "
+                   "(0.666667 s)\n")
+    rc, out, err = otbot_cli(["simulate", "--rate", "100", "--duration", "0.5", "--json"])
+    assert rc == 0 and err == ""
+
+
+def test_an_interrupted_write_leaves_no_truncated_recording(otbot_cli, tmp_path, monkeypatch):
+    """The recording is written beside --out and renamed when complete: Ctrl-C while writing (minutes at
+    10^7 samples) leaves neither a truncated RUN.mcap nor the temporary file."""
+    import otbot_hw.recording as recording
+
+    def interrupted(path, rec, progress=None):
+        Path(path).write_bytes(b"\x89MCAP0\r\n partial")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(recording, "write_recording", interrupted)
+    rc, _, err = otbot_cli(["simulate", "--duration", "0.1", "--out", str(tmp_path / "run.mcap")])
+    assert rc == 130 and err.endswith("otbot simulate: interrupted\n")
+    assert list(tmp_path.iterdir()) == []

@@ -117,3 +117,19 @@ def test_missing_csv_file(tmp_path):
         load_csv(tmp_path / "nope.csv")
     with pytest.raises(TrajectoryError, match="strictly increasing"):
         SampledTrajectory(np.array([0.0, 0.0]), np.zeros((2, 3)))
+
+
+def test_samples_too_close_or_too_far_are_refused_without_warnings():
+    """Rows 1e-160 s apart gave a spline with infinite derivatives (scipy overflow warnings, then a
+    traceback in the simulator); a position of 1e300 m ran into a 300-digit tracking error."""
+    import warnings
+
+    from otbot_hw.control.sampled_trajectory import SampledTrajectory
+    from otbot_hw.control.trajectories import TrajectoryError
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(TrajectoryError, match="the interpolated trajectory is not finite"):
+            SampledTrajectory(np.array([0.0, 1e-160]), np.array([[0.0, 0, 0], [0.5, 0, 0]]))
+        with pytest.raises(TrajectoryError, match=r"row 2: position \[1e\+300, 0.0, 0.0\] beyond 1e\+06"):
+            SampledTrajectory(np.array([0.0, 1.0]), np.array([[0.0, 0, 0], [1e300, 0, 0]]))

@@ -119,3 +119,19 @@ def test_encoder_angles_quantize_to_whole_counts(counts):
     assert err.min() >= -1e-9 and err.max() < step  # floor: never above the true angle, within one count
     assert np.round(n[0]).tolist() == [0.0, -1.0, float(counts)]
     assert np.array_equal(s.joint_vel, x[:, 9:12])  # rates are not quantized
+
+
+def test_measure_in_blocks_gives_the_same_readings(monkeypatch):
+    """``measure`` evaluates the sensor model in blocks of rows (Ctrl-C between them): bit for bit the
+    readings of one block."""
+    import otbot_hw.sensors as sensors
+    from otbot_hw.params import nominal
+    from otbot_hw.simulation.simulator import simulate
+
+    rng = np.random.default_rng(5)
+    traj = simulate(nominal(), rng.uniform(-8, 8, (101, 3)), 0.01)
+    one = sensors.measure(traj.x, traj.u, traj.f, nominal(), sensors.NoiseModel.paper(), np.random.default_rng(1))
+    monkeypatch.setattr(sensors, "MEASURE_BLOCK", 7)
+    blocks = sensors.measure(traj.x, traj.u, traj.f, nominal(), sensors.NoiseModel.paper(), np.random.default_rng(1))
+    for name in ("joint_pos", "joint_vel", "imu_accel", "imu_gyro"):
+        assert np.array_equal(getattr(one, name), getattr(blocks, name)), name

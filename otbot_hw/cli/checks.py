@@ -98,16 +98,34 @@ def positive_float(name: str | None = None) -> Callable[[str], float]:
 MAX_SAMPLES = 10_000_000
 
 
+def count_text(n: float) -> str:
+    """A count for a message: exact below 10^15, else 3 significant digits (no 300-digit numbers)."""
+    return f"{int(n)}" if math.isfinite(n) and abs(n) < 1e15 else f"{n:.3g}"
+
+
 def sample_count(duration_s: float, rate_hz: float, limit: int = MAX_SAMPLES) -> int:
-    """Number of control/sample periods in ``duration_s`` at ``rate_hz``; CliError when there is none
-    or more than ``limit``."""
-    n = int(round(duration_s * rate_hz))
+    """Number of control/sample periods in ``duration_s`` at ``rate_hz`` (the nearest whole number);
+    CliError when there is none or more than ``limit`` (also when the product overflows)."""
+    product = duration_s * rate_hz
+    if not product <= limit + 0.5:  # inf, or beyond what int(round()) should see
+        raise CliError(f"--duration {duration_s:g} s at {rate_hz:g} Hz gives {count_text(product)} samples; "
+                       f"at most {limit}")
+    n = int(round(product))
     if n < 1:
         raise CliError(f"--duration {duration_s:g} s at {rate_hz:g} Hz is shorter than one period "
                        f"({1 / rate_hz:g} s)")
     if n > limit:
         raise CliError(f"--duration {duration_s:g} s at {rate_hz:g} Hz gives {n} samples; at most {limit}")
     return n
+
+
+def rounding_notice(duration_s: float, rate_hz: float, n: int, command: str) -> str | None:
+    """The notice when ``n`` periods (``sample_count``) do not last ``duration_s``: e.g. "otbot simulate:
+    note: --duration 0.5 s at 3 Hz is 1.5 periods; running 2 periods (0.667 s)"; None when they do."""
+    if abs(n - duration_s * rate_hz) <= 1e-9 * n:
+        return None
+    return (f"otbot {command}: note: --duration {duration_s:g} s at {rate_hz:g} Hz is {duration_s * rate_hz:.6g} "
+            f"periods; running {n} period{'s' if n != 1 else ''} ({n / rate_hz:.6g} s)")
 
 
 def bus_config(config_path: Path | None, rate_hz: float | None = None):

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 
 from otbot_hw.cli import add_json_flag
-from otbot_hw.cli.checks import CliError, duration, non_negative, output_file, rate, writing
+from otbot_hw.cli.checks import MAX_SAMPLES, CliError, duration, non_negative, output_file, rate, writing
 
 
 def register(sub) -> None:
@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> dict:
     output_file(args.out, "--out", inputs={"bag": args.bag, "map file": args.map})
     bag_map = load_map(args.map)
     res = import_bag(args.bag, bag_map, rate=args.rate, start=args.start, end=args.end,
-                     allow_truncated=args.allow_truncated)
+                     allow_truncated=args.allow_truncated, max_samples=MAX_SAMPLES)
     tmp = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}")
     with writing("--out"):
         try:

@@ -16,7 +16,8 @@ import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
 from otbot_hw.cli.backend_args import add_bus_options, bus_config, noise_model
-from otbot_hw.cli.checks import default_input, duration, output_file, output_folder, sample_count, write_failure
+from otbot_hw.cli.checks import (default_input, duration, output_file, output_folder, rounding_notice, sample_count,
+                                write_failure)
 
 
 def register(sub) -> None:
@@ -81,6 +82,8 @@ def run(args: argparse.Namespace) -> dict:
                        "that is there")
     cfg, load = bus_config(args, args.rate, quiet, "run")
     n = sample_count(args.duration, cfg.bus.control_rate)
+    note = rounding_notice(args.duration, cfg.bus.control_rate, n, "run")
+    progress(note or "", note is not None)  # a duration that is not a whole number of periods: say so
     plant = ExtendedModel.load(args.plant_params) if args.plant_params is not None else None
     safety = SafetyConfig.load(args.config)
     inject = None

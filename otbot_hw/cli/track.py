@@ -120,9 +120,10 @@ def check_sizes(name: str, duration: float, rate_hz: float) -> None:
     """CliError before any work when a trajectory of ``duration`` s is too long to check or run at ``rate_hz``."""
     from otbot_hw.control.feasibility import MAX_POINTS, feasibility_points
 
-    n = int(math.ceil(duration * rate_hz - 1e-9))
-    if not math.isfinite(duration) or n > checks.MAX_SAMPLES:
-        raise CliError(f"trajectory {name} lasts {duration:g} s: at {rate_hz:g} Hz that is {n} samples; at most "
+    n = duration * rate_hz  # inf when the product overflows
+    if not math.isfinite(duration) or not n - 1e-9 <= checks.MAX_SAMPLES:  # ceil(n - 1e-9) <= the limit
+        raise CliError(f"trajectory {name} lasts {duration:g} s: at {rate_hz:g} Hz that is "
+                       f"{checks.count_text(math.ceil(n - 1e-9) if math.isfinite(n) else n)} samples; at most "
                        f"{checks.MAX_SAMPLES} (lower --rate or shorten the trajectory)")
     pts = feasibility_points(duration)
     if pts > MAX_POINTS:

@@ -243,6 +243,19 @@ def _interrupt_flag():
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def check_reachable(prob: PlanningProblem) -> None:
+    """PlannerError when the goal is farther from the start than ``max_speed`` covers in the time the plan
+    may last (the fixed ``duration``, else ``t_max``): a goal 1e308 m away, or --duration 1e-320 s, made the
+    warm start's speed infinite ("speed must be > 0 m/s, got inf")."""
+    dist = math.hypot(prob.goal[0] - prob.start[0], prob.goal[1] - prob.start[1])
+    longest = prob.t_max if prob.duration is None else prob.duration
+    if dist > prob.max_speed * longest:
+        what = (f"the fixed --duration of {longest:g} s" if prob.duration is not None
+                else f"the longest plan, {longest:g} s")
+        raise PlannerError(f"the goal is {dist:.6g} m from the start: at the largest pivot speed "
+                           f"{prob.max_speed:g} m/s (--max-speed) that takes at least {dist / prob.max_speed:.6g} s, more than {what}")
+
+
 def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,
          max_iter: int = 500) -> PlanResult:
     """Solve the collocation problem with IPOPT; raises PlannerError when it does not converge."""
@@ -256,6 +269,7 @@ def plan(prob: PlanningProblem, progress: Callable[[str], None] | None = None,
         if prob.walls is not None and not (prob.walls[0] + prob.params.radius <= pt[1]
                                            <= prob.walls[1] - prob.params.radius):
             raise PlannerError(f"{name} y = {pt[1]:g} m puts the footprint outside the walls {prob.walls}")
+    check_reachable(prob)
     N = prob.intervals
     f = _symbolic_model(prob.params)
     z_guess, T_guess = _guess(prob, N)

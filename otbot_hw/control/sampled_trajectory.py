@@ -3,7 +3,8 @@ velocities are given, so p, p_dot and p_dd are the exact derivatives of one inte
 file (``load_csv`` / ``save_csv``; ``csv_table`` / ``csv_numbers`` also read the open-loop torque files).
 
 CSV format (``load_csv`` / ``save_csv``): a header row, comma separated, SI units.
-Required columns ``t`` (s, strictly increasing), ``x``, ``y`` (m), ``alpha`` (rad).
+Required columns ``t`` (s, strictly increasing, rows at least ``MIN_SPACING`` apart), ``x``, ``y`` (m),
+``alpha`` (rad), each within ``MAX_VALUE`` (so is every other column read).
 Optional ``x_dot``, ``y_dot``, ``alpha_dot`` (m/s, rad/s; all three or none) and
 ``tau_r``, ``tau_l``, ``tau_p`` (N m; the planner's open-loop torques, held from each
 sample to the next). Other columns are ignored. Times are shifted so the first row is t = 0.
@@ -25,6 +26,11 @@ from otbot_hw.params import finite_number
 REQUIRED_COLUMNS = ("t", "x", "y", "alpha")
 VELOCITY_COLUMNS = ("x_dot", "y_dot", "alpha_dot")
 TORQUE_COLUMNS = ("tau_r", "tau_l", "tau_p")
+#: Closest two samples may be (s): a microsecond, finer than any control period; closer rows gave a
+#: spline with infinite derivatives (x 0.5 m apart in 1e-160 s).
+MIN_SPACING = 1e-6
+#: Largest magnitude of a position (m), angle (rad), rate or torque in a trajectory: a million.
+MAX_VALUE = 1e6
 
 
 class SampledTrajectory(DesiredTrajectory):
@@ -48,12 +54,16 @@ class SampledTrajectory(DesiredTrajectory):
         self.PD_samples = None if PD is None else np.asarray(PD, dtype=float)
         self.torques = None if torques is None else np.asarray(torques, dtype=float)
         self.obstacles: list[tuple[float, float, float]] = []
-        if self.PD_samples is None:
-            self._spline = CubicSpline(self.t_samples, P, axis=0, bc_type="clamped")
-        else:
-            self._spline = CubicHermiteSpline(self.t_samples, P, self.PD_samples, axis=0)
-        self._d1 = self._spline.derivative(1)
-        self._d2 = self._spline.derivative(2)
+        with np.errstate(all="ignore"):  # an overflow is reported below, in one line
+            if self.PD_samples is None:
+                self._spline = CubicSpline(self.t_samples, P, axis=0, bc_type="clamped")
+            else:
+                self._spline = CubicHermiteSpline(self.t_samples, P, self.PD_samples, axis=0)
+            self._d1 = self._spline.derivative(1)
+            self._d2 = self._spline.derivative(2)
+        if not (np.isfinite(self._d1.c).all() and np.isfinite(self._d2.c).all()):
+            raise TrajectoryError(f"{source}: the interpolated trajectory is not finite (samples too close for "
+                                  "the distance between them)")
         self.end = float(self.t_samples[-1])
         self.duration = self.end + max(0.0, float(hold))
 
@@ -74,6 +84,9 @@ def _check_samples(t, P, PD, source):
         i = int(bad[0]) + 1
         raise TrajectoryError(f"{source}: time is not strictly increasing at row {i + 1} "
                               f"(t = {t[i]:g} s after {t[i - 1]:g} s)")
+    if not np.all(np.isfinite(P)) or np.abs(P).max() > MAX_VALUE:
+        i = int(np.argmax(~(np.abs(P) <= MAX_VALUE).all(axis=1)))
+        raise TrajectoryError(f"{source}: row {i + 1}: position {P[i].tolist()} beyond {MAX_VALUE:g} m (rad)")
 
 
 def csv_table(path, text: str, required: Sequence[str], error: type[Exception] = TrajectoryError):
@@ -150,6 +163,18 @@ def load_csv(path: str | Path, hold: float = 0.0) -> SampledTrajectory:
         i = int(bad[0]) + 1
         raise TrajectoryError(f"{path}: column t is not strictly increasing at line {i + 2} "
                               f"(t = {t[i]:g} s after {t[i - 1]:g} s)")
+    close = np.flatnonzero(np.diff(t) < MIN_SPACING)
+    if close.size:
+        i = int(close[0]) + 1
+        raise TrajectoryError(f"{path}: lines {i + 1} and {i + 2} are {t[i] - t[i - 1]:.3g} s apart (t = "
+                              f"{t[i - 1]:g} s, {t[i]:g} s); rows must be at least {MIN_SPACING:g} s apart")
+    big = np.abs(data) > MAX_VALUE
+    big[:, 0] = False  # times: the duration checks bound them
+    if big.any():
+        r, j = (int(v) for v in np.argwhere(big)[0])
+        name = (list(REQUIRED_COLUMNS) + vel + tq)[j]
+        raise TrajectoryError(f"{path}: line {r + 2}, column {name}: {data[r, j]:.3g} is beyond {MAX_VALUE:g} "
+                              "(m, rad, m/s, rad/s or N m); a trajectory stays within a million")
     PD = data[:, 4:7] if vel else None
     torques = data[:, 4 + len(vel):7 + len(vel)] if tq else None
     traj = SampledTrajectory(t, data[:, 1:4], PD, torques=torques, source=str(path), hold=hold)

@@ -107,7 +107,14 @@ class EstimatorConfig:
                     raise ParameterError(f"{SECTION}.{f.name} must be >= 0 ({UNITS[f.name]}), got {v}")
             elif not v > 0:
                 raise ParameterError(f"{SECTION}.{f.name} must be > 0 ({UNITS[f.name]}), got {v}")
+            if f.name in _NOISES and v > MAX_NOISE:
+                why = "beyond any joint motion" if f.name == "standstill_angle" else "its square enters the covariance"
+                raise ParameterError(f"{SECTION}.{f.name} must be at most {MAX_NOISE:g} {UNITS[f.name]} ({why}), "
+                                     f"got {v:g}")
             object.__setattr__(self, f.name, float(v))
+        if 0 < self.walk_adaptation_window < MIN_WINDOW:
+            raise ParameterError(f"{SECTION}.walk_adaptation_window must be 0 (off) or at least {MIN_WINDOW:g} s (one "
+                                 f"control period at 1 kHz), got {self.walk_adaptation_window:g}")
         if not self.gate_probability < 1:
             raise ParameterError(f"{SECTION}.gate_probability must be in (0, 1), got {self.gate_probability}")
 
@@ -160,5 +167,11 @@ UNITS = {
     "standstill_angle": "rad", "imu_timeout": "s",
     "walk_adaptation_window": "s", "walk_adaptation_decay": "s",
 }
+#: The sigmas, stds, walks, densities and the standstill angle: at most a million in their SI unit (1e160
+#: overflowed when squared), far above any sensor or model error.
+_NOISES = {name for name, unit in UNITS.items() if unit not in ("s", "1")}
+MAX_NOISE = 1e6
+#: Shortest walk_adaptation_window (s) that is not 0 (1e-320 overflowed dt / window).
+MIN_WINDOW = 1e-3
 _NONNEGATIVE = {"gyro_bias_walk", "accel_bias_walk", "angular_disturbance_walk", "walk_adaptation_window"}
 _WORDS = {"prediction", "encoder_quantization"}

@@ -188,25 +188,31 @@ def _check_shapes(rec: Recording) -> None:
         raise ValueError(f"recording: estimate_gyro_bias must have shape ({n},)")
 
 
-def write_recording(path: str | Path, rec: Recording) -> None:
-    """Write a whole ``Recording`` to ``path`` (ValueError if its arrays do not fit together)."""
+def write_recording(path: str | Path, rec: Recording, progress=None) -> None:
+    """Write a whole ``Recording`` to ``path`` (ValueError if its arrays do not fit together);
+    ``progress(done, n)`` is called every 100000 samples and at the end."""
     _check_shapes(rec)
     meta = dict(rec.metadata)
     for key in ("format", "format_version", "units", "frames"):
         meta.pop(key, None)
     with RecordingWriter(path, meta, topics=rec.channels(), flush_every=1000) as w:
-        write_samples_and_events(w, rec)
+        write_samples_and_events(w, rec, progress)
 
 
-def write_samples_and_events(writer, rec: "Recording") -> None:
+def write_samples_and_events(writer, rec: "Recording", progress=None) -> None:
     """Write ``rec``'s samples and events, in time order, through a streaming writer (``RecordingWriter``
     or any writer with the same ``write_sample``/``write_event``): each event after the sample it follows."""
     events = sorted(rec.events, key=lambda e: e["t"])
     j = 0
-    for k in range(len(rec)):
+    n = len(rec)
+    for k in range(n):
+        if progress is not None and k % 100_000 == 0 and k:
+            progress(k, n)
         writer.write_sample(rec.sample(k))
         while j < len(events) and (k + 1 == len(rec) or events[j]["t"] < rec.t[k + 1]):
             e = events[j]
             writer.write_event(e["t"], e["kind"], e["text"],
                                **{a: b for a, b in e.items() if a not in ("t", "kind", "text")})
             j += 1
+    if progress is not None:
+        progress(n, n)

@@ -52,11 +52,21 @@ class ImportResult:
     report: dict[str, Any]
 
 
+#: Largest --start/--end (s): an int64 nanosecond stamp spans 9.2e9 s.
+MAX_OFFSET = 9e9
+
+
 def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | None = None,
-               start: float | None = None, end: float | None = None, allow_truncated: bool = False) -> ImportResult:
+               start: float | None = None, end: float | None = None, allow_truncated: bool = False,
+               max_samples: int | None = None) -> ImportResult:
     """Read the bag at ``path`` into a project ``Recording`` (see the module doc). ``rate``: grid
     rate (Hz; default the joint-state rate); ``start``/``end``: the part to import (s after the
-    first joint state). Returns the recording and a report (method, errors, notices)."""
+    first joint state, at most ``MAX_OFFSET`` s); ``max_samples``: the most samples the grid may have
+    (BagError before anything is allocated). Returns the recording and a report (method, errors, notices)."""
+    for name, value in (("--start", start), ("--end", end)):
+        if value is not None and not (math.isfinite(value) and 0 <= value <= MAX_OFFSET):
+            raise BagError(f"{name} {value:g} s: at most {MAX_OFFSET:g} s after the first joint state (the "
+                           "nanosecond time stamps' range)")
     bm = bag_map or BagMap()
     bag = open_bag(path, allow_truncated)
     notices: list[str] = []
@@ -130,6 +140,14 @@ def import_bag(path: str | Path, bag_map: BagMap | None = None, rate: float | No
     else:
         rate_hz = float(rate) if rate is not None else nominal_rate(js_step)
         period_ns = 1e9 / rate_hz
+        span_ns = min(int(s.stamps[-1]) for s in required) - max(int(s.stamps[0]) for s in required)
+        if not math.isfinite(period_ns):  # 1/rate of a denormal rate
+            raise BagError(f"--rate {rate_hz:g} Hz: the sample period 1/rate is not a finite number of seconds; "
+                           f"fewer than 2 samples in the {span_ns * 1e-9:.6g} s the required topics share")
+        if max_samples is not None and span_ns / period_ns + 1 > max_samples:
+            k = span_ns / period_ns + 1
+            raise BagError(f"--rate {rate_hz:g} Hz over the bag's {span_ns * 1e-9:.6g} s gives "
+                           f"{int(k) if k < 1e15 else format(k, '.3g')} samples; at most {max_samples}")
         half = period_ns / 2
         first = max(int(s.stamps[0]) for s in required) - half  # a topic's edge value serves half a period
         g1 = int(min(int(s.stamps[-1]) for s in required) + half)

@@ -100,7 +100,8 @@ def ext_rk4_zoh_samples(x0, tau0, U, F, dt, substeps, prm, eff, fixture):
 
 @njit(cache=True, nogil=True)
 def ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, QDD, SD):
-    """The RK4 of ``ext_rk4_zoh`` writing into caller-owned X (N+1, 12), TAU (N+1, 3), S (N+1, 2); and
+    """The RK4 of ``ext_rk4_zoh`` writing into caller-owned X (N+1, 12), TAU (N+1, 3), S (N+1, 2) (S[0], the
+    slip angles at t_0, is read, not written: zero unless the caller continues a run); and
     into QDD, SD when they have N+1 rows (``otbot_hw.simulation.simulator.Stepper`` keeps its one-interval
     outputs)."""
     n = U.shape[0]
@@ -125,11 +126,9 @@ def ext_rk4_into(x0, tau0, U, F, dt, substeps, prm, eff, fixture, X, TAU, S, QDD
     t1, t2, t3, ta = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     for i in range(12):
         z[i] = x0[i]
-    z[12] = 0.0
-    z[13] = 0.0
+    z[12] = S[0, 0]  # the slip before t_0: 0 (ext_rk4_zoh*, the Stepper's step), a chunk's start in
+    z[13] = S[0, 1]  # simulator.simulate_extended (the sum goes on as in one call: the same numbers)
     X[0] = x0
-    S[0, 0] = 0.0
-    S[0, 1] = 0.0
     h = dt / substeps
     T = eff[T_I]
     for i in range(3):

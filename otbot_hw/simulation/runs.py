@@ -11,14 +11,16 @@ from otbot_hw.simulation.simulator import ForceSchedule, simulate, simulate_exte
 
 def simulated_recording(params: OtbotParams, torques: np.ndarray, dt: float, noise: NoiseModel | None = None,
                         seed: int | None = 0, fixture: str = "floor", forces: ForceSchedule | None = None,
-                        x0: np.ndarray | None = None, extra_metadata: dict | None = None) -> Recording:
+                        x0: np.ndarray | None = None, extra_metadata: dict | None = None,
+                        progress=None) -> Recording:
     """Simulate ``torques`` (N, 3) N m held for ``dt`` s each and record N+1 samples.
 
     Sample k is at t_k = k dt: the command u_k (the last command repeats at t_N),
-    encoder and IMU readings with ``noise`` (seeded by ``seed``) and ground truth.
+    encoder and IMU readings with ``noise`` (seeded by ``seed``) and ground truth. ``progress(done, N)``
+    is called after each chunk of the integration (``simulator.simulate``).
     """
     noise = noise or NoiseModel()
-    traj = simulate(params, torques, dt, x0=x0, forces=forces, fixture=fixture)
+    traj = simulate(params, torques, dt, x0=x0, forces=forces, fixture=fixture, progress=progress)
     rng = np.random.default_rng(seed)
     s = measure(traj.x, traj.u, traj.f, params, noise, rng, fixture)
     meta = {
@@ -39,17 +41,19 @@ def simulated_recording(params: OtbotParams, torques: np.ndarray, dt: float, noi
 
 
 def extended_recording(model, torques: np.ndarray, dt: float, noise: NoiseModel | None = None,
-                       seed: int | None = 0, fixture: str = "floor", extra_metadata: dict | None = None) -> Recording:
+                       seed: int | None = 0, fixture: str = "floor", extra_metadata: dict | None = None,
+                       progress=None) -> Recording:
     """Like ``simulated_recording``, for the extended model ``model`` (``otbot_hw.model.effects.ExtendedModel``:
     the paper's parameters plus missing-physics effects); sensor effects are applied before the noise.
 
     Ground truth q holds the rolling angles of the wheels (equal to the wheel angles without a radius
-    asymmetry); the effects are written to the ``effects`` metadata entry.
+    asymmetry); the effects are written to the ``effects`` metadata entry. ``progress(done, N)``: as in
+    ``simulated_recording``.
     """
     from otbot_hw.model.sensor_model import sensor_outputs
 
     noise = noise or NoiseModel()
-    traj = simulate_extended(model.params, model.eff, torques, dt, fixture=fixture)
+    traj = simulate_extended(model.params, model.eff, torques, dt, fixture=fixture, progress=progress)
     s = sensor_outputs(traj, model.params, model.eff)
     rng = np.random.default_rng(seed)
     n = len(traj.t)

@@ -19,22 +19,29 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from otbot_hw.interrupts import deferred_sigint
 from otbot_hw.model.dynamics import forward_dynamics
 from otbot_hw.model.effect_catalog import EFFECT_INDEX, N_EFFECT, effect_vector
 from otbot_hw.model.effect_physics import actuated_torque
 from otbot_hw.model.fixtures import fixture_code, held_chassis_accelerations
 from otbot_hw.model.sensor_model import WORK
 from otbot_hw.params import OtbotParams
-from otbot_hw.simulation.integrators import ext_rk4_into, ext_rk4_zoh_samples, rk4_zoh
+from otbot_hw.simulation.integrators import ext_rk4_into, ext_rk4_zoh_samples, rk4_zoh, rk4_zoh_into
 
 T_I_INDEX = EFFECT_INDEX["T_i"]
 
 MAX_STEP = 2.5e-3  # s, largest RK4 step of the fast path
+
+#: ZOH intervals per call of the compiled integrator in ``simulate`` (fast path): between calls Python
+#: runs again, so Ctrl-C is honoured and progress can be reported (about 0.3 s per call on the floor at
+#: 100 Hz). The intervals are independent given the state, so the chunks give the one-call result bit
+#: for bit (``tests/test_simulator.py``).
+CHUNK = 100_000
 
 #: Layout of ``Stepper._buf`` (float64): one interval's X (2, 12), TAU (2, 3), S (2, 2); the sensor
 #: readings (5, 3) and the sensor model's scratch (``WORK``) of ``StepperSensors``; the interval's
@@ -149,11 +156,13 @@ def check_inputs(U: np.ndarray, dt: float, F: np.ndarray | None, x0: np.ndarray 
 
 def simulate(params: OtbotParams, torques: np.ndarray, dt: float, x0: np.ndarray | None = None,
              forces: ForceSchedule | np.ndarray | None = None, fixture: str = "floor",
-             method: str = "fast", substeps: int | None = None) -> Trajectory:
+             method: str = "fast", substeps: int | None = None, chunk: int = CHUNK,
+             progress: Callable[[int, int], None] | None = None) -> Trajectory:
     """Simulate N = len(torques) ZOH intervals of ``dt`` seconds from ``x0`` (default rest at 0).
 
     ``torques`` (N, 3) N m; ``forces`` a ``ForceSchedule`` or an (N, 2) array of held
-    pivot forces (N, ground frame); ``fixture`` one of floor, stand, locked.
+    pivot forces (N, ground frame); ``fixture`` one of floor, stand, locked. The fast path integrates
+    ``chunk`` intervals per compiled call and calls ``progress(done, N)`` after each.
     """
     n = len(torques)
     t = np.arange(n + 1) * dt
@@ -161,13 +170,31 @@ def simulate(params: OtbotParams, torques: np.ndarray, dt: float, x0: np.ndarray
     U, F, x0 = check_inputs(torques, dt, F, x0)
     code = fixture_code(fixture)
     if method == "fast":
-        X = rk4_zoh(x0, U, F, dt, substeps or default_substeps(dt, fixture), params.as_array(), code)
+        X = _chunked_rk4(x0, U, F, dt, substeps or default_substeps(dt, fixture), params.as_array(), code, chunk,
+                         progress)
     elif method == "reference":
         X = _reference(params, U, F, dt, x0, fixture)
     else:
         raise ValueError(f"unknown method '{method}' (fast, reference)")
     Uf, Ff = _held(U, F)
     return Trajectory(t=t, x=X, u=Uf, f=Ff, dt=dt, fixture=fixture)
+
+
+def _chunked_rk4(x0, U, F, dt, substeps, prm, code, chunk, progress) -> np.ndarray:
+    """``rk4_zoh`` in calls of at most ``chunk`` intervals, each from the last one's final state."""
+    n = len(U)
+    if n <= chunk and progress is None:
+        return rk4_zoh(x0, U, F, dt, substeps, prm, code)
+    X = np.empty((n + 1, 12))
+    X[0] = x0
+    with deferred_sigint() as pending:  # Ctrl-C: KeyboardInterrupt after the chunk, not inside numba
+        for k0 in range(0, n, max(1, int(chunk))):
+            k1 = min(n, k0 + max(1, int(chunk)))
+            rk4_zoh_into(X[k0].copy(), U[k0:k1], F[k0:k1], dt, substeps, prm, code, X[k0:k1 + 1])
+            pending.check()
+            if progress is not None:
+                progress(k1, n)
+    return X
 
 
 def _reference(params: OtbotParams, U, F, dt, x0, fixture: str) -> np.ndarray:
@@ -208,19 +235,38 @@ def check_effects(eff) -> np.ndarray:
 
 def simulate_extended(params: OtbotParams, eff: np.ndarray, torques: np.ndarray, dt: float,
                       x0: np.ndarray | None = None, fixture: str = "floor", tau0: np.ndarray | None = None,
-                      forces: np.ndarray | None = None, substeps: int | None = None) -> Trajectory:
+                      forces: np.ndarray | None = None, substeps: int | None = None, chunk: int = CHUNK,
+                      progress: Callable[[int, int], None] | None = None) -> Trajectory:
     """Simulate the extended model under commanded ``torques`` (N, 3) N m held for ``dt`` s.
 
     ``tau0``: delivered torque before t_0 (default 0: the drives start from rest), only
     matters with a current-loop lag. ``x0`` (12,) in rolling-angle coordinates (default rest).
     The accelerations and slip rates at the samples come from the integrator's first stage
     (``ext_rk4_zoh_samples``: one model evaluation per sample fewer than evaluating them again).
+    Without a current-loop lag the intervals run ``chunk`` per compiled call, ``progress(done, N)`` after
+    each, bit for bit the one call's numbers (with a lag, whose state is not an output, in one call).
     """
     U, F, x0 = check_inputs(torques, dt, forces, x0)
     eff = check_effects(eff)
     sub = substeps or default_substeps(dt, fixture)
     t0 = np.zeros(3) if tau0 is None else np.asarray(tau0, dtype=float)
-    X, TAU, S, QDD, SD = ext_rk4_zoh_samples(x0, t0, U, F, dt, sub, params.as_array(), eff, fixture_code(fixture))
+    n, prm, code = len(U), params.as_array(), fixture_code(fixture)
+    if (n <= chunk and progress is None) or eff[T_I_INDEX] > 0:
+        X, TAU, S, QDD, SD = ext_rk4_zoh_samples(x0, t0, U, F, dt, sub, prm, eff, code)
+    else:
+        X, TAU, S = np.empty((n + 1, 12)), np.empty((n + 1, 3)), np.zeros((n + 1, 2))
+        QDD, SD = np.empty((n + 1, 6)), np.empty((n + 1, 2))
+        X[0] = x0
+        step = max(1, int(chunk))
+        with deferred_sigint() as pending:  # Ctrl-C: KeyboardInterrupt after the chunk, not inside numba
+            for k0 in range(0, n, step):  # each chunk rewrites its first sample's row, as one call has it
+                k1 = min(n, k0 + step)
+                rows = slice(k0, k1 + 1)
+                ext_rk4_into(X[k0].copy(), t0, U[k0:k1], F[k0:k1], dt, sub, prm, eff, code, X[rows], TAU[rows],
+                             S[rows], QDD[rows], SD[rows])
+                pending.check()
+                if progress is not None:
+                    progress(k1, n)
     Uf, Ff = _held(U, F)
     return Trajectory(t=np.arange(len(X)) * dt, x=X, u=Uf, f=Ff, dt=dt, fixture=fixture, tau=TAU, slip=S, qdd=QDD,
                       slip_rate=SD)
