@@ -151,6 +151,31 @@ def test_export_refuses_to_replace_the_bag_that_holds_its_recording(tmp_path, ot
 
 
 
+@pytest.mark.skipif(os.geteuid() != 0, reason="making a device node needs root")
+def test_an_output_that_is_a_device_is_written_as_it_is_never_replaced(tmp_path, otbot_cli):
+    """simulate and import write their recording beside --out and rename it over --out when complete; a
+    device (here a node equal to /dev/null, made in tmp_path) is written as it is: a rename as root would have
+    put a regular file in the device's place."""
+    import stat
+
+    from otbot_hw.recording import read_recording, write_recording
+    from otbot_hw.ros2.bag_export import export_recording
+    from otbot_hw.sensors import NoiseModel
+    from otbot_hw.simulation.runs import simulated_recording
+
+    null = tmp_path / "null"
+    os.mknod(null, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+    run, bag = tmp_path / "run.mcap", tmp_path / "bag"
+    write_recording(run, simulated_recording(nominal(), np.tile([2.0, 2.0, 0.0], (20, 1)), 0.01, NoiseModel.paper()))
+    export_recording(read_recording(run), bag)
+    for argv in (["simulate", "--duration", "0.1", "--out", str(null), "--json"],
+                 ["import", str(bag), "--out", str(null), "--json"]):
+        rc, out, err = otbot_cli(argv)
+        assert rc == 0, err
+        assert stat.S_ISCHR(os.stat(null).st_mode), argv          # still the device
+        assert not list(tmp_path.glob(".null.tmp-*"))             # nothing left beside it
+
+
 @pytest.mark.parametrize("argv, what", [
     ("simulate --duration 0.01 --out config/otbot.yaml", "is the parameter file itself"),
     ("identify chassis --sim --out config/otbot.yaml", "is the parameter file itself"),

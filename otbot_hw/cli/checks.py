@@ -266,6 +266,23 @@ def writing(what: str) -> Iterator[None]:
         raise CliError(f"{what}: cannot write{where}: {exc.strerror or exc}") from None
 
 
+def write_complete(out: Path, write: Callable[[Path], None]) -> None:
+    """``write(path)`` the output ``out`` so that an interrupted write leaves no truncated file: into a file
+    beside it, renamed over it when complete. An existing ``out`` that is not a regular file (a device such as
+    ``/dev/null``, a FIFO) is written as it is, never replaced (as root a rename would put a file in its place)."""
+    out = Path(out)
+    if out.exists() and not out.is_file():
+        write(out)
+        return
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    try:
+        write(tmp)
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
 # --- input files ------------------------------------------------------------------------------------
 
 def truncation_notice(path, rec) -> str:

@@ -2,11 +2,10 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from otbot_hw.cli import add_json_flag
-from otbot_hw.cli.checks import MAX_SAMPLES, CliError, duration, non_negative, output_file, rate, writing
+from otbot_hw.cli.checks import MAX_SAMPLES, CliError, duration, non_negative, output_file, rate, write_complete, writing
 
 
 def register(sub) -> None:
@@ -48,14 +47,8 @@ def run(args: argparse.Namespace) -> dict:
     bag_map = load_map(args.map)
     res = import_bag(args.bag, bag_map, rate=args.rate, start=args.start, end=args.end,
                      allow_truncated=args.allow_truncated, max_samples=MAX_SAMPLES)
-    tmp = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}")
-    with writing("--out"):
-        try:
-            write_recording(tmp, res.recording)
-            os.replace(tmp, args.out)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+    with writing("--out"):  # beside, renamed when complete; a device (/dev/null) written as it is
+        write_complete(args.out, lambda path: write_recording(path, res.recording))
     report = {**res.report, "out": str(args.out)}
     if not args.json:
         print_summary(report)

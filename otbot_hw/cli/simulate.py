@@ -2,14 +2,13 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 import numpy as np
 
 from otbot_hw.cli import CliError, add_json_flag, parse_vector, progress
 from otbot_hw.cli.checks import (default_input, duration, output_file, output_folder, rate, rounding_notice,
-                                 sample_count, seed, writing)
+                                 sample_count, seed, write_complete, writing)
 
 
 def register(sub) -> None:
@@ -75,17 +74,10 @@ def write_outputs(result: dict, rec, params, out: Path | None, plot: Path | None
     from otbot_hw.recording import write_recording
 
     with writing("output"):
-        if out and out.exists() and not out.is_file():  # a device (/dev/null): written as it is, never replaced
-            write_recording(out, rec, progress=progress)
-        elif out:  # written beside, renamed when complete: an interrupted write leaves no truncated recording
-            tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-            try:
-                write_recording(tmp, rec, progress=progress)
-                os.replace(tmp, out)
-            finally:
-                if tmp.exists():
-                    tmp.unlink()
-            result["recording"] = str(out)
+        if out:  # an interrupted write leaves no truncated recording; a device is written as it is
+            write_complete(out, lambda path: write_recording(path, rec, progress=progress))
+            if out.is_file():
+                result["recording"] = str(out)
         if plot:
             result["plots"] = write_plots(plot, rec, params, title)
 
