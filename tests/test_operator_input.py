@@ -323,6 +323,41 @@ def test_estimate_says_a_truncated_recording_is_truncated(tmp_path, otbot_cli):
 
 
 # -- plan: Ctrl-C is an interrupt ----------------------------------------------------------------------
+@pytest.mark.parametrize("chain, code", [
+    ("system_from_interrupt", 130),   # numba: "CPUDispatcher(...) returned a result with an exception set"
+    ("system_from_system_from_interrupt", 130),
+    ("system_alone", None),           # a real SystemError stays a traceback (a bug to see)
+    ("system_from_value", None),
+])
+def test_ctrl_c_inside_a_compiled_call_is_an_interruption(chain, code, monkeypatch, capsys):
+    """Ctrl-C while a numba call runs surfaces as SystemError caused by the KeyboardInterrupt (seen once in
+    15 interrupted ``diagnose --demo`` runs: exit 1 with a traceback); the entry point treats it as Ctrl-C."""
+    import otbot_hw.cli.simulate as sim_cli
+    from otbot_hw.cli import main
+
+    def run(args):
+        if chain == "system_alone":
+            raise SystemError("bad internal call")
+        inner = KeyboardInterrupt() if "interrupt" in chain else ValueError("x")
+        try:
+            raise inner
+        except BaseException as k:
+            if chain == "system_from_system_from_interrupt":
+                try:
+                    raise SystemError("inner") from k
+                except SystemError as s:
+                    raise SystemError("outer") from s
+            raise SystemError("CPUDispatcher(<f>) returned a result with an exception set") from k
+
+    monkeypatch.setattr(sim_cli, "run", run)
+    if code is None:
+        with pytest.raises(SystemError):
+            main(["simulate", "--duration", "0.01"])
+        return
+    assert main(["simulate", "--duration", "0.01"]) == 130
+    assert capsys.readouterr().err == "otbot simulate: interrupted\n"
+
+
 def test_plan_interrupted_inside_ipopt_exits_130(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-m", "otbot_hw", "plan", "--out", str(tmp_path / "p.csv"),

@@ -120,6 +120,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{prog}: output closed by the reader", file=sys.stderr)
         return 1
     except Exception as exc:  # the input errors, imported only when something failed
+        if _interrupted(exc):  # Ctrl-C inside a compiled call surfaces as SystemError caused by it
+            print(f"{prog}: interrupted", file=sys.stderr)
+            return 130
         if not isinstance(exc, CliError) and not isinstance(exc, input_errors()):
             raise
         print(f"{prog}: error: {one_line(exc)}", file=sys.stderr)
@@ -128,6 +131,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
     return 0
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is a ``SystemError`` raised because a ``KeyboardInterrupt`` was pending when a compiled
+    (numba) call returned ("... returned a result with an exception set": the interrupt is its cause)."""
+    seen = 0
+    while isinstance(exc, SystemError) and seen < 8:
+        cause = exc.__cause__ or exc.__context__
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        exc, seen = cause, seen + 1
+    return False
 
 
 def add_json_flag(p: argparse.ArgumentParser) -> None:
