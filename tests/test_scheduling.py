@@ -235,7 +235,10 @@ def test_a_loop_that_cannot_keep_its_period_still_leaves_its_core_to_the_operato
     loop = answered[-1]["loop"]
     assert answered[-1]["scheduling"]["operator_priority"] == 19
     assert answered[-1]["scheduling"]["operator_shares"] > 0              # the loop left them its core
-    assert loop["overruns"] > loop["cycles"] / 4, loop                    # the loop could not keep its period
+    # the loop could not keep its period: its median period is longer than the target (how much longer is
+    # the machine's: 0.51-0.7 ms against 0.4 seen; a count of overruns above 1.5 periods was a quarter of the
+    # cycles on one run and a sixth on another, under other load)
+    assert loop["period"]["p50"] > 1.1 * loop["period"]["target"] and loop["overruns"] > 0, loop
 
 
 class _Clock:
