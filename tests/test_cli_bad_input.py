@@ -229,7 +229,11 @@ BAD_INPUT = [
                                                        "t = 0.01 s (sample 1)"),
     ("plan", "--out {tmp}/p.csv --intervals 8 --goal 1e308,0,0", "the goal is 1e+308 m from the start: at the largest "
                                                                  "pivot speed 1 m/s (--max-speed) that takes at least"),
-    ("plan", "--out {tmp}/p.csv --intervals 8 --duration 1e-320", "more than the fixed --duration of 9.99989e-321 s"),
+    ("plan", "--out {tmp}/p.csv --intervals 8 --duration 1e-320", "--duration 9.99989e-321 s is outside the planner's "
+                                                                   "range [1, 60] s"),
+    ("plan", "--out {tmp}/p.csv --intervals 8 --duration 1e308", "--duration 1e+308 s is outside the planner's range"),
+    ("plan", "--out {tmp}/p.csv --intervals 8 --duration 60.001", "--duration 60.001 s is outside the planner's range"),
+    ("plan", "--out {tmp}/p.csv --intervals 8 --duration 2 --max-speed 0.1", "more than the fixed --duration of 2 s"),
     # --- the entry point itself
     (None, "no-such-command", "argument COMMAND: invalid choice: 'no-such-command'"),
     (None, "", "the following arguments are required: COMMAND"),    # --- import (ROS 2 bag -> recording), export (recording -> ROS 2 bag)

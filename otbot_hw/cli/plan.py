@@ -31,7 +31,7 @@ def register(sub) -> None:
     p.add_argument("--clearance", type=non_negative, default=0.05,
                    help="extra clearance from obstacles in m, >= 0 (default 0.05)")
     p.add_argument("--duration", type=duration, default=None,
-                   help="fixed duration in s (default: minimum time)")
+                   help="fixed duration in s, within the planner's [t_min, t_max] = [1, 60] s (default: minimum time)")
     p.add_argument("--intervals", type=count(4, 400), default=60, help="collocation intervals, 4..400 (default 60)")
     p.add_argument("--max-speed", type=number(above=0), default=1.0, help="largest pivot speed, m/s (default 1)")
     p.add_argument("--torque-margin", type=number(above=0, maximum=1), default=0.8,

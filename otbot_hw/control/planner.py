@@ -247,6 +247,9 @@ def check_reachable(prob: PlanningProblem) -> None:
     """PlannerError when the goal is farther from the start than ``max_speed`` covers in the time the plan
     may last (the fixed ``duration``, else ``t_max``): a goal 1e308 m away, or --duration 1e-320 s, made the
     warm start's speed infinite ("speed must be > 0 m/s, got inf")."""
+    if prob.duration is not None and not prob.t_min <= prob.duration <= prob.t_max:
+        raise PlannerError(f"--duration {prob.duration:g} s is outside the planner's range [{prob.t_min:g}, "
+                           f"{prob.t_max:g}] s (a minimum-time plan is searched there too)")
     dist = math.hypot(prob.goal[0] - prob.start[0], prob.goal[1] - prob.start[1])
     longest = prob.t_max if prob.duration is None else prob.duration
     if dist > prob.max_speed * longest:
