@@ -377,17 +377,16 @@ def main(argv=None) -> int:
         ap.error("--flame needs --profile FILE")
     if not (a.yardstick >= 0 and math.isfinite(a.yardstick)):
         ap.error(f"argument --yardstick: must be >= 0 s and finite, got {a.yardstick!r}")
-    if a.cpus:  # before any thread starts: every thread inherits it
-        os.sched_setaffinity(0, {int(c) for c in a.cpus.split(",")})
-    if a.fifo:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(a.fifo))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from machine_tail import place, tail
+
+    why = place(a.cpus, a.fifo)  # before any thread starts: every thread inherits it
+    if why:
+        ap.error(why)
     load0 = os.getloadavg()[0]
     print(f"{a.label}: {a.rate:g} Hz for {a.seconds:g} s (load average {load0:.1f}) ...", file=sys.stderr, flush=True)
     yard = None
     if a.yardstick > 0:  # the machine's tail for fixed work, placed as the daemon (same CPUs, same priority)
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from machine_tail import tail
-
         yard = tail(a.rate, a.yardstick, 3000)
     with tempfile.TemporaryDirectory(prefix="otbot-cycle-") as tmp:
         row = run(a.rate, a.seconds, Path(tmp), a.profile, a.cprofile, a.record_in_background, a.flame)
